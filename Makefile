@@ -1,0 +1,46 @@
+# The two set-up commands of the README:  make demo  and  make test.
+# Each creates .venv if missing, installs the project (building lidarscan_msgs into it), then runs.
+PYTHON ?= python3
+VENV   := .venv
+V      := $(abspath $(VENV))
+PY     := $(V)/bin/python
+STAMP  := $(VENV)/.installed
+
+# Children must not inherit the ROS wheels' bootstrap guard of another interpreter.
+unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
+
+.PHONY: install demo test bench evidence msgs clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml msgs/CMakeLists.txt msgs/package.xml $(wildcard msgs/msg/*.msg)
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test,viz,msgs-build]'
+	$(MAKE) msgs
+	touch $(STAMP)
+
+# Build the interface package into the venv with cmake + ninja (about 15 s).
+msgs:
+	rm -rf build/msgs
+	mkdir -p build
+	env -u LD_LIBRARY_PATH AMENT_PREFIX_PATH=$(V) CMAKE_PREFIX_PATH=$(V) \
+	  cmake -S msgs -B build/msgs -G Ninja -DCMAKE_INSTALL_PREFIX=$(V) \
+	  -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF -DPython3_EXECUTABLE=$(PY) >build/msgs.log 2>&1 \
+	  || (cat build/msgs.log; exit 1)
+	cmake --build build/msgs --target install >>build/msgs.log 2>&1 || (cat build/msgs.log; exit 1)
+
+demo: install
+	$(V)/bin/lidarscan demo
+
+test: install
+	$(PY) -m pytest -q tests
+
+bench: install
+	$(PY) bench/run_all.py
+
+evidence: install
+	$(PY) -m converters.evidence
+
+clean:
+	rm -rf build $(VENV)

@@ -1,0 +1,42 @@
+"""lidarscan: structured lidar scans (LidarScan + LidarInfo) as numpy, CDR and MCAP.
+
+Importing this package never imports rclpy. The public API:
+
+* build and view: :func:`make_scan`, :func:`make_info`, :func:`channel`, :func:`range_m`;
+* check: :func:`validate`, :func:`validate_info` (errors in :mod:`lidarscan.errors`);
+* bytes: :func:`encode`, :func:`decode`, :func:`decode_scan`, :func:`decode_info`;
+* geometry: :func:`make_projector` (direction/offset tables, destagger, pixel times).
+"""
+
+from lidarscan import errors
+from lidarscan.cdr import decode, decode_info, decode_scan, encode
+from lidarscan.geometry import Projector, make_projector
+from lidarscan.scan import (
+    channel,
+    channel_names,
+    make_info,
+    make_scan,
+    range_m,
+    validate,
+    validate_info,
+)
+from lidarscan.stamps import split_ns, to_ns
+
+__all__ = [
+    "errors",
+    "encode",
+    "decode",
+    "decode_scan",
+    "decode_info",
+    "make_scan",
+    "make_info",
+    "channel",
+    "channel_names",
+    "range_m",
+    "validate",
+    "validate_info",
+    "Projector",
+    "make_projector",
+    "to_ns",
+    "split_ns",
+]

@@ -1,0 +1,440 @@
+"""LidarScan <-> numpy: build scans, view channels without copying, validate scans and infos.
+
+Every function accepts rclpy messages (``lidarscan_msgs.msg``) and the dataclasses of
+:mod:`lidarscan.types` (what :func:`lidarscan.decode` returns) alike.
+"""
+
+from __future__ import annotations
+
+import array
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from lidarscan.datatypes import FLOAT32, FLOAT64, datatype_of, dtype_of
+from lidarscan.errors import (
+    ChannelLayoutError,
+    InfoMismatchError,
+    LinkageError,
+    UnknownChannelError,
+    ValidationError,
+)
+from lidarscan.stamps import split_ns, to_ns
+
+__all__ = [
+    "make_scan",
+    "make_info",
+    "channel",
+    "channel_names",
+    "data_view",
+    "range_m",
+    "validate",
+    "validate_info",
+    "RANGE_CHANNELS",
+]
+
+#: Channel names that hold a range (decoded by :func:`range_m`).
+RANGE_CHANNELS = ("range", "range2", "range3")
+
+_ALIGN = 8  # channel blocks start at multiples of 8 bytes inside ``data``
+
+
+def data_view(scan: Any) -> np.ndarray[Any, np.dtype[np.uint8]]:
+    """Read-only uint8 view of ``scan.data`` (never a copy; rclpy's buffer is writable)."""
+    data = scan.data
+    if isinstance(data, np.ndarray) and data.dtype == np.uint8 and data.ndim == 1:
+        if not data.flags.writeable:
+            return data
+        view = data.view()
+    else:
+        view = np.frombuffer(data, np.uint8)
+    view.flags.writeable = False
+    return view
+
+
+def channel_names(scan: Any) -> list[str]:
+    """Names of the scan's channels in descriptor order."""
+    return [c.name for c in scan.channels]
+
+
+def _find(scan: Any, name: str) -> Any:
+    for desc in scan.channels:
+        if desc.name == name:
+            return desc
+    raise UnknownChannelError("name", name, f"one of {channel_names(scan)}")
+
+
+def channel(scan: Any, name: str) -> np.ndarray[Any, Any]:
+    """Zero-copy, read-only view of one channel.
+
+    Args:
+        scan: a LidarScan (rclpy message or decoded dataclass).
+        name: channel name, e.g. ``"range"``.
+
+    Returns:
+        array of shape (height, width) when the channel's count is 1, else (height, width, count),
+        with the declared datatype and the scan's byte order, aliasing ``scan.data``.
+        Column order is the scan's (see ``scan.is_destaggered``).
+
+    Raises:
+        UnknownChannelError: no channel of that name.
+        ChannelLayoutError / UnknownDatatypeError: the descriptor does not fit ``data``.
+    """
+    desc = _find(scan, name)
+    dtype = dtype_of(desc.datatype, bool(scan.is_bigendian), field=f"channels[{name!r}].datatype")
+    height, width, count = int(scan.height), int(scan.width), int(desc.count)
+    if count < 1:
+        raise ChannelLayoutError(f"channels[{name!r}].count", count, "count >= 1")
+    data = data_view(scan)
+    n = height * width * count
+    end = int(desc.offset) + n * dtype.itemsize
+    if end > data.size:
+        raise ChannelLayoutError(f"channels[{name!r}].offset", int(desc.offset),
+                                 f"a block of {n * dtype.itemsize} bytes inside data "
+                                 f"({data.size} bytes)")
+    flat = np.frombuffer(data, dtype, n, int(desc.offset))
+    shape = (height, width) if count == 1 else (height, width, count)
+    return flat.reshape(shape)
+
+
+def range_m(scan: Any, info: Any = None, name: str = "range") -> np.ndarray[Any, Any]:
+    """A range channel as float32 metres with REP 117 meanings.
+
+    Float channels are returned as float32 (a view when already native float32). Integer channels
+    decode as ``raw * info.range_multiplier + info.range_offset`` with raw 0 -> +Inf (no return).
+
+    Returns:
+        (height, width) float32, metres along the beam, scan column order.
+
+    Raises:
+        InfoMismatchError: an integer range channel without an info whose multiplier is > 0.
+    """
+    raw = channel(scan, name)
+    if raw.ndim == 3:
+        raw = raw[..., 0]
+    if raw.dtype.kind == "f":
+        return raw if raw.dtype == np.dtype("=f4") else raw.astype(np.float32)
+    mult = float(info.range_multiplier) if info is not None else 0.0
+    if not mult > 0.0 or not np.isfinite(mult):
+        raise InfoMismatchError("range_multiplier", mult,
+                                f"> 0 to decode the integer channel {name!r} "
+                                "(pass the scan's LidarInfo)")
+    out = raw.astype(np.float64) * mult + float(info.range_offset)
+    out = out.astype(np.float32)
+    out[raw == 0] = np.inf
+    return out
+
+
+def _block(values: np.ndarray[Any, Any], name: str, height: int, width: int,
+           is_bigendian: bool) -> tuple[int, int, bytes]:
+    arr = np.asarray(values)
+    if arr.ndim not in (2, 3) or arr.shape[:2] != (height, width):
+        raise ValidationError(f"channels[{name!r}].shape", arr.shape,
+                              f"({height}, {width}) or ({height}, {width}, count) from the info")
+    count = 1 if arr.ndim == 2 else arr.shape[2]
+    if count < 1:
+        raise ValidationError(f"channels[{name!r}].shape", arr.shape, "count >= 1")
+    datatype = datatype_of(arr.dtype, field=f"channels[{name!r}].dtype")
+    target = dtype_of(datatype, is_bigendian)
+    raw = np.ascontiguousarray(arr, dtype=target).tobytes()
+    return datatype, count, raw
+
+
+def make_scan(info: Any, channels: Mapping[str, Any], stamp_ns: int, *,
+              frame_id: str | None = None, is_destaggered: bool = False,
+              column_time_offsets: Any = None, column_azimuth_angles: Any = None,
+              is_bigendian: bool = False, as_dataclass: bool = False) -> Any:
+    """Build a valid LidarScan from channel arrays.
+
+    Args:
+        info: the LidarInfo the scan belongs to (its height, width, header.stamp and frame_id).
+        channels: name -> array of shape (H, W) or (H, W, count) of int8..uint32, float32 or
+            float64. The canonical ``range`` is float32 metres (+Inf = no return). Blocks are laid
+            out in mapping order, each starting at a multiple of 8 bytes. The arrays are copied,
+            never modified.
+        stamp_ns: header.stamp in int ns: the time of measurement column 0.
+        frame_id: header.frame_id (default: the info's).
+        is_destaggered: whether the arrays are destaggered (see LidarScan.msg).
+        column_time_offsets: (W,) int ns of each measurement column relative to ``stamp_ns``.
+        column_azimuth_angles: (W,) measured azimuth per measurement column, radians.
+        is_bigendian: byte order of the channel blocks (little-endian by default).
+        as_dataclass: return a :class:`lidarscan.types.LidarScan` instead of the rclpy message
+            (no ROS libraries needed).
+
+    Returns:
+        ``lidarscan_msgs.msg.LidarScan`` (or the dataclass), with ``lidar_info_time`` equal to
+        ``info.header.stamp``.
+
+    Raises:
+        ValidationError: wrong shape, unsupported dtype, bad time/azimuth arrays.
+    """
+    height, width = int(info.height), int(info.width)
+    pieces: list[bytes] = []
+    descs: list[tuple[str, int, int, int]] = []
+    offset = 0
+    for name, values in channels.items():
+        if not isinstance(name, str) or not name:
+            raise ValidationError("channels", name, "non-empty str channel names")
+        datatype, count, raw = _block(values, name, height, width, is_bigendian)
+        pad = -offset % _ALIGN
+        if pad:
+            pieces.append(b"\x00" * pad)
+            offset += pad
+        descs.append((name, offset, datatype, count))
+        pieces.append(raw)
+        offset += len(raw)
+    data = b"".join(pieces)
+    times = _column_array(column_time_offsets, width, np.int64, "column_time_offsets")
+    azimuths = _column_array(column_azimuth_angles, width, np.float64, "column_azimuth_angles")
+    sec, nanosec = split_ns(stamp_ns)
+    info_stamp = info.header.stamp
+    if frame_id is None:
+        frame_id = info.header.frame_id
+    if as_dataclass:
+        from lidarscan import types
+        data_arr = np.frombuffer(data, np.uint8)
+        return types.LidarScan(
+            header=types.Header(types.Time(sec, nanosec), frame_id),
+            lidar_info_time=types.Time(int(info_stamp.sec), int(info_stamp.nanosec)),
+            height=height, width=width, is_bigendian=bool(is_bigendian),
+            is_destaggered=bool(is_destaggered),
+            column_time_offsets=_readonly(times), column_azimuth_angles=_readonly(azimuths),
+            channels=tuple(types.LidarChannel(*d) for d in descs), data=data_arr)
+    from builtin_interfaces.msg import Time
+    from lidarscan_msgs.msg import LidarChannel, LidarScan
+    from std_msgs.msg import Header
+    msg = LidarScan()
+    msg.header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+    msg.lidar_info_time = Time(sec=int(info_stamp.sec), nanosec=int(info_stamp.nanosec))
+    msg.height, msg.width = height, width
+    msg.is_bigendian, msg.is_destaggered = bool(is_bigendian), bool(is_destaggered)
+    # rosidl converts numpy arrays element by element: hand it array.array / bytes instead.
+    msg.column_time_offsets = array.array("q", times.tobytes())
+    msg.column_azimuth_angles = array.array("d", azimuths.tobytes())
+    msg.channels = [LidarChannel(name=n, offset=o, datatype=t, count=c) for n, o, t, c in descs]
+    msg.data = data
+    return msg
+
+
+def _readonly(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    arr.flags.writeable = False
+    return arr
+
+
+def _column_array(values: Any, width: int, dtype: Any, field: str) -> np.ndarray[Any, Any]:
+    if values is None:
+        return np.zeros(0, dtype)
+    arr = np.asarray(values)
+    if arr.size == 0:
+        return np.zeros(0, dtype)
+    if arr.shape != (width,):
+        raise ValidationError(f"{field}.shape", arr.shape, f"({width},) (one per column) or empty")
+    if np.dtype(dtype).kind == "i" and arr.dtype.kind not in "iu":
+        raise ValidationError(f"{field}.dtype", str(arr.dtype), "integer nanoseconds")
+    if np.dtype(dtype).kind == "f" and not np.all(np.isfinite(arr)):
+        raise ValidationError(field, arr[~np.isfinite(arr)][:3].tolist(), "finite angles")
+    return np.ascontiguousarray(arr, dtype=dtype)
+
+
+def make_info(*, stamp_ns: int, frame_id: str, vertical_angles: Any, horizontal_angles: Any,
+              as_dataclass: bool = False, **fields: Any) -> Any:
+    """Build a LidarInfo from arrays (H = len(vertical_angles), W = len(horizontal_angles)).
+
+    Args:
+        stamp_ns: header.stamp, the version key (int ns).
+        frame_id: header.frame_id, the frame the projected points are expressed in.
+        vertical_angles: (H,) radians, row 0 = highest beam.
+        horizontal_angles: (W,) radians, azimuth of each measurement column (REP 103, CCW).
+        as_dataclass: return :class:`lidarscan.types.LidarInfo` instead of the rclpy message.
+        **fields: any other LidarInfo field by name (arrays as numpy/sequences).
+
+    Raises:
+        ValidationError / InfoMismatchError: unknown field name or inconsistent arrays.
+    """
+    from lidarscan import types
+    known = {f.name for f in dataclasses.fields(types.LidarInfo)} - {"header"}
+    unknown = set(fields) - known
+    if unknown:
+        raise ValidationError("make_info", sorted(unknown), f"LidarInfo fields: {sorted(known)}")
+    sec, nanosec = split_ns(stamp_ns)
+    values: dict[str, Any] = {
+        "height": len(vertical_angles), "width": len(horizontal_angles),
+        "vertical_angles": vertical_angles, "horizontal_angles": horizontal_angles,
+    }
+    values.update(fields)
+    if "lidar_to_sensor_transform" not in values:
+        values["lidar_to_sensor_transform"] = np.eye(4).reshape(16)
+    defaults = types.LidarInfo()
+    arrays = {}
+    for name in known:
+        default = getattr(defaults, name)
+        if isinstance(default, np.ndarray):
+            value = values.get(name, default)
+            arr = np.ascontiguousarray(np.asarray(value, dtype=default.dtype).reshape(-1))
+            arrays[name] = arr
+    scalars = {n: values.get(n, getattr(defaults, n)) for n in known if n not in arrays}
+    if as_dataclass:
+        info = types.LidarInfo(header=types.Header(types.Time(sec, nanosec), frame_id),
+                               **{n: _readonly(a) for n, a in arrays.items()}, **scalars)
+    else:
+        from builtin_interfaces.msg import Time
+        from lidarscan_msgs.msg import LidarInfo
+        from std_msgs.msg import Header
+        info = LidarInfo()
+        info.header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+        for name, arr in arrays.items():
+            if name == "lidar_to_sensor_transform":
+                info.lidar_to_sensor_transform = arr
+            else:
+                setattr(info, name, array.array(_TYPECODES[arr.dtype.char], arr.tobytes()))
+        for name, value in scalars.items():
+            setattr(info, name, value)
+    validate_info(info)
+    return info
+
+
+_TYPECODES = {"d": "d", "q": "q", "l": "q", "i": "i", "H": "H"}
+
+
+# ------------------------------------------------------------------------------- validation
+
+def _as_array(value: Any, dtype: Any) -> np.ndarray[Any, Any]:
+    if isinstance(value, np.ndarray):
+        return value
+    if isinstance(value, array.array):
+        return np.frombuffer(value, dtype=value.typecode)
+    return np.asarray(value, dtype=dtype)
+
+
+def _check_len(info: Any, field: str, expected: int, allow_empty: bool, dtype: Any = float,
+               finite: bool = False) -> np.ndarray[Any, Any]:
+    arr = _as_array(getattr(info, field), dtype)
+    if not (arr.size == expected or (allow_empty and arr.size == 0)):
+        what = f"{expected}" + (" or 0 (empty)" if allow_empty else "")
+        raise InfoMismatchError(f"LidarInfo.{field}", f"length {arr.size}",
+                                f"length {what} for height={info.height}, width={info.width}")
+    if finite and arr.size and not np.all(np.isfinite(arr)):
+        bad = np.flatnonzero(~np.isfinite(arr))
+        raise InfoMismatchError(f"LidarInfo.{field}[{int(bad[0])}]", float(arr[bad[0]]),
+                                "finite values")
+    return arr
+
+
+def validate_info(info: Any) -> None:
+    """Check a LidarInfo for internal consistency.
+
+    Raises:
+        InfoMismatchError: an array of the wrong length, a non-finite angle/offset, a transform
+            that is not rigid, a bad range multiplier or limits.
+    """
+    height, width = int(info.height), int(info.width)
+    to_ns(info.header.stamp, field="LidarInfo.header.stamp")
+    _check_len(info, "vertical_angles", height, False, finite=True)
+    _check_len(info, "horizontal_angles", width, False, finite=True)
+    _check_len(info, "beam_azimuth_offsets", height, True, finite=True)
+    pixel_az = _check_len(info, "pixel_azimuth_angles", height * width, True, finite=True)
+    pixel_alt = _check_len(info, "pixel_altitude_angles", height * width, True, finite=True)
+    if pixel_az.size != pixel_alt.size:
+        raise InfoMismatchError("LidarInfo.pixel_altitude_angles", f"length {pixel_alt.size}",
+                                f"the length of pixel_azimuth_angles ({pixel_az.size})")
+    _check_len(info, "beam_origins", 3 * height, True, finite=True)
+    _check_len(info, "beam_range_offsets", height, True, finite=True)
+    _check_len(info, "pixel_shift_by_row", height, True, np.int32)
+    _check_len(info, "beam_time_offsets", height, True, np.int64)
+    _check_len(info, "beam_ids", height, True, np.uint16)
+    transform = _check_len(info, "lidar_to_sensor_transform", 16, False, finite=True)
+    if np.any(transform):
+        matrix = np.asarray(transform, float).reshape(4, 4)
+        rot = matrix[:3, :3]
+        if not (np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9)
+                and np.allclose(rot @ rot.T, np.eye(3), atol=1e-6)
+                and np.linalg.det(rot) > 0):
+            raise InfoMismatchError("LidarInfo.lidar_to_sensor_transform", matrix.round(6).tolist(),
+                                    "a rigid transform (orthonormal rotation, last row 0 0 0 1), "
+                                    "or all zeros for identity")
+    for field in ("range_multiplier", "range_offset", "range_min", "range_max"):
+        value = float(getattr(info, field))
+        if not np.isfinite(value):
+            raise InfoMismatchError(f"LidarInfo.{field}", value, "a finite number")
+    if float(info.range_multiplier) < 0:
+        raise InfoMismatchError("LidarInfo.range_multiplier", float(info.range_multiplier),
+                                ">= 0 (0 only when no integer range channel is used)")
+    if float(info.range_min) < 0 or (float(info.range_max) > 0
+                                     and float(info.range_min) > float(info.range_max)):
+        raise InfoMismatchError("LidarInfo.range_min", float(info.range_min),
+                                f"0 <= range_min <= range_max ({float(info.range_max)})")
+    if int(info.column_time_increment) < 0:
+        raise InfoMismatchError("LidarInfo.column_time_increment",
+                                int(info.column_time_increment), ">= 0 ns")
+
+
+def validate(scan: Any, info: Any = None) -> None:
+    """Check a LidarScan (and, if given, that it fits and links to ``info``).
+
+    Checks: channel names unique and non-empty; datatypes 1..8; count >= 1; every block inside
+    ``data``; no two blocks overlapping; ``data`` no longer than the last block end (plus
+    alignment < 8 bytes); per-column arrays of length 0 or width with finite angles; with info:
+    the info itself, height/width equal, ``lidar_info_time == info.header.stamp``, and a usable
+    range multiplier for integer range channels.
+
+    Raises:
+        ChannelLayoutError, UnknownDatatypeError, ValidationError, InfoMismatchError,
+        LinkageError: the first inconsistency found, naming field, value and expectation.
+    """
+    height, width = int(scan.height), int(scan.width)
+    to_ns(scan.header.stamp, field="LidarScan.header.stamp")
+    size = len(data_view(scan))
+    blocks: list[tuple[int, int, str]] = []
+    seen: set[str] = set()
+    for i, desc in enumerate(scan.channels):
+        name = desc.name
+        if not name:
+            raise ChannelLayoutError(f"channels[{i}].name", name, "a non-empty name")
+        if name in seen:
+            raise ChannelLayoutError(f"channels[{i}].name", name, "unique channel names")
+        seen.add(name)
+        itemsize = dtype_of(desc.datatype, field=f"channels[{i}].datatype ({name!r})").itemsize
+        if int(desc.count) < 1:
+            raise ChannelLayoutError(f"channels[{i}].count ({name!r})", int(desc.count), ">= 1")
+        start = int(desc.offset)
+        end = start + height * width * int(desc.count) * itemsize
+        if end > size:
+            raise ChannelLayoutError(f"channels[{i}].offset ({name!r})", start,
+                                     f"a block [{start}, {end}) inside data of {size} bytes "
+                                     f"({height}x{width}x{int(desc.count)} x {itemsize} bytes)")
+        blocks.append((start, end, name))
+    blocks.sort()
+    for (s0, e0, n0), (s1, e1, n1) in zip(blocks, blocks[1:]):
+        if s1 < e0:
+            raise ChannelLayoutError(f"channels[{n1!r}].offset", s1,
+                                     f">= {e0}, the end of channel {n0!r} (blocks overlap)")
+    last = max((e for _, e, _ in blocks), default=0)
+    if size - last >= _ALIGN or (not blocks and size):
+        raise ChannelLayoutError("data", f"length {size}",
+                                 f"length {last} (end of the last channel block)")
+    for field, kind in (("column_time_offsets", np.int64), ("column_azimuth_angles", np.float64)):
+        arr = _as_array(getattr(scan, field), kind)
+        if arr.size not in (0, width):
+            raise ValidationError(f"LidarScan.{field}", f"length {arr.size}",
+                                  f"length {width} (width) or 0")
+        if arr.dtype.kind == "f" and arr.size and not np.all(np.isfinite(arr)):
+            raise ValidationError(f"LidarScan.{field}", arr[~np.isfinite(arr)][:3].tolist(),
+                                  "finite angles")
+    if info is None:
+        return
+    validate_info(info)
+    if (int(info.height), int(info.width)) != (height, width):
+        raise InfoMismatchError("LidarScan.height x width", f"{height}x{width}",
+                                f"{int(info.height)}x{int(info.width)} from the LidarInfo")
+    scan_key = to_ns(scan.lidar_info_time, field="LidarScan.lidar_info_time")
+    info_key = to_ns(info.header.stamp, field="LidarInfo.header.stamp")
+    if scan_key != info_key:
+        raise LinkageError("LidarScan.lidar_info_time", scan_key,
+                           f"{info_key} (the LidarInfo's header.stamp, in ns)")
+    for desc in scan.channels:
+        if desc.name in RANGE_CHANNELS and int(desc.datatype) not in (FLOAT32, FLOAT64) \
+                and not float(info.range_multiplier) > 0:
+            raise InfoMismatchError("LidarInfo.range_multiplier", float(info.range_multiplier),
+                                    f"> 0 for the integer range channel {desc.name!r}")
