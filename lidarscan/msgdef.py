@@ -159,7 +159,9 @@ def find_msg_text(name: str) -> str:
             return path.read_text(encoding="utf-8")
     raise SchemaError("type", full, "a message definition under <prefix>/share/"
                       f"{package}/msg/ (searched {', '.join(str(p) for p in _prefixes())})",
-                      hint="install the ROS 2 wheels and build lidarscan_msgs: make install")
+                      hint="run `make install` (ROS 2 wheels + lidarscan_msgs)"
+                      if package in ("lidarscan_msgs", "std_msgs", "sensor_msgs",
+                                     "builtin_interfaces") else "")
 
 
 @lru_cache(maxsize=None)
