@@ -1,1 +1,57 @@
-"""converters."""
+"""converters: algorithms and importers built on the lidarscan core.
+
+* LidarScan -> PointCloud2: :func:`to_pointcloud2` (driver presets, deskew);
+* PointCloud2 -> LidarScan + estimated LidarInfo: :func:`from_pointcloud2`;
+* LidarScan -> height-filtered LaserScan slices: :func:`to_laserscan`, :class:`SliceConverter`;
+* N LaserScans -> one: :class:`LaserScanMerger` configured with :class:`MergerInput`;
+* importers: :mod:`converters.ouster` (metadata JSON, frames), :mod:`converters.velodyne`
+  (calibration YAML), :func:`from_laserscan_sweep` (tilting 2D lasers).
+
+Names are resolved lazily (importing this package imports neither rclpy nor the submodules);
+the rclpy nodes live in :mod:`converters.nodes` and the CLI in :mod:`converters.cli`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__all__ = [
+    "to_pointcloud2",
+    "PointCloud2Converter",
+    "from_pointcloud2",
+    "to_laserscan",
+    "SliceConverter",
+    "LaserScanMerger",
+    "MergerInput",
+    "from_laserscan_sweep",
+    "ouster",
+    "velodyne",
+]
+
+_LAZY = {
+    "to_pointcloud2": "converters.pointcloud2",
+    "PointCloud2Converter": "converters.pointcloud2",
+    "from_pointcloud2": "converters.pointcloud2",
+    "to_laserscan": "converters.laserscan",
+    "SliceConverter": "converters.laserscan",
+    "LaserScanMerger": "converters.merger",
+    "MergerInput": "converters.merger",
+    "from_laserscan_sweep": "converters.sweep",
+}
+_SUBMODULES = {"ouster", "velodyne", "pointcloud2", "laserscan", "merger", "sweep"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+    elif name in _SUBMODULES:
+        value = importlib.import_module(f"converters.{name}")
+    else:
+        raise AttributeError(f"module 'converters' has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
