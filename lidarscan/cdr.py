@@ -6,7 +6,8 @@ Rules implemented (alignment counts from the end of the 4-byte encapsulation hea
 * a string is a uint32 length that counts the terminating NUL, the UTF-8 bytes and the NUL;
 * a sequence is a uint32 element count followed by its elements (the first element aligned to its
   own size; an empty sequence adds no padding); a fixed array has no count;
-* nested messages add no alignment of their own.
+* nested messages add no alignment of their own; a message without fields (``std_msgs/Empty``)
+  is one uint8 (rosidl's ``structure_needs_at_least_one_member``, always 0).
 
 :func:`encode` writes every padding byte as zero; rclpy's ``serialize_message`` leaves them
 uninitialised (and may append a few trailing bytes), so the two agree except on padding.
@@ -26,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan.errors import DecodeError, EncodeError, LidarScanError
-from lidarscan.msgdef import FieldDef, get_msgdef, normalize_type
+from lidarscan.errors import DecodeError, EncodeError, LidarScanError, SchemaError
+from lidarscan.msgdef import FieldDef, get_msgdef, normalize_type, on_definitions_changed
 from lidarscan.types import message_class, msgtype_of
 
 __all__ = ["encode", "decode", "decode_scan", "decode_info", "CDR_LE_HEADER"]
@@ -94,7 +95,7 @@ def _string_reader(what: str) -> Reader:
 def _array_reader(code: str, count: int | None, bound: int | None, what: str) -> Reader:
     """Primitive array: fixed ``count`` or a sequence (count read from the payload)."""
     size = _SIZES[code]
-    dtypes = {bo: _NP[code].newbyteorder(bo) for bo in "<>"}
+    dtypes = {"<": _NP[code].newbyteorder("<"), ">": _NP[code].newbyteorder(">")}
 
     def read(buf: memoryview, pos: int, bo: str) -> tuple[Any, int]:
         n = count
@@ -135,7 +136,13 @@ def _list_reader(elem: Reader, count: int | None, bound: int | None, what: str) 
     return read
 
 
+def _unsupported_wstring(what: str) -> None:
+    raise SchemaError(what, "wstring", "string fields (wstring, UTF-16 in CDR, is not supported)")
+
+
 def _field_reader(field: FieldDef, what: str) -> Reader:
+    if field.type == "wstring":
+        _unsupported_wstring(what)
     code = _PRIM.get(field.type)
     fixed = field.array if field.array is not None and field.array > 0 else None
     bound = -field.array - 2 if field.array is not None and field.array < -1 else None
@@ -147,7 +154,9 @@ def _field_reader(field: FieldDef, what: str) -> Reader:
         return _struct_reader(field.type)
     if code is not None:
         return _array_reader(code, fixed, bound, what)
-    elem = _string_reader(what) if field.type in ("string", "wstring") else _struct_reader(field.type)
+    if field.type in ("string", "wstring"):
+        return _list_reader(_string_reader(what), fixed, bound, what)
+    elem = _struct_reader(field.type)
     return _list_reader(elem, fixed, bound, what)
 
 
@@ -202,6 +211,13 @@ def _struct_reader(msgtype: str) -> Reader:
     if run:
         segments.append((True, _run_reader(run, f"{short} (last fields)")))
 
+    if not msgdef.fields:  # rosidl gives an empty struct one uint8 member (always 0)
+        def read_empty(buf: memoryview, pos: int, bo: str) -> tuple[Any, int]:
+            _need(buf, pos, 1, short)
+            return cls(), pos + 1
+
+        return read_empty
+
     def read(buf: memoryview, pos: int, bo: str) -> tuple[Any, int]:
         values: list[Any] = []
         for many, reader in segments:
@@ -227,7 +243,13 @@ def decode(payload: bytes | bytearray | memoryview, msgtype: str, *, strict: boo
     Raises:
         DecodeError: bad encapsulation header, truncated payload, impossible lengths, bad UTF-8.
     """
-    view = memoryview(payload).cast("B") if not isinstance(payload, bytes) else memoryview(payload)
+    try:
+        view = memoryview(payload)
+        if view.format != "B" or view.ndim != 1:
+            view = view.cast("B")
+    except TypeError as err:
+        raise DecodeError("payload", type(payload).__name__,
+                          "a contiguous bytes-like object (bytes, bytearray, memoryview)") from err
     if len(view) < 4:
         raise DecodeError("payload", bytes(view[:4]), "a 4-byte CDR encapsulation header",
                           hint="message is shorter than 4 bytes")
@@ -246,9 +268,33 @@ def decode(payload: bytes | bytearray | memoryview, msgtype: str, *, strict: boo
         raise
     except (struct.error, ValueError, OverflowError) as err:  # defensive: should not happen
         raise DecodeError(msgtype, len(view), "a well-formed CDR payload") from err
-    if strict and len(view) - 4 - end > 8:
-        raise DecodeError("payload length", len(view), f"{end + 4} bytes (+ at most 8 of padding)")
+    if strict and len(view) - 4 - end > 3:
+        slack = 3 + 8 * _empty_wide_sequences(msg, normalize_type(msgtype))
+        if len(view) - 4 - end > slack:
+            raise DecodeError("payload length", len(view),
+                              f"{end + 4} bytes (+ at most {slack} trailing bytes)")
     return msg
+
+
+def _empty_wide_sequences(msg: Any, msgtype: str) -> int:
+    """Number of empty 8-byte-element sequences in ``msg``.
+
+    rclpy (Fast DDS type support) sizes its output buffer with an estimate that aligns every
+    sequence's elements, even of an empty one, and rounds the total up to 4, so it may append up
+    to a few bytes per empty int64/uint64/float64 sequence; ``strict`` tolerates exactly that.
+    """
+    total = 0
+    for field in get_msgdef(msgtype).fields:
+        code = _PRIM.get(field.type)
+        value = getattr(msg, field.name)
+        if code is not None:
+            if field.array is not None and field.array < 0 and _SIZES[code] == 8 \
+                    and len(value) == 0:
+                total += 1
+        elif field.type not in ("string", "wstring"):
+            for item in ((value,) if field.array is None else value):
+                total += _empty_wide_sequences(item, field.type)
+    return total
 
 
 def decode_scan(payload: bytes | bytearray | memoryview) -> Any:
@@ -276,9 +322,11 @@ def _scalar_writer(code: str, what: str) -> Writer:
 
     def write(value: Any, out: list[bytes], pos: int) -> int:
         pos = _pad(out, pos, size)
+        if code == "B" and isinstance(value, (bytes, bytearray)) and len(value) == 1:
+            value = value[0]  # rclpy represents a ``byte`` field as a 1-byte bytes object
         try:
             out.append(packer.pack(bool(value) if code == "?" else value))
-        except (struct.error, TypeError) as err:
+        except (struct.error, TypeError, OverflowError) as err:  # float32 overflow: OverflowError
             raise EncodeError(what, value, f"a value of CDR type '{code}'") from err
         return pos + size
 
@@ -289,7 +337,10 @@ def _string_writer(what: str) -> Writer:
     def write(value: Any, out: list[bytes], pos: int) -> int:
         if not isinstance(value, str):
             raise EncodeError(what, value, "a str")
-        raw = value.encode("utf-8") + b"\x00"
+        try:
+            raw = value.encode("utf-8") + b"\x00"
+        except UnicodeEncodeError as err:
+            raise EncodeError(what, value, "text encodable as UTF-8 (no lone surrogates)") from err
         pos = _pad(out, pos, 4)
         out.append(struct.pack("<I", len(raw)))
         out.append(raw)
@@ -302,8 +353,8 @@ _ARRAY_TYPECODES = {"b": "b", "B": "B", "h": "h", "H": "H", "i": "i", "I": "I", 
                     "Q": "Q", "f": "f", "d": "d"}
 
 
-def _as_le_bytes(value: Any, code: str, what: str) -> tuple[bytes | memoryview, int]:
-    """Raw little-endian bytes and element count of a primitive array value (no copy if possible)."""
+def _as_le_bytes(value: Any, code: str, what: str) -> tuple[bytes | bytearray | memoryview, int]:
+    """Raw little-endian bytes and element count of a primitive array (no copy if possible)."""
     if code == "B" and isinstance(value, (bytes, bytearray)):
         return value, len(value)
     if isinstance(value, array.array) and value.typecode == _ARRAY_TYPECODES.get(code) \
@@ -317,6 +368,8 @@ def _as_le_bytes(value: Any, code: str, what: str) -> tuple[bytes | memoryview, 
         arr = np.asarray(value)
     except (TypeError, ValueError) as err:
         raise EncodeError(what, type(value).__name__, f"a sequence of '{code}' numbers") from err
+    if code == "B" and arr.dtype == np.dtype("S1"):  # rclpy ``byte[]``: a list of 1-byte bytes
+        arr = arr.view(np.uint8)
     if arr.dtype.kind not in "biuf":
         raise EncodeError(what, str(arr.dtype), f"a sequence of '{code}' numbers")
     if arr.dtype != target:
@@ -328,9 +381,20 @@ def _as_le_bytes(value: Any, code: str, what: str) -> tuple[bytes | memoryview, 
             if low < info.min or high > info.max:
                 raise EncodeError(what, low if low < info.min else high,
                                   f"values in [{info.min}, {info.max}] for '{code}'")
-        arr = arr.astype(bool).astype(target) if code == "?" else arr.astype(target)
+        if code == "?":
+            arr = arr.astype(bool).astype(target)
+        elif target.kind == "f" and arr.dtype.kind == "f" and target.itemsize < arr.dtype.itemsize:
+            with np.errstate(over="ignore"):
+                narrow = arr.astype(target)
+            if np.isinf(narrow).sum() != np.isinf(arr).sum():
+                bad = arr[np.isinf(narrow) & ~np.isinf(arr)].reshape(-1)[0]
+                raise EncodeError(what, float(bad), f"values within the range of '{code}' "
+                                  "(float32 overflows to inf)")
+            arr = narrow
+        else:
+            arr = arr.astype(target)
     arr = np.ascontiguousarray(arr.reshape(-1))
-    return memoryview(arr).cast("B"), arr.size
+    return arr.data.cast("B"), arr.size
 
 
 def _array_writer(code: str, count: int | None, bound: int | None, what: str) -> Writer:
@@ -373,6 +437,8 @@ def _list_writer(elem: Writer, count: int | None, bound: int | None, what: str) 
 
 
 def _field_writer(field: FieldDef, what: str) -> Writer:
+    if field.type == "wstring":
+        _unsupported_wstring(what)
     code = _PRIM.get(field.type)
     fixed = field.array if field.array is not None and field.array > 0 else None
     bound = -field.array - 2 if field.array is not None and field.array < -1 else None
@@ -384,7 +450,9 @@ def _field_writer(field: FieldDef, what: str) -> Writer:
         return _struct_writer(field.type)
     if code is not None:
         return _array_writer(code, fixed, bound, what)
-    elem = _string_writer(what) if field.type in ("string", "wstring") else _struct_writer(field.type)
+    if field.type in ("string", "wstring"):
+        return _list_writer(_string_writer(what), fixed, bound, what)
+    elem = _struct_writer(field.type)
     return _list_writer(elem, fixed, bound, what)
 
 
@@ -393,6 +461,13 @@ def _struct_writer(msgtype: str) -> Writer:
     msgdef = get_msgdef(msgtype)
     short = msgtype.split("/")[-1]
     writers = [(f.name, _field_writer(f, f"{short}.{f.name}")) for f in msgdef.fields]
+
+    if not writers:  # rosidl gives an empty struct one uint8 member (always 0)
+        def write_empty(value: Any, out: list[bytes], pos: int) -> int:
+            out.append(b"\x00")
+            return pos + 1
+
+        return write_empty
 
     def write(value: Any, out: list[bytes], pos: int) -> int:
         for name, writer in writers:
@@ -405,6 +480,14 @@ def _struct_writer(msgtype: str) -> Writer:
         return pos
 
     return write
+
+
+def _clear_codecs() -> None:
+    _struct_reader.cache_clear()
+    _struct_writer.cache_clear()
+
+
+on_definitions_changed(_clear_codecs)
 
 
 def encode(msg: Any, msgtype: str | None = None) -> bytes:

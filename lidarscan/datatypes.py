@@ -36,7 +36,8 @@ DATATYPE_NAMES = {INT8: "INT8", UINT8: "UINT8", INT16: "INT16", UINT16: "UINT16"
 _IDS = {code: ident for ident, code in _CODES.items()}
 
 
-def dtype_of(datatype: int, is_bigendian: bool = False, *, field: str = "datatype") -> np.dtype[Any]:
+def dtype_of(datatype: int, is_bigendian: bool = False, *,
+             field: str = "datatype") -> np.dtype[Any]:
     """numpy dtype for a PointField datatype id and byte order.
 
     Raises:

@@ -207,6 +207,36 @@ def _open(source: str | os.PathLike[str] | IO[bytes] | bytes) -> tuple[IO[bytes]
     return open(Path(source), "rb"), True  # noqa: SIM115
 
 
+class _BoundedReader:
+    """``read(n)`` that never asks the stream for more than what is left of it.
+
+    A buffered file's ``read(n)`` allocates ``n`` bytes up front, so a corrupt record length
+    (up to 4 GiB) would allocate that much before the short read is noticed; clamping ``n`` to
+    the bytes left keeps memory bounded by the file size. Streams that cannot seek are passed
+    through unchanged.
+    """
+
+    def __init__(self, stream: IO[bytes]) -> None:
+        self._stream = stream
+        self._left: int | None = None
+        try:
+            if stream.seekable():
+                here = stream.tell()
+                self._left = stream.seek(0, io.SEEK_END) - here
+                stream.seek(here)
+        except (OSError, AttributeError, ValueError):
+            self._left = None
+
+    def read(self, size: int = -1) -> bytes:
+        if self._left is None:
+            return self._stream.read(size)
+        if size is None or size < 0 or size > self._left:
+            size = self._left
+        data = self._stream.read(size)
+        self._left -= len(data)
+        return data
+
+
 def read_messages(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
                   topics: Iterable[str] | None = None) -> Iterator[McapMessage | BadMessage]:
     """Iterate the messages of an MCAP file in file order.
@@ -228,7 +258,8 @@ def read_messages(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
     channels: dict[int, tuple[str, str, Exception | None]] = {}
     index = 0
     try:
-        reader = StreamReader(stream, record_size_limit=1 << 32)
+        bounded: Any = _BoundedReader(stream)
+        reader = StreamReader(bounded, record_size_limit=1 << 32)
         records = iter(reader.records)
         while True:
             try:
@@ -245,9 +276,14 @@ def read_messages(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
                     if record.encoding != "ros2msg":
                         raise McapFormatError(f"schema {record.name}", record.encoding,
                                               "encoding 'ros2msg'")
-                    name = _register_schema(record.name, record.data.decode("utf-8"))
+                    try:
+                        text = record.data.decode("utf-8")
+                    except UnicodeDecodeError as err:
+                        raise McapFormatError(f"schema {record.name}", bytes(record.data[:40]),
+                                              "UTF-8 message definition text") from err
+                    name = _register_schema(record.name, text)
                     schemas[record.id] = (name, None)
-                except (LidarScanError, UnicodeDecodeError) as err:
+                except LidarScanError as err:
                     schemas[record.id] = (record.name, err)
             elif isinstance(record, Channel):
                 name, err = schemas.get(record.schema_id, ("", McapFormatError(

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import re
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -28,6 +29,7 @@ __all__ = [
     "schema_text",
     "split_schema_text",
     "register_msg_text",
+    "on_definitions_changed",
 ]
 
 # ROS 2 primitive type -> struct/numpy code (little-endian) ; char and byte are 1-byte unsigned.
@@ -72,7 +74,7 @@ class MsgDef:
 
 
 def normalize_type(name: str, package: str = "") -> str:
-    """``pkg/Name``, ``pkg/msg/Name`` or bare ``Name`` (resolved in ``package``) -> ``pkg/msg/Name``."""
+    """``pkg/Name``, ``pkg/msg/Name`` or bare ``Name`` (resolved in ``package``) -> full name."""
     if name in PRIMITIVE_TYPES:
         return name
     parts = name.split("/")
@@ -89,7 +91,8 @@ def normalize_type(name: str, package: str = "") -> str:
     raise SchemaError("type", name, "'pkg/msg/Name' or 'pkg/Name'")
 
 
-_FIELD_RE = re.compile(r"^([A-Za-z][\w/]*)(<=\d+)?(\[(<=)?(\d*)\])?\s+([A-Za-z]\w*)(\s*=\s*.+|\s+.*)?$")
+_FIELD_RE = re.compile(
+    r"^([A-Za-z][\w/]*)(<=\d+)?(\[(<=)?(\d*)\])?\s+([A-Za-z]\w*)(\s*=\s*.+|\s+.*)?$")
 
 
 def parse_msg(text: str, name: str) -> MsgDef:
@@ -110,7 +113,8 @@ def parse_msg(text: str, name: str) -> MsgDef:
             continue
         match = _FIELD_RE.match(line)
         if match is None:
-            raise SchemaError(f"{full} line {lineno}", raw, "'<type> <name>' or '<type> <NAME>=<value>'")
+            raise SchemaError(f"{full} line {lineno}", raw,
+                              "'<type> <name>' or '<type> <NAME>=<value>'")
         ftype, _strbound, arr, bounded, size, fname, rest = match.groups()
         if rest is not None and rest.lstrip().startswith("="):
             constants.append((ftype, fname, rest.split("=", 1)[1].strip()))
@@ -134,11 +138,34 @@ def _prefixes() -> list[Path]:
 
 
 def register_msg_text(name: str, text: str) -> None:
-    """Make a definition known without a ``share/`` folder (e.g. one read from an MCAP schema)."""
+    """Make a definition known without a ``share/`` folder (e.g. one read from an MCAP schema).
+
+    A new name only adds a definition. A different text for a name already defined (registered
+    before, or found under ``share/``) replaces it and drops every cached parse, schema, codec
+    and generated class built from the old one (see :func:`on_definitions_changed`). The same
+    text again is a no-op.
+    """
     full = normalize_type(name)
+    if _registered.get(full) == text:
+        return
+    try:
+        replaces = find_msg_text(full) != text
+    except SchemaError:
+        replaces = False
     _registered[full] = text
-    get_msgdef.cache_clear()
-    schema_text.cache_clear()
+    if replaces:
+        get_msgdef.cache_clear()
+        schema_text.cache_clear()
+        for hook in _hooks:
+            hook()
+
+
+_hooks: list[Callable[[], None]] = []
+
+
+def on_definitions_changed(hook: Callable[[], None]) -> None:
+    """Call ``hook`` whenever :func:`register_msg_text` changes a definition (cache owners)."""
+    _hooks.append(hook)
 
 
 def find_msg_text(name: str) -> str:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import array
 import dataclasses
+import itertools
 from collections.abc import Mapping
 from typing import Any
 
@@ -89,14 +90,18 @@ def channel(scan: Any, name: str) -> np.ndarray[Any, Any]:
         raise ChannelLayoutError(f"channels[{name!r}].count", count, "count >= 1")
     data = data_view(scan)
     n = height * width * count
-    end = int(desc.offset) + n * dtype.itemsize
-    if end > data.size:
-        raise ChannelLayoutError(f"channels[{name!r}].offset", int(desc.offset),
+    offset = int(desc.offset)
+    end = offset + n * dtype.itemsize
+    if offset < 0 or end > data.size:
+        raise ChannelLayoutError(f"channels[{name!r}].offset", offset,
                                  f"a block of {n * dtype.itemsize} bytes inside data "
                                  f"({data.size} bytes)")
-    flat = np.frombuffer(data, dtype, n, int(desc.offset))
     shape = (height, width) if count == 1 else (height, width, count)
-    return flat.reshape(shape)
+    try:
+        return np.frombuffer(data, dtype, n, offset).reshape(shape)
+    except ValueError as err:  # e.g. 4294967295 x 0 x 4294967295: too big a shape for numpy
+        raise ChannelLayoutError(f"channels[{name!r}] shape", shape,
+                                 "height x width x count that numpy can index") from err
 
 
 def range_m(scan: Any, info: Any = None, name: str = "range") -> np.ndarray[Any, Any]:
@@ -267,7 +272,7 @@ def make_info(*, stamp_ns: int, frame_id: str, vertical_angles: Any, horizontal_
     if "lidar_to_sensor_transform" not in values:
         values["lidar_to_sensor_transform"] = np.eye(4).reshape(16)
     defaults = types.LidarInfo()
-    arrays = {}
+    arrays: dict[str, Any] = {}
     for name in known:
         default = getattr(defaults, name)
         if isinstance(default, np.ndarray):
@@ -276,8 +281,9 @@ def make_info(*, stamp_ns: int, frame_id: str, vertical_angles: Any, horizontal_
             arrays[name] = arr
     scalars = {n: values.get(n, getattr(defaults, n)) for n in known if n not in arrays}
     if as_dataclass:
+        readonly: dict[str, Any] = {n: _readonly(a) for n, a in arrays.items()}
         info = types.LidarInfo(header=types.Header(types.Time(sec, nanosec), frame_id),
-                               **{n: _readonly(a) for n, a in arrays.items()}, **scalars)
+                               **readonly, **scalars)
     else:
         from builtin_interfaces.msg import Time
         from lidarscan_msgs.msg import LidarInfo
@@ -398,15 +404,19 @@ def validate(scan: Any, info: Any = None) -> None:
         itemsize = dtype_of(desc.datatype, field=f"channels[{i}].datatype ({name!r})").itemsize
         if int(desc.count) < 1:
             raise ChannelLayoutError(f"channels[{i}].count ({name!r})", int(desc.count), ">= 1")
+        if max(height, 1) * max(width, 1) * int(desc.count) * itemsize >= 2**63:
+            raise ChannelLayoutError(f"channels[{i}].count ({name!r})", int(desc.count),
+                                     f"a block size that fits in 63 bits for {height}x{width} "
+                                     "(numpy's limit, also for empty grids)")
         start = int(desc.offset)
         end = start + height * width * int(desc.count) * itemsize
-        if end > size:
+        if start < 0 or end > size:
             raise ChannelLayoutError(f"channels[{i}].offset ({name!r})", start,
                                      f"a block [{start}, {end}) inside data of {size} bytes "
                                      f"({height}x{width}x{int(desc.count)} x {itemsize} bytes)")
         blocks.append((start, end, name))
     blocks.sort()
-    for (s0, e0, n0), (s1, e1, n1) in zip(blocks, blocks[1:]):
+    for (_, e0, n0), (s1, _, n1) in itertools.pairwise(blocks):
         if s1 < e0:
             raise ChannelLayoutError(f"channels[{n1!r}].offset", s1,
                                      f">= {e0}, the end of channel {n0!r} (blocks overlap)")

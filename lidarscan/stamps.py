@@ -35,7 +35,8 @@ def split_ns(ns: int, *, field: str = "stamp_ns") -> tuple[int, int]:
 
 def time_msg(ns: int, cls: Any = None, *, field: str = "stamp_ns") -> Any:
     """A Time message for int ns: ``builtin_interfaces.msg.Time`` by default, or ``cls``."""
-    if cls is None:
-        from builtin_interfaces.msg import Time as cls  # no rclpy import
     sec, nanosec = split_ns(ns, field=field)
+    if cls is None:
+        from builtin_interfaces.msg import Time  # no rclpy import
+        return Time(sec=sec, nanosec=nanosec)
     return cls(sec=sec, nanosec=nanosec)

@@ -16,11 +16,16 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from lidarscan.msgdef import get_msgdef, normalize_type
+from lidarscan.msgdef import get_msgdef, normalize_type, on_definitions_changed
 
 __all__ = ["Time", "Header", "LidarChannel", "LidarScan", "LidarInfo", "message_class",
            "msgtype_of"]
 
+
+def _readonly_zeros(size: int) -> np.ndarray[Any, Any]:
+    arr = np.zeros(size)
+    arr.flags.writeable = False
+    return arr
 
 
 def _empty(dtype: Any) -> Any:
@@ -106,8 +111,8 @@ class LidarInfo:
     pixel_altitude_angles: Any = _empty(np.float64)
     beam_origins: Any = _empty(np.float64)
     beam_range_offsets: Any = _empty(np.float64)
-    lidar_to_sensor_transform: Any = dataclasses.field(
-        default_factory=lambda: np.zeros(16))
+    lidar_to_sensor_transform: Any = dataclasses.field(  # all zeros = identity (see .msg)
+        default_factory=lambda: _readonly_zeros(16))
     pixel_shift_by_row: Any = _empty(np.int32)
     beam_time_offsets: Any = _empty(np.int64)
     column_time_increment: int = 0
@@ -122,6 +127,7 @@ class LidarInfo:
 _HANDWRITTEN: dict[str, type] = {cls.__msgtype__: cls for cls in
                                  (Time, Header, LidarChannel, LidarScan, LidarInfo)}
 _GENERATED: dict[str, type] = {}
+on_definitions_changed(_GENERATED.clear)
 
 
 def message_class(msgtype: str) -> type:
