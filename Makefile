@@ -9,15 +9,16 @@ STAMP  := $(VENV)/.installed
 # Children must not inherit the ROS wheels' bootstrap guard of another interpreter.
 unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
-.PHONY: install demo test bench evidence msgs clean
+.PHONY: install demo test bench evidence msgs tf2msgs clean
 
 install: $(STAMP)
 
 $(STAMP): pyproject.toml msgs/CMakeLists.txt msgs/package.xml $(wildcard msgs/msg/*.msg)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,viz,msgs-build]'
+	$(PY) -m pip install --quiet -e '.[test,viz,fast,msgs-build]'
 	$(MAKE) msgs
+	$(MAKE) tf2msgs
 	touch $(STAMP)
 
 # Build the interface package into the venv with cmake + ninja (about 15 s).
@@ -29,6 +30,17 @@ msgs:
 	  -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF -DPython3_EXECUTABLE=$(PY) >build/msgs.log 2>&1 \
 	  || (cat build/msgs.log; exit 1)
 	cmake --build build/msgs --target install >>build/msgs.log 2>&1 || (cat build/msgs.log; exit 1)
+
+# tf2_msgs (TFMessage, for /tf and /tf_static) is not in the wheels: build third_party/tf2_msgs
+# the same way, unless the environment already provides it.
+tf2msgs:
+	@$(PY) -c "import tf2_msgs.msg" 2>/dev/null && echo "tf2_msgs already available" || ( \
+	  rm -rf build/tf2_msgs && mkdir -p build && \
+	  env -u LD_LIBRARY_PATH AMENT_PREFIX_PATH=$(V) CMAKE_PREFIX_PATH=$(V) \
+	  cmake -S third_party/tf2_msgs -B build/tf2_msgs -G Ninja -DCMAKE_INSTALL_PREFIX=$(V) \
+	  -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF -DPython3_EXECUTABLE=$(PY) >build/tf2_msgs.log 2>&1 \
+	  && cmake --build build/tf2_msgs --target install >>build/tf2_msgs.log 2>&1 \
+	  || (cat build/tf2_msgs.log; exit 1) )
 
 demo: install
 	$(V)/bin/lidarscan demo

@@ -98,6 +98,10 @@ def _scan_arrays(scans: Sequence[Any]) -> tuple[int, float, float, list[np.ndarr
                                                                        increment == 0.0):
         raise ValidationError("scans[0].angle_increment", increment,
                               "a finite, non-zero increment (finite angle_min)")
+    if abs(angle_min) > 4 * math.pi or abs(increment) * max(rays - 1, 0) > 4 * math.pi:
+        raise ValidationError("scans[0].angle_increment", increment,
+                              f"rays spanning at most 4*pi from angle_min (|angle_min| <= 4*pi); "
+                              f"{rays} rays from {angle_min} rad")
     ranges, intensities = [], []
     for k, scan in enumerate(scans):
         r = np.asarray(_as_array(scan.ranges, np.float32), dtype=np.float32)

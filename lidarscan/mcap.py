@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -182,10 +183,16 @@ class BadMessage:
     error: Exception = field(repr=False)
 
 
+_TYPE_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*/msg/[A-Za-z][A-Za-z0-9_]*")
+
+
 def _register_schema(name: str, text: str) -> str:
     """Make the file's definitions usable; refuse a definition that contradicts a local one."""
     full = normalize_type(name)
     for type_name, msg_text in split_schema_text(full, text).items():
+        if not _TYPE_NAME.fullmatch(type_name):  # e.g. a NUL byte in a damaged schema name
+            raise McapFormatError(f"schema {name!r}", type_name,
+                                  "a type name 'pkg/msg/Name' made of letters, digits and _")
         theirs = parse_msg(msg_text, type_name).fields
         try:
             find_msg_text(type_name)

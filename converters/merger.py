@@ -1,0 +1,631 @@
+"""Merge N LaserScans (2D lidars and LidarScan slices) into one scan in an output frame.
+
+**Geometry.** Ray ``i`` of an input is at ``angle_min + i * angle_increment`` in the input frame
+(float64 of the float32 fields; ``angle_max`` is ignored, so negative increments and inconsistent
+headers work). Its endpoint ``r * (cos, sin, 0)`` is moved into the output frame by the input's
+``extrinsics`` (full 3D: tilted and upside-down mounts work), optionally composed with the motion
+between the scan's stamp and the output stamp. Each endpoint is binned by *its own* azimuth in the
+output frame, so rays of an offset sensor that cross each other land where they should
+(occlusion), and fusion is the per-bin minimum of the planar range. Mixed resolutions need no
+special case: every ray lands in exactly one bin (minimum when down-sampling, no duplicated rays
+when up-sampling: finer output bins without a ray get ``fill``). Grid, binning, REP 117 classes,
+precedence (finite > -Inf > +Inf > NaN > empty) and ties (first input in configuration order,
+then first ray) are those of :mod:`converters._grid`.
+
+**Input classes.** A finite range below the scan's own ``range_min`` (e.g. 0.0, which Hokuyo and
+other drivers use for "no valid echo") and any range ``<= 0`` are invalid (NaN class); above ``min(scan.range_max,
+input.range_max)`` it means nothing within trusted range (+Inf class); below ``input.range_min``
+(a user filter, e.g. the robot's own body) it is dropped. ``scan.range_max <= 0`` or NaN means no
+upper limit. Rays outside the input's angle window (input frame, CCW from ``angle_min`` to
+``angle_max``, inclusive, wrapping across +-pi allowed) are dropped. A 3D-mounted input may have a
+height band (output frame) with the slice rules.
+
+**Synchronisation** (:meth:`LaserScanMerger.push`). Each input has a bounded queue sorted by
+stamp (int ns). Pass 1: the pivot is the newest of the queue heads; every input picks its queued
+scan nearest to the pivot (ties: the older); if every pick is within ``slop_ns`` of the pivot
+(inclusive) the set matches. Pass 2 consumes, for each input, its pick and everything older. When
+a set does not match, scans older than ``pivot - slop_ns`` can never match any more and are
+dropped, nothing else is consumed. When several sets are complete at once (a burst, or when an
+input has just been declared dead) the newest is merged and the older ones are dropped
+(``stats["dropped_backlog"]``), so output latency never builds up. A scan not newer than its input's last consumed scan
+(late/out of order) or with a stamp already queued (duplicate) is dropped. Policies: ``"wait"``
+requires every input; ``"timeout"`` leaves out inputs that are *dead*: whose newest stamp is older
+than ``clock - timeout_ns`` (``clock`` = the newest stamp pushed to the merger, i.e. data time, so
+replays behave like live runs). A scan is fused at most once, and only with scans within the slop,
+so stale data is never fused. The output stamp is the newest (``reference="newest"``) or oldest
+stamp of the fused set, exact in ns. ``time_increment`` is 0 and ``scan_time`` the largest input
+``scan_time``.
+
+**Motion compensation** (:meth:`LaserScanMerger.push_odometry`). Odometry gives the pose
+``T(t)`` of the output frame in a fixed frame. A scan taken at ``t_i`` is moved by
+``T(t_ref)^-1 T(t_i)`` (in 2D: ``p' = R(-dtheta) p - R(-theta_ref) dt`` with
+``dtheta = theta_ref - theta_i``, ``dt = t_ref - t_i`` positions: correct at any heading). Poses
+are interpolated linearly (position) and by slerp along the shortest arc (orientation); outside
+the queued window the nearest pose is held (clamp), but only up to ``odom_max_gap_ns``; a gap
+between samples larger than that, or no odometry, leaves the scan uncompensated (counted in
+``stats["uncompensated"]``). One pose per scan (no per-ray deskew).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from converters import _grid
+from converters._grid import AngleGrid, OutputOptions
+from converters.laserscan import check_extrinsics
+from lidarscan.errors import ConfigError, ValidationError
+from lidarscan.scan import _as_array
+from lidarscan.stamps import to_ns
+
+__all__ = ["LaserScanMerger", "MergerInput", "Pose", "interpolate_pose"]
+
+_NO_KEYS = np.zeros(0, np.int64)
+_ZERO = np.zeros(1, np.int64)
+
+
+@dataclass(frozen=True)
+class MergerInput:
+    """Settings of one merger input (transport settings such as QoS belong to the node).
+
+    Attributes:
+        extrinsics: 4x4 pose of the input's frame in the output frame (None = identity).
+        range_min, range_max: user range filter on the input's own ranges, metres (see the
+            module docstring for what happens below/above).
+        angle_min, angle_max: angle window in the input frame, radians, inclusive, CCW from
+            ``angle_min`` to ``angle_max`` (``angle_max < angle_min`` wraps across +-pi); both
+            None = all rays.
+        min_height, max_height: inclusive height band in the output frame for 3D-mounted inputs.
+        timeout_ns: how long the input may stay silent before policy ``"timeout"`` merges without
+            it (None = the merger's ``timeout_ns``).
+        frame_id: if set, scans must carry this ``header.frame_id``.
+    """
+
+    extrinsics: Any = None
+    range_min: float = 0.0
+    range_max: float = math.inf
+    angle_min: float | None = None
+    angle_max: float | None = None
+    min_height: float = -math.inf
+    max_height: float = math.inf
+    timeout_ns: int | None = None
+    frame_id: str | None = None
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A pose at a stamp: position (3,) metres and unit quaternion (x, y, z, w)."""
+
+    stamp_ns: int
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float]
+
+    def matrix(self) -> np.ndarray[Any, np.dtype[np.float64]]:
+        """4x4 float64 homogeneous transform."""
+        out = np.eye(4)
+        out[:3, :3] = _quat_matrix(self.orientation)
+        out[:3, 3] = self.position
+        return out
+
+
+def _quat_matrix(q: Any) -> np.ndarray[Any, Any]:
+    x, y, z, w = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _slerp(q0: np.ndarray[Any, Any], q1: np.ndarray[Any, Any], u: float) -> np.ndarray[Any, Any]:
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:                       # shortest arc: q and -q are the same rotation
+        q1, dot = -q1, -dot
+    if dot > 0.9995:
+        q = q0 + u * (q1 - q0)
+    else:
+        theta = math.acos(min(dot, 1.0))
+        q = (math.sin((1.0 - u) * theta) * q0 + math.sin(u * theta) * q1) / math.sin(theta)
+    out: np.ndarray[Any, Any] = q / np.linalg.norm(q)
+    return out
+
+
+def interpolate_pose(stamps: list[int], poses: list[Pose], t: int, max_gap_ns: int
+                     ) -> Pose | None:
+    """Pose at ``t`` from sorted samples: exact sample, lerp + shortest-arc slerp between two,
+    the nearest one held outside the window; None if the bracketing gap (or the distance to the
+    nearest sample outside the window) exceeds ``max_gap_ns`` or there are no samples."""
+    if not stamps:
+        return None
+    i = bisect.bisect_left(stamps, t)
+    if i < len(stamps) and stamps[i] == t:
+        return poses[i]
+    if i == 0:
+        return poses[0] if stamps[0] - t <= max_gap_ns else None
+    if i == len(stamps):
+        return poses[-1] if t - stamps[-1] <= max_gap_ns else None
+    t0, t1 = stamps[i - 1], stamps[i]
+    if t1 - t0 > max_gap_ns:
+        return None
+    u = (t - t0) / (t1 - t0)
+    a, b = poses[i - 1], poses[i]
+    p = tuple(float(pa + u * (pb - pa)) for pa, pb in zip(a.position, b.position))
+    q = _slerp(np.array(a.orientation, float), np.array(b.orientation, float), u)
+    return Pose(t, p, tuple(float(v) for v in q))  # type: ignore[arg-type]
+
+
+@dataclass
+class _ScanIn:
+    stamp: int
+    frame_id: str
+    angle_min: float
+    increment: float
+    ranges: np.ndarray[Any, Any]
+    intensities: np.ndarray[Any, Any] | None
+    range_min: float
+    range_max: float
+    scan_time: float
+
+
+def _read_scan(scan: Any, name: str) -> _ScanIn:
+    ranges = np.ascontiguousarray(_as_array(scan.ranges, np.float32).reshape(-1), np.float32)
+    inten = _as_array(scan.intensities, np.float32).reshape(-1)
+    intensities = inten.astype(np.float32, copy=False) if inten.size == ranges.size else None
+    amin = float(scan.angle_min)
+    inc = float(scan.angle_increment)
+    if not math.isfinite(amin):
+        raise ValidationError(f"{name}.angle_min", amin, "a finite angle")
+    if ranges.size > 1 and not (math.isfinite(inc) and inc != 0.0):
+        raise ValidationError(f"{name}.angle_increment", inc,
+                              "a finite non-zero increment for a scan of several rays")
+    rmin = float(scan.range_min)
+    rmax = float(scan.range_max)
+    rmin = rmin if math.isfinite(rmin) and rmin > 0 else 0.0
+    rmax = rmax if rmax > 0 else math.inf         # 0 / NaN: unknown
+    if rmin > rmax:
+        raise ValidationError(f"{name}.range_min", rmin, f"<= range_max ({rmax})")
+    scan_time = float(scan.scan_time)
+    return _ScanIn(to_ns(scan.header.stamp, field=f"{name}.header.stamp"),
+                   scan.header.frame_id, amin, inc, ranges, intensities, rmin, rmax,
+                   scan_time if math.isfinite(scan_time) else 0.0)
+
+
+class _InputState:
+    """Configuration and caches of one input."""
+
+    def __init__(self, name: str, cfg: MergerInput, index: int) -> None:
+        self.name = name
+        self.cfg = cfg
+        self.index = index
+        self.extrinsics = check_extrinsics(cfg.extrinsics, f"inputs[{name!r}].extrinsics")
+        for field in ("range_min", "range_max", "min_height", "max_height"):
+            if math.isnan(float(getattr(cfg, field))):
+                raise ConfigError(f"inputs[{name!r}].{field}", getattr(cfg, field), "a number")
+        if not 0.0 <= float(cfg.range_min) <= float(cfg.range_max):
+            raise ConfigError(f"inputs[{name!r}].range_max", cfg.range_max,
+                              f">= range_min ({cfg.range_min}) >= 0")
+        if float(cfg.min_height) > float(cfg.max_height):
+            raise ConfigError(f"inputs[{name!r}].max_height", cfg.max_height,
+                              f">= min_height ({cfg.min_height})")
+        if (cfg.angle_min is None) != (cfg.angle_max is None):
+            raise ConfigError(f"inputs[{name!r}].angle_max", cfg.angle_max,
+                              "set together with angle_min (or both None)")
+        self.window: tuple[float, float] | None = None
+        if cfg.angle_min is not None:
+            a, b = float(cfg.angle_min), float(cfg.angle_max)  # type: ignore[arg-type]
+            if not (math.isfinite(a) and math.isfinite(b)):
+                raise ConfigError(f"inputs[{name!r}].angle_min", (a, b), "finite angles")
+            if b - a < 2.0 * math.pi:
+                self.window = (a, (b - a) % (2.0 * math.pi))
+        if cfg.timeout_ns is not None and int(cfg.timeout_ns) <= 0:
+            raise ConfigError(f"inputs[{name!r}].timeout_ns", cfg.timeout_ns, "> 0 ns or None")
+        self._geom: dict[tuple[float, float, int], tuple[Any, Any, Any]] = {}
+        self._rays_key: Any = None
+        self._rays: Any = None
+        self.kernel_consts: Any = None
+        self.queue: list[tuple[int, Any]] = []
+        self.consumed = -(1 << 63)
+        self.last_seen: int | None = None
+
+    def geometry(self, amin: float, inc: float, n: int) -> tuple[Any, Any, Any]:
+        """cos, sin of the ray angles and the window mask (cached per header)."""
+        key = (amin, inc, n)
+        geom = self._geom.get(key)
+        if geom is None:
+            theta = amin + np.arange(n) * inc
+            keep = None
+            if self.window is not None:
+                start, width = self.window
+                rel = (theta - start) % (2.0 * math.pi)
+                keep = rel <= width
+            geom = (np.cos(theta), np.sin(theta), keep)
+            if len(self._geom) > 8:
+                self._geom.clear()
+            self._geom[key] = geom
+        return geom
+
+    def rays(self, matrix: np.ndarray[Any, Any], amin: float, inc: float, n: int,
+             grid: AngleGrid, options: OutputOptions, near: float, static: bool) -> _Rays:
+        """Rays of a scan header in the output frame, cached while transform and header stay.
+
+        ``static``: the transform will be reused (no motion compensation), so the far-field
+        tables are worth computing; otherwise every point gets atan2.
+        """
+        key = (matrix.tobytes(), amin, inc, n, near, static)
+        if key == self._rays_key:
+            return self._rays  # type: ignore[no-any-return]
+        c, s, keep = self.geometry(amin, inc, n)
+        m = matrix
+        d = np.empty((n, 3))
+        for i in range(3):
+            d[:, i] = m[i, 0] * c + m[i, 1] * s
+        o = np.empty((n, 3))
+        o[:] = m[:3, 3]
+        if static:
+            bin_far, r_thr = _grid.far_field(d, o, grid)
+        else:
+            bin_far = grid.bins(np.arctan2(d[:, 1], d[:, 0]))
+            bin_far[(d[:, 0] == 0) & (d[:, 1] == 0)] = -1
+            r_thr = np.full(n, np.inf)
+        q_far, q_near = _grid.qualify(d, o, self.cfg.min_height, self.cfg.max_height,
+                                      options.range_min, options.range_max, near)
+        rays = _Rays(d, o, keep, bin_far, r_thr, q_far, q_near)
+        self._rays, self._rays_key = rays, key
+        return rays
+
+
+class _Rays:
+    """One input's rays in the output frame (numpy and compiled-kernel layouts)."""
+
+    def __init__(self, d: np.ndarray[Any, Any], o: np.ndarray[Any, Any],
+                 keep: np.ndarray[Any, Any] | None, bin_far: np.ndarray[Any, Any],
+                 r_thr: np.ndarray[Any, Any], q_far: np.ndarray[Any, Any],
+                 q_near: np.ndarray[Any, Any]) -> None:
+        self.d, self.o, self.keep = d, o, keep
+        self.bin_far, self.r_thr, self.q_far, self.q_near = bin_far, r_thr, q_far, q_near
+        self.columns = tuple(np.ascontiguousarray(a[:, k]) for a in (d, o) for k in range(3))
+        self.k_keep = np.zeros(0, np.uint8) if keep is None else keep.astype(np.uint8)
+        self.k_bin_far = bin_far.astype(np.int32)[None, :]
+        self.k_r_thr = _grid.round_up_f32(r_thr)[None, :]
+        ok = bin_far >= 0
+        self.k_qual = ((q_far & ok).astype(np.uint8) | ((q_near & ok).astype(np.uint8) << 1)
+                       )[None, :]
+
+
+class LaserScanMerger:
+    """N named LaserScan inputs fused into one LaserScan (see the module docstring).
+
+    Args:
+        inputs: name -> :class:`MergerInput`; the order is the tie order (first wins).
+        frame_id: output frame.
+        angle_min, angle_max, angle_increment: output grid (default full circle at 0.25 deg).
+        range_min, range_max: inclusive planar limits in the output frame.
+        use_inf, inf_epsilon, fill: output values (:class:`converters._grid.OutputOptions`).
+        intensities: publish intensities (0 where the winner had none) or an empty field.
+        slop_ns: synchronisation tolerance, inclusive.
+        policy: ``"wait"`` (all inputs needed) or ``"timeout"`` (dead inputs left out).
+        timeout_ns: default silence after which an input is dead (policy ``"timeout"``).
+        reference: output stamp ``"newest"`` or ``"oldest"`` of the fused set.
+        queue_size: scans kept per input.
+        motion_compensation: use pushed odometry to move scans to the output stamp.
+        odom_queue_size, odom_max_gap_ns: odometry samples kept; largest gap bridged.
+        backend: ``"auto"`` (compiled kernel when numba is installed), ``"numba"``, ``"numpy"``.
+
+    Raises:
+        ConfigError: bad options.
+    """
+
+    def __init__(self, inputs: Mapping[str, MergerInput], *, frame_id: str = "base_link",
+                 angle_min: float = -math.pi, angle_max: float = math.pi,
+                 angle_increment: float = math.radians(0.25), range_min: float = 0.0,
+                 range_max: float = math.inf, use_inf: bool = True, inf_epsilon: float = 1.0,
+                 fill: float | None = None, intensities: bool = True,
+                 slop_ns: int = 50_000_000, policy: str = "wait",
+                 timeout_ns: int = 1_000_000_000, reference: str = "newest",
+                 queue_size: int = 10, motion_compensation: bool = True,
+                 odom_queue_size: int = 200, odom_max_gap_ns: int = 250_000_000,
+                 backend: str = "auto") -> None:
+        if backend not in ("auto", "numba", "numpy"):
+            raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
+        self._kernel = None if backend == "numpy" else _grid.numba_kernel()
+        if backend == "numba" and self._kernel is None:
+            raise ConfigError("backend", backend, "numba installed (pip install numba)")
+        if not inputs:
+            raise ConfigError("inputs", dict(inputs), "at least one named MergerInput")
+        self._inputs: dict[str, _InputState] = {}
+        for i, (name, cfg) in enumerate(inputs.items()):
+            if not isinstance(name, str) or not name:
+                raise ConfigError("inputs", name, "non-empty str input names")
+            if not isinstance(cfg, MergerInput):
+                raise ConfigError(f"inputs[{name!r}]", cfg, "a MergerInput")
+            self._inputs[name] = _InputState(name, cfg, i)
+        if not frame_id:
+            raise ConfigError("frame_id", frame_id, "the output frame's name")
+        self.frame_id = frame_id
+        self.grid = AngleGrid.create(angle_min, angle_max, angle_increment)
+        self.options = OutputOptions.create(range_min, range_max, use_inf, inf_epsilon, fill)
+        self.intensities = bool(intensities)
+        for field, value in (("slop_ns", slop_ns), ("timeout_ns", timeout_ns),
+                             ("queue_size", queue_size), ("odom_queue_size", odom_queue_size),
+                             ("odom_max_gap_ns", odom_max_gap_ns)):
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0 \
+                    or (field.endswith("size") and value < 1):
+                raise ConfigError(field, value, "a non-negative int (sizes >= 1)")
+        if policy not in ("wait", "timeout"):
+            raise ConfigError("policy", policy, "'wait' or 'timeout'")
+        if reference not in ("newest", "oldest"):
+            raise ConfigError("reference", reference, "'newest' or 'oldest'")
+        self.slop_ns, self.timeout_ns = int(slop_ns), int(timeout_ns)
+        self.policy, self.reference = policy, reference
+        self.queue_size = int(queue_size)
+        self.motion_compensation = bool(motion_compensation)
+        self.odom_queue_size, self.odom_max_gap_ns = int(odom_queue_size), int(odom_max_gap_ns)
+        self._odom_t: list[int] = []
+        self._odom: list[Pose] = []
+        self._clock: int | None = None
+        self.last_inputs: tuple[str, ...] = ()
+        self.stats = {"merged": 0, "partial": 0, "dropped_late": 0, "dropped_duplicate": 0,
+                      "dropped_overflow": 0, "dropped_unmatched": 0, "dropped_backlog": 0,
+                      "uncompensated": 0}
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Configured inputs in tie order."""
+        return tuple(self._inputs)
+
+    # ----------------------------------------------------------------------------- odometry
+    def push_odometry(self, odom: Any) -> None:
+        """Add a ``nav_msgs/Odometry`` (rclpy or dataclass): pose of the output frame in a
+        fixed frame at ``header.stamp``.
+
+        Raises:
+            ValidationError: a zero or non-finite quaternion or position, or a
+                ``child_frame_id`` that is set and differs from the output frame.
+        """
+        child = getattr(odom, "child_frame_id", "") or ""
+        if child and child != self.frame_id:
+            raise ValidationError("Odometry.child_frame_id", child,
+                                  f"{self.frame_id!r} (the merger's output frame) or empty")
+        stamp = to_ns(odom.header.stamp, field="Odometry.header.stamp")
+        pose = odom.pose.pose
+        p = (float(pose.position.x), float(pose.position.y), float(pose.position.z))
+        q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z,
+                      pose.orientation.w], float)
+        norm = float(np.linalg.norm(q))
+        if not (np.all(np.isfinite(p)) and math.isfinite(norm) and norm > 1e-9):
+            raise ValidationError("Odometry.pose.pose", (p, q.tolist()),
+                                  "a finite position and a non-zero quaternion")
+        q /= norm
+        i = bisect.bisect_left(self._odom_t, stamp)
+        sample = Pose(stamp, p, tuple(float(v) for v in q))  # type: ignore[arg-type]
+        if i < len(self._odom_t) and self._odom_t[i] == stamp:
+            self._odom[i] = sample
+        else:
+            self._odom_t.insert(i, stamp)
+            self._odom.insert(i, sample)
+        while len(self._odom_t) > self.odom_queue_size:
+            self._odom_t.pop(0)
+            self._odom.pop(0)
+
+    def pose_at(self, stamp_ns: int) -> Pose | None:
+        """Interpolated odometry pose at ``stamp_ns`` (see :func:`interpolate_pose`)."""
+        return interpolate_pose(self._odom_t, self._odom, int(stamp_ns), self.odom_max_gap_ns)
+
+    # ------------------------------------------------------------------------------- merging
+    def merge(self, scans: Mapping[str, Any]) -> Any:
+        """Fuse scans taken together (no synchronisation, no queues).
+
+        Args:
+            scans: input name -> LaserScan (rclpy or dataclass; arrays may be array.array,
+                numpy or lists). A subset of the inputs is allowed.
+
+        Returns:
+            rclpy ``sensor_msgs.msg.LaserScan`` in ``frame_id`` stamped with the reference stamp.
+
+        Raises:
+            ConfigError: an unknown input name.
+            ValidationError: no scan, or a scan with a bad header / wrong frame.
+        """
+        for name in scans:
+            if name not in self._inputs:
+                raise ConfigError("scans", name, f"one of the inputs {list(self._inputs)}")
+        states = [s for s in self._inputs.values() if s.name in scans]
+        if not states:
+            raise ValidationError("scans", dict(scans), "at least one input scan")
+        read = [_read_scan(scans[s.name], s.name) for s in states]
+        for s, sc in zip(states, read):
+            if s.cfg.frame_id is not None and sc.frame_id != s.cfg.frame_id:
+                raise ValidationError(f"{s.name}.header.frame_id", sc.frame_id,
+                                      f"{s.cfg.frame_id!r} (MergerInput.frame_id)")
+        stamps = [sc.stamp for sc in read]
+        ref = max(stamps) if self.reference == "newest" else min(stamps)
+        ref_inv = None
+        if self.motion_compensation and self._odom_t:
+            pose = self.pose_at(ref)
+            ref_inv = None if pose is None else np.linalg.inv(pose.matrix())
+        best = np.full(self.grid.size, _grid.EMPTY, np.int64)
+        bins_l, codes_l, keys_l, ints_l = [], [], [], []
+        base = 0
+        compensate = self.motion_compensation and bool(self._odom_t)
+        for s, sc in zip(states, read):
+            matrix = s.extrinsics
+            if compensate and sc.stamp != ref:
+                pose = self.pose_at(sc.stamp)
+                if pose is None or ref_inv is None:
+                    self.stats["uncompensated"] += 1
+                else:
+                    matrix = ref_inv @ pose.matrix() @ s.extrinsics
+            n = sc.ranges.size
+            if n:
+                rays = s.rays(matrix, sc.angle_min, sc.increment, n, self.grid, self.options,
+                              sc.range_min, static=not compensate)
+                if self._kernel is not None:
+                    self._input_kernel(self._kernel, s, sc, rays, base, best)
+                else:
+                    bins, codes, keys = self._input_codes(s, sc, rays)
+                    bins_l.append(bins)
+                    codes_l.append(codes)
+                    keys_l.append(keys + base)
+            ints_l.append(sc.intensities if sc.intensities is not None
+                          else np.zeros(n, np.float32))
+            base += n
+        if bins_l:
+            best = _grid.reduce_min(self.grid.size, np.concatenate(bins_l),
+                                    np.concatenate(codes_l), np.concatenate(keys_l))
+        ranges, winners = _grid.decode(best, self.options, self._kernel)
+        intensities = None
+        if self.intensities:
+            intensities = np.zeros(self.grid.size, np.float32)
+            hit = winners >= 0
+            if hit.any():
+                intensities[hit] = np.concatenate(ints_l)[winners[hit]]
+        self.last_inputs = tuple(s.name for s in states)
+        return _grid.make_laserscan(stamp_ns=ref, frame_id=self.frame_id, grid=self.grid,
+                                    ranges=ranges, intensities=intensities,
+                                    options=self.options,
+                                    scan_time=max(sc.scan_time for sc in read),
+                                    time_increment=0.0)
+
+    def _limits(self, s: _InputState, sc: _ScanIn) -> tuple[float, float, float]:
+        """(invalid below, +Inf above, dropped below) for finite ranges of this input."""
+        return sc.range_min, min(sc.range_max, float(s.cfg.range_max)), float(s.cfg.range_min)
+
+    def _input_kernel(self, kernel: Any, s: _InputState, sc: _ScanIn, rays: _Rays, base: int,
+                      best: np.ndarray[Any, Any]) -> None:
+        consts = s.kernel_consts
+        if consts is None:
+            g, o = self.grid, self.options
+            consts = s.kernel_consts = (
+                (np.array([float(s.cfg.min_height)]), np.array([float(s.cfg.max_height)]),
+                 np.array([o.range_min]), np.array([o.range_max]), _ZERO, _ZERO),
+                (np.array([g.angle_min]), np.array([g.increment]), np.array([g.size], np.int64),
+                 np.array([g.full_circle])))
+        kernel(sc.ranges, rays.k_keep, np.array(self._limits(s, sc)), *rays.columns,
+                     _NO_KEYS, base, *consts[0], rays.k_qual, *consts[1], rays.k_bin_far,
+                     rays.k_r_thr, best)
+
+    def _input_codes(self, s: _InputState, sc: _ScanIn, rays: _Rays
+                     ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """numpy path: (bins, codes, ray indices) of one input."""
+        invalid_below, inf_above, drop_below = self._limits(s, sc)
+        r = sc.ranges.astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            finite = np.isfinite(r)
+            invalid = finite & ((r <= 0) | (r < invalid_below))
+            over = finite & (r > inf_above) & ~invalid
+            point = finite & ~invalid & ~over & (r >= drop_below)
+            special = ~finite | invalid | over
+        if rays.keep is not None:
+            point &= rays.keep
+            special &= rays.keep
+        pidx = np.flatnonzero(point)
+        sel, pbins, pcodes = _grid.point_codes(
+            r[pidx], rays.d[pidx], rays.o[pidx], s.cfg.min_height, s.cfg.max_height,
+            self.options.range_min, self.options.range_max, self.grid,
+            rays.bin_far[pidx], rays.r_thr[pidx])
+        pkeys = pidx[sel]
+        sidx = np.flatnonzero(special)
+        if not sidx.size:
+            return pbins, pcodes, pkeys
+        values = r[sidx]
+        values[invalid[sidx]] = np.nan
+        values[over[sidx]] = np.inf
+        scodes = _grid.special_codes(values, rays.q_far[sidx], rays.q_near[sidx])
+        ok = (scodes >= 0) & (rays.bin_far[sidx] >= 0)
+        return (np.concatenate([pbins, rays.bin_far[sidx][ok]]),
+                np.concatenate([pcodes, scodes[ok]]),
+                np.concatenate([pkeys, sidx[ok]]))
+
+    # ---------------------------------------------------------------------------- streaming
+    def push(self, name: str, scan: Any) -> Any:
+        """Queue one scan; return the merged scan if a set now matches, else None.
+
+        Raises:
+            ConfigError: unknown input name.
+            ValidationError: the scan's header cannot be read.
+        """
+        state = self._inputs.get(name)
+        if state is None:
+            raise ConfigError("name", name, f"one of the inputs {list(self._inputs)}")
+        stamp = to_ns(scan.header.stamp, field=f"{name}.header.stamp")
+        self._clock = stamp if self._clock is None else max(self._clock, stamp)
+        for other in self._inputs.values():    # "never seen" counts from the first scan
+            if other.last_seen is None:
+                other.last_seen = stamp
+        state.last_seen = max(state.last_seen, stamp)  # type: ignore[type-var]
+        if stamp <= state.consumed:
+            self.stats["dropped_late"] += 1
+            return None
+        stamps = [t for t, _ in state.queue]
+        i = bisect.bisect_left(stamps, stamp)
+        if i < len(stamps) and stamps[i] == stamp:
+            self.stats["dropped_duplicate"] += 1
+            return None
+        state.queue.insert(i, (stamp, scan))
+        while len(state.queue) > self.queue_size:
+            state.queue.pop(0)
+            self.stats["dropped_overflow"] += 1
+        return self._match()
+
+    def _alive(self, state: _InputState) -> bool:
+        if self.policy == "wait":
+            return True
+        timeout = state.cfg.timeout_ns if state.cfg.timeout_ns is not None else self.timeout_ns
+        return state.last_seen is not None and self._clock is not None \
+            and state.last_seen >= self._clock - int(timeout)
+
+    def _match(self) -> Any:
+        """Consume every complete set; merge the newest, count older ones as backlog."""
+        found: dict[str, Any] | None = None
+        partial = False
+        while True:
+            matched = self._match_once()
+            if matched is None:
+                break
+            if found is not None:
+                self.stats["dropped_backlog"] += 1
+            found, partial = matched
+        if found is None:
+            return None
+        self.stats["merged"] += 1
+        self.stats["partial"] += int(partial)
+        return self.merge(found)
+
+    def _match_once(self) -> tuple[dict[str, Any], bool] | None:
+        while True:
+            required = [s for s in self._inputs.values() if self._alive(s)]
+            if not required:
+                return None
+            heads = [s.queue[0][0] for s in required if s.queue]
+            if not heads:
+                return None
+            pivot = max(heads)
+            if len(heads) == len(required):
+                picks: list[int] = []
+                for s in required:
+                    stamps = [t for t, _ in s.queue]
+                    j = bisect.bisect_left(stamps, pivot)
+                    cands = [k for k in (j - 1, j) if 0 <= k < len(stamps)]
+                    picks.append(min(cands, key=lambda k: (abs(stamps[k] - pivot), stamps[k])))
+                if all(abs(s.queue[k][0] - pivot) <= self.slop_ns
+                       for s, k in zip(required, picks)):
+                    scans = {}
+                    for s, k in zip(required, picks):
+                        stamp, scan = s.queue[k]
+                        self.stats["dropped_unmatched"] += k
+                        del s.queue[:k + 1]
+                        s.consumed = stamp
+                        scans[s.name] = scan
+                    return scans, len(required) < len(self._inputs)
+            dropped = 0
+            for s in self._inputs.values():
+                while s.queue and s.queue[0][0] < pivot - self.slop_ns:
+                    s.queue.pop(0)
+                    dropped += 1
+            self.stats["dropped_unmatched"] += dropped
+            if not dropped:
+                return None

@@ -1,0 +1,246 @@
+"""``lidarscan-cloud-to-scan``: a driver's organized PointCloud2 -> LidarScan + latched LidarInfo.
+
+For drivers that publish only PointCloud2 (ouster-ros, velodyne, Hesai, RoboSense): the beam
+geometry is estimated from the points by :func:`converters.pointcloud2.from_pointcloud2`, and
+each cloud becomes a compact LidarScan linked to a LidarInfo.
+
+The LidarInfo is published on a latched topic (reliable, transient local, depth 1) and only when
+the geometry CHANGES: the first cloud's estimate is kept as long as later estimates agree with it
+within ``angle_tolerance`` / ``offset_tolerance`` (estimates of one sensor differ slightly from
+cloud to cloud); their scans are linked to it. A different grid, frame, stagger or a geometry beyond
+the tolerances is a new version: a new LidarInfo with a new stamp (the cloud's stamp, made
+strictly larger than the previous version's), and the following scans name it.
+
+Topics: ``points`` (in, sensor_msgs/PointCloud2, ``cloud_qos`` [sensor_data]) ->
+``scan`` (out, lidarscan_msgs/LidarScan, ``scan_qos`` [sensor_data]) and ``lidar_info``
+(out, lidarscan_msgs/LidarInfo, latched).
+
+Parameters (defaults in brackets; ``config/cloud_to_scan.yaml``):
+
+* ``cloud_topic`` [``points``], ``scan_topic`` [``scan``], ``info_topic`` [``lidar_info``];
+* ``cloud_qos`` [``sensor_data``], ``scan_qos`` [``sensor_data``];
+* ``layout`` [``auto``]: ``organized``, ``ring`` or ``auto`` (see ``from_pointcloud2``);
+* ``time_field`` [""]: per-point time field ("" = auto-detect);
+* ``range_field`` [``auto``]: field with ranges along the beam ("auto", or "" = ignore);
+* ``frame_id`` [""]: frame of scan and info ("" = the cloud's);
+* ``angle_tolerance`` [1e-3] radians, ``offset_tolerance`` [5e-3] metres: how far the beams of a
+  new estimate (per-pixel directions and origins) may differ from the published LidarInfo before
+  it counts as a change. Estimates of one sensor from successive clouds differ by about 1e-5 to
+  3e-4 rad (beams with few points); a scan linked to the kept info is then off by at most
+  ``angle_tolerance * range`` (1 mm at 1 m with the default).
+
+Behaviour: no work while nobody subscribes to ``scan`` (the info is still published on the first
+cloud so late joiners find it); a cloud that cannot be converted is dropped with one log line
+(rate-limited) and counted; Ctrl-C exits cleanly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from lidarscan.errors import LidarScanError
+
+__all__ = ["CloudToScanCore", "geometry_matches", "main"]
+
+def geometry_matches(a: Any, b: Any, *, angle_tolerance: float = 1e-3,
+                     offset_tolerance: float = 5e-3) -> bool:
+    """Whether two LidarInfos describe the same sensor geometry within tolerances.
+
+    Gauge-free: the per-pixel beam directions D and offsets O of the two projectors
+    (``P = rho * D + O``) are compared, not the fields that produce them (an estimate may move a
+    constant between ``horizontal_angles`` and ``beam_azimuth_offsets`` without changing any
+    point). Equal: grid size, frame, stagger, range multiplier/offset, and
+    ``max |D_a - D_b| <= angle_tolerance`` (radians, for unit vectors), ``max |O_a - O_b| <=
+    offset_tolerance`` (metres), column_time_increment within 1 %. Stamps are ignored.
+    """
+    import lidarscan
+
+    if (int(a.height), int(a.width), a.header.frame_id) != \
+            (int(b.height), int(b.width), b.header.frame_id):
+        return False
+    if (float(a.range_multiplier), float(a.range_offset)) != \
+            (float(b.range_multiplier), float(b.range_offset)):
+        return False
+    ia, ib = int(a.column_time_increment), int(b.column_time_increment)
+    if abs(ia - ib) > 0.01 * max(abs(ia), abs(ib)):
+        return False
+    pa, pb = lidarscan.make_projector(a), lidarscan.Projector(b)
+    if not np.array_equal(pa.shifts % max(pa.width, 1), pb.shifts % max(pb.width, 1)):
+        return False
+    if not np.array_equal(pa.beam_time_offsets, pb.beam_time_offsets):
+        return False
+    d = np.sqrt(np.max(np.sum((pa.directions - pb.directions) ** 2, axis=-1), initial=0.0))
+    o = np.sqrt(np.max(np.sum((pa.offsets - pb.offsets) ** 2, axis=-1), initial=0.0))
+    return bool(d <= angle_tolerance and o <= offset_tolerance)
+
+
+class CloudToScanCore:
+    """The node's logic without rclpy: cloud -> (scan, info, info_changed).
+
+    Args:
+        angle_tolerance, offset_tolerance: see :func:`geometry_matches`.
+        **options: keyword options of :func:`converters.pointcloud2.from_pointcloud2`
+            (layout, time_field, range_field, range_scale, frame_id).
+
+    Attributes:
+        info: the current LidarInfo version (None before the first cloud).
+        versions: how many versions were created.
+    """
+
+    def __init__(self, *, angle_tolerance: float = 1e-3, offset_tolerance: float = 5e-3,
+                 **options: Any) -> None:
+        self.options = options
+        self.angle_tolerance = float(angle_tolerance)
+        self.offset_tolerance = float(offset_tolerance)
+        self.info: Any = None
+        self.versions = 0
+
+    def convert(self, cloud: Any) -> tuple[Any, Any, bool]:
+        """Convert one cloud.
+
+        Returns:
+            (scan, info, changed): ``changed`` is true when ``info`` is a new version that must
+            be (re-)published before ``scan``.
+
+        Raises:
+            LidarScanError: the cloud cannot be converted (the current info is kept).
+        """
+        from converters.pointcloud2 import from_pointcloud2
+        from lidarscan.stamps import to_ns
+
+        stamp = to_ns(cloud.header.stamp, field="cloud.header.stamp")
+        current = self.info
+        key = to_ns(current.header.stamp) if current is not None else stamp
+        scan, info = from_pointcloud2(cloud, stamp_ns=key, **self.options)
+        if current is not None and geometry_matches(
+                info, current, angle_tolerance=self.angle_tolerance,
+                offset_tolerance=self.offset_tolerance):
+            return scan, current, False
+        if current is not None:  # a new version: a new, strictly later stamp
+            new_key = max(stamp, key + 1)
+            scan, info = _restamp(scan, info, new_key)
+        self.info = info
+        self.versions += 1
+        return scan, info, True
+
+
+def _restamp(scan: Any, info: Any, stamp_ns: int) -> tuple[Any, Any]:
+    """Copies of scan and info whose version key is ``stamp_ns``."""
+    from lidarscan import types
+    from lidarscan.stamps import time_msg
+
+    if isinstance(info, types.LidarInfo):
+        t = time_msg(stamp_ns, types.Time)
+        info = dataclasses.replace(info, header=dataclasses.replace(info.header, stamp=t))
+        scan = dataclasses.replace(scan, lidar_info_time=t)
+        return scan, info
+    info.header.stamp = time_msg(stamp_ns)
+    scan.lidar_info_time = time_msg(stamp_ns)
+    return scan, info
+
+
+# ------------------------------------------------------------------------------------ node
+
+@functools.cache
+def _node_class() -> type:
+    from rclpy.node import Node
+
+    from converters.nodes import params as P
+    from converters.nodes.common import LogLimiter
+
+    class CloudToScanNode(Node):
+        """The rclpy node around :class:`CloudToScanCore` (see the module docstring)."""
+
+        def __init__(self, name: str = "lidarscan_cloud_to_scan", **kwargs: Any) -> None:
+            super().__init__(name, **kwargs)
+            self._log = LogLimiter(self.get_logger().warning)
+            def d(n: str, v: Any, doc: str) -> Any:
+                return P.declare(self, n, v, doc)
+
+            cloud_topic = d("cloud_topic", "points", "input PointCloud2 topic")
+            scan_topic = d("scan_topic", "scan", "output LidarScan topic")
+            info_topic = d("info_topic", "lidar_info", "output LidarInfo topic (latched)")
+            cloud_qos = d("cloud_qos", "sensor_data", f"QoS of the input: {P.QOS_NAMES}")
+            scan_qos = d("scan_qos", "sensor_data", f"QoS of the scans: {P.QOS_NAMES}")
+            layout = d("layout", "auto", "organized, ring or auto")
+            time_field = d("time_field", "", "per-point time field ('' = auto)")
+            range_field = d("range_field", "auto", "range field ('auto', '' = ignore)")
+            frame_id = d("frame_id", "", "frame of scan and info ('' = the cloud's)")
+            angle_tol = d("angle_tolerance", 1e-3, "radians before the geometry changes")
+            offset_tol = d("offset_tolerance", 5e-3, "metres before the geometry changes")
+            options: dict[str, Any] = {"layout": layout,
+                                       "range_field": range_field or None}
+            if time_field:
+                options["time_field"] = time_field
+            if frame_id:
+                options["frame_id"] = frame_id
+            self.core = CloudToScanCore(angle_tolerance=float(angle_tol),
+                                        offset_tolerance=float(offset_tol), **options)
+            self.stats = {"clouds": 0, "scans": 0, "infos": 0, "bad": 0, "idle": 0}
+
+            from lidarscan_msgs.msg import LidarInfo, LidarScan
+            from sensor_msgs.msg import PointCloud2
+
+            self.scan_pub = self.create_publisher(LidarScan, scan_topic,
+                                                  P.qos_profile(scan_qos))
+            self.info_pub = self.create_publisher(LidarInfo, info_topic, P.qos_profile("latched"))
+            self.create_subscription(PointCloud2, cloud_topic, self._on_cloud,
+                                     P.qos_profile(cloud_qos), raw=True)
+            self.get_logger().info(
+                f"'{self.resolve_topic_name(cloud_topic)}' -> LidarScan "
+                f"'{self.resolve_topic_name(scan_topic)}' + LidarInfo "
+                f"'{self.resolve_topic_name(info_topic)}' (latched)")
+
+        def _on_cloud(self, raw: bytes) -> None:
+            from lidarscan import decode
+
+            self.stats["clouds"] += 1
+            if self.core.info is not None and self.scan_pub.get_subscription_count() == 0:
+                self.stats["idle"] += 1
+                return
+            try:
+                cloud = decode(raw, "sensor_msgs/msg/PointCloud2")
+                scan, info, changed = self.core.convert(cloud)
+            except LidarScanError as err:
+                self.stats["bad"] += 1
+                self._log(f"PointCloud2 #{self.stats['clouds']} not converted: {err}", "bad")
+                return
+            except Exception as err:  # noqa: BLE001 - a node must survive any input
+                self.stats["bad"] += 1
+                self._log(f"PointCloud2 #{self.stats['clouds']} not converted (internal error "
+                          f"{type(err).__name__}: {err})", "internal")
+                return
+            if changed:
+                self.info_pub.publish(info)
+                self.stats["infos"] += 1
+                self.get_logger().info(
+                    f"LidarInfo version {self.core.versions}: {info.height}x{info.width}, "
+                    f"frame '{info.header.frame_id}', stamp {info.header.stamp.sec}."
+                    f"{info.header.stamp.nanosec:09d}")
+            self.scan_pub.publish(scan)
+            self.stats["scans"] += 1
+
+    return CloudToScanNode
+
+
+def __getattr__(name: str) -> Any:
+    if name == "CloudToScanNode":
+        return _node_class()
+    raise AttributeError(name)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console script ``lidarscan-cloud-to-scan`` (ROS arguments after ``--ros-args``)."""
+    from converters.nodes.common import run_node
+
+    return run_node(lambda: _node_class()(), args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,29 @@
+"""Build of the optional compiled kernel; all other metadata lives in pyproject.toml.
+
+``converters/_cloudkernel.c`` speeds up LidarScan -> PointCloud2 (converters/pointcloud2.py).
+It is optional: without a C compiler the install still succeeds and the numpy path is used.
+(A setup.py because ``[tool.setuptools] ext-modules`` needs setuptools >= 74.1.)
+"""
+
+from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+
+
+class BuildExt(build_ext):  # type: ignore[misc]
+    """No fused multiply-add: the kernel must round like numpy (bit-identical clouds)."""
+
+    def build_extensions(self) -> None:
+        if self.compiler.compiler_type == "msvc":
+            args = ["/O2", "/fp:precise"]          # MSVC contracts only with /fp:contract
+        else:
+            args = ["-O3", "-ffp-contract=off", "-fno-fast-math"]
+        for ext in self.extensions:
+            ext.extra_compile_args = list(ext.extra_compile_args or []) + args
+        super().build_extensions()
+
+
+setup(
+    ext_modules=[Extension("converters._cloudkernel", ["converters/_cloudkernel.c"],
+                           optional=True)],
+    cmdclass={"build_ext": BuildExt},
+)

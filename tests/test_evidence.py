@@ -1,0 +1,198 @@
+"""The evidence document: its deterministic tables equal what the script computes, and the
+measurements behind them agree with independent loop-based oracles.
+
+The deterministic blocks (sizes, errors, counts) are computed once per session (about 10 s);
+timings are never computed here.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import subprocess
+import sys
+from typing import Any
+
+import numpy as np
+import pytest
+
+from converters import evidence
+from converters.evidence import _common, compression, geometry, linkage, range_error, sizes
+
+
+@pytest.fixture(scope="module")
+def blocks() -> list[Any]:
+    return evidence.generate(fast=True)
+
+
+def test_document_tables_equal_the_scripts_output(blocks: list[Any]) -> None:
+    problems = evidence.check(evidence.DOC, blocks)
+    real = [p for p in problems if not p.startswith("skipped:")]
+    assert real == [], "docs/proposal.md is stale; run `make evidence`:\n" + "\n".join(real)
+
+
+def test_every_generated_block_has_markers_and_no_placeholder_is_left(blocks: list[Any]) -> None:
+    present = evidence.read_blocks(evidence.DOC.read_text(encoding="utf-8"))
+    names = [b.name for b in blocks]
+    assert len(names) == len(set(names))
+    assert set(names) <= set(present)
+    for timing in ("timing-compression", "timing-transport", "timing-receiver", "timing-slicing",
+                   "machine"):
+        assert timing in present, f"the document lost its {timing} block"
+    assert [b.name for b in blocks if b.placeholder] == []
+    assert "Not yet measured" not in "".join(present.values())
+
+
+def test_check_cli_passes_on_the_committed_document(capsys: pytest.CaptureFixture[str]) -> None:
+    assert evidence.main(["--check"]) == 0
+    out = capsys.readouterr().out
+    assert "CPU:" in out and "Python" in out and "document up to date" in out
+
+
+def test_render_writes_only_between_markers() -> None:
+    text = ("intro\n<!-- evidence:a:begin -->\nold\n<!-- evidence:a:end -->\nmiddle\n"
+            "<!-- evidence:b:begin -->\n<!-- evidence:b:end -->\nend\n")
+    out = evidence.render(text, [_common.Block("a", "new | table"), _common.Block("b", "x")])
+    assert out == ("intro\n<!-- evidence:a:begin -->\nnew | table\n<!-- evidence:a:end -->\n"
+                   "middle\n<!-- evidence:b:begin -->\nx\n<!-- evidence:b:end -->\nend\n")
+    assert evidence.read_blocks(out) == {"a": "new | table", "b": "x"}
+    assert evidence.render(out, [_common.Block("a", "new | table"), _common.Block("b", "x")]) \
+        == out  # idempotent
+    with pytest.raises(KeyError, match="no markers"):
+        evidence.render(text, [_common.Block("missing", "x")])
+
+
+def test_check_reports_a_changed_number(tmp_path: Any, blocks: list[Any]) -> None:
+    doc = tmp_path / "proposal.md"
+    text = evidence.DOC.read_text(encoding="utf-8")
+    sizes_block = evidence.read_blocks(text)["sizes"]
+    doc.write_text(text.replace(sizes_block, sizes_block.replace("2 638 020", "2 638 021")),
+                   encoding="utf-8")
+    assert any(p.startswith("sizes:") for p in evidence.check(doc, blocks))
+
+
+def test_check_skips_library_dependent_blocks_when_versions_differ(tmp_path: Any,
+                                                                    blocks: list[Any]) -> None:
+    doc = tmp_path / "proposal.md"
+    text = evidence.DOC.read_text(encoding="utf-8")
+    old = evidence.read_blocks(text)["compression"]
+    first = old.split("\n", 1)[0]
+    doc.write_text(text.replace(old, old.replace(first, first.replace("zstandard ", "zstandard 0"))
+                                .replace("| 3.47 |", "| 9.99 |")), encoding="utf-8")
+    problems = evidence.check(doc, blocks)
+    assert [p for p in problems if "compression" in p and p.startswith("skipped:")]
+    assert not [p for p in problems if p.startswith("compression:")]
+
+
+def test_core_evidence_import_does_not_import_rclpy() -> None:
+    code = ("import sys, converters.evidence as e; from converters.evidence import sizes;"
+            "sizes.scan_bytes(sizes.LAYOUTS[0]); print('rclpy' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, check=True)
+    assert out.stdout.strip() == "False"
+
+
+# ------------------------------------------------------------------------------ oracles
+
+def _cdr_pointcloud2_size(frame_id: str, fields: list[tuple[str, int, int]], n: int,
+                          step: int) -> int:
+    """CDR size written out field by field (XCDR1, alignment from after the 4-byte header)."""
+    pos = 0
+
+    def align(k: int) -> None:
+        nonlocal pos
+        pos += -pos % k
+
+    pos += 8                                     # stamp sec, nanosec
+    pos += 4 + len(frame_id) + 1                 # frame_id
+    align(4)
+    pos += 8                                     # height, width
+    pos += 4                                     # fields count
+    for name, _, _ in fields:
+        align(4)
+        pos += 4 + len(name) + 1                 # name
+        align(4)
+        pos += 4 + 1                             # offset, datatype
+        align(4)
+        pos += 4                                 # count
+    pos += 1                                     # is_bigendian
+    align(4)
+    pos += 8                                     # point_step, row_step
+    pos += 4 + n * step                          # data
+    pos += 1                                     # is_dense
+    return 4 + pos
+
+
+@pytest.mark.parametrize("layout", sorted(_common.PC2_LAYOUTS))
+def test_pointcloud2_sizes_match_a_hand_written_cdr_size(layout: str) -> None:
+    fields, step = _common.PC2_LAYOUTS[layout]
+    for height, width in ((1, 1), (16, 1800), (128, 2048)):
+        assert _common.pointcloud2_bytes(layout, height, width) == _cdr_pointcloud2_size(
+            "os_sensor", fields, height * width, step)
+
+
+def test_lidarscan_sizes_grow_by_exactly_the_channel_bytes() -> None:
+    for layout in sizes.LAYOUTS[:4]:
+        per_pixel = sum(np.dtype(t).itemsize for _, t in layout.channels)
+        per_column = 8 * (2 if layout.azimuth_per_column else 1)
+        wider = sizes.Layout(**{**layout.__dict__, "width": layout.width + 8})
+        grown = sizes.scan_bytes(wider) - sizes.scan_bytes(layout)
+        assert grown == 8 * (layout.height * per_pixel + per_column)
+
+
+def test_float32_roundtrip_against_struct_loop() -> None:
+    unit, top = 0.001, 300.0
+    rec = range_error.roundtrip(unit, top)
+    worst = 0.0
+    for raw in range(0, int(top / unit) + 1, 997):      # every 997th value, plus the worst
+        value = raw * unit
+        back = struct.unpack("<f", struct.pack("<f", value))[0]
+        worst = max(worst, abs(back - value))
+        assert round(back / unit) == raw
+    at = rec["at_m"]
+    back = struct.unpack("<f", struct.pack("<f", at))[0]
+    assert abs(back - at) * 1e6 == pytest.approx(rec["max_err_um"], rel=1e-9)
+    assert worst * 1e6 <= rec["max_err_um"] + 1e-9
+    assert rec["max_err_um"] <= 2.0 ** (8 - 24) * 1e6   # half a float32 step in [256, 512) m
+
+
+def test_beam_origin_error_matches_the_ouster_formula_loop() -> None:
+    """Dropping the beam origin = dropping Ouster's `off` term: |off| per pixel (rotation kept)."""
+    import json
+    meta = next(m for m, _ in _common.ouster_files() if "os1" in m.name)
+    data = json.loads(meta.read_text())
+    width = int(data["data_format"]["columns_per_frame"])
+    n = float(data["lidar_origin_to_beam_origin_mm"])
+    worst = 0.0
+    for u, (alt, az) in enumerate(zip(data["beam_altitude_angles"],
+                                      data["beam_azimuth_angles"])):
+        phi = math.radians(alt)
+        for v in range(0, width, 7):
+            theta_e = 2 * math.pi - v * 2 * math.pi / width
+            theta = theta_e - math.radians(az)
+            dx, dy, dz = (math.cos(theta) * math.cos(phi), math.sin(theta) * math.cos(phi),
+                          math.sin(phi))
+            off = (n * math.cos(theta_e) - n * dx, n * math.sin(theta_e) - n * dy, -n * dz)
+            worst = max(worst, math.sqrt(sum(c * c for c in off)))
+    rec = next(r for r in geometry.measure()
+               if r["sensor"].startswith("OS-1-128") and r["label"].startswith("beam-origin"))
+    assert rec["max_mm"] == pytest.approx(worst, abs=0.01)
+
+
+def test_resolver_never_pairs_wrong_geometry_while_naive_does() -> None:
+    records = linkage.run()
+    assert all(r["wrong"] == 0 for r in records)
+    assert sum(r["naive"]["wrong"] for r in records) > 0
+    for r in records:
+        assert r["paired"] + r["dropped"] == r["total"], r["name"]
+
+
+def test_lossless_codecs_roundtrip_every_real_block() -> None:
+    assert compression.check_lossless() == []
+
+
+def test_png_range_image_is_the_4mm_ouster_ros_encoding() -> None:
+    r = np.array([[0.0, 1.0, 262.14, 262.2, np.inf, 0.0021]], np.float32)
+    img = compression.png_image(r)
+    assert img.dtype == np.uint16
+    assert img.tolist() == [[0, 250, 65535, 0, 0, 1]]

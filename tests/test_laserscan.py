@@ -1,0 +1,756 @@
+"""Height slices of LidarScans: against a plain-loop oracle, physics of a synthetic room, and
+every convention (REP 117 classes, inclusive limits, ties, staggering, time fields, errors).
+
+``ref_slice`` below is written from the rules in converters/_grid.py, one pixel at a time.
+Scenes are ray-cast analytically from the projector's own beam tables, so a point's height and
+range are known exactly.
+"""
+
+from __future__ import annotations
+
+import array
+import importlib.util
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import assume, given
+from hypothesis import strategies as st
+
+import lidarscan
+from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
+from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError, UnknownChannelError
+
+TWO_PI = 2 * math.pi
+F32 = np.float32
+
+
+# --------------------------------------------------------------------------- reference code
+
+def ref_grid(amin: float, amax: float, inc: float) -> tuple[float, float, int, bool]:
+    span = amax - amin
+    n_full = round(TWO_PI / inc)
+    n_sector = round(span / inc) + 1
+    if n_sector >= n_full:
+        return amin, TWO_PI / n_full, n_full, True
+    return amin, inc, n_sector, False
+
+
+def ref_bin(theta: float, grid: tuple[float, float, int, bool]) -> int | None:
+    amin, inc, n, full = grid
+    if full:
+        return math.ceil((theta - amin) / inc - 0.5) % n
+    d = theta - amin
+    d = d - TWO_PI * math.floor((d + inc / 2) / TWO_PI)
+    k = math.ceil(d / inc - 0.5)
+    return k if 0 <= k < n else None
+
+
+def ray_interval(dz: float, oz: float, zmin: float, zmax: float) -> tuple[float, float]:
+    if dz == 0:
+        return (0.0, math.inf) if zmin <= oz <= zmax else (math.inf, -math.inf)
+    a, b = (zmin - oz) / dz, (zmax - oz) / dz
+    return max(min(a, b), 0.0), max(a, b)
+
+
+def ref_qualify(d: tuple[float, ...], o: tuple[float, ...], zmin: float, zmax: float,
+                rmin: float, rmax: float, near: float) -> tuple[bool, bool]:
+    lo, hi = ray_interval(d[2], o[2], zmin, zmax)
+    if lo > hi:
+        return False, False
+
+    def rho(r: float) -> float:
+        if math.isinf(r):
+            return math.inf if (d[0] or d[1]) else math.hypot(o[0], o[1])
+        x, y = r * d[0] + o[0], r * d[1] + o[1]
+        return math.sqrt(x * x + y * y)
+
+    a2 = d[0] * d[0] + d[1] * d[1]
+    r_star = -(d[0] * o[0] + d[1] * o[1]) / a2 if a2 > 0 else 0.0
+    r_star = min(max(r_star, lo), max(hi, lo))
+    return rho(r_star) <= rmax and max(rho(lo), rho(hi)) >= rmin, lo <= near
+
+
+RANK = {"finite": 0, "neg": 1, "pos": 2, "nan": 3}
+
+
+def ref_slice(scan: Any, info: Any, *, zmin: float, zmax: float, ext: Any = None,
+              amin: float = -math.pi, amax: float | None = None, inc: float | None = None,
+              rmin: float | None = None, rmax: float | None = None, use_inf: bool = True,
+              eps: float = 1.0, fill: float | None = None,
+              intensity: str | None = "intensity") -> tuple[np.ndarray, np.ndarray]:
+    """One slice, pixel by pixel, from the documented rules."""
+    height, width = int(info.height), int(info.width)
+    m = np.eye(4) if ext is None else np.asarray(ext, float)
+    inc = TWO_PI / width if inc is None else inc
+    amax = amin + TWO_PI if amax is None else amax
+    rmin = max(float(info.range_min), 0.0) if rmin is None else rmin
+    if rmax is None:
+        rmax = float(info.range_max) if float(info.range_max) > 0 else math.inf
+    near = max(float(info.range_min), 0.0)
+    grid = ref_grid(amin, amax, inc)
+    proj = lidarscan.make_projector(info)
+    dirs, offs = proj.tables_for(scan)
+    ranges = lidarscan.range_m(scan, info)
+    values = lidarscan.channel(scan, intensity) if intensity else None
+    shifts = proj.shifts
+    cands: dict[int, tuple[Any, ...]] = {}
+    for u in range(height):
+        for v in range(width):
+            c = (v - int(shifts[u])) % width if scan.is_destaggered else v
+            key = u * width + c
+            d0 = [float(x) for x in dirs[u, v]]
+            o0 = [float(x) for x in offs[u, v]]
+            # rays in the target frame, rounded to float32 like the projector's tables
+            d = tuple(float(F32(m[i, 0] * d0[0] + m[i, 1] * d0[1] + m[i, 2] * d0[2]))
+                      for i in range(3))
+            o = tuple(float(F32(m[i, 0] * o0[0] + m[i, 1] * o0[1] + m[i, 2] * o0[2] + m[i, 3]))
+                      for i in range(3))
+            r = float(ranges[u, v])
+            inten = float(values[u, v]) if values is not None else 0.0
+            if math.isfinite(r) and r > 0:
+                x, y, z = (r * d[i] + o[i] for i in range(3))
+                if not zmin <= z <= zmax:
+                    continue
+                b = ref_bin(math.atan2(y, x), grid)
+                if b is None:
+                    continue
+                rho = math.sqrt(x * x + y * y)
+                cls = "neg" if rho < rmin else "pos" if rho > rmax else "finite"
+                cand = (RANK[cls], float(F32(rho)) if cls == "finite" else 0.0, key, inten)
+            else:
+                cls = "pos" if r == math.inf else "neg" if r == -math.inf else "nan"
+                if d[0] == 0 and d[1] == 0:
+                    continue
+                far, near_ok = ref_qualify(d, o, zmin, zmax, rmin, rmax, near)
+                if not (near_ok if cls == "neg" else far):
+                    continue
+                b = ref_bin(math.atan2(d[1], d[0]), grid)
+                if b is None:
+                    continue
+                cand = (RANK[cls], 0.0, key, inten)
+            if b not in cands or cand[:3] < cands[b][:3]:
+                cands[b] = cand
+    inf_value = math.inf if use_inf else rmax + eps
+    out = np.full(grid[2], inf_value if fill is None else fill, np.float32)
+    ints = np.zeros(grid[2], np.float32)
+    for b, (rank, v32, _key, inten) in cands.items():
+        out[b] = [v32, -math.inf, inf_value, math.nan][rank]
+        ints[b] = inten
+    return out, ints
+
+
+# ------------------------------------------------------------------------------- scenes
+
+def pose(x: float = 0.0, y: float = 0.0, z: float = 0.0, yaw: float = 0.0, roll: float = 0.0,
+         pitch: float = 0.0) -> np.ndarray:
+    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
+                              math.cos(yaw), math.sin(yaw))
+    m = np.eye(4)
+    m[:3, :3] = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ \
+        np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ \
+        np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    m[:3, 3] = (x, y, z)
+    return m
+
+
+def make_sensor(height: int = 16, width: int = 128, *, fov: float = 30.0, origins: bool = True,
+                shifts: bool = False, stamp: int = 7_000_000_000, **fields: Any) -> Any:
+    """An Ouster-like LidarInfo: CW columns, small beam azimuth offsets and origins."""
+    inc = TWO_PI / width
+    beta = np.where(np.arange(height) % 2 == 0, 0.3, -0.2) * inc
+    extra: dict[str, Any] = {"beam_azimuth_offsets": beta, "range_min": 0.1, "range_max": 120.0,
+                                 "column_time_increment": 100_000_000 // width}
+    if origins:
+        n = 0.015
+        extra["beam_origins"] = np.stack([n * np.cos(beta), -n * np.sin(beta),
+                                          np.zeros(height)], 1).reshape(-1)
+        extra["beam_range_offsets"] = np.full(height, -n)
+        extra["lidar_to_sensor_transform"] = pose(z=0.036, yaw=math.pi).reshape(-1)
+    if shifts:
+        extra["pixel_shift_by_row"] = np.array([(3 * u) % 7 for u in range(height)], np.int32)
+    extra.update(fields)
+    return lidarscan.make_info(
+        stamp_ns=stamp, frame_id="os_sensor",
+        vertical_angles=np.radians(np.linspace(fov / 2, -fov / 2, height)),
+        horizontal_angles=TWO_PI * (1 - np.arange(width) / width), as_dataclass=True, **extra)
+
+
+ROOM = (np.array([-4.0, -3.0, 0.0]), np.array([4.0, 3.0, 2.5]))
+SOLIDS = [(np.array([1.0, -0.5, 0.70]), np.array([2.0, 0.5, 0.75])),      # table top
+          (np.array([-2.0, 1.0, 0.0]), np.array([-1.7, 1.3, 2.5]))]       # pillar
+
+
+def raycast(o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Range along unit rays (N, 3) from origins (N, 3) to the room's walls or a solid."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1, t2 = (ROOM[0] - o) * inv, (ROOM[1] - o) * inv
+        best = np.nanmin(np.maximum(t1, t2), axis=1)                   # exit of the room
+        for lo, hi in SOLIDS:
+            a, b = (lo - o) * inv, (hi - o) * inv
+            t_in = np.nanmax(np.minimum(a, b), axis=1)
+            t_out = np.nanmin(np.maximum(a, b), axis=1)
+            hit = (t_in <= t_out) & (t_in > 0)
+            best = np.where(hit & (t_in < best), t_in, best)
+    return best
+
+
+def room_scan(info: Any, ext: np.ndarray, *, rng: np.random.Generator | None = None,
+              stamp: int = 10**9, destagger: bool = False, specials: bool = True,
+              intensity_dtype: Any = np.float32) -> Any:
+    """The room seen by ``info`` mounted at ``ext`` in the room frame (measurement order)."""
+    proj = lidarscan.make_projector(info)
+    d = proj.directions.reshape(-1, 3).astype(np.float64)
+    o = proj.offsets.reshape(-1, 3).astype(np.float64)
+    dw = d @ ext[:3, :3].T
+    ow = o @ ext[:3, :3].T + ext[:3, 3]
+    r = raycast(ow, dw / np.linalg.norm(dw, axis=1)[:, None]).reshape(proj.height, proj.width)
+    r = r.astype(np.float32)
+    rng = rng or np.random.default_rng(1)
+    if specials:
+        flat = r.reshape(-1)
+        pick = rng.choice(flat.size, size=flat.size // 10, replace=False)
+        kinds = np.array([np.inf, np.nan, -np.inf, 0.0], np.float32)
+        flat[pick] = kinds[np.arange(pick.size) % 4]
+    inten = rng.integers(0, 4000, r.shape).astype(intensity_dtype)
+    channels = {"range": r, "intensity": inten}
+    if destagger:
+        channels = {k: proj.destagger(v) for k, v in channels.items()}
+    return lidarscan.make_scan(info, channels, stamp, is_destaggered=destagger,
+                               as_dataclass=True)
+
+
+def arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    return np.array(msg.ranges, np.float32), np.array(msg.intensities, np.float32)
+
+
+def assert_same(msg: Any, ref: tuple[np.ndarray, np.ndarray]) -> None:
+    got = arrays(msg)
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(got[1], ref[1])
+
+
+MOUNTS = {
+    "level": pose(z=0.5),
+    "tilted": pose(z=1.0, pitch=math.radians(20)),
+    "upside_down": pose(z=1.5, roll=math.pi, yaw=0.3),
+    "offset": pose(x=0.3, y=0.1, z=0.6, yaw=0.4),
+}
+BANDS = {"floor_to_knee": (0.05, 0.5), "table": (0.6, 0.8), "above": (0.9, 2.0)}
+
+
+@pytest.fixture(scope="module")
+def sensor() -> Any:
+    return make_sensor()
+
+
+BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
+    importlib.util.find_spec("numba") is None, reason="numba not installed"))]
+
+
+def backends() -> list[str]:
+    """Backends available here (for loops inside Hypothesis tests)."""
+    return ["numpy"] + (["numba"] if importlib.util.find_spec("numba") else [])
+
+
+# ------------------------------------------------------------------ oracle on the room scene
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("mount", list(MOUNTS))
+def test_slices_match_the_reference(sensor: Any, mount: str, backend: str) -> None:
+    ext = MOUNTS[mount]
+    scan = room_scan(sensor, ext)
+    conv = SliceConverter(sensor, {k: SliceSpec(*v) for k, v in BANDS.items()}, extrinsics=ext,
+                          frame_id="base_link", backend=backend)
+    out = conv.convert(scan)
+    assert list(out) == list(BANDS)
+    for name, (zmin, zmax) in BANDS.items():
+        assert_same(out[name], ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext))
+        assert out[name].header.frame_id == "base_link"
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.parametrize("mount", ["level", "tilted", "offset"])
+def test_compiled_paths_agree(sensor: Any, mount: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The compiled kernels have three drivers: one call for small inputs, three passes for
+    large ones, and the row-wise path for sensor-aligned full circles; all match the oracle."""
+    from converters import _grid
+    ext = MOUNTS[mount]
+    scan = room_scan(sensor, ext)
+    grids = {"default": {}, "sector": {"angle_min": -2.0, "angle_max": 1.5, "angle_increment": 0.03}}
+    for small in (1 << 30, 0):
+        monkeypatch.setattr(_grid, "_SMALL", small)
+        for name, kw in grids.items():
+            conv = SliceConverter(sensor, {"a": SliceSpec(0.05, 0.5), "b": SliceSpec(0.3, 1.5)},
+                                  extrinsics=ext, frame_id="b", backend="numba", **kw)
+            out = conv.convert(scan)
+            tables = next(iter(conv._tables.values()))
+            if name == "sector" or mount == "level":      # a pitched mount is not row-aligned
+                assert (tables.aligned is not None) == (name == "default")
+            for key, (zmin, zmax) in (("a", (0.05, 0.5)), ("b", (0.3, 1.5))):
+                ref = ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext,
+                                amin=kw.get("angle_min", -math.pi),
+                                amax=kw.get("angle_max"), inc=kw.get("angle_increment"))
+                assert_same(out[key], ref)
+
+
+def test_level_mount_sees_walls_and_table(sensor: Any) -> None:
+    """Physics, no oracle: walls of the 8 x 6 m room and the 0.70-0.75 m table top at x = 1."""
+    ext = pose(z=0.5)
+    scan = room_scan(sensor, ext, specials=False)
+    conv = SliceConverter(sensor, {"low": SliceSpec(0.05, 0.5), "table": SliceSpec(0.6, 0.8)},
+                          extrinsics=ext, frame_id="base_link", intensity_channel=None)
+    out = conv.convert(scan)
+    low, table = arrays(out["low"])[0], arrays(out["table"])[0]
+    assert low.size == 128 and len(out["low"].intensities) == 0
+    centre = 64                              # bin of angle 0 on a [-pi, pi) grid of 128
+    assert low[centre] == pytest.approx(4.0, abs=0.02)             # wall at x = 4
+    assert low[0] == pytest.approx(4.0, abs=0.02)                  # wall at x = -4 (angle pi)
+    assert low[centre + 32] == pytest.approx(3.0, abs=0.02)        # wall at y = 3
+    assert table[centre] == pytest.approx(1.0, abs=0.05)           # table edge at x = 1
+    assert np.all(np.isfinite(low))
+
+
+def test_tilted_ring_crosses_the_band_on_part_of_its_azimuth(sensor: Any) -> None:
+    ext = MOUNTS["tilted"]
+    scan = room_scan(sensor, ext, specials=False)
+    proj = lidarscan.make_projector(sensor)
+    r = lidarscan.range_m(scan, sensor).astype(np.float64)
+    ring = sensor.height // 2
+    p = r[ring, :, None] * proj.directions[ring] + proj.offsets[ring]
+    z = p @ ext[2, :3] + ext[2, 3]
+    in_band = (z >= 0.05) & (z <= 0.5)
+    assert 0 < in_band.mean() < 0.8
+    got = to_laserscan(scan, sensor, min_height=0.05, max_height=0.5, extrinsics=ext,
+                       frame_id="base_link")
+    assert_same(got, ref_slice(scan, sensor, zmin=0.05, zmax=0.5, ext=ext))
+
+
+def test_upside_down_mount_mirrors_azimuth() -> None:
+    """Rolled by pi, the sensor's +y is the target's -y: a wall seen at +90 deg in the sensor
+    frame is at -90 deg in the target frame."""
+    info = make_sensor(4, 64, origins=False)
+    ext = pose(z=1.0, roll=math.pi)
+    r = np.full((4, 64), np.inf, np.float32)
+    proj = lidarscan.make_projector(info)
+    az = np.arctan2(proj.directions[..., 1], proj.directions[..., 0])
+    r[np.abs(az - math.pi / 2) < 0.03] = 2.0
+    scan = lidarscan.make_scan(info, {"range": r, "intensity": np.ones_like(r)}, 0,
+                               as_dataclass=True)
+    out = arrays(to_laserscan(scan, info, min_height=-10, max_height=10, extrinsics=ext,
+                              frame_id="base_link"))[0]
+    hits = np.flatnonzero(np.isfinite(out))
+    angles = -math.pi + hits * TWO_PI / 64
+    assert hits.size and np.all(np.abs(angles + math.pi / 2) < 0.1)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_many_pixels_and_measured_azimuths(rng: np.random.Generator, backend: str) -> None:
+    info = make_sensor(8, 256, origins=True)
+    az = TWO_PI * (1 - np.arange(256) / 256) + rng.normal(0, 0.002, 256)
+    proj = lidarscan.make_projector(info)
+    r = rng.uniform(0.05, 8.0, (8, 256)).astype(np.float32)
+    scan = lidarscan.make_scan(info, {"range": r, "intensity": r * 2}, 5, as_dataclass=True,
+                               column_azimuth_angles=az)
+    ext = pose(0.05, -0.02, 0.4, 1.0)
+    conv = SliceConverter(info, {"a": SliceSpec(-0.5, 1.0), "b": SliceSpec(0.35, 0.45)},
+                          extrinsics=ext, frame_id="base_link", range_min=0.3, range_max=6.0,
+                          backend=backend)
+    out = conv.convert(scan)
+    for name, (zmin, zmax) in (("a", (-0.5, 1.0)), ("b", (0.35, 0.45))):
+        assert_same(out[name], ref_slice(scan, info, zmin=zmin, zmax=zmax, ext=ext, rmin=0.3,
+                                         rmax=6.0))
+    assert proj.width == 256
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("mount", ["level", "tilted"])
+def test_staggered_and_destaggered_scans_give_identical_slices(backend: str, mount: str) -> None:
+    info = make_sensor(16, 64, shifts=True)
+    ext = MOUNTS[mount]
+    stag = room_scan(info, ext)
+    destag = room_scan(info, ext, destagger=True)
+    conv = SliceConverter(info, {"s": SliceSpec(0.05, 1.2)}, extrinsics=ext, frame_id="base",
+                          backend=backend)
+    a, b = conv.convert(stag)["s"], conv.convert(destag)["s"]
+    assert_same(a, arrays(b))
+    assert_same(b, ref_slice(destag, info, zmin=0.05, zmax=1.2, ext=ext))
+
+
+def test_integer_range_channel(sensor: Any) -> None:
+    info = make_sensor(range_multiplier=0.001)
+    ext = MOUNTS["level"]
+    scan_f = room_scan(info, ext, specials=False)
+    r = lidarscan.range_m(scan_f, info)
+    mm = np.round(r.astype(np.float64) * 1000).astype(np.uint32)
+    mm[::5, ::3] = 0                                              # raw 0 = no return
+    scan_i = lidarscan.make_scan(info, {"range": mm, "intensity": np.ones_like(r)}, 10**9,
+                                 as_dataclass=True)
+    scan_ref = lidarscan.make_scan(info, {"range": lidarscan.range_m(scan_i, info),
+                                          "intensity": np.ones_like(r)}, 10**9,
+                                   as_dataclass=True)
+    kw = {"min_height": 0.05, "max_height": 0.6, "extrinsics": ext, "frame_id": "b"}
+    assert_same(to_laserscan(scan_i, info, **kw), arrays(to_laserscan(scan_ref, info, **kw)))
+
+
+# ----------------------------------------------------------------------- value classes
+
+def flat_sensor(height: int = 1, width: int = 8, *, elevation: float = 0.0, **fields: Any) -> Any:
+    return lidarscan.make_info(stamp_ns=1, frame_id="l",
+                               vertical_angles=np.full(height, elevation),
+                               horizontal_angles=-math.pi + TWO_PI * np.arange(width) / width,
+                               as_dataclass=True, **fields)
+
+
+def flat_scan(info: Any, ranges: Any, intensity: Any = None) -> Any:
+    r = np.asarray(ranges, np.float32).reshape(int(info.height), int(info.width))
+    inten = np.arange(r.size, dtype=np.float32).reshape(r.shape) if intensity is None \
+        else np.asarray(intensity, np.float32).reshape(r.shape)
+    return lidarscan.make_scan(info, {"range": r, "intensity": inten}, 0, as_dataclass=True)
+
+
+@pytest.mark.parametrize("row_values, expected", [
+    ([3.0, -np.inf, np.inf, np.nan], 3.0),
+    ([np.nan, np.inf, -np.inf], -np.inf),
+    ([np.nan, np.inf, 0.0], np.inf),
+    ([np.nan, 0.0, -1.0], np.nan),
+    ([5.0, 4.0, 4.5], 4.0),
+])
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_class_precedence_within_a_bin(row_values: list[float], expected: float,
+                                       backend: str) -> None:
+    """Pixels of one column (same azimuth, all in the band) fight for one bin."""
+    info = flat_sensor(len(row_values), 4)
+    ranges = np.repeat(np.asarray(row_values, np.float32)[:, None], 4, axis=1)
+    out = arrays(to_laserscan(flat_scan(info, ranges), info, min_height=-1, max_height=1,
+                              backend=backend))[0]
+    np.testing.assert_array_equal(out, np.full(4, expected, np.float32))
+
+
+def test_min_range_carries_its_intensity_and_ties_go_to_the_first_pixel() -> None:
+    info = flat_sensor(3, 4)
+    ranges = [[2, 2, 5, 1], [1, 2, 4, 1], [3, 2, 3, 1]]
+    inten = [[10, 11, 12, 13], [20, 21, 22, 23], [30, 31, 32, 33]]
+    rng_, ints = arrays(to_laserscan(flat_scan(info, ranges, inten), info, min_height=-1,
+                                     max_height=1))
+    assert rng_.tolist() == [1, 2, 3, 1]
+    assert ints.tolist() == [20, 11, 32, 13]
+
+
+def test_no_return_keeps_inf_only_if_the_ray_crosses_the_band() -> None:
+    """Sensor at z = 1: an upward beam (+10 deg) never reaches the band 0..0.5, a downward one
+    (-10 deg) does (at 2.8..5.7 m): +Inf there marks free space, elsewhere the bin is empty."""
+    info = lidarscan.make_info(stamp_ns=1, frame_id="l",
+                               vertical_angles=np.radians([10.0, -10.0]),
+                               horizontal_angles=-math.pi + TWO_PI * np.arange(4) / 4,
+                               as_dataclass=True)
+    ranges = np.full((2, 4), np.inf, np.float32)
+    ranges[1, 2] = 3.0                            # downward ray hits the floor... z = 0.48
+    scan = flat_scan(info, ranges)
+    kw = {"min_height": 0.0, "max_height": 0.5, "extrinsics": pose(z=1.0), "frame_id": "b",
+              "fill": -1.0}
+    out = arrays(to_laserscan(scan, info, **kw))[0]
+    assert out[0] == np.inf and out[1] == np.inf and out[3] == np.inf
+    assert out[2] == pytest.approx(3.0 * math.cos(math.radians(10)))
+    only_up = ranges.copy()
+    only_up[1] = np.nan                            # the downward ray is invalid
+    out2 = arrays(to_laserscan(flat_scan(info, only_up), info, **kw))[0]
+    assert np.all(np.isnan(out2))                  # invalid beats empty; +Inf up there: nothing
+    # range_max below the band's reach: the downward ray never gets into range -> empty
+    out3 = arrays(to_laserscan(flat_scan(info, ranges), info, range_max=2.0, **kw))[0]
+    assert out3.tolist() == [-1.0, -1.0, np.inf, -1.0]          # the 3 m point is beyond 2 m
+
+
+def test_too_close_only_if_the_band_is_near_the_sensor() -> None:
+    info = flat_sensor(1, 4, range_min=0.2)
+    ranges = np.full((1, 4), -np.inf, np.float32)
+    scan = flat_scan(info, ranges)
+    inside = arrays(to_laserscan(scan, info, min_height=-0.1, max_height=0.1, fill=7.0))[0]
+    assert np.all(inside == -np.inf)
+    above = arrays(to_laserscan(scan, info, min_height=0.5, max_height=1.0, fill=7.0))[0]
+    assert np.all(above == 7.0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_planar_range_limits_are_inclusive(backend: str) -> None:
+    info = flat_sensor(1, 4)
+    scan = flat_scan(info, [[1.0, 2.0, 3.0, 4.0]])
+    out = arrays(to_laserscan(scan, info, min_height=0, max_height=0, range_min=2.0,
+                              range_max=3.0, backend=backend))[0]
+    assert out.tolist() == [-np.inf, 2.0, 3.0, np.inf]
+    out = arrays(to_laserscan(scan, info, min_height=0, max_height=0,
+                              range_min=float(np.nextafter(2.0, 3.0)),
+                              range_max=float(np.nextafter(3.0, 2.0)), backend=backend))[0]
+    assert out.tolist() == [-np.inf, -np.inf, np.inf, np.inf]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_height_limits_are_inclusive_and_a_flat_cloud_at_zero_is_kept(backend: str) -> None:
+    """pointcloud_to_laserscan's min_height = DBL_MIN dropped every point at z = 0."""
+    info = flat_sensor(1, 8)
+    scan = flat_scan(info, np.full(8, 2.5))
+    at_zero = arrays(to_laserscan(scan, info, min_height=0.0, max_height=0.0,
+                                  backend=backend))[0]
+    assert np.all(at_zero == 2.5)
+    ext = pose(z=0.25)                                          # z = 0.25 exactly
+    for zmin, zmax, kept in [(0.25, 0.25, True), (0.0, 0.25, True), (0.25, 1.0, True),
+                             (float(np.nextafter(0.25, 1)), 1.0, False),
+                             (0.0, float(np.nextafter(0.25, 0)), False)]:
+        out = arrays(to_laserscan(scan, info, min_height=zmin, max_height=zmax, extrinsics=ext,
+                                  frame_id="b", fill=-1.0, backend=backend))[0]
+        assert np.all(out == (2.5 if kept else -1.0)), (zmin, zmax)      # -1: empty (fill)
+
+
+def test_plus_and_minus_pi_columns_share_bin_zero() -> None:
+    info = lidarscan.make_info(stamp_ns=1, frame_id="l", vertical_angles=[0.0, 0.0],
+                               horizontal_angles=[math.pi, 0.0],
+                               beam_azimuth_offsets=[0.0, 0.0], as_dataclass=True)
+    info2 = lidarscan.make_info(stamp_ns=1, frame_id="l", vertical_angles=[0.0, 0.0],
+                                horizontal_angles=[-math.pi, 0.0], as_dataclass=True)
+    for inf_ in (info, info2):
+        scan = flat_scan(inf_, [[3.0, 5.0], [4.0, 6.0]])
+        out = arrays(to_laserscan(scan, inf_, min_height=-1, max_height=1))[0]
+        assert out.tolist() == [3.0, 5.0]
+
+
+def test_use_inf_false_and_fill_policies() -> None:
+    info = flat_sensor(1, 4)
+    scan = flat_scan(info, [[np.inf, 1.0, np.nan, 9.0]])
+    out = arrays(to_laserscan(scan, info, min_height=0, max_height=0, range_max=5.0,
+                              use_inf=False, inf_epsilon=0.25, angle_increment=math.pi / 4))[0]
+    assert out.tolist()[:2] == [5.25, 5.25] and out[2] == 1.0 and math.isnan(out[4])
+    assert out[6] == 5.25                     # 9 m > range_max: +Inf class, then max + eps
+    nan_fill = arrays(to_laserscan(scan, info, min_height=0, max_height=0,
+                                   angle_increment=math.pi / 4, fill=math.nan))[0]
+    assert nan_fill[0] == np.inf and np.all(np.isnan(nan_fill[1::2]))
+
+
+# ------------------------------------------------------------------------- header, grid
+
+def test_header_fields_and_default_grid(sensor: Any) -> None:
+    from sensor_msgs.msg import LaserScan
+    scan = room_scan(sensor, MOUNTS["level"], stamp=1_234_567_891_011)
+    msg = to_laserscan(scan, sensor, min_height=0.0, max_height=1.0, extrinsics=MOUNTS["level"],
+                       frame_id="base_link")
+    assert isinstance(msg, LaserScan)
+    assert isinstance(msg.ranges, array.array) and msg.ranges.typecode == "f"
+    assert len(msg.ranges) == len(msg.intensities) == 128
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1234, 567_891_011)
+    assert msg.angle_min == float(F32(-math.pi))
+    assert msg.angle_increment == float(F32(TWO_PI / 128))
+    assert msg.angle_max == float(F32(-math.pi + 127 * TWO_PI / 128))
+    assert msg.range_min == float(F32(0.1)) and msg.range_max == 120.0
+    assert msg.scan_time == pytest.approx(0.1, rel=1e-6)
+    # Ouster-like columns sweep clockwise: negative time increment, |dt| = T / N
+    assert msg.time_increment == pytest.approx(-0.1 / 128, rel=1e-5)
+
+
+def test_sector_grid(sensor: Any) -> None:
+    scan = room_scan(sensor, MOUNTS["level"])
+    kw = {"extrinsics": MOUNTS["level"], "frame_id": "b", "angle_min": -math.pi / 2,
+              "angle_max": math.pi / 2, "angle_increment": 0.0087}
+    msg = to_laserscan(scan, sensor, min_height=0.0, max_height=1.0, **kw)
+    assert len(msg.ranges) == 362
+    assert msg.angle_max == float(F32(-math.pi / 2 + 361 * 0.0087))
+    assert_same(msg, ref_slice(scan, sensor, zmin=0.0, zmax=1.0, ext=MOUNTS["level"],
+                               amin=-math.pi / 2, amax=math.pi / 2, inc=0.0087))
+
+
+def test_window_straddling_pi_and_beyond(sensor: Any) -> None:
+    scan = room_scan(sensor, MOUNTS["offset"])
+    for amin, amax in ((2.5, 3.8), (0.0, TWO_PI), (0.0, 4.0)):
+        msg = to_laserscan(scan, sensor, min_height=0.0, max_height=1.0,
+                           extrinsics=MOUNTS["offset"], frame_id="b", angle_min=amin,
+                           angle_max=amax, angle_increment=0.01)
+        assert_same(msg, ref_slice(scan, sensor, zmin=0.0, zmax=1.0, ext=MOUNTS["offset"],
+                                   amin=amin, amax=amax, inc=0.01))
+
+
+def test_per_slice_overrides_and_one_pass_equals_separate_calls(sensor: Any) -> None:
+    ext = MOUNTS["tilted"]
+    scan = room_scan(sensor, ext)
+    specs = {"coarse": {"min_height": 0.0, "max_height": 0.5, "angle_increment": 0.1,
+                        "range_max": 3.0},
+             "fine": SliceSpec(0.2, 1.0, angle_increment=0.02, fill=math.nan),
+             "same": SliceSpec(0.2, 1.0)}
+    out = SliceConverter(sensor, specs, extrinsics=ext, frame_id="b").convert(scan)
+    assert len(out["coarse"].ranges) == 63 and len(out["fine"].ranges) == 314
+    assert out["coarse"].range_max == 3.0
+    single = to_laserscan(scan, sensor, min_height=0.2, max_height=1.0, extrinsics=ext,
+                          frame_id="b", angle_increment=0.02, fill=math.nan)
+    assert_same(out["fine"], arrays(single))
+    assert_same(out["coarse"], ref_slice(scan, sensor, zmin=0.0, zmax=0.5, ext=ext, inc=0.1,
+                                         rmax=3.0))
+
+
+def test_intensity_channel_dtype_and_none(sensor: Any) -> None:
+    ext = MOUNTS["level"]
+    scan = room_scan(sensor, ext, intensity_dtype=np.uint16)
+    msg = to_laserscan(scan, sensor, min_height=0.0, max_height=1.0, extrinsics=ext,
+                       frame_id="b")
+    assert_same(msg, ref_slice(scan, sensor, zmin=0.0, zmax=1.0, ext=ext))
+    assert np.all(np.mod(arrays(msg)[1], 1) == 0)
+    with pytest.raises(UnknownChannelError):
+        to_laserscan(scan, sensor, min_height=0.0, max_height=1.0, intensity_channel="nope")
+
+
+def test_info_versions_and_linkage(sensor: Any) -> None:
+    ext = MOUNTS["level"]
+    conv = SliceConverter(sensor, {"s": SliceSpec(0.0, 1.0)}, extrinsics=ext, frame_id="b")
+    other = make_sensor(stamp=8_000_000_000, fov=20.0)
+    scan2 = room_scan(other, ext)
+    with pytest.raises(LinkageError):
+        conv.convert(scan2)
+    msg = conv.convert(scan2, other)
+    assert_same(msg["s"], ref_slice(scan2, other, zmin=0.0, zmax=1.0, ext=ext))
+    small = make_sensor(4, 32, stamp=8_000_000_000)
+    with pytest.raises(InfoMismatchError):
+        conv.convert(room_scan(small, ext))
+
+
+def test_no_mutation_of_the_scan(sensor: Any) -> None:
+    scan = lidarscan.make_scan(sensor, {"range": np.full((16, 128), 3.0, np.float32),
+                                        "intensity": np.zeros((16, 128), np.float32)}, 0)
+    before = bytes(scan.data)
+    to_laserscan(scan, sensor, min_height=-1.0, max_height=1.0)      # rclpy scan
+    assert bytes(scan.data) == before
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"min_height": 1.0, "max_height": 0.0}, "slices['slice'].max_height"),
+    ({"min_height": math.nan, "max_height": 0.0}, "slices['slice'].min_height"),
+    ({"min_height": 0.0, "max_height": 1.0, "angle_increment": 0.0}, "angle_increment"),
+    ({"min_height": 0.0, "max_height": 1.0, "angle_increment": -0.01}, "angle_increment"),
+    ({"min_height": 0.0, "max_height": 1.0, "angle_min": 1.0, "angle_max": 0.0}, "angle_max"),
+    ({"min_height": 0.0, "max_height": 1.0, "range_min": 2.0, "range_max": 1.0}, "range_max"),
+    ({"min_height": 0.0, "max_height": 1.0, "range_min": -1.0}, "range_min"),
+    ({"min_height": 0.0, "max_height": 1.0, "extrinsics": np.eye(4)}, "frame_id"),
+    ({"min_height": 0.0, "max_height": 1.0, "extrinsics": np.eye(4) * 2, "frame_id": "b"},
+     "extrinsics"),
+])
+def test_option_errors(sensor: Any, kwargs: dict[str, Any], field: str) -> None:
+    scan = room_scan(sensor, MOUNTS["level"])
+    with pytest.raises(ConfigError) as err:
+        to_laserscan(scan, sensor, **kwargs)
+    assert err.value.field == field
+
+
+def test_converter_config_errors(sensor: Any) -> None:
+    with pytest.raises(ConfigError):
+        SliceConverter(sensor, {})
+    with pytest.raises(ConfigError):
+        SliceConverter(sensor, {"a": {"min_height": 0.0}})
+    with pytest.raises(ConfigError):
+        SliceConverter(sensor, {"a": {"min_height": 0.0, "max_height": 1.0, "colour": 1}})
+    with pytest.raises(ConfigError):
+        SliceConverter(sensor, {"": SliceSpec(0, 1)})
+
+
+def test_far_field_tables_avoid_atan2_for_most_pixels(sensor: Any) -> None:
+    """With the sensor on the target's z axis only near pixels need atan2."""
+    ext = MOUNTS["level"]
+    scan = room_scan(sensor, ext, specials=False)
+    conv = SliceConverter(sensor, {"s": SliceSpec(0.0, 1.0)}, extrinsics=ext, frame_id="b")
+    conv.convert(scan)
+    tables = next(iter(conv._tables.values()))
+    r = lidarscan.range_m(scan, sensor).reshape(-1).astype(np.float64)
+    assert tables.near_fraction(r, 0) < 0.05
+
+
+# ---------------------------------------------------------------------------- properties
+
+@st.composite
+def slice_case(draw: Any) -> tuple[Any, Any, dict[str, Any]]:
+    height = draw(st.integers(1, 5))
+    width = draw(st.integers(3, 24))
+    vert = sorted(draw(st.lists(st.floats(-0.6, 0.6), min_size=height, max_size=height)),
+                  reverse=True)
+    fields: dict[str, Any] = {"range_min": draw(st.sampled_from([0.0, 0.2]))}
+    if draw(st.booleans()):
+        fields["beam_origins"] = draw(st.lists(st.floats(-0.05, 0.05), min_size=3 * height,
+                                               max_size=3 * height))
+        fields["beam_azimuth_offsets"] = draw(st.lists(st.floats(-0.05, 0.05),
+                                                       min_size=height, max_size=height))
+    info = lidarscan.make_info(stamp_ns=3, frame_id="l", vertical_angles=vert,
+                               horizontal_angles=TWO_PI * (1 - np.arange(width) / width)
+                               + draw(st.floats(-1, 1)), as_dataclass=True, **fields)
+    values = st.one_of(st.floats(0.015625, 10, width=32),
+                       st.sampled_from([np.inf, -np.inf, np.nan, 0.0, -2.0]))
+    r = np.array(draw(st.lists(values, min_size=height * width, max_size=height * width)),
+                 np.float32).reshape(height, width)
+    inten = np.array(draw(st.lists(st.integers(0, 3), min_size=height * width,
+                                   max_size=height * width)), np.float32).reshape(r.shape)
+    scan = lidarscan.make_scan(info, {"range": r, "intensity": inten}, 0, as_dataclass=True)
+    zmin = draw(st.floats(-1.5, 1.5))
+    amin = draw(st.floats(-4, 1))
+    opts = {"zmin": zmin, "zmax": zmin + draw(st.sampled_from([0.0, 0.2, 1.0, math.inf])),
+                "ext": pose(draw(st.floats(-0.5, 0.5)), draw(st.floats(-0.5, 0.5)),
+                         draw(st.floats(-1, 1)), draw(st.floats(-4, 4)),
+                         draw(st.sampled_from([0.0, 0.3, math.pi])),
+                         draw(st.sampled_from([0.0, -0.4]))),
+                "amin": amin, "amax": amin + draw(st.sampled_from([TWO_PI, 0.5, 3.0])),
+                "inc": draw(st.floats(0.03, 0.7)), "rmin": draw(st.sampled_from([0.0, 0.5])),
+                "rmax": draw(st.sampled_from([math.inf, 5.0]))}
+    return info, scan, opts
+
+
+@given(slice_case())
+def test_property_matches_reference(case: Any) -> None:
+    info, scan, o = case
+    ref = ref_slice(scan, info, **o)
+    for backend in backends():
+        got = to_laserscan(scan, info, min_height=o["zmin"], max_height=o["zmax"],
+                           extrinsics=o["ext"], frame_id="b", angle_min=o["amin"],
+                           angle_max=o["amax"], angle_increment=o["inc"], range_min=o["rmin"],
+                           range_max=o["rmax"], backend=backend)
+        assert_same(got, ref)
+
+
+@given(slice_case())
+def test_property_full_circle_wrap(case: Any) -> None:
+    """Rotating the grid start by a whole number of bins rotates the output (full circle)."""
+    info, scan, o = case
+    inc = TWO_PI / int(info.width)
+    # exact half-bins are decided by float rounding of t, which differs between the two grid
+    # starts: keep to cases where no point is within 1e-6 bins of an edge
+    proj = lidarscan.make_projector(info)
+    r = lidarscan.range_m(scan, info).astype(np.float64)[..., None]
+    with np.errstate(invalid="ignore"):
+        p = np.where(np.isfinite(r) & (r > 0), r, 1.0) * proj.directions + proj.offsets
+    p = p.reshape(-1, 3) @ o["ext"][:3, :3].T + o["ext"][:3, 3]
+    d = proj.directions.reshape(-1, 3) @ o["ext"][:3, :3].T      # far field of non-points
+    t = (np.arctan2(np.r_[p[:, 1], d[:, 1]], np.r_[p[:, 0], d[:, 0]]) + math.pi) / inc
+    assume(np.all(np.abs(t - np.floor(t) - 0.5) > 1e-6))
+    kw = {"min_height": o["zmin"], "max_height": o["zmax"], "extrinsics": o["ext"], "frame_id": "b",
+              "intensity_channel": None}
+    a = arrays(to_laserscan(scan, info, angle_min=-math.pi, **kw))[0]
+    b = arrays(to_laserscan(scan, info, angle_min=-math.pi + 3 * inc, **kw))[0]
+    ra = ref_slice(scan, info, zmin=o["zmin"], zmax=o["zmax"], ext=o["ext"],
+                   intensity=None)[0]
+    rb = ref_slice(scan, info, zmin=o["zmin"], zmax=o["zmax"], ext=o["ext"],
+                   amin=-math.pi + 3 * inc, intensity=None)[0]
+    np.testing.assert_array_equal(a, ra)
+    np.testing.assert_array_equal(b, rb)
+    np.testing.assert_array_equal(np.roll(a, -3), b)
+
+
+def test_numba_is_optional() -> None:
+    """With the compiled kernels disabled (or numba missing) everything runs on numpy."""
+    import subprocess
+    import sys
+    code = ("import numpy as np, math, lidarscan\n"
+            "from converters import _grid\n"
+            "from converters.laserscan import to_laserscan\n"
+            "assert _grid.numba_kernel() is None\n"
+            "info = lidarscan.make_info(stamp_ns=1, frame_id='l', vertical_angles=[0.0],\n"
+            "    horizontal_angles=[0.0, math.pi], as_dataclass=True)\n"
+            "scan = lidarscan.make_scan(info, {'range': np.ones((1, 2), np.float32)}, 0,\n"
+            "    as_dataclass=True)\n"
+            "out = to_laserscan(scan, info, min_height=-1, max_height=1, intensity_channel=None)\n"
+            "assert list(out.ranges) == [1.0, 1.0]\n")
+    env = {**__import__("os").environ, "LIDARSCAN_NUMBA": "0"}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                          check=False)
+    assert done.returncode == 0, done.stderr
