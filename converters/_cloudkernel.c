@@ -1,10 +1,12 @@
 /*
  * Optional compiled kernel of converters.pointcloud2 (LidarScan -> PointCloud2 hot loop).
  *
- * Plain C99. The Python module part is empty (it only makes the shared object an importable
- * extension that setuptools builds and installs); converters/pointcloud2.py loads the very same
- * file with ctypes and calls lsk_project(). Results must be bit-identical to the numpy path of
- * pointcloud2.py, so:
+ * Plain C99 (plus SSE2 intrinsics where the compiler has them, e.g. every x86-64: one 4-lane
+ * product and sum per point, the same roundings as the scalar code). The Python module part is
+ * empty (it only makes the shared object an importable extension that setuptools builds and
+ * installs, see setup.py); converters/pointcloud2.py loads the very same file with ctypes and
+ * calls lsk_project(), which releases the GIL. Results must be bit-identical to the numpy path
+ * of pointcloud2.py, so:
  *   - x = r * D + O is computed in float32 as a rounded product then a rounded sum: build with
  *     -ffp-contract=off (no fused multiply-add), never with -ffast-math;
  *   - invalid ranges become the canonical quiet NaN 0x7fc00000 (numpy's float32(nan)) and points
@@ -265,7 +267,7 @@ LSK_EXPORT int64_t lsk_project(char *out, int64_t point_step, int64_t xyz_offset
         }
         if (r_out) memcpy(r_out + first, rbuf, (size_t)count * sizeof(float));
         {
-            /* the 4-lane form reads one float past the pixel: not for the last one */
+            /* the 4-lane form reads one float past the pixel: not for the call's last one */
             const int64_t vec = done + count == n ? count - 1 : count;
             const float *dj = d + 3 * first;
             const float *oj = o + 3 * first;
@@ -289,6 +291,7 @@ LSK_EXPORT int64_t lsk_project(char *out, int64_t point_step, int64_t xyz_offset
     }
     return valid;
 }
+
 /* ------------------------------------------------------------- (empty) Python module */
 
 static struct PyModuleDef lsk_module = {

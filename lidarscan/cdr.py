@@ -136,28 +136,24 @@ def _list_reader(elem: Reader, count: int | None, bound: int | None, what: str) 
     return read
 
 
-def _unsupported_wstring(what: str) -> None:
-    raise SchemaError(what, "wstring", "string fields (wstring, UTF-16 in CDR, is not supported)")
-
-
-def _field_reader(field: FieldDef, what: str) -> Reader:
+def _field_codec(field: FieldDef, what: str, scalar: Any, string: Any, struct_: Any,
+                 array: Any, sequence: Any) -> Any:
+    """Build the reader or writer of one field from the five constructors of one direction."""
     if field.type == "wstring":
-        _unsupported_wstring(what)
+        raise SchemaError(what, "wstring",
+                          "string fields (wstring, UTF-16 in CDR, is not supported)")
     code = _PRIM.get(field.type)
     fixed = field.array if field.array is not None and field.array > 0 else None
     bound = -field.array - 2 if field.array is not None and field.array < -1 else None
-    if field.array is None:
-        if code is not None:
-            return _scalar_reader(code, what)
-        if field.type in ("string", "wstring"):
-            return _string_reader(what)
-        return _struct_reader(field.type)
     if code is not None:
-        return _array_reader(code, fixed, bound, what)
-    if field.type in ("string", "wstring"):
-        return _list_reader(_string_reader(what), fixed, bound, what)
-    elem = _struct_reader(field.type)
-    return _list_reader(elem, fixed, bound, what)
+        return scalar(code, what) if field.array is None else array(code, fixed, bound, what)
+    element = string(what) if field.type == "string" else struct_(field.type)
+    return element if field.array is None else sequence(element, fixed, bound, what)
+
+
+def _field_reader(field: FieldDef, what: str) -> Reader:
+    return _field_codec(field, what, _scalar_reader, _string_reader, _struct_reader,
+                        _array_reader, _list_reader)  # type: ignore[no-any-return]
 
 
 def _run_reader(codes: list[str], what: str) -> Reader:
@@ -437,23 +433,8 @@ def _list_writer(elem: Writer, count: int | None, bound: int | None, what: str) 
 
 
 def _field_writer(field: FieldDef, what: str) -> Writer:
-    if field.type == "wstring":
-        _unsupported_wstring(what)
-    code = _PRIM.get(field.type)
-    fixed = field.array if field.array is not None and field.array > 0 else None
-    bound = -field.array - 2 if field.array is not None and field.array < -1 else None
-    if field.array is None:
-        if code is not None:
-            return _scalar_writer(code, what)
-        if field.type in ("string", "wstring"):
-            return _string_writer(what)
-        return _struct_writer(field.type)
-    if code is not None:
-        return _array_writer(code, fixed, bound, what)
-    if field.type in ("string", "wstring"):
-        return _list_writer(_string_writer(what), fixed, bound, what)
-    elem = _struct_writer(field.type)
-    return _list_writer(elem, fixed, bound, what)
+    return _field_codec(field, what, _scalar_writer, _string_writer, _struct_writer,
+                        _array_writer, _list_writer)  # type: ignore[no-any-return]
 
 
 @lru_cache(maxsize=None)

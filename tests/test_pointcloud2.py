@@ -1147,6 +1147,8 @@ def test_kernel_option_and_env_switch(tiny: tuple[Any, Any], monkeypatch: Any) -
     monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "0")
     built = importlib.util.find_spec("converters._cloudkernel") is not None
     assert (pc._load_kernel() is not None) == built
+    monkeypatch.setattr(pc, "_KERNEL_ABI", pc._KERNEL_ABI + 1)   # a stale build is not used
+    assert pc._load_kernel() is None
 
 
 _NO_KERNEL_SCRIPT = """
