@@ -14,9 +14,12 @@ Processes (each its own python, all on a private ROS_DOMAIN_ID):
   stamp (same machine, same clock).
 
 Timeline (fractions of ``--seconds``): at 50 % the publisher is killed (SIGINT) and a new one
-started (its LidarInfo is published again with the same stamp); at 80 % the converter node is
-restarted: it must get the LidarInfo from the publisher's latched topic (the publisher does not
-publish it again) and resume without manual action.
+started (its LidarInfo is published again with the same stamp); at 65 % the merger node is
+restarted; at 80 % the converter node is restarted: it must get the LidarInfo from the
+publisher's latched topic (the publisher does not publish it again) and resume without manual
+action. Throughout, ``--inject-bad`` (2 %) of the scan slots carry a malformed LidarScan
+(truncated, junk bytes, or naming a LidarInfo that never comes) and a malformed LaserScan (NaN
+angles) instead of good ones: the nodes must drop them and stay alive (checked at the end).
 
 Prints, per output: published vs received scans (drops), latency p50/p99/max, the outage after
 each restart; per process: CPU (% of one core), peak RSS, and RSS growth after warm-up (flat
@@ -94,6 +97,23 @@ def run_publisher(args: argparse.Namespace) -> int:
     laser.angle_max = laser.angle_min + 719 * laser.angle_increment
     laser.range_min, laser.range_max, laser.scan_time = 0.1, 30.0, 1.0 / args.rate
     laser.ranges = array.array("f", np.full(720, 7.5, np.float32).tobytes())
+    # malformed messages injected in place of some scans (counted apart, never "expected")
+    good_cdr = ls.encode(ls.decode_scan(ls.encode(frames[0])))
+    orphan_info = ls.make_info(stamp_ns=INFO_STAMP_NS + 1, frame_id="lidar",
+                               vertical_angles=np.asarray(info_dc.vertical_angles),
+                               horizontal_angles=np.asarray(info_dc.horizontal_angles),
+                               as_dataclass=True)
+    bad_scans = [
+        good_cdr[:4096],                                                  # truncated
+        b"\x00\x01\x00\x00" + rng.integers(0, 256, 3000, np.uint8).tobytes(),  # junk
+        ls.encode(ls.make_scan(orphan_info, {"range": np.ones((height, width), np.float32)},
+                               INFO_STAMP_NS, as_dataclass=True)),      # its info never comes
+    ]
+    from lidarscan import types as lt
+    bad_laser = ls.encode(lt.message_class("sensor_msgs/msg/LaserScan")(
+        header=lt.Header(lt.Time(0, 0), "lidar"), angle_min=math.nan, angle_max=1.0,
+        angle_increment=math.nan, time_increment=0.0, scan_time=0.0, range_min=0.1,
+        range_max=30.0, ranges=np.ones(10, np.float32), intensities=np.ones(3, np.float32)))
 
     rclpy.init()
     node = rclpy.create_node("soak_publisher")
@@ -102,6 +122,7 @@ def run_publisher(args: argparse.Namespace) -> int:
     laser_pub = node.create_publisher(LaserScan, "laser", qos_profile(args.qos))
     info_pub.publish(info)  # once: late joiners get it from the latched topic
     stamps: list[int] = []
+    injected = 0
     period = 1.0 / args.rate
     stop = {"now": False}
     signal.signal(signal.SIGINT, lambda *_: stop.update(now=True))
@@ -112,12 +133,26 @@ def run_publisher(args: argparse.Namespace) -> int:
     while not stop["now"]:
         now_ns = time.time_ns()
         sec, nanosec = divmod(now_ns, 10**9)
-        msg = frames[k % len(frames)]
-        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
-        laser.header.stamp.sec, laser.header.stamp.nanosec = sec, nanosec
-        scan_pub.publish(msg)
-        laser_pub.publish(laser)
-        stamps.append(now_ns)
+        if rng.random() < args.inject_bad:
+            bad = bytearray(bad_scans[injected % len(bad_scans)])
+            if len(bad) >= 12:
+                bad[4:12] = np.array([sec], "<i4").tobytes() + np.array([nanosec], "<u4").tobytes()
+            scan_pub.publish(bytes(bad))
+            if injected % 2:  # NaN angles, current stamp
+                bad2 = bytearray(bad_laser)
+                bad2[4:12] = np.array([sec], "<i4").tobytes() + \
+                    np.array([nanosec], "<u4").tobytes()
+                laser_pub.publish(bytes(bad2))
+            else:  # NaN angles and a zero stamp (a driver that does not stamp)
+                laser_pub.publish(bad_laser)
+            injected += 1
+        else:
+            msg = frames[k % len(frames)]
+            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+            laser.header.stamp.sec, laser.header.stamp.nanosec = sec, nanosec
+            scan_pub.publish(msg)
+            laser_pub.publish(laser)
+            stamps.append(now_ns)
         k += 1
         next_t += period
         delay = next_t - time.monotonic()
@@ -127,7 +162,8 @@ def run_publisher(args: argparse.Namespace) -> int:
             late += 1
             if delay < -period:  # cannot keep up: do not burst, resynchronise
                 next_t = time.monotonic()
-    Path(args.out).write_text(json.dumps({"stamps": stamps, "late": late}))
+    Path(args.out).write_text(json.dumps({"stamps": stamps, "late": late,
+                                          "injected": injected}))
     node.destroy_node()  # type: ignore[no-untyped-call]
     rclpy.try_shutdown()  # type: ignore[attr-defined]
     return 0
@@ -238,8 +274,9 @@ def run_soak(args: argparse.Namespace) -> int:
         env["FASTDDS_BUILTIN_TRANSPORTS"] = args.transport.upper()
     me = [PY, str(Path(__file__).resolve())]
     common = ["--height", str(args.height), "--width", str(args.width), "--rate", str(args.rate),
-              "--qos", args.qos]
+              "--qos", args.qos, "--inject-bad", str(args.inject_bad)]
     t0 = time.monotonic()
+    load0 = os.getloadavg()[0]
     events: list[tuple[float, str]] = []
 
     def now() -> float:
@@ -253,20 +290,27 @@ def run_soak(args: argparse.Namespace) -> int:
                                      "--out", str(workdir / "monitor.json")])
     converters = [start("converter", _node_cmd("converter", args.qos))]
     merger = start("merger", _node_cmd("merger", args.qos))
+    mergers = [merger]
     time.sleep(args.startup)  # nodes up before data flows (their start-up is not measured)
     pub_files = [workdir / "pub0.json"]
     publishers = [start("publisher", me + ["publisher", "--out", str(pub_files[0])] + common)]
     measure_start = now()
     restarts = {"publisher": measure_start + 0.5 * args.seconds,
+                "merger": measure_start + 0.65 * args.seconds,
                 "converter": measure_start + 0.8 * args.seconds}
     end = measure_start + args.seconds
     done: set[str] = set()
     cpu_runs: dict[str, list[tuple[float, float]]] = {}  # name -> [(cpu s, wall s)]
 
+    exits: list[str] = []
+
     def finish(w: Watched) -> None:
         w.sample(now())
+        alive = w.proc.poll() is None  # a node that crashed on bad input is dead by now
         ran = w.stop()
         cpu_runs.setdefault(w.name, []).append((w.cpu_s, ran))
+        exits.append(f"{w.name} {'alive' if alive else 'DIED'} until stopped, exit status "
+                     f"{w.proc.returncode}")
 
     while now() < end:
         t = now()
@@ -279,6 +323,12 @@ def run_soak(args: argparse.Namespace) -> int:
             pub_files.append(workdir / f"pub{len(pub_files)}.json")
             publishers.append(start("publisher", me + ["publisher", "--out", str(pub_files[-1])]
                                     + common))
+        if "merger" not in done and t >= restarts["merger"] and not args.no_restart:
+            done.add("merger")
+            events.append((now(), "stop merger"))
+            finish(merger)
+            mergers.append(start("merger", _node_cmd("merger", args.qos)))
+            merger = mergers[-1]
         if "converter" not in done and t >= restarts["converter"] and not args.no_restart:
             done.add("converter")
             events.append((now(), "stop converter"))
@@ -288,16 +338,17 @@ def run_soak(args: argparse.Namespace) -> int:
     events.append((now(), "stop all"))
     finish(publishers[-1])
     time.sleep(1.0)  # let the last messages through
-    for w in (converters[-1], merger):
+    for w in (converters[-1], mergers[-1]):
         finish(w)
     finish(monitor)
 
     published: list[int] = []
-    late = 0
+    late = injected = 0
     for path in pub_files:
         data = json.loads(path.read_text())
         published += data["stamps"]
         late += data["late"]
+        injected += data["injected"]
     received = json.loads((workdir / "monitor.json").read_text())
     wall0_ns = time.time_ns() - int(now() * 1e9)  # wall clock of the orchestrator's t0
 
@@ -310,8 +361,11 @@ def run_soak(args: argparse.Namespace) -> int:
           f"RMW {env.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp (default)')}, transports "
           f"{env.get('FASTDDS_BUILTIN_TRANSPORTS', 'default (UDPv4 + SHM)')}, QoS {args.qos}")
     print("events: " + "; ".join(f"{t:.1f} s {what}" for t, what in events))
-    print(f"published {len(published)} scans ({late} publication slots late: the publisher "
-          f"could not keep {args.rate:g} Hz)")
+    print(f"machine load average (1 min) at start {load0:.2f}, at end {os.getloadavg()[0]:.2f} "
+          "(other work on the machine shows here)")
+    print(f"published {len(published)} good scans + {injected} malformed ones ({late} "
+          f"publication slots late: the publisher could not keep {args.rate:g} Hz)")
+    print("processes: " + "; ".join(exits))
     pub_set = set(published)
     results: dict[str, Any] = {"published": len(published)}
     for topic in INPUTS + OUTPUTS:
@@ -342,20 +396,27 @@ def run_soak(args: argparse.Namespace) -> int:
                           "p50_ms": round(_pct(lat, 50), 1), "p99_ms": round(_pct(lat, 99), 1),
                           "outages": [(round(t, 1), round(g, 2)) for t, g in gaps]}
     # recovery after each restart: first output whose stamp is after the new process started
-    for t_start, what in [(t, w) for t, w in events if w in ("start publisher",
-                                                             "start converter")][1:]:
+    restarted: list[tuple[float, str]] = []
+    seen: set[str] = set()
+    for t_start, what in events:
+        if what in ("start publisher", "start converter", "start merger"):
+            if what in seen:
+                restarted.append((t_start, what))
+            seen.add(what)
+    for t_start, what in restarted:
         pieces = []
         for topic in OUTPUTS:
             after = sorted(at(st) for st, _ in received.get(topic, [])
                            if at(st) >= t_start and st in pub_set)
             pieces.append(f"{topic} after {after[0] - t_start:.2f} s" if after
                           else f"{topic} NEVER")
-        note = " (LidarInfo only from the latched topic)" if what == "start converter" else \
-            " (a new publisher process, LidarInfo published again)"
+        note = {"start converter": " (LidarInfo only from the latched topic)",
+                "start merger": "",
+                "start publisher": " (a new publisher process, LidarInfo published again)"}[what]
         print(f"recovery after '{what}' at {t_start:.1f} s{note}: first output " +
               ", ".join(pieces))
         results[f"recovery {what}"] = pieces
-    for w_list in ([monitor], [merger], converters, publishers):
+    for w_list in ([monitor], mergers, converters, publishers):
         name = w_list[0].name
         runs = cpu_runs.get(name, [])
         cpu = 100.0 * sum(c for c, _ in runs) / max(sum(r for _, r in runs), 1e-9)
@@ -391,6 +452,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--startup", type=float, default=4.0,
                         help="seconds for the nodes to start before data flows")
     parser.add_argument("--no-restart", action="store_true")
+    parser.add_argument("--inject-bad", type=float, default=0.02,
+                        help="fraction of scan slots replaced by a malformed scan (truncated, "
+                             "junk, unknown info) and a malformed LaserScan (NaN angles)")
     parser.add_argument("--settle", type=float, default=5.0,
                         help="seconds after a (re)start excluded from the steady-state drops")
     parser.add_argument("--qos", default="sensor_data", choices=("sensor_data", "reliable"),

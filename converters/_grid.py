@@ -524,6 +524,9 @@ def numba_kernel() -> Any:
     _J_BANDS, _J_POINTS, _J_OTHERS = jit(_pass_bands), jit(_pass_points), jit(_pass_others)
     _KERNELS = _Compiled(_J_BANDS, _J_POINTS, _J_OTHERS, jit(_fuse_small), jit(_decode_kernel),
                          jit(_pass_rows))
+    _KERNELS.sorted_codes = jit(_sorted_codes)
+    _KERNELS.sorted_runs = jit(_sorted_runs)
+    _KERNELS.sorted_near = jit(_sorted_near)
     return _KERNELS
 
 
@@ -819,6 +822,195 @@ def _pass_rows(r: Any, dx: Any, dy: Any, dz: Any, ox: Any, oy: Any, oz: Any, key
                 j0 = off + start + n_bins
                 for c in range(split, width):
                     best[j0 - c] = min(best[j0 - c], comb[c])
+
+
+# ------------------------------------------------- bin-ordered kernels (slices, all of one scan)
+#
+# Per LidarInfo version the pixel tables are permuted once into the order of the far-field bins
+# of the first grid (``src[j]`` = pixel of position ``j``; ``bin_start[b]:bin_start[b+1]`` = the
+# positions of bin ``b``; pixels without a far-field bin at the end). Per scan:
+#   1. _sorted_codes: one branch-free pass in that order (ranges gathered once): height band bits
+#      per slice, planar range and its code (``code << 32 | key``), +Inf/NaN/-Inf qualifiers;
+#      points closer than their far-field threshold are listed for pass 3.
+#   2. _sorted_runs: per bin a running minimum over contiguous positions (no scatter), for the
+#      slices on the first grid, four slices per pass.
+#   3. _sorted_near: the listed points (atan2) and slices on other grids (scatter), exactly as
+#      _pass_points does.
+# Used when all slices share their planar range limits (so the class of a point is decided once).
+
+
+def _sorted_codes(r: Any, src: Any, keys: Any, dz: Any, oz: Any, dx: Any, dy: Any, ox: Any,
+                  oy: Any, r_thr: Any, qf: Any, qn: Any, zmin: Any, zmax: Any, lim_lo: Any,
+                  lim_hi: Any, rp: Any, mask: Any, comb: Any,
+                  near_list: Any) -> Any:  # pragma: no cover - compiled
+    """Pass 1. ``dz .. oy``, ``r_thr`` (first grid): float32 per position in bin order;
+    ``zmin``/``zmax`` padded to a multiple of four slices with empty bands. Writes
+    ``rp[j] = r[src[j]]`` (the only gather), ``mask[j]`` (bit s: slice s takes part), ``comb[j]`` (``EMPTY`` for
+    listed near points) and returns the number of positions written to ``near_list``. Written
+    as simple loops over contiguous arrays so that the compiler vectorises them."""
+    n = src.shape[0]
+    ns = zmin.shape[0]
+    zero = mask.dtype.type(0)
+    empty = np.int64(EMPTY)
+    for j in range(n):
+        rp[j] = r[src[j]]
+    lo0, hi0 = zmin[0], zmax[0]
+    lo1, hi1 = zmin[1], zmax[1]
+    lo2, hi2 = zmin[2], zmax[2]
+    lo3, hi3 = zmin[3], zmax[3]
+    count = 0
+    for j in range(n):
+        rv = rp[j]
+        rd = np.float64(rv)
+        x = rd * dx[j] + ox[j]
+        y = rd * dy[j] + oy[j]
+        z = rd * dz[j] + oz[j]
+        rho = math.sqrt(x * x + y * y)
+        point = (rv > 0.0) & (rv < np.inf)
+        code = np.int64(np.float32(rho).view(np.int32))
+        code = np.int64(CODE_NEG_INF) if rho < lim_lo else code
+        code = np.int64(CODE_POS_INF) if rho > lim_hi else code
+        special = np.int64(CODE_NAN)
+        special = np.int64(CODE_POS_INF) if rv == np.inf else special
+        special = np.int64(CODE_NEG_INF) if rv == -np.inf else special
+        near = point & (rv < r_thr[j])
+        count += np.int64(near)
+        value = ((code if point else special) << 32) | np.int64(keys[j])
+        comb[j] = empty if near else value
+        # band bits of the first four slices (bands padded with empty ones: inf, -inf)
+        m = np.int64((z >= lo0) & (z <= hi0))
+        m |= np.int64((z >= lo1) & (z <= hi1)) << 1
+        m |= np.int64((z >= lo2) & (z <= hi2)) << 2
+        m |= np.int64((z >= lo3) & (z <= hi3)) << 3
+        q = np.int64(qn[j]) if rv == -np.inf else np.int64(qf[j])
+        mask[j] = m if point else q
+    for s0 in range(4, ns, 4):            # further slices, four per pass
+        lo0, hi0 = zmin[s0], zmax[s0]
+        lo1, hi1 = zmin[s0 + 1], zmax[s0 + 1]
+        lo2, hi2 = zmin[s0 + 2], zmax[s0 + 2]
+        lo3, hi3 = zmin[s0 + 3], zmax[s0 + 3]
+        for j in range(n):
+            rv = rp[j]
+            z = np.float64(rv) * dz[j] + oz[j]
+            m = np.int64((z >= lo0) & (z <= hi0))
+            m |= np.int64((z >= lo1) & (z <= hi1)) << 1
+            m |= np.int64((z >= lo2) & (z <= hi2)) << 2
+            m |= np.int64((z >= lo3) & (z <= hi3)) << 3
+            point = (rv > 0.0) & (rv < np.inf)
+            mask[j] |= mask.dtype.type(m << s0) if point else zero
+    n_near = 0
+    if count:
+        for j in range(n):
+            rv = rp[j]
+            if (rv > 0.0) & (rv < np.inf) & (rv < r_thr[j]) & (mask[j] != zero):
+                near_list[n_near] = j
+                n_near += 1
+    return n_near
+
+
+def _sorted_runs(bin_start: Any, size: Any, mask: Any, comb: Any, slot: Any, offset: Any,
+                 best: Any) -> None:  # pragma: no cover - compiled
+    """Pass 2: for up to four slices ``slot[0..3]`` (-1 = unused) on the bin-order grid, the
+    per-bin minimum of ``comb`` over the positions whose mask has the slice's bit."""
+    empty = np.int64(EMPTY)
+    zero = mask.dtype.type(0)
+    b0 = mask.dtype.type(1 << max(slot[0], 0)) if slot[0] >= 0 else zero
+    b1 = mask.dtype.type(1 << max(slot[1], 0)) if slot[1] >= 0 else zero
+    b2 = mask.dtype.type(1 << max(slot[2], 0)) if slot[2] >= 0 else zero
+    b3 = mask.dtype.type(1 << max(slot[3], 0)) if slot[3] >= 0 else zero
+    o0 = offset[max(slot[0], 0)]
+    o1 = offset[max(slot[1], 0)]
+    o2 = offset[max(slot[2], 0)]
+    o3 = offset[max(slot[3], 0)]
+    for b in range(size):
+        r0 = empty
+        r1 = empty
+        r2 = empty
+        r3 = empty
+        for j in range(bin_start[b], bin_start[b + 1]):
+            m = mask[j]
+            v = comb[j]
+            r0 = min(r0, v if m & b0 else empty)
+            r1 = min(r1, v if m & b1 else empty)
+            r2 = min(r2, v if m & b2 else empty)
+            r3 = min(r3, v if m & b3 else empty)
+        if b0:
+            best[o0 + b] = min(best[o0 + b], r0)
+        if b1:
+            best[o1 + b] = min(best[o1 + b], r1)
+        if b2:
+            best[o2 + b] = min(best[o2 + b], r2)
+        if b3:
+            best[o3 + b] = min(best[o3 + b], r3)
+
+
+def _sorted_near(rp: Any, keys: Any, dx: Any, dy: Any, ox: Any, oy: Any, mask: Any, comb: Any,
+                 near_list: Any,
+                 n_near: Any, others: Any, lim_lo: Any, lim_hi: Any, slice_grid: Any,
+                 offset: Any, g_min: Any, g_inc: Any, g_size: Any, g_full: Any, bin_far: Any,
+                 r_thr: Any, best: Any) -> None:  # pragma: no cover - compiled
+    """Pass 3: the near points of the bin-order grid (atan2, as :func:`_pass_points`) and, when
+    ``others`` (slices on other grids), every contributing position for those slices.
+    ``bin_far``, ``r_thr``: (G, n) in bin order."""
+    two_pi = 2.0 * math.pi
+    n_grids = g_min.shape[0]
+    grid_bin = np.empty(n_grids, np.int64)
+    ns = slice_grid.shape[0]
+    n_pos = rp.shape[0] if others else n_near
+    k_near = 0
+    for h in range(n_pos):
+        if others:
+            j = h
+            listed = k_near < n_near and near_list[k_near] == j
+            k_near += listed
+        else:
+            j = near_list[h]
+            listed = True
+        m = np.int64(mask[j])
+        if m == 0:
+            continue
+        rv = rp[j]
+        point = (rv > 0.0) & (rv < np.inf)
+        key = np.int64(keys[j])
+        if point:
+            rd = np.float64(rv)
+            x = rd * dx[j] + ox[j]
+            y = rd * dy[j] + oy[j]
+            rho = math.sqrt(x * x + y * y)
+            bits = np.int64(np.float32(rho).view(np.int32))
+            code = bits
+            if rho < lim_lo:
+                code = np.int64(CODE_NEG_INF)
+            elif rho > lim_hi:
+                code = np.int64(CODE_POS_INF)
+            value = (code << 32) | key
+            for g in range(n_grids):
+                if rv < r_thr[g, j]:
+                    d = math.atan2(y, x) - g_min[g]
+                    inc = g_inc[g]
+                    if g_full[g]:
+                        grid_bin[g] = np.int64(math.ceil(d / inc - 0.5)) % g_size[g]
+                    else:
+                        d = d - two_pi * math.floor((d + 0.5 * inc) / two_pi)
+                        k = np.int64(math.ceil(d / inc - 0.5))
+                        grid_bin[g] = k if 0 <= k < g_size[g] else -1
+                else:
+                    grid_bin[g] = bin_far[g, j]
+        else:
+            value = comb[j]
+            for g in range(n_grids):
+                grid_bin[g] = bin_far[g, j]
+        for s in range(ns):
+            if not (m >> s) & 1:
+                continue
+            g = slice_grid[s]
+            if g == 0 and not listed:
+                continue              # handled by the running minimum of pass 2
+            b = grid_bin[g]
+            if b >= 0:
+                jj = offset[s] + b
+                best[jj] = min(best[jj], value)
+
 
 
 def aligned_rows(bin_far: np.ndarray[Any, Any], width: int, size: int

@@ -46,6 +46,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
+import threading
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -192,6 +193,10 @@ class _Tables:
         self.k_qual = np.ascontiguousarray(np.stack(
             [qf.astype(np.uint8) | (qn.astype(np.uint8) << 1)
              for qf, qn in zip(self.q_far, self.q_near)]))
+        self.sorted: _Sorted | None = None
+        if len(slices) <= 62 and len({(s.options.range_min, s.options.range_max)
+                                      for s in slices}) == 1:
+            self.sorted = _Sorted(self, grids[0].size, len(slices))
 
     def key(self, index: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
         """Tie keys of pixel indices."""
@@ -205,6 +210,39 @@ class _Tables:
         """Fraction of finite pixels that need atan2 on grid ``index`` (diagnostics)."""
         ok = np.isfinite(r) & (r > 0)
         return float(np.mean(r[ok] < self.r_thr[index][ok])) if ok.any() else 0.0
+
+
+class _Sorted:
+    """The tables of :class:`_Tables` permuted into the order of the first grid's far-field bins
+    (then pixel index), for the bin-ordered compiled kernels of :mod:`converters._grid`."""
+
+    def __init__(self, t: _Tables, size: int, n_slices: int) -> None:
+        far = t.bin_far[0]
+        sort_key = np.where(far < 0, size, far)
+        order = np.argsort(sort_key, kind="stable")
+        self.src = order.astype(np.int32)
+        self.bin_start = np.searchsorted(sort_key[order], np.arange(size + 2)).astype(np.int64)
+        self.keys = (order if t.keys is None else t.keys[order]).astype(np.int32)
+        #: dz, oz, dx, dy, ox, oy, r_thr of the first grid, float32 in bin order
+        self.cols = tuple(np.ascontiguousarray(a[order])
+                          for a in (t.dz, t.oz, t.dx, t.dy, t.ox, t.oy, t.k_r_thr[0]))
+        self.mask_dtype = np.uint8 if n_slices <= 8 else np.uint64
+        qf = np.zeros(t.n, self.mask_dtype)
+        qn = np.zeros(t.n, self.mask_dtype)
+        for s, (far_ok, near_ok) in enumerate(zip(t.q_far, t.q_near)):
+            qf |= far_ok[order].astype(self.mask_dtype) << self.mask_dtype(s)
+            qn |= near_ok[order].astype(self.mask_dtype) << self.mask_dtype(s)
+        self.qf, self.qn = qf, qn
+        self.bin_far = np.ascontiguousarray(t.k_bin_far[:, order])
+        self.r_thr = np.ascontiguousarray(t.k_r_thr[:, order])
+        self.lock = threading.Lock()
+        self.scratch = self.new_scratch()
+
+    def new_scratch(self) -> tuple[np.ndarray[Any, Any], ...]:
+        """Per-scan buffers: gathered ranges, masks, codes, near list."""
+        n = self.src.shape[0]
+        return (np.empty(n, np.float32), np.empty(n, self.mask_dtype), np.empty(n, np.int64),
+                np.empty(n, np.int64))
 
 
 class SliceConverter:
@@ -294,6 +332,13 @@ class SliceConverter:
             np.array([s.options.range_min for s in sl]),
             np.array([s.options.range_max for s in sl]),
             np.array(self._slice_grid, np.int64), self._offsets.astype(np.int64))
+        first = [i for i, g in enumerate(self._slice_grid) if g == 0]
+        #: slices on the first grid, four per pass of the running-minimum kernel (-1 = unused)
+        self._slots = [np.array((first[i:i + 4] + [-1] * 4)[:4], np.int64)
+                       for i in range(0, len(first), 4)]
+        pad = -len(sl) % 4              # empty bands up to a multiple of four slices
+        self._kbands = (np.r_[self._kslices[0], np.full(pad, np.inf)],
+                        np.r_[self._kslices[1], np.full(pad, -np.inf)])
         gr = self._grids
         self._kgrids = (np.array([g.angle_min for g in gr]), np.array([g.increment for g in gr]),
                         np.array([g.size for g in gr], np.int64),
@@ -419,9 +464,35 @@ class SliceConverter:
                                f"{self._info_stamp} (the converter's LidarInfo; pass the new "
                                "info to convert(scan, info))")
 
+    def _fuse_sorted(self, r: np.ndarray[Any, Any], t: _Sorted, best: np.ndarray[Any, Any]
+                     ) -> None:
+        """The bin-ordered compiled path (all slices share their range limits)."""
+        k = self._kernel
+        _, _, rmin, rmax, slice_grid, offset = self._kslices
+        lim_lo, lim_hi = float(rmin[0]), float(rmax[0])
+        r32 = np.ascontiguousarray(r, np.float32)
+        own = t.lock.acquire(blocking=False)        # reuse the scratch unless in use
+        try:
+            rp, mask, comb, near_list = t.scratch if own else t.new_scratch()
+            n_near = k.sorted_codes(r32, t.src, t.keys, *t.cols, t.qf, t.qn, *self._kbands,
+                                    lim_lo, lim_hi, rp, mask, comb, near_list)
+            for slot in self._slots:
+                k.sorted_runs(t.bin_start, self._grids[0].size, mask, comb, slot, offset, best)
+            others = len(self._slots) == 0 or int(np.count_nonzero(slice_grid)) > 0
+            if n_near or others:
+                k.sorted_near(rp, t.keys, *t.cols[2:6], mask, comb, near_list, n_near, others,
+                              lim_lo, lim_hi, slice_grid, offset, *self._kgrids, t.bin_far,
+                              t.r_thr, best)
+        finally:
+            if own:
+                t.lock.release()
+
     def _fuse(self, r: np.ndarray[Any, Any], tables: _Tables) -> np.ndarray[Any, Any]:
         """One reduction array (all slices back to back) from the flat range image."""
         best = np.full(self._size, _grid.EMPTY, np.int64)
+        if self._kernel is not None and tables.sorted is not None:
+            self._fuse_sorted(r, tables.sorted, best)
+            return best
         if self._kernel is not None and tables.aligned is not None:
             self._kernel.rows(np.ascontiguousarray(r, np.float32), tables.dx, tables.dy,
                               tables.dz, tables.ox, tables.oy, tables.oz, tables.k_keys,

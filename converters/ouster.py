@@ -164,10 +164,15 @@ def _float_array(value: Any, field: str, length: int | None = None) -> np.ndarra
     return arr
 
 
+#: Upper bound on columns per frame accepted from metadata (Ouster modes go up to 4096); it keeps
+#: a corrupt file from allocating gigabytes of per-column tables.
+MAX_COLUMNS = 1 << 16
+
+
 def _int(value: Any, field: str) -> int:
     try:
         result = int(value)
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError) as err:
         raise DecodeError(f"metadata.{field}", value, "an integer") from err
     if result != value and not isinstance(value, str):
         raise DecodeError(f"metadata.{field}", value, "an integer")
@@ -237,9 +242,9 @@ def info_from_metadata(src: str | os.PathLike[str] | Mapping[str, Any], *, stamp
     mode_cols, mode_fps = _parse_mode(mode) if mode is not None else (0, 0)
     columns = meta.get("columns_per_frame", fmt)
     width = _int(columns, "columns_per_frame") if columns is not None else mode_cols
-    if width <= 0:
-        raise DecodeError("metadata.columns_per_frame", columns,
-                          "a positive column count (columns_per_frame or lidar_mode)")
+    if not 0 < width <= MAX_COLUMNS:
+        raise DecodeError("metadata.columns_per_frame", width,
+                          f"a column count in 1..{MAX_COLUMNS} (columns_per_frame or lidar_mode)")
     if mode_cols and mode_cols != width:
         raise ValidationError("metadata.columns_per_frame", width,
                               f"{mode_cols} (from lidar_mode {mode!r})")

@@ -1579,6 +1579,19 @@ def _organized_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: 
                  per_scan_azimuths=False)
 
 
+#: Largest grid estimated from an unorganized cloud: no spinning lidar has more beams or more
+#: columns per turn; the checks keep garbage fields from allocating gigabytes.
+MAX_ROWS, MAX_COLUMNS = 1024, 1 << 16
+
+
+def _check_grid_size(height: int, width: int, points: int, source: str) -> None:
+    """Refuse a ring x column grid that no lidar produces, before allocating it."""
+    if height > MAX_ROWS or width > MAX_COLUMNS or height * width > 16 * points + 65536:
+        raise ConversionError("cloud", f"{height} rings x {width} columns from {points} points",
+                              f"at most {MAX_ROWS} rings, {MAX_COLUMNS} columns and a grid not "
+                              f"much larger than the cloud (check the cloud's {source})")
+
+
 def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str | None,
                stamp_ns: int, range_name: str | None, range_scale: float) -> _Grid:
     flat = pts.reshape(-1)
@@ -1589,6 +1602,7 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     ring = (ring[:, 0] if ring.ndim == 2 else ring).astype(np.int64)
     rings, row_of = np.unique(ring, return_inverse=True)
     height = rings.size
+    _check_grid_size(height, 1, flat.size, "ring values")
     if flat.size < 3:
         raise ConversionError("cloud", f"{flat.size} valid points", "at least 3 finite points")
     # rows top -> bottom: order rings by their median elevation
@@ -1611,6 +1625,7 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     if cols is None:
         cols = _columns_from_azimuth(psi, rows, height)
     width = int(cols.max()) + 1
+    _check_grid_size(height, width, flat.size, "time or azimuth spacing")
     pix = rows * width + cols
     first = np.unique(pix, return_index=True)[1]
     dropped = int(pix.size - first.size)
