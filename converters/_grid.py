@@ -524,9 +524,7 @@ def numba_kernel() -> Any:
     _J_BANDS, _J_POINTS, _J_OTHERS = jit(_pass_bands), jit(_pass_points), jit(_pass_others)
     _KERNELS = _Compiled(_J_BANDS, _J_POINTS, _J_OTHERS, jit(_fuse_small), jit(_decode_kernel),
                          jit(_pass_rows))
-    _KERNELS.sorted_codes = jit(_sorted_codes)
-    _KERNELS.sorted_runs = jit(_sorted_runs)
-    _KERNELS.sorted_near = jit(_sorted_near)
+    _KERNELS.sorted_fuse = jit(_sorted_fuse)
     return _KERNELS
 
 
@@ -824,193 +822,148 @@ def _pass_rows(r: Any, dx: Any, dy: Any, dz: Any, ox: Any, oy: Any, oz: Any, key
                     best[j0 - c] = min(best[j0 - c], comb[c])
 
 
-# ------------------------------------------------- bin-ordered kernels (slices, all of one scan)
+# ------------------------------------------------- bin-ordered kernel (slices, one shared grid)
 #
 # Per LidarInfo version the pixel tables are permuted once into the order of the far-field bins
-# of the first grid (``src[j]`` = pixel of position ``j``; ``bin_start[b]:bin_start[b+1]`` = the
-# positions of bin ``b``; pixels without a far-field bin at the end). Per scan:
-#   1. _sorted_codes: one branch-free pass in that order (ranges gathered once): height band bits
-#      per slice, planar range and its code (``code << 32 | key``), +Inf/NaN/-Inf qualifiers;
-#      points closer than their far-field threshold are listed for pass 3.
-#   2. _sorted_runs: per bin a running minimum over contiguous positions (no scatter), for the
-#      slices on the first grid, four slices per pass.
-#   3. _sorted_near: the listed points (atan2) and slices on other grids (scatter), exactly as
-#      _pass_points does.
-# Used when all slices share their planar range limits (so the class of a point is decided once).
+# (``src[j]`` = pixel at position ``j``; ``bin_start[b]:bin_start[b+1]`` = the positions of bin
+# ``b``; pixels without a far-field bin at the end). Per scan, bin by bin: the ranges of the bin
+# are gathered once (shared by all slices), one branch-free loop the compiler vectorises gives
+# every position its code (``code << 32 | key``) and its slice bits (height band for points,
+# the precomputed +Inf/NaN/-Inf qualifiers otherwise), and a running minimum per slice over the
+# bin's positions replaces the scatter; only points closer than their far-field threshold (rare
+# for a sensor on the target's z axis) take a scalar path with atan2. Used when all slices share
+# one grid and their planar range limits (so a point's class is decided once).
 
 
-def _sorted_codes(r: Any, src: Any, keys: Any, dz: Any, oz: Any, dx: Any, dy: Any, ox: Any,
-                  oy: Any, r_thr: Any, qf: Any, qn: Any, zmin: Any, zmax: Any, lim_lo: Any,
-                  lim_hi: Any, rp: Any, mask: Any, comb: Any,
-                  near_list: Any) -> Any:  # pragma: no cover - compiled
-    """Pass 1. ``dz .. oy``, ``r_thr`` (first grid): float32 per position in bin order;
-    ``zmin``/``zmax`` padded to a multiple of four slices with empty bands. Writes
-    ``rp[j] = r[src[j]]`` (the only gather), ``mask[j]`` (bit s: slice s takes part), ``comb[j]`` (``EMPTY`` for
-    listed near points) and returns the number of positions written to ``near_list``. Written
-    as simple loops over contiguous arrays so that the compiler vectorises them."""
-    n = src.shape[0]
-    ns = zmin.shape[0]
-    zero = mask.dtype.type(0)
-    empty = np.int64(EMPTY)
-    for j in range(n):
-        rp[j] = r[src[j]]
-    lo0, hi0 = zmin[0], zmax[0]
-    lo1, hi1 = zmin[1], zmax[1]
-    lo2, hi2 = zmin[2], zmax[2]
-    lo3, hi3 = zmin[3], zmax[3]
-    count = 0
-    for j in range(n):
-        rv = rp[j]
-        rd = np.float64(rv)
-        x = rd * dx[j] + ox[j]
-        y = rd * dy[j] + oy[j]
-        z = rd * dz[j] + oz[j]
-        rho = math.sqrt(x * x + y * y)
-        point = (rv > 0.0) & (rv < np.inf)
-        code = np.int64(np.float32(rho).view(np.int32))
-        code = np.int64(CODE_NEG_INF) if rho < lim_lo else code
-        code = np.int64(CODE_POS_INF) if rho > lim_hi else code
-        special = np.int64(CODE_NAN)
-        special = np.int64(CODE_POS_INF) if rv == np.inf else special
-        special = np.int64(CODE_NEG_INF) if rv == -np.inf else special
-        near = point & (rv < r_thr[j])
-        count += np.int64(near)
-        value = ((code if point else special) << 32) | np.int64(keys[j])
-        comb[j] = empty if near else value
-        # band bits of the first four slices (bands padded with empty ones: inf, -inf)
-        m = np.int64((z >= lo0) & (z <= hi0))
-        m |= np.int64((z >= lo1) & (z <= hi1)) << 1
-        m |= np.int64((z >= lo2) & (z <= hi2)) << 2
-        m |= np.int64((z >= lo3) & (z <= hi3)) << 3
-        q = np.int64(qn[j]) if rv == -np.inf else np.int64(qf[j])
-        mask[j] = m if point else q
-    for s0 in range(4, ns, 4):            # further slices, four per pass
-        lo0, hi0 = zmin[s0], zmax[s0]
-        lo1, hi1 = zmin[s0 + 1], zmax[s0 + 1]
-        lo2, hi2 = zmin[s0 + 2], zmax[s0 + 2]
-        lo3, hi3 = zmin[s0 + 3], zmax[s0 + 3]
-        for j in range(n):
-            rv = rp[j]
-            z = np.float64(rv) * dz[j] + oz[j]
-            m = np.int64((z >= lo0) & (z <= hi0))
-            m |= np.int64((z >= lo1) & (z <= hi1)) << 1
-            m |= np.int64((z >= lo2) & (z <= hi2)) << 2
-            m |= np.int64((z >= lo3) & (z <= hi3)) << 3
-            point = (rv > 0.0) & (rv < np.inf)
-            mask[j] |= mask.dtype.type(m << s0) if point else zero
-    n_near = 0
-    if count:
-        for j in range(n):
-            rv = rp[j]
-            if (rv > 0.0) & (rv < np.inf) & (rv < r_thr[j]) & (mask[j] != zero):
-                near_list[n_near] = j
-                n_near += 1
-    return n_near
-
-
-def _sorted_runs(bin_start: Any, size: Any, mask: Any, comb: Any, slot: Any, offset: Any,
+def _sorted_fuse(r: Any, src: Any, keys: Any, dz: Any, oz: Any, dx: Any, dy: Any, ox: Any,
+                 oy: Any, r_thr: Any, qf: Any, qn: Any, zmin: Any, zmax: Any, n_slices: Any,
+                 lim_lo: Any, lim_hi: Any, bin_start: Any, max_width: Any, offset: Any,
+                 g_min: Any, g_inc: Any, g_size: Any, g_full: Any,
                  best: Any) -> None:  # pragma: no cover - compiled
-    """Pass 2: for up to four slices ``slot[0..3]`` (-1 = unused) on the bin-order grid, the
-    per-bin minimum of ``comb`` over the positions whose mask has the slice's bit."""
-    empty = np.int64(EMPTY)
-    zero = mask.dtype.type(0)
-    b0 = mask.dtype.type(1 << max(slot[0], 0)) if slot[0] >= 0 else zero
-    b1 = mask.dtype.type(1 << max(slot[1], 0)) if slot[1] >= 0 else zero
-    b2 = mask.dtype.type(1 << max(slot[2], 0)) if slot[2] >= 0 else zero
-    b3 = mask.dtype.type(1 << max(slot[3], 0)) if slot[3] >= 0 else zero
-    o0 = offset[max(slot[0], 0)]
-    o1 = offset[max(slot[1], 0)]
-    o2 = offset[max(slot[2], 0)]
-    o3 = offset[max(slot[3], 0)]
-    for b in range(size):
-        r0 = empty
-        r1 = empty
-        r2 = empty
-        r3 = empty
-        for j in range(bin_start[b], bin_start[b + 1]):
-            m = mask[j]
-            v = comb[j]
-            r0 = min(r0, v if m & b0 else empty)
-            r1 = min(r1, v if m & b1 else empty)
-            r2 = min(r2, v if m & b2 else empty)
-            r3 = min(r3, v if m & b3 else empty)
-        if b0:
-            best[o0 + b] = min(best[o0 + b], r0)
-        if b1:
-            best[o1 + b] = min(best[o1 + b], r1)
-        if b2:
-            best[o2 + b] = min(best[o2 + b], r2)
-        if b3:
-            best[o3 + b] = min(best[o3 + b], r3)
+    """Fuse one scan into ``best`` for slices ``0 .. n_slices-1`` on one grid.
 
-
-def _sorted_near(rp: Any, keys: Any, dx: Any, dy: Any, ox: Any, oy: Any, mask: Any, comb: Any,
-                 near_list: Any,
-                 n_near: Any, others: Any, lim_lo: Any, lim_hi: Any, slice_grid: Any,
-                 offset: Any, g_min: Any, g_inc: Any, g_size: Any, g_full: Any, bin_far: Any,
-                 r_thr: Any, best: Any) -> None:  # pragma: no cover - compiled
-    """Pass 3: the near points of the bin-order grid (atan2, as :func:`_pass_points`) and, when
-    ``others`` (slices on other grids), every contributing position for those slices.
-    ``bin_far``, ``r_thr``: (G, n) in bin order."""
+    Args:
+        r: (n,) float32 ranges in pixel order.
+        src, keys: (n,) int32 pixel and tie key of each position (bin order).
+        dz, oz, dx, dy, ox, oy, r_thr: (n,) float32 ray tables and far-field threshold, bin order.
+        qf, qn: (n,) bit s: slice s may report +Inf/NaN (qf) or -Inf (qn), bin order.
+        zmin, zmax: bands padded to a multiple of four slices with empty ones (inf, -inf).
+        lim_lo, lim_hi: the shared planar range limits.
+        bin_start: (size + 2,) int64 position of each bin's first pixel (last: the pixels
+            without a far-field bin, only their near points can contribute).
+        max_width: positions per chunk of whole bins (>= the largest bin; scratch size).
+        offset: (n_slices,) int64 first element of each slice in ``best``.
+        g_min, g_inc, g_size, g_full: the grid.
+        best: reduction array, updated in place.
+    """
     two_pi = 2.0 * math.pi
-    n_grids = g_min.shape[0]
-    grid_bin = np.empty(n_grids, np.int64)
-    ns = slice_grid.shape[0]
-    n_pos = rp.shape[0] if others else n_near
-    k_near = 0
-    for h in range(n_pos):
-        if others:
-            j = h
-            listed = k_near < n_near and near_list[k_near] == j
-            k_near += listed
-        else:
-            j = near_list[h]
-            listed = True
-        m = np.int64(mask[j])
-        if m == 0:
+    empty = np.int64(EMPTY)
+    chunk = max_width
+    rp = np.empty(chunk, np.float32)
+    cm = np.empty(chunk, np.int64)
+    mm = np.empty(chunk, np.int64)
+    n_blocks = zmin.shape[0] // 4
+    b_end = 0
+    while b_end < g_size + 1:
+        # a run of whole bins, at most ``chunk`` positions (at least one bin)
+        b_first = b_end
+        j0 = bin_start[b_first]
+        b_end = b_first + 1
+        while b_end < g_size + 1 and bin_start[b_end + 1] - j0 <= chunk:
+            b_end += 1
+        j1 = bin_start[b_end]
+        w = j1 - j0
+        if w == 0:
             continue
-        rv = rp[j]
-        point = (rv > 0.0) & (rv < np.inf)
-        key = np.int64(keys[j])
-        if point:
-            rd = np.float64(rv)
-            x = rd * dx[j] + ox[j]
-            y = rd * dy[j] + oy[j]
-            rho = math.sqrt(x * x + y * y)
-            bits = np.int64(np.float32(rho).view(np.int32))
-            code = bits
-            if rho < lim_lo:
-                code = np.int64(CODE_NEG_INF)
-            elif rho > lim_hi:
-                code = np.int64(CODE_POS_INF)
-            value = (code << 32) | key
-            for g in range(n_grids):
-                if rv < r_thr[g, j]:
-                    d = math.atan2(y, x) - g_min[g]
-                    inc = g_inc[g]
-                    if g_full[g]:
-                        grid_bin[g] = np.int64(math.ceil(d / inc - 0.5)) % g_size[g]
-                    else:
-                        d = d - two_pi * math.floor((d + 0.5 * inc) / two_pi)
-                        k = np.int64(math.ceil(d / inc - 0.5))
-                        grid_bin[g] = k if 0 <= k < g_size[g] else -1
-                else:
-                    grid_bin[g] = bin_far[g, j]
-        else:
-            value = comb[j]
-            for g in range(n_grids):
-                grid_bin[g] = bin_far[g, j]
-        for s in range(ns):
-            if not (m >> s) & 1:
+        vsrc = src[j0:j1]
+        for k in range(w):
+            rp[k] = r[vsrc[k]]
+        vkeys, vthr, vqf, vqn = keys[j0:j1], r_thr[j0:j1], qf[j0:j1], qn[j0:j1]
+        vdz, voz, vdx, vdy, vox, voy = (dz[j0:j1], oz[j0:j1], dx[j0:j1], dy[j0:j1],
+                                        ox[j0:j1], oy[j0:j1])
+        for blk in range(n_blocks):
+            s0 = 4 * blk
+            lo0, hi0 = zmin[s0], zmax[s0]
+            lo1, hi1 = zmin[s0 + 1], zmax[s0 + 1]
+            lo2, hi2 = zmin[s0 + 2], zmax[s0 + 2]
+            lo3, hi3 = zmin[s0 + 3], zmax[s0 + 3]
+            count = 0
+            for k in range(w):
+                rv = rp[k]
+                rd = np.float64(rv)
+                x = rd * vdx[k] + vox[k]
+                y = rd * vdy[k] + voy[k]
+                z = rd * vdz[k] + voz[k]
+                rho = math.sqrt(x * x + y * y)
+                point = (rv > 0.0) & (rv < np.inf)
+                code = np.int64(np.float32(rho).view(np.int32))
+                code = np.int64(CODE_NEG_INF) if rho < lim_lo else code
+                code = np.int64(CODE_POS_INF) if rho > lim_hi else code
+                special = np.int64(CODE_NAN)
+                special = np.int64(CODE_POS_INF) if rv == np.inf else special
+                special = np.int64(CODE_NEG_INF) if rv == -np.inf else special
+                near = point & (rv < vthr[k])
+                count += np.int64(near)
+                value = ((code if point else special) << 32) | np.int64(vkeys[k])
+                cm[k] = empty if near else value
+                m = np.int64((z >= lo0) & (z <= hi0))
+                m |= np.int64((z >= lo1) & (z <= hi1)) << 1
+                m |= np.int64((z >= lo2) & (z <= hi2)) << 2
+                m |= np.int64((z >= lo3) & (z <= hi3)) << 3
+                q = np.int64(vqn[k]) if rv == -np.inf else np.int64(vqf[k])
+                mm[k] = m if point else (q >> s0) & 15
+            for b in range(b_first, min(b_end, g_size)):
+                vm = mm[bin_start[b] - j0:bin_start[b + 1] - j0]
+                vc = cm[bin_start[b] - j0:bin_start[b + 1] - j0]
+                r0 = empty
+                r1 = empty
+                r2 = empty
+                r3 = empty
+                for k in range(vm.shape[0]):
+                    m = vm[k]
+                    v = vc[k]
+                    r0 = min(r0, v if m & 1 else empty)
+                    r1 = min(r1, v if m & 2 else empty)
+                    r2 = min(r2, v if m & 4 else empty)
+                    r3 = min(r3, v if m & 8 else empty)
+                for t, run in enumerate((r0, r1, r2, r3)):
+                    if s0 + t < n_slices:
+                        jj = offset[s0 + t] + b
+                        best[jj] = min(best[jj], run)
+            if count == 0:
                 continue
-            g = slice_grid[s]
-            if g == 0 and not listed:
-                continue              # handled by the running minimum of pass 2
-            b = grid_bin[g]
-            if b >= 0:
-                jj = offset[s] + b
-                best[jj] = min(best[jj], value)
+            # points closer than their far-field threshold: exact bin from atan2
+            for k in range(w):
+                rv = rp[k]
+                if not ((rv > 0.0) & (rv < np.inf) & (rv < vthr[k]) & (mm[k] != 0)):
+                    continue
+                rd = np.float64(rv)
+                x = rd * vdx[k] + vox[k]
+                y = rd * vdy[k] + voy[k]
+                rho = math.sqrt(x * x + y * y)
+                code = np.int64(np.float32(rho).view(np.int32))
+                if rho < lim_lo:
+                    code = np.int64(CODE_NEG_INF)
+                elif rho > lim_hi:
+                    code = np.int64(CODE_POS_INF)
+                d = math.atan2(y, x) - g_min
+                if g_full:
+                    bn = np.int64(math.ceil(d / g_inc - 0.5)) % g_size
+                else:
+                    d = d - two_pi * math.floor((d + 0.5 * g_inc) / two_pi)
+                    bn = np.int64(math.ceil(d / g_inc - 0.5))
+                    if bn < 0 or bn >= g_size:
+                        continue
+                value = (code << 32) | np.int64(vkeys[k])
+                m = mm[k]
+                for t in range(4):
+                    if (m >> t) & 1 and s0 + t < n_slices:
+                        jj = offset[s0 + t] + bn
+                        best[jj] = min(best[jj], value)
 
+
+#: Positions per chunk of whole bins in :func:`_sorted_fuse` (at least one whole bin).
+SORTED_CHUNK = 512
 
 
 def aligned_rows(bin_far: np.ndarray[Any, Any], width: int, size: int

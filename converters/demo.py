@@ -24,6 +24,7 @@ The robot pose is constant during one frame (no motion inside a scan; at 0.2 m/s
 from __future__ import annotations
 
 import math
+import statistics
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -526,10 +527,12 @@ class DemoResult:
             ratio = f"  ({size / scan:.2f}x LidarScan)" if scan and name.startswith(
                 "PointCloud2") else ""
             lines.append(f"    {name:<30} {size:>12,d}{ratio}")
-        lines.append("  timings per frame (mean, ms):")
+        lines.append("  timings per frame (median, ms; the first frame also builds tables"
+                     " and compiles kernels):")
         for stage, values in self.timings.items():
             if values:
-                lines.append(f"    {stage:<28} {1e3 * sum(values) / len(values):>9.1f}")
+                lines.append(f"    {stage:<28} {1e3 * statistics.median(values):>9.1f}"
+                             f"   (first frame {1e3 * values[0]:.1f})")
         if self.images:
             lines.append("  images:")
             lines.extend(f"    {p}" for p in self.images)

@@ -46,7 +46,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
-import threading
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -194,8 +193,8 @@ class _Tables:
             [qf.astype(np.uint8) | (qn.astype(np.uint8) << 1)
              for qf, qn in zip(self.q_far, self.q_near)]))
         self.sorted: _Sorted | None = None
-        if len(slices) <= 62 and len({(s.options.range_min, s.options.range_max)
-                                      for s in slices}) == 1:
+        if len(grids) == 1 and len(slices) <= 60 and len(
+                {(s.options.range_min, s.options.range_max) for s in slices}) == 1:
             self.sorted = _Sorted(self, grids[0].size, len(slices))
 
     def key(self, index: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
@@ -213,8 +212,9 @@ class _Tables:
 
 
 class _Sorted:
-    """The tables of :class:`_Tables` permuted into the order of the first grid's far-field bins
-    (then pixel index), for the bin-ordered compiled kernels of :mod:`converters._grid`."""
+    """The tables of :class:`_Tables` permuted into the order of the (single) grid's far-field
+    bins, then pixel index, for the bin-ordered compiled kernel
+    :func:`converters._grid._sorted_fuse`."""
 
     def __init__(self, t: _Tables, size: int, n_slices: int) -> None:
         far = t.bin_far[0]
@@ -222,8 +222,9 @@ class _Sorted:
         order = np.argsort(sort_key, kind="stable")
         self.src = order.astype(np.int32)
         self.bin_start = np.searchsorted(sort_key[order], np.arange(size + 2)).astype(np.int64)
-        self.keys = (order if t.keys is None else t.keys[order]).astype(np.int32)
-        #: dz, oz, dx, dy, ox, oy, r_thr of the first grid, float32 in bin order
+        # tie key = pixel index unless destaggered: then the same array (read once)
+        self.keys = self.src if t.keys is None else t.keys[order].astype(np.int32)
+        #: dz, oz, dx, dy, ox, oy, r_thr, float32 in bin order
         self.cols = tuple(np.ascontiguousarray(a[order])
                           for a in (t.dz, t.oz, t.dx, t.dy, t.ox, t.oy, t.k_r_thr[0]))
         self.mask_dtype = np.uint8 if n_slices <= 8 else np.uint64
@@ -233,16 +234,7 @@ class _Sorted:
             qf |= far_ok[order].astype(self.mask_dtype) << self.mask_dtype(s)
             qn |= near_ok[order].astype(self.mask_dtype) << self.mask_dtype(s)
         self.qf, self.qn = qf, qn
-        self.bin_far = np.ascontiguousarray(t.k_bin_far[:, order])
-        self.r_thr = np.ascontiguousarray(t.k_r_thr[:, order])
-        self.lock = threading.Lock()
-        self.scratch = self.new_scratch()
-
-    def new_scratch(self) -> tuple[np.ndarray[Any, Any], ...]:
-        """Per-scan buffers: gathered ranges, masks, codes, near list."""
-        n = self.src.shape[0]
-        return (np.empty(n, np.float32), np.empty(n, self.mask_dtype), np.empty(n, np.int64),
-                np.empty(n, np.int64))
+        self.max_width = int(np.diff(self.bin_start).max(initial=0))
 
 
 class SliceConverter:
@@ -332,10 +324,6 @@ class SliceConverter:
             np.array([s.options.range_min for s in sl]),
             np.array([s.options.range_max for s in sl]),
             np.array(self._slice_grid, np.int64), self._offsets.astype(np.int64))
-        first = [i for i, g in enumerate(self._slice_grid) if g == 0]
-        #: slices on the first grid, four per pass of the running-minimum kernel (-1 = unused)
-        self._slots = [np.array((first[i:i + 4] + [-1] * 4)[:4], np.int64)
-                       for i in range(0, len(first), 4)]
         pad = -len(sl) % 4              # empty bands up to a multiple of four slices
         self._kbands = (np.r_[self._kslices[0], np.full(pad, np.inf)],
                         np.r_[self._kslices[1], np.full(pad, -np.inf)])
@@ -466,32 +454,70 @@ class SliceConverter:
 
     def _fuse_sorted(self, r: np.ndarray[Any, Any], t: _Sorted, best: np.ndarray[Any, Any]
                      ) -> None:
-        """The bin-ordered compiled path (all slices share their range limits)."""
-        k = self._kernel
-        _, _, rmin, rmax, slice_grid, offset = self._kslices
-        lim_lo, lim_hi = float(rmin[0]), float(rmax[0])
-        r32 = np.ascontiguousarray(r, np.float32)
-        own = t.lock.acquire(blocking=False)        # reuse the scratch unless in use
-        try:
-            rp, mask, comb, near_list = t.scratch if own else t.new_scratch()
-            n_near = k.sorted_codes(r32, t.src, t.keys, *t.cols, t.qf, t.qn, *self._kbands,
-                                    lim_lo, lim_hi, rp, mask, comb, near_list)
-            for slot in self._slots:
-                k.sorted_runs(t.bin_start, self._grids[0].size, mask, comb, slot, offset, best)
-            others = len(self._slots) == 0 or int(np.count_nonzero(slice_grid)) > 0
-            if n_near or others:
-                k.sorted_near(rp, t.keys, *t.cols[2:6], mask, comb, near_list, n_near, others,
-                              lim_lo, lim_hi, slice_grid, offset, *self._kgrids, t.bin_far,
-                              t.r_thr, best)
-        finally:
-            if own:
-                t.lock.release()
+        """The bin-ordered compiled path (one grid, shared range limits)."""
+        rmin, rmax, offset = self._kslices[2], self._kslices[3], self._kslices[5]
+        g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
+        self._kernel.sorted_fuse(np.ascontiguousarray(r, np.float32), t.src, t.keys, *t.cols,
+                                 t.qf, t.qn, *self._kbands, len(self.slices), float(rmin[0]),
+                                 float(rmax[0]), t.bin_start, max(t.max_width, _grid.SORTED_CHUNK), offset,
+                                 float(g_min), float(g_inc), int(g_size), bool(g_full), best)
+
+    def _fuse_sorted_numpy(self, r: np.ndarray[Any, Any], t: _Sorted,
+                           best: np.ndarray[Any, Any]) -> None:
+        """numpy twin of :func:`converters._grid._sorted_fuse`: ranges gathered once in bin
+        order, per slice a ``minimum.reduceat`` over each bin's contiguous positions; points
+        closer than their far-field threshold get their bin from ``arctan2``."""
+        grid = self._grids[0]
+        size = grid.size
+        rp = np.asarray(r, np.float32)[t.src]
+        dz, oz, dx, dy, ox, oy, r_thr = t.cols
+        lim_lo = self.slices[0].options.range_min
+        lim_hi = self.slices[0].options.range_max
+        with np.errstate(invalid="ignore", over="ignore"):
+            rd = rp.astype(np.float64)
+            point = (rp > 0) & (rp < np.inf)
+            x = rd * dx + ox
+            y = rd * dy + oy
+            z = rd * dz + oz
+            rho = np.sqrt(x * x + y * y)
+            near = point & (rp < r_thr)
+        code = rho.astype(np.float32).view(np.int32).astype(np.int64)
+        code[rho < lim_lo] = _grid.CODE_NEG_INF
+        code[rho > lim_hi] = _grid.CODE_POS_INF
+        special = np.full(rp.shape, _grid.CODE_NAN, np.int64)
+        special[rp == np.inf] = _grid.CODE_POS_INF
+        special[rp == -np.inf] = _grid.CODE_NEG_INF
+        value = (np.where(point, code, special) << 32) | t.keys.astype(np.int64)
+        neg = rp == -np.inf
+        n_binned = int(t.bin_start[size])
+        starts = t.bin_start[:size]               # <= n_binned: a sentinel follows the values
+        empty_bin = starts == t.bin_start[1:size + 1]
+        near_idx = np.flatnonzero(near)
+        near_bins = None
+        if near_idx.size:
+            near_bins = grid.bins(np.arctan2(y[near_idx], x[near_idx]))
+        far_value = np.append(np.where(near, _grid.EMPTY, value)[:n_binned], _grid.EMPTY)
+        for s, (sl, off) in enumerate(zip(self.slices, self._offsets)):
+            bit = t.mask_dtype(1) << t.mask_dtype(s)
+            qual = (np.where(neg, t.qn, t.qf) & bit) != 0
+            take = np.where(point, (z >= sl.min_z) & (z <= sl.max_z), qual)
+            if n_binned:
+                runs = np.minimum.reduceat(
+                    np.where(np.append(take[:n_binned], False), far_value, _grid.EMPTY), starts)
+                runs[empty_bin] = _grid.EMPTY
+                np.minimum(best[off:off + size], runs, out=best[off:off + size])
+            if near_bins is not None:
+                ok = take[near_idx] & (near_bins >= 0)
+                np.minimum.at(best, near_bins[ok] + off, value[near_idx[ok]])
 
     def _fuse(self, r: np.ndarray[Any, Any], tables: _Tables) -> np.ndarray[Any, Any]:
         """One reduction array (all slices back to back) from the flat range image."""
         best = np.full(self._size, _grid.EMPTY, np.int64)
-        if self._kernel is not None and tables.sorted is not None:
-            self._fuse_sorted(r, tables.sorted, best)
+        if tables.sorted is not None:
+            if self._kernel is not None:
+                self._fuse_sorted(r, tables.sorted, best)
+            else:
+                self._fuse_sorted_numpy(r, tables.sorted, best)
             return best
         if self._kernel is not None and tables.aligned is not None:
             self._kernel.rows(np.ascontiguousarray(r, np.float32), tables.dx, tables.dy,

@@ -34,7 +34,27 @@ than ``clock - timeout_ns`` (``clock`` = the newest stamp pushed to the merger, 
 replays behave like live runs). A scan is fused at most once, and only with scans within the slop,
 so stale data is never fused. The output stamp is the newest (``reference="newest"``) or oldest
 stamp of the fused set, exact in ns. ``time_increment`` is 0 and ``scan_time`` the largest input
-``scan_time``.
+``scan_time``. Scans are validated when pushed (header, frame): a malformed scan raises before
+it touches any queue.
+
+**Clock jumps backwards** (``jump_back_ns``, default 1 s; None = never). Each input is judged on
+its *own* stamps: a scan older than the newest scan queued from that input by more than
+``jump_back_ns`` is held as a suspected jump and dropped (``stats["dropped_late"]``,
+:attr:`LaserScanMerger.last_drop` says why). If the next scan of that input is such a scan too,
+and newer than the held one, the input's clock was reset (a recording played in a loop, a sensor
+or simulator restarting): its time is reset (``stats["time_resets"]``, :attr:`last_reset`): its
+queue and last consumed stamp are cleared and the confirming scan starts its new timeline. Scans
+of the other inputs stamped more than ``jump_back_ns`` after the new stamp belong to the
+timeline that was left: they are dropped from the queues (``stats["dropped_jump"]``) and those
+inputs' liveness restarts at the new stamp (as if never seen: policy ``"timeout"`` waits for
+them for their timeout, then leaves them out until they jump back too or publish again), and the
+merger's clock becomes the newest liveness stamp, so fusion resumes on the new timeline as soon as
+the inputs have jumped, never mixing scans across the jump. One stale, zero-stamped or replayed
+scan, or any number of them that do not rise, therefore never resets anything (a zero stamp,
+i.e. unset, is never evidence of a jump); an input merely
+lagging behind the others is never a jump (its own stamps do not go back). Odometry follows the
+same rule on its own stamps (``stats["odometry_resets"]``: the pose history restarts;
+``stats["dropped_odometry"]``).
 
 **Motion compensation** (:meth:`LaserScanMerger.push_odometry`). Odometry gives the pose
 ``T(t)`` of the output frame in a fixed frame. A scan taken at ``t_i`` is moved by
@@ -230,6 +250,8 @@ class _InputState:
         self.queue: list[tuple[int, Any]] = []
         self.consumed = -(1 << 63)
         self.last_seen: int | None = None
+        self.newest: int | None = None    # newest queued stamp on the input's own timeline
+        self.pending: int | None = None   # stamp of an unconfirmed jump back
 
     def geometry(self, amin: float, inc: float, n: int) -> tuple[Any, Any, Any]:
         """cos, sin of the ray angles and the window mask (cached per header)."""
@@ -313,6 +335,8 @@ class LaserScanMerger:
         queue_size: scans kept per input.
         motion_compensation: use pushed odometry to move scans to the output stamp.
         odom_queue_size, odom_max_gap_ns: odometry samples kept; largest gap bridged.
+        jump_back_ns: an input (or the odometry) whose stamps go back by more than this, two
+            scans in a row, had its clock reset (see the module docstring); None = never.
         backend: ``"auto"`` (compiled kernel when numba is installed), ``"numba"``, ``"numpy"``.
 
     Raises:
@@ -328,7 +352,7 @@ class LaserScanMerger:
                  timeout_ns: int = 1_000_000_000, reference: str = "newest",
                  queue_size: int = 10, motion_compensation: bool = True,
                  odom_queue_size: int = 200, odom_max_gap_ns: int = 250_000_000,
-                 backend: str = "auto") -> None:
+                 jump_back_ns: int | None = 1_000_000_000, backend: str = "auto") -> None:
         if backend not in ("auto", "numba", "numpy"):
             raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
         self._kernel = None if backend == "numpy" else _grid.numba_kernel()
@@ -355,6 +379,11 @@ class LaserScanMerger:
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0 \
                     or (field.endswith("size") and value < 1):
                 raise ConfigError(field, value, "a non-negative int (sizes >= 1)")
+        if jump_back_ns is not None and (
+                not isinstance(jump_back_ns, (int, np.integer)) or isinstance(jump_back_ns, bool)
+                or jump_back_ns <= 0):
+            raise ConfigError("jump_back_ns", jump_back_ns, "an int > 0 (ns) or None")
+        self.jump_back_ns = None if jump_back_ns is None else int(jump_back_ns)
         if policy not in ("wait", "timeout"):
             raise ConfigError("policy", policy, "'wait' or 'timeout'")
         if reference not in ("newest", "oldest"):
@@ -366,11 +395,17 @@ class LaserScanMerger:
         self.odom_queue_size, self.odom_max_gap_ns = int(odom_queue_size), int(odom_max_gap_ns)
         self._odom_t: list[int] = []
         self._odom: list[Pose] = []
+        self._odom_pending: int | None = None
         self._clock: int | None = None
         self.last_inputs: tuple[str, ...] = ()
+        #: why the last pushed scan was not queued (None: it was queued)
+        self.last_drop: str | None = None
+        #: (input, its newest stamp before, new stamp) if the last push reset an input's time
+        self.last_reset: tuple[str, int, int] | None = None
         self.stats = {"merged": 0, "partial": 0, "dropped_late": 0, "dropped_duplicate": 0,
                       "dropped_overflow": 0, "dropped_unmatched": 0, "dropped_backlog": 0,
-                      "uncompensated": 0}
+                      "dropped_jump": 0, "time_resets": 0, "odometry_resets": 0,
+                      "dropped_odometry": 0, "uncompensated": 0}
 
     @property
     def input_names(self) -> tuple[str, ...]:
@@ -400,6 +435,16 @@ class LaserScanMerger:
             raise ValidationError("Odometry.pose.pose", (p, q.tolist()),
                                   "a finite position and a non-zero quaternion")
         q /= norm
+        jump = self.jump_back_ns
+        if jump is not None and self._odom_t and stamp < self._odom_t[-1] - jump:
+            if self._odom_pending is None or stamp <= self._odom_pending:
+                self._odom_pending = stamp   # wait for a second sample to confirm the jump
+                self.stats["dropped_odometry"] += 1
+                return
+            self._odom_t.clear()             # the odometry's clock was reset: new history
+            self._odom.clear()
+            self.stats["odometry_resets"] += 1
+        self._odom_pending = None
         i = bisect.bisect_left(self._odom_t, stamp)
         sample = Pose(stamp, p, tuple(float(v) for v in q))  # type: ignore[arg-type]
         if i < len(self._odom_t) and self._odom_t[i] == stamp:
@@ -436,11 +481,20 @@ class LaserScanMerger:
         states = [s for s in self._inputs.values() if s.name in scans]
         if not states:
             raise ValidationError("scans", dict(scans), "at least one input scan")
-        read = [_read_scan(scans[s.name], s.name) for s in states]
-        for s, sc in zip(states, read):
-            if s.cfg.frame_id is not None and sc.frame_id != s.cfg.frame_id:
-                raise ValidationError(f"{s.name}.header.frame_id", sc.frame_id,
-                                      f"{s.cfg.frame_id!r} (MergerInput.frame_id)")
+        read = [self._read(s, scans[s.name]) for s in states]
+        return self._fuse(states, read)
+
+    @staticmethod
+    def _read(state: _InputState, scan: Any) -> _ScanIn:
+        """Header and arrays of one input's scan, validated (frame included)."""
+        sc = _read_scan(scan, state.name)
+        if state.cfg.frame_id is not None and sc.frame_id != state.cfg.frame_id:
+            raise ValidationError(f"{state.name}.header.frame_id", sc.frame_id,
+                                  f"{state.cfg.frame_id!r} (MergerInput.frame_id)")
+        return sc
+
+    def _fuse(self, states: list[_InputState], read: list[_ScanIn]) -> Any:
+        """Fuse validated scans (one per state, in tie order)."""
         stamps = [sc.stamp for sc in read]
         ref = max(stamps) if self.reference == "newest" else min(stamps)
         ref_inv = None
@@ -544,32 +598,87 @@ class LaserScanMerger:
     def push(self, name: str, scan: Any) -> Any:
         """Queue one scan; return the merged scan if a set now matches, else None.
 
+        The scan is validated here (header, frame), so a malformed scan is rejected before it
+        touches any queue. Why a scan was not queued is in :attr:`last_drop` (None: queued).
+
         Raises:
             ConfigError: unknown input name.
-            ValidationError: the scan's header cannot be read.
+            ValidationError: the scan's header cannot be read or is inconsistent.
         """
         state = self._inputs.get(name)
         if state is None:
             raise ConfigError("name", name, f"one of the inputs {list(self._inputs)}")
-        stamp = to_ns(scan.header.stamp, field=f"{name}.header.stamp")
-        self._clock = stamp if self._clock is None else max(self._clock, stamp)
+        sc = self._read(state, scan)
+        stamp = sc.stamp
+        self.last_drop = None
+        self.last_reset = None
+        jump = self.jump_back_ns
+        if jump is not None and state.newest is not None and stamp < state.newest - jump:
+            if stamp == 0:                   # unset stamp: no evidence of any time
+                self._drop(state, "dropped_late", "zero (unset) stamp")
+                return None
+            if state.pending is None or stamp <= state.pending:
+                state.pending = stamp        # one scan is no evidence: wait for a second one
+                self._drop(state, "dropped_late", f"{(state.newest - stamp) / 1e9:.3f} s "
+                           "older than the input's newest scan (a jump back is taken "
+                           "only after a second scan in a row confirms it)")
+                return None
+            self._time_reset(state, stamp)
+        state.pending = None
+        if self._clock is None or stamp > self._clock:
+            self._clock = stamp
         for other in self._inputs.values():    # "never seen" counts from the first scan
             if other.last_seen is None:
                 other.last_seen = stamp
         state.last_seen = max(state.last_seen, stamp)  # type: ignore[type-var]
         if stamp <= state.consumed:
-            self.stats["dropped_late"] += 1
+            self._drop(state, "dropped_late", "not newer than the input's last "
+                       "consumed scan")
             return None
-        stamps = [t for t, _ in state.queue]
-        i = bisect.bisect_left(stamps, stamp)
-        if i < len(stamps) and stamps[i] == stamp:
-            self.stats["dropped_duplicate"] += 1
-            return None
-        state.queue.insert(i, (stamp, scan))
-        while len(state.queue) > self.queue_size:
-            state.queue.pop(0)
+        queue = state.queue
+        if queue and stamp > queue[-1][0]:
+            queue.append((stamp, sc))
+        else:
+            i = bisect.bisect_left(queue, stamp, key=lambda item: item[0])
+            if i < len(queue) and queue[i][0] == stamp:
+                self._drop(state, "dropped_duplicate", "stamp already queued")
+                return None
+            queue.insert(i, (stamp, sc))
+        if state.newest is None or stamp > state.newest:
+            state.newest = stamp
+        while len(queue) > self.queue_size:
+            queue.pop(0)
             self.stats["dropped_overflow"] += 1
         return self._match()
+
+    def _drop(self, state: _InputState, reason: str, why: str) -> None:
+        """Count a scan that is not queued and say why (:attr:`last_drop`)."""
+        self.stats[reason] += 1
+        self.last_drop = f"input {state.name!r}: scan {reason.removeprefix('dropped_')}: {why}"
+
+    def _time_reset(self, state: _InputState, stamp: int) -> None:
+        """Input ``state`` jumped back to ``stamp`` (confirmed): start its new timeline."""
+        jump = int(self.jump_back_ns)  # type: ignore[arg-type]
+        old = state.newest
+        dropped = len(state.queue)
+        state.queue.clear()
+        state.consumed = -(1 << 63)
+        state.newest = None
+        state.last_seen = stamp
+        horizon = stamp + jump        # later stamps belong to the timeline that was left
+        for other in self._inputs.values():
+            if other is state:
+                continue
+            if other.last_seen is not None and other.last_seen > horizon:
+                other.last_seen = stamp  # its liveness restarts on the new timeline
+            keep = [item for item in other.queue if item[0] <= horizon]
+            dropped += len(other.queue) - len(keep)
+            other.queue[:] = keep
+        seen = [s.last_seen for s in self._inputs.values() if s.last_seen is not None]
+        self._clock = max(seen) if seen else stamp
+        self.stats["time_resets"] += 1
+        self.stats["dropped_jump"] += dropped
+        self.last_reset = (state.name, int(old), stamp)  # type: ignore[arg-type]
 
     def _alive(self, state: _InputState) -> bool:
         if self.policy == "wait":
@@ -580,7 +689,7 @@ class LaserScanMerger:
 
     def _match(self) -> Any:
         """Consume every complete set; merge the newest, count older ones as backlog."""
-        found: dict[str, Any] | None = None
+        found: dict[str, _ScanIn] | None = None
         partial = False
         while True:
             matched = self._match_once()
@@ -593,9 +702,10 @@ class LaserScanMerger:
             return None
         self.stats["merged"] += 1
         self.stats["partial"] += int(partial)
-        return self.merge(found)
+        states = [s for s in self._inputs.values() if s.name in found]
+        return self._fuse(states, [found[s.name] for s in states])
 
-    def _match_once(self) -> tuple[dict[str, Any], bool] | None:
+    def _match_once(self) -> tuple[dict[str, _ScanIn], bool] | None:
         while True:
             required = [s for s in self._inputs.values() if self._alive(s)]
             if not required:

@@ -508,13 +508,10 @@ def test_merger_odometry_history_is_bounded() -> None:
     assert m.pose_at(T0) is None or m.pose_at(T0).stamp_ns != T0  # old samples forgotten
 
 
-# KNOWN DEFECT (reported to the lead; converters/merger.py is not ours). Since fixed in the
-# merger NODE (MergerCore's jump_back, see the test above) but not in LaserScanMerger itself,
-# which `lidarscan convert --merge` uses directly. A clock jump backwards (a recording played in
-# a loop, a sensor clock reset, sim time restarting) silences LaserScanMerger for good: every scan whose stamp is <= the last consumed one is dropped as "late", and the
-# stamps after the jump stay below it until the data clock passes the old maximum (never, for
-# a loop). Expected per issue 6: keep publishing per the documented policy, e.g. treat a jump
-# back by more than the timeout as a restart (clear queues, consumed stamps and the data clock).
+# DEFECT FOUND (D7, fixed in converters/merger.py; this is its regression test). A clock jump
+# backwards (a recording played in a loop, a sensor clock reset, sim time restarting) used to
+# silence LaserScanMerger for good: every later scan was dropped as "late". Expected per issue 6:
+# keep publishing per the documented policy (the merger's per-input jump_back_ns).
 def test_merger_recovers_from_a_clock_jump_backwards() -> None:
     m = _merger()
     outs: list[tuple[int, Any]] = []
@@ -554,13 +551,10 @@ def test_merger_node_core_restarts_after_a_clock_jump_backwards() -> None:
     assert all(o["a"] == o["b"] for o in after)
 
 
-# KNOWN DEFECT (reported to the lead; converters/nodes/merger_node.py is not ours). Found by
-# bench/soak.py (2 % malformed LaserScans with a zero stamp): MergerCore.push takes ONE scan
-# older than the newest stamp by more than jump_back (1 s) as a clock jump and restarts the
-# merger, dropping every input's queue, before the scan is even validated. A single input with
-# unset (zero) stamps, or one stale/corrupt message, thus keeps resetting the fusion of all
-# inputs (the soak lost ~35 % of the merged scans; here 20 of 60 outputs lose input a). Expected: such a scan is dropped as late
-# (or a restart needs consistent evidence, e.g. every input jumped, or several scans in a row).
+# DEFECT FOUND (D11, fixed in converters/nodes/merger_node.py; this is its regression test), by
+# bench/soak.py (2 % malformed LaserScans with a zero stamp): MergerCore.push used to take ONE
+# scan older than the newest stamp by more than jump_back (1 s) as a clock jump and restart the
+# merger, dropping every input's queue. Expected: such a scan is dropped as late, nothing resets.
 def test_merger_node_core_one_zero_stamped_scan_does_not_reset_the_fusion() -> None:
     core = _merger_core()
     outs = []

@@ -274,26 +274,52 @@ def test_slices_match_the_reference(sensor: Any, mount: str, backend: str) -> No
 @pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
 @pytest.mark.parametrize("mount", ["level", "tilted", "offset"])
 def test_compiled_paths_agree(sensor: Any, mount: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The compiled kernels have three drivers: one call for small inputs, three passes for
-    large ones, and the row-wise path for sensor-aligned full circles; all match the oracle."""
+    """The compiled kernels have four drivers: the bin-ordered kernel (one grid, shared range
+    limits), and without it one call for small inputs, three passes for large ones, and the
+    row-wise path for sensor-aligned full circles; all match the oracle."""
     from converters import _grid
     ext = MOUNTS[mount]
     scan = room_scan(sensor, ext)
     grids = {"default": {}, "sector": {"angle_min": -2.0, "angle_max": 1.5, "angle_increment": 0.03}}
-    for small in (1 << 30, 0):
-        monkeypatch.setattr(_grid, "_SMALL", small)
-        for name, kw in grids.items():
-            conv = SliceConverter(sensor, {"a": SliceSpec(0.05, 0.5), "b": SliceSpec(0.3, 1.5)},
-                                  extrinsics=ext, frame_id="b", backend="numba", **kw)
-            out = conv.convert(scan)
-            tables = next(iter(conv._tables.values()))
-            if name == "sector" or mount == "level":      # a pitched mount is not row-aligned
-                assert (tables.aligned is not None) == (name == "default")
-            for key, (zmin, zmax) in (("a", (0.05, 0.5)), ("b", (0.3, 1.5))):
-                ref = ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext,
-                                amin=kw.get("angle_min", -math.pi),
-                                amax=kw.get("angle_max"), inc=kw.get("angle_increment"))
-                assert_same(out[key], ref)
+    for sorted_path in (True, False):
+        for small in ((1 << 30, 0) if not sorted_path else (1 << 30,)):
+            monkeypatch.setattr(_grid, "_SMALL", small)
+            for name, kw in grids.items():
+                conv = SliceConverter(sensor, {"a": SliceSpec(0.05, 0.5),
+                                               "b": SliceSpec(0.3, 1.5)},
+                                      extrinsics=ext, frame_id="b", backend="numba", **kw)
+                tables = conv._tables_for(scan)
+                assert tables.sorted is not None
+                if not sorted_path:
+                    tables.sorted = None
+                    if name == "sector" or mount == "level":  # a pitched mount: not row-aligned
+                        assert (tables.aligned is not None) == (name == "default")
+                out = conv.convert(scan)
+                for key, (zmin, zmax) in (("a", (0.05, 0.5)), ("b", (0.3, 1.5))):
+                    ref = ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext,
+                                    amin=kw.get("angle_min", -math.pi),
+                                    amax=kw.get("angle_max"), inc=kw.get("angle_increment"))
+                    assert_same(out[key], ref)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("n_slices", [5, 10])
+def test_many_slices_in_one_pass(sensor: Any, backend: str, n_slices: int) -> None:
+    """More slices than one block of the bin-ordered kernel (4) and than 8 qualifier bits, on
+    a sector seen from an offset mount (points that need atan2) with specials in every band."""
+    ext = MOUNTS["offset"]
+    scan = room_scan(sensor, ext)
+    bands = {f"s{i}": (-0.2 + 0.25 * i, 0.1 + 0.3 * i) for i in range(n_slices)}
+    kw = {"angle_min": -2.5, "angle_max": 2.0, "angle_increment": 0.05}
+    conv = SliceConverter(sensor, {k: SliceSpec(*v) for k, v in bands.items()}, extrinsics=ext,
+                          frame_id="b", range_min=0.3, range_max=3.5, backend=backend, **kw)
+    out = conv.convert(scan)
+    if backend == "numba":
+        assert next(iter(conv._tables.values())).sorted is not None
+    for name, (zmin, zmax) in bands.items():
+        assert_same(out[name], ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext, rmin=0.3,
+                                         rmax=3.5, amin=kw["angle_min"], amax=kw["angle_max"],
+                                         inc=kw["angle_increment"]))
 
 
 def test_level_mount_sees_walls_and_table(sensor: Any) -> None:

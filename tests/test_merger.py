@@ -893,6 +893,193 @@ class TestSync:
             self.make().push("zzz", _s(0))
 
 
+# ------------------------------------------------------------------------ clock jumps back
+
+JB = 1_000_000_000          # jump_back_ns (the default)
+P = 100_000_000             # 10 Hz
+T = 500 * 10**9
+
+
+def _tagged(name: str, stamp: int, tag: int) -> Any:
+    """Input "a" fills output bin 0, "b" bin 1, with ``1 + tag / 1000`` metres (bins 2, 3: +Inf)."""
+    ranges = np.full(4, np.inf, np.float32)
+    ranges[0 if name == "a" else 1] = 1.0 + tag / 1000
+    return make_scan(ranges, stamp=stamp)
+
+
+def _tags(out: Any) -> tuple[int | None, int | None]:
+    """(tag of a, tag of b) fused into an output (None: that input is not in it)."""
+    r = np.asarray(out.ranges, np.float64)
+    return tuple(round((v - 1.0) * 1000) if math.isfinite(v) else None  # type: ignore
+                 for v in r[:2])
+
+
+class TestClockJump:
+    def make(self, **kwargs: Any) -> LaserScanMerger:
+        kwargs.setdefault("slop_ns", 10_000_000)
+        kwargs.setdefault("policy", "timeout")
+        kwargs.setdefault("timeout_ns", 500_000_000)
+        return LaserScanMerger({"a": MergerInput(), "b": MergerInput()},
+                               angle_increment=math.pi / 2, **kwargs)
+
+    def run(self, m: LaserScanMerger, events: list[tuple[str, int, int]]
+            ) -> list[tuple[int, int | None, int | None]]:
+        """Push (name, stamp, tag) events; returns (stamp, tag a, tag b) of every output."""
+        outs = []
+        for name, stamp, tag in events:
+            out = m.push(name, _tagged(name, stamp, tag))
+            if out is not None:
+                outs.append((_stamp(out), *_tags(out)))
+        return outs
+
+    @staticmethod
+    def loop(n: int, loops: int, offset_b: int = 1_000_000) -> list[tuple[str, int, int]]:
+        """A recording of n pairs played ``loops`` times; tag = loop * 1000 + index... / 10."""
+        return [(name, T + i * P + (offset_b if name == "b" else 0), loop * 100 + i)
+                for loop in range(loops) for i in range(n) for name in ("a", "b")]
+
+    @pytest.mark.parametrize("policy", ["timeout", "wait"])
+    def test_looping_recording_resumes_after_one_scan_per_input(self, policy: str) -> None:
+        m = self.make(policy=policy)
+        outs = self.run(m, self.loop(30, 3))
+        for loop in range(3):
+            tags = [a for _, a, b in outs if a is not None and a // 100 == loop]
+            # the first scan of each input after a jump is held (unconfirmed) and dropped
+            assert tags == list(range(loop * 100 + (1 if loop else 0), loop * 100 + 30))
+        assert all(a == b for _, a, b in outs)          # never fused across the jump
+        assert m.stats["time_resets"] == 4 and m.stats["dropped_late"] == 4
+        assert m.stats["dropped_jump"] == 0 and m.stats["partial"] == 0
+        assert m.last_reset is None and m.last_drop is None
+
+    def test_reset_is_reported(self) -> None:
+        m = self.make()
+        self.run(m, self.loop(20, 1))
+        assert m.push("a", _tagged("a", T, 500)) is None and m.last_reset is None
+        assert "late" in m.last_drop and "confirm" in m.last_drop  # type: ignore[operator]
+        assert m.push("a", _tagged("a", T + P, 501)) is None
+        assert m.last_reset == ("a", T + 19 * P, T + P) and m.last_drop is None
+        assert [t for t, _ in m._inputs["a"].queue] == [T + P]
+
+    @pytest.mark.parametrize("stale", [0, T - 5 * JB, T + P + 1_000_000])
+    def test_one_stale_or_zero_stamped_scan_resets_nothing(self, stale: int) -> None:
+        m = self.make()
+        events = []
+        for i in range(40):
+            events += [("a", T + i * P, i), ("b", T + i * P + 1_000_000, i)]
+            if i % 3 == 2:
+                events.append(("b", stale, 900 + i))     # zero, far past or replayed
+        outs = self.run(m, events)
+        assert m.stats["time_resets"] == 0 and m.stats["dropped_jump"] == 0
+        assert [a for _, a, _ in outs] == list(range(40)) and all(a == b for _, a, b in outs)
+        bad = len([e for e in events if e[2] >= 900])
+        assert m.stats["dropped_late"] == bad
+
+    def test_repeated_zero_or_replayed_stamps_never_confirm_a_jump(self) -> None:
+        m = self.make()
+        self.run(m, self.loop(20, 1))
+        for k in range(10):                   # a stream of stamps that do not rise
+            assert m.push("b", _tagged("b", 0 if k % 2 else T + P, 900)) is None
+        assert m.stats["time_resets"] == 0
+        outs = self.run(m, [("a", T + 20 * P, 20), ("b", T + 20 * P, 20)])
+        assert [(a, b) for _, a, b in outs] == [(20, 20)]
+
+    def test_a_lagging_input_is_not_a_jump(self) -> None:
+        m = self.make()
+        events = []
+        held = []
+        for i in range(60):
+            events.append(("a", T + i * P, i))
+            if 20 <= i < 35:                  # b stalls for 1.5 s, then delivers its backlog
+                held.append(("b", T + i * P + 1_000_000, i))
+                continue
+            events += held + [("b", T + i * P + 1_000_000, i)]
+            held = []
+        outs = self.run(m, events)
+        assert m.stats["time_resets"] == 0
+        assert [a for _, a, b in outs if b is not None and a >= 35] == list(range(36, 60))
+        assert all(b is None or a == b for _, a, b in outs)
+
+    def test_one_input_resets_alone_the_others_go_on(self) -> None:
+        """Only a's clock is reset: a's new timeline is never fused with b's (other) time."""
+        m = self.make()
+        self.run(m, self.loop(20, 1))
+        events = []
+        for i in range(20, 40):
+            events += [("a", T - 10 * JB + i * P, 100 + i), ("b", T + i * P, i)]
+        outs = self.run(m, events)
+        assert m.stats["time_resets"] == 1
+        assert all(a is None for _, a, b in outs)            # b alone once a left b's time
+        # b's scan queued when a's reset was confirmed looked like the timeline a left
+        assert [b for _, a, b in outs] == list(range(21, 40)) and m.stats["dropped_jump"] == 1
+
+    def test_scans_of_the_abandoned_timeline_are_dropped(self) -> None:
+        m = self.make(policy="wait")
+        self.run(m, self.loop(20, 1))
+        m.push("b", _tagged("b", T + 20 * P, 20))           # queued, its pair never comes
+        assert [t for t, _ in m._inputs["b"].queue] == [T + 20 * P]
+        assert m.push("a", _tagged("a", T, 100)) is None
+        assert m.push("a", _tagged("a", T + P, 101)) is None
+        assert m._inputs["b"].queue == [] and m.stats["dropped_jump"] == 1
+        # b jumps too: fusion resumes with the new timeline only
+        outs = self.run(m, [("b", T, 100), ("b", T + P, 101), ("a", T + 2 * P, 102),
+                            ("b", T + 2 * P, 102)])
+        assert [(a, b) for _, a, b in outs] == [(101, 101), (102, 102)]
+
+    def test_a_dead_input_does_not_block_the_new_timeline(self) -> None:
+        """b died on the old timeline: its old newest stamp must not keep the clock there."""
+        m = self.make()
+        self.run(m, self.loop(20, 1))
+        outs = self.run(m, [("a", T + i * P, 100 + i) for i in range(20)])
+        # a's first scan back is held, a alone once b's timeout has run out on the new time
+        assert outs and all(b is None for _, a, b in outs)
+        assert outs[0][1] <= 101 + 500_000_000 // P + 1 and outs[-1][1] == 119
+
+    def test_a_future_stamped_scan_costs_one_output(self) -> None:
+        m = self.make()
+        events = []
+        for i in range(30):
+            events += [("a", T + i * P, i), ("b", T + i * P + 1_000_000, i)]
+            if i == 10:
+                events.append(("b", T + 3600 * JB, 999))       # corrupt: one hour ahead
+        outs = self.run(m, events)
+        fused = [a for _, a, b in outs if a is not None and a == b]
+        assert len(fused) >= 27 and all(b in (a, None, 999) for _, a, b in outs)
+        assert m.stats["time_resets"] == 1
+
+    def test_disabled(self) -> None:
+        m = self.make(jump_back_ns=None)
+        outs = self.run(m, self.loop(20, 2))
+        assert len(outs) == 20 and m.stats["time_resets"] == 0   # the loop is "late" forever
+
+    @pytest.mark.parametrize("bad", [0, -1, True, 1.5, "1"])
+    def test_bad_option(self, bad: Any) -> None:
+        with pytest.raises(ConfigError):
+            self.make(jump_back_ns=bad)
+
+    def test_odometry_jump(self) -> None:
+        m = self.make(motion_compensation=True, odom_queue_size=20)
+        for k in range(30):
+            m.push_odometry(_odom(T + k * P, 0.1 * k, 0.0, 0.0))
+        m.push_odometry(_odom(0, 9.0, 9.0, 0.0))            # one bad sample: dropped
+        assert m.stats["odometry_resets"] == 0 and m.stats["dropped_odometry"] == 1
+        assert m.pose_at(T + 29 * P).position[0] == pytest.approx(2.9)
+        m.push_odometry(_odom(T + 29 * P + P, 3.0, 0.0, 0.0))  # history continues
+        for k in range(3):                                    # the recording loops
+            m.push_odometry(_odom(T + k * P, -0.1 * k, 0.0, 0.0))
+        assert m.stats["odometry_resets"] == 1
+        assert m.pose_at(T + 2 * P).position[0] == pytest.approx(-0.2)
+        assert m.pose_at(T + 29 * P) is None                   # the old history is gone
+
+    def test_malformed_scan_is_rejected_before_touching_the_queues(self) -> None:
+        m = self.make()
+        m.push("a", _tagged("a", T, 1))
+        bad = make_scan(np.ones(4, np.float32), stamp=T + P, inc=0.0)
+        with pytest.raises(ValidationError):
+            m.push("b", bad)
+        assert [t for t, _ in m._inputs["a"].queue] == [T] and m._inputs["b"].queue == []
+        assert _tags(m.push("b", _tagged("b", T, 1))) == (1, 1)
+
+
 # ----------------------------------------------------------------------------- odometry
 
 def _quat_yaw(yaw: float) -> tuple[float, float, float, float]:

@@ -680,10 +680,16 @@ def test_merger_core_restarts_after_a_clock_jump_back() -> None:
         return core.push("a", laser_scan("base_link", t, 1.0)) + \
             core.push("b", laser_scan("base_link", t + 1000, 2.0))
 
-    assert len(pair(100 * 10**9)) == 1 and len(pair(101 * 10**9)) == 1
-    # the recording loops: back to t = 100 s; without the reset every scan would be "late"
-    assert len(pair(100 * 10**9)) == 1
-    assert core.resets == 1 and "jumped back" in events[0]
+    assert len(pair(100 * 10**9)) == 1 and len(pair(102 * 10**9)) == 1
+    # the recording loops: back to t = 100 s; without the reset every scan would be "late".
+    # Each input's first scan back is held as unconfirmed (dropped as late), its second one
+    # confirms the jump of that input (2 resets: a and b), and fusion resumes.
+    assert pair(100 * 10**9) == [] and core.resets == 0
     assert len(pair(100 * 10**9 + 10**8)) == 1
+    assert core.resets == 2 and all("jumped back" in e for e in events) and len(events) == 2
+    assert len(pair(100 * 10**9 + 2 * 10**8)) == 1
     # small out-of-order stamps are not a jump (the merger drops them as late)
-    assert pair(100 * 10**9 + 5 * 10**7) == [] and core.resets == 1
+    assert pair(100 * 10**9 + 15 * 10**7) == [] and core.resets == 2
+    # nor is one scan far in the past (stale / zero stamp): dropped, nothing reset
+    assert core.push("b", laser_scan("base_link", 0, 2.0)) == [] and core.resets == 2
+    assert len(pair(100 * 10**9 + 3 * 10**8)) == 1 and core.resets == 2

@@ -31,9 +31,12 @@ Parameters (defaults in brackets; ``config/merger.yaml`` is a complete example):
 * odometry: ``odometry_topic`` [""] ("" = none), ``odometry_qos`` [``reliable``],
   ``motion_compensation`` [true], ``odom_max_gap`` [0.25] s;
 * ``use_tf`` [true]: read ``/tf`` and ``/tf_static`` for the mounts;
-* ``jump_back`` [1.0] s: a scan older than the newest stamp seen by more than this means the
-  clock jumped back (a looping recording, a simulator reset): the merger restarts (queues and
-  odometry dropped, one log line) instead of dropping every later scan as late. 0 = never.
+* ``jump_back`` [1.0] s: an input whose *own* stamps go back by more than this, two scans in a
+  row, had its clock reset (a looping recording, a simulator reset): that input starts a new
+  timeline (its queue dropped, one log line) instead of every later scan being dropped as late
+  (the odometry likewise). One stale or zero-stamped scan, or an input lagging behind the
+  others, is never taken as a jump (it is dropped as late or merged as usual). 0 = never. The
+  policy is :class:`converters.merger.LaserScanMerger`'s (``jump_back_ns``).
 
 Behaviour: nothing is merged while nobody subscribes to the output (incoming scans are counted and
 dropped); a malformed scan is dropped with one log line (rate-limited) and counted; Ctrl-C exits
@@ -65,10 +68,10 @@ class MergerCore:
         fallback_extrinsics: name -> 4x4 used when ``resolve`` knows no transform (or None).
         resolve: ``(output frame, input frame) -> 4x4 | None`` (e.g. a TF lookup); None = none.
         tf_version: ``() -> int`` that changes when the transforms may have changed.
-        jump_back_ns: a scan older than the newest stamp seen by more than this means the clock
-            jumped back (a recording restarted, a simulator reset): the merger starts afresh
-            instead of dropping every later scan as late. None = never reset.
-        on_event: called with one line per notable event (reset, rebuild).
+        jump_back_ns: :class:`converters.merger.LaserScanMerger`'s ``jump_back_ns``: an input
+            whose own stamps go back by more than this, two scans in a row, starts a new
+            timeline (a recording restarted, a simulator reset). None = never.
+        on_event: called with one line per notable event (an input's time reset).
         **output_options: keyword options of :class:`converters.merger.LaserScanMerger`
             (``frame_id`` included).
     """
@@ -97,7 +100,6 @@ class MergerCore:
         self._recent: dict[str, deque[Any]] = {n: deque(maxlen=depth) for n in inputs}
         self._odometry: deque[Any] = deque(maxlen=200)
         self.last_output_ns: int | None = None
-        self.newest_ns: int | None = None
         self.jump_back_ns = jump_back_ns
         self.on_event = on_event or (lambda line: None)
         self.resets = 0
@@ -111,7 +113,8 @@ class MergerCore:
         configs = {}
         for name, opts in self.inputs.items():
             configs[name] = MergerInput(extrinsics=self.extrinsics[name], **opts)
-        self.merger = LaserScanMerger(configs, **self.output_options)
+        self.merger = LaserScanMerger(configs, jump_back_ns=self.jump_back_ns,
+                                      **self.output_options)
         for odom in self._odometry:
             self.merger.push_odometry(odom)
         self.rebuilds += 1
@@ -136,7 +139,10 @@ class MergerCore:
 
         When the input's mount changes (first scan, new TF), the merger is rebuilt and the
         recent scans of every input are replayed into it; only outputs newer than the last one
-        returned are returned, so nothing is emitted twice.
+        returned are returned, so nothing is emitted twice. Late, duplicate and jump-back scans
+        are handled by the merger (:attr:`LaserScanMerger.last_drop`); a confirmed time reset
+        of an input (``jump_back_ns``) is counted in :attr:`resets` and reported to
+        ``on_event``.
 
         Raises:
             LidarScanError: unknown input, malformed scan, or no pose for its frame.
@@ -145,18 +151,6 @@ class MergerCore:
 
         if name not in self.inputs:
             raise ConfigError("input", name, f"one of {list(self.inputs)}")
-        stamp = to_ns(scan.header.stamp, field=f"{name}.header.stamp")
-        if self.newest_ns is not None and self.jump_back_ns is not None and \
-                stamp < self.newest_ns - self.jump_back_ns:
-            self.on_event(f"time jumped back {(self.newest_ns - stamp) / 1e9:.3f} s (input "
-                          f"{name}): merger restarted, queued scans and odometry dropped")
-            self.resets += 1
-            for queue in self._recent.values():
-                queue.clear()
-            self._odometry.clear()
-            self.last_output_ns = self.newest_ns = None
-            self._build()
-        self.newest_ns = stamp if self.newest_ns is None else max(self.newest_ns, stamp)
         version = self.tf_version()
         rebuilt = False
         if self.resolve is not None and self._versions[name] != version or \
@@ -168,13 +162,17 @@ class MergerCore:
                 self.extrinsics[name] = matrix
                 self._build()
                 rebuilt = True
-        self._recent[name].append(scan)
         if not rebuilt:
             merged = self.merger.push(name, scan)
+            if self.merger.last_reset is not None:
+                self._on_reset(*self.merger.last_reset)
+            if self.merger.last_drop is None:
+                self._recent[name].append(scan)
             if merged is None:
                 return []
             self.last_output_ns = to_ns(merged.header.stamp)
             return [merged]
+        self._recent[name].append(scan)
         replay = sorted(((to_ns(s.header.stamp), order, n, s)
                          for order, (n, queue) in enumerate(self._recent.items())
                          for s in queue), key=lambda item: (item[0], item[1]))
@@ -188,6 +186,21 @@ class MergerCore:
                 self.last_output_ns = out_ns
                 out.append(merged)
         return out
+
+    def _on_reset(self, name: str, old_ns: int, new_ns: int) -> None:
+        """Input ``name`` jumped back to ``new_ns``: forget what the merger forgot."""
+        from lidarscan.stamps import to_ns
+
+        self.resets += 1
+        self.on_event(f"input {name}: time jumped back {(old_ns - new_ns) / 1e9:.3f} s (2 scans "
+                      "in a row): new timeline, its queued scans dropped")
+        horizon = new_ns + int(self.jump_back_ns or 0)
+        self._recent[name].clear()
+        for queue in self._recent.values():
+            keep = [s for s in queue if to_ns(s.header.stamp) <= horizon]
+            queue.clear()
+            queue.extend(keep)
+        self.last_output_ns = None
 
     def push_odometry(self, odom: Any) -> None:
         """Add an odometry sample (kept for replay after a rebuild).
@@ -294,7 +307,8 @@ def _node_class() -> type:
                 except TransformLookupError:
                     return None
 
-            jump = float(d("jump_back", 1.0, "clock jump back (s) that restarts the merger"))
+            jump = float(d("jump_back", 1.0, "an input's stamps going back by more than this "
+                           "(s), 2 scans in a row, start its new timeline (0 = never)"))
             self.core = MergerCore(inputs, fallback_extrinsics=fallback,
                                    resolve=resolve if use_tf else None,
                                    tf_version=lambda: self.tf_buffer.version,
