@@ -525,6 +525,7 @@ def numba_kernel() -> Any:
     _KERNELS = _Compiled(_J_BANDS, _J_POINTS, _J_OTHERS, jit(_fuse_small), jit(_decode_kernel),
                          jit(_pass_rows))
     _KERNELS.sorted_fuse = jit(_sorted_fuse)
+    _KERNELS.decode_slices = jit(_decode_slices)
     return _KERNELS
 
 
@@ -648,6 +649,40 @@ def _decode_kernel(best: Any, inf_value: Any, fill_value: Any, ranges: Any,
             ranges[k] = inf_value
         else:
             ranges[k] = np.nan
+
+
+def _decode_slices(best: Any, offset: Any, size: Any, inf_value: Any, fill_value: Any,
+                   intensity: Any, key_to_pos: Any, ranges: Any,
+                   ints: Any) -> None:  # pragma: no cover - compiled
+    """:func:`decode` of every slice (``best[offset[s]:offset[s] + size[s]]``) into ``ranges``
+    (float32, same layout) plus, when ``intensity`` is not empty, the winner's intensity cast to
+    float32 into ``ints`` (0 for empty bins); ``key_to_pos`` maps tie keys to pixels (empty:
+    identity)."""
+    use_int = intensity.shape[0] > 0
+    use_map = key_to_pos.shape[0] > 0
+    for s in range(offset.shape[0]):
+        inf_v = inf_value[s]
+        fill_v = fill_value[s]
+        for k in range(size[s]):
+            j = offset[s] + k
+            v = best[j]
+            if v == EMPTY:
+                ranges[j] = fill_v
+                if use_int:
+                    ints[j] = 0.0
+                continue
+            code = v >> 32
+            if code < CODE_NEG_INF:
+                ranges[j] = np.int32(code).view(np.float32)
+            elif code == CODE_NEG_INF:
+                ranges[j] = -np.inf
+            elif code == CODE_POS_INF:
+                ranges[j] = inf_v
+            else:
+                ranges[j] = np.nan
+            if use_int:
+                key = v & 0xFFFFFFFF
+                ints[j] = np.float32(intensity[key_to_pos[key] if use_map else key])
 
 
 def _pass_bands(r: Any, keep: Any, limits: Any, dz: Any, oz: Any, zmin: Any, zmax: Any,
@@ -887,7 +922,7 @@ def _sorted_fuse(r: Any, src: Any, keys: Any, dz: Any, oz: Any, dx: Any, dy: Any
             lo1, hi1 = zmin[s0 + 1], zmax[s0 + 1]
             lo2, hi2 = zmin[s0 + 2], zmax[s0 + 2]
             lo3, hi3 = zmin[s0 + 3], zmax[s0 + 3]
-            count = 0
+            count = np.int64(0)
             for k in range(w):
                 rv = rp[k]
                 rd = np.float64(rv)
@@ -948,7 +983,9 @@ def _sorted_fuse(r: Any, src: Any, keys: Any, dz: Any, oz: Any, dx: Any, dy: Any
                     code = np.int64(CODE_POS_INF)
                 d = math.atan2(y, x) - g_min
                 if g_full:
-                    bn = np.int64(math.ceil(d / g_inc - 0.5)) % g_size
+                    bn = np.int64(math.ceil(d / g_inc - 0.5))
+                    if bn < 0 or bn >= g_size:        # (a modulo only when needed: slow)
+                        bn %= g_size
                 else:
                     d = d - two_pi * math.floor((d + 0.5 * g_inc) / two_pi)
                     bn = np.int64(math.ceil(d / g_inc - 0.5))

@@ -20,18 +20,23 @@ origin ``O`` in the target frame (float32 components, like the projector's table
 float64) are computed once per LidarInfo version and column order (:func:`lidarscan.make_projector`,
 then the extrinsics). Per distinct grid and pixel the far-field bin and the range ``r_thr`` above
 which the point's bin *is* the far-field bin are precomputed (:func:`converters._grid.far_field`);
-per slice, which pixels may report +Inf/NaN/-Inf. A scan then costs one height and one planar
-range per pixel and a min per (pixel, slice) in band; ``atan2`` runs only for in-band points
-closer than their ``r_thr``. Measured on the benchmark's OS-1-128-like sensor on the target's z
-axis: 0.000 of the pixels (the sensor's own 15.8 mm beam offsets only matter within a few cm).
-With the sensor far off the target's z axis (e.g. 0.3 m in front of ``base_link``) most in-band
-points need atan2: prefer a target frame below the sensor. Scans carrying
-``column_azimuth_angles`` rebuild the tables for every scan (correct, not fast).
+per slice, which pixels may report +Inf/NaN/-Inf. When all slices share one grid and their range
+limits (the usual case) the tables are also permuted once into far-field bin order, so a scan
+costs one gather of the range image (shared by all slices), one branch-free pass the compiler
+vectorises (height, planar range and code per pixel, band bits for all slices) and a running
+minimum per bin over contiguous positions: no scatter, no atan2
+(:func:`converters._grid._sorted_fuse`; the numpy backend does the same with
+``minimum.reduceat``). ``atan2`` runs only for in-band points closer than their ``r_thr``.
+Measured on the benchmark's OS-1-128-like sensor on the target's z axis: 0.000 of the pixels (the
+sensor's own 15.8 mm beam offsets only matter within a few cm). With the sensor far off the
+target's z axis (e.g. 0.3 m in front of ``base_link``) most in-band points need atan2 (about 5x
+slower): prefer a target frame below the sensor. Scans carrying ``column_azimuth_angles``
+rebuild the tables for every scan (correct, not fast).
 
-Backends: compiled numba kernels (one pass over the pixels for all slices; a row-wise path when
-all slices share a full circle at the sensor's column resolution) when numba is installed, else
-numpy. Both give identical slices (up to points within an ulp of a bin edge, where numpy's SIMD
-``atan2`` may differ from libm's in the last bit).
+Backends: compiled numba kernels when numba is installed (the bin-ordered kernel above; else one
+pass over the pixels for all slices, with a row-wise path when all slices share a full circle at
+the sensor's column resolution), else numpy. Both give identical slices (up to points within an
+ulp of a bin edge, where numpy's SIMD ``atan2`` may differ from libm's in the last bit).
 
 Time fields: ``header.stamp`` is the scan's stamp (measurement column 0), identical for all slices
 of a scan; ``scan_time`` is ``W * column_time_increment`` (or from ``column_time_offsets``);
@@ -63,6 +68,8 @@ from lidarscan.stamps import to_ns
 __all__ = ["SliceConverter", "SliceSpec", "check_extrinsics", "to_laserscan"]
 
 _NO_KEEP = np.zeros(0, np.uint8)
+_NO_VALUES = np.zeros(0, np.float32)
+_NO_KEYS = np.zeros(0, np.int64)
 _SLICE_LIMITS = np.array([0.0, np.inf, 0.0])
 
 
@@ -227,14 +234,16 @@ class _Sorted:
         #: dz, oz, dx, dy, ox, oy, r_thr, float32 in bin order
         self.cols = tuple(np.ascontiguousarray(a[order])
                           for a in (t.dz, t.oz, t.dx, t.dy, t.ox, t.oy, t.k_r_thr[0]))
-        self.mask_dtype = np.uint8 if n_slices <= 8 else np.uint64
-        qf = np.zeros(t.n, self.mask_dtype)
-        qn = np.zeros(t.n, self.mask_dtype)
+        self.mask_dtype: Any = np.uint8 if n_slices <= 8 else np.uint64
+        qf = np.zeros(t.n, np.uint64)
+        qn = np.zeros(t.n, np.uint64)
         for s, (far_ok, near_ok) in enumerate(zip(t.q_far, t.q_near)):
-            qf |= far_ok[order].astype(self.mask_dtype) << self.mask_dtype(s)
-            qn |= near_ok[order].astype(self.mask_dtype) << self.mask_dtype(s)
-        self.qf, self.qn = qf, qn
+            qf |= far_ok[order].astype(np.uint64) << np.uint64(s)
+            qn |= near_ok[order].astype(np.uint64) << np.uint64(s)
+        #: bit s: slice s may report +Inf/NaN (qf) or -Inf (qn), bin order
+        self.qf, self.qn = qf.astype(self.mask_dtype), qn.astype(self.mask_dtype)
         self.max_width = int(np.diff(self.bin_start).max(initial=0))
+        self.cols64: tuple[np.ndarray[Any, Any], ...] | None = None   # numpy backend
 
 
 class SliceConverter:
@@ -324,6 +333,10 @@ class SliceConverter:
             np.array([s.options.range_min for s in sl]),
             np.array([s.options.range_max for s in sl]),
             np.array(self._slice_grid, np.int64), self._offsets.astype(np.int64))
+        self._kdecode = (self._offsets.astype(np.int64),
+                         np.array([s.grid.size for s in sl], np.int64),
+                         np.array([s.options.inf_value for s in sl], np.float32),
+                         np.array([s.options.fill_value for s in sl], np.float32))
         pad = -len(sl) % 4              # empty bands up to a multiple of four slices
         self._kbands = (np.r_[self._kslices[0], np.full(pad, np.inf)],
                         np.r_[self._kslices[1], np.full(pad, -np.inf)])
@@ -426,19 +439,38 @@ class SliceConverter:
         stamp = to_ns(scan.header.stamp)
         period = self._scan_period_ns(self.info, scan)
         out: dict[str, Any] = {}
+        decoded = self._decode_all(best, tables, intensity)
         for s, off in zip(self.slices, self._offsets):
-            ranges, winners = _grid.decode(best[off:off + s.grid.size], s.options, self._kernel)
-            ints = None
-            if intensity is not None:
-                ints = np.zeros(s.grid.size, np.float32)
-                hit = winners >= 0
-                ints[hit] = intensity[tables.position(winners[hit])]
+            if decoded is not None:
+                ranges = decoded[0][off:off + s.grid.size]
+                ints = None if intensity is None else decoded[1][off:off + s.grid.size]
+            else:
+                ranges, winners = _grid.decode(best[off:off + s.grid.size], s.options)
+                ints = None
+                if intensity is not None:
+                    ints = np.zeros(s.grid.size, np.float32)
+                    hit = winners >= 0
+                    ints[hit] = intensity[tables.position(winners[hit])]
             time_inc = self._sweep * period * 1e-9 * s.grid.increment / (2.0 * math.pi)
             out[s.name] = _grid.make_laserscan(
                 stamp_ns=stamp, frame_id=self.frame_id, grid=s.grid, ranges=ranges,
                 intensities=ints, options=s.options, scan_time=period * 1e-9,
                 time_increment=time_inc)
         return out
+
+    def _decode_all(self, best: np.ndarray[Any, Any], tables: _Tables,
+                    intensity: np.ndarray[Any, Any] | None
+                    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
+        """Ranges and intensities (float32, slices back to back) of all slices in one compiled
+        call; None without the compiled kernels."""
+        if self._kernel is None:
+            return None
+        ranges = np.empty(self._size, np.float32)
+        ints = np.empty(self._size if intensity is not None else 0, np.float32)
+        inten = _NO_VALUES if intensity is None else np.ascontiguousarray(intensity)
+        key_to_pos = _NO_KEYS if tables.key_to_pos is None else tables.key_to_pos
+        self._kernel.decode_slices(best, *self._kdecode, inten, key_to_pos, ranges, ints)
+        return ranges, ints
 
     def _check(self, scan: Any) -> None:
         if (int(scan.height), int(scan.width)) != (self.projector.height, self.projector.width):
@@ -455,12 +487,13 @@ class SliceConverter:
     def _fuse_sorted(self, r: np.ndarray[Any, Any], t: _Sorted, best: np.ndarray[Any, Any]
                      ) -> None:
         """The bin-ordered compiled path (one grid, shared range limits)."""
+        kernel: Any = self._kernel
         rmin, rmax, offset = self._kslices[2], self._kslices[3], self._kslices[5]
         g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
-        self._kernel.sorted_fuse(np.ascontiguousarray(r, np.float32), t.src, t.keys, *t.cols,
-                                 t.qf, t.qn, *self._kbands, len(self.slices), float(rmin[0]),
-                                 float(rmax[0]), t.bin_start, max(t.max_width, _grid.SORTED_CHUNK), offset,
-                                 float(g_min), float(g_inc), int(g_size), bool(g_full), best)
+        kernel.sorted_fuse(np.ascontiguousarray(r, np.float32), t.src, t.keys, *t.cols, t.qf,
+                           t.qn, *self._kbands, len(self.slices), float(rmin[0]), float(rmax[0]),
+                           t.bin_start, max(t.max_width, _grid.SORTED_CHUNK), offset,
+                           float(g_min), float(g_inc), int(g_size), bool(g_full), best)
 
     def _fuse_sorted_numpy(self, r: np.ndarray[Any, Any], t: _Sorted,
                            best: np.ndarray[Any, Any]) -> None:
@@ -469,41 +502,64 @@ class SliceConverter:
         closer than their far-field threshold get their bin from ``arctan2``."""
         grid = self._grids[0]
         size = grid.size
+        if t.cols64 is None:                  # float64 copies: no casts per scan
+            t.cols64 = tuple(c.astype(np.float64) for c in t.cols[:6])
+        dz, oz, dx, dy, ox, oy = t.cols64
         rp = np.asarray(r, np.float32)[t.src]
-        dz, oz, dx, dy, ox, oy, r_thr = t.cols
         lim_lo = self.slices[0].options.range_min
         lim_hi = self.slices[0].options.range_max
         with np.errstate(invalid="ignore", over="ignore"):
             rd = rp.astype(np.float64)
-            point = (rp > 0) & (rp < np.inf)
-            x = rd * dx + ox
-            y = rd * dy + oy
-            z = rd * dz + oz
-            rho = np.sqrt(x * x + y * y)
-            near = point & (rp < r_thr)
+            point = rp > 0
+            point &= rp < np.inf
+            x = rd * dx
+            x += ox
+            y = rd * dy
+            y += oy
+            z = rd * dz
+            z += oz
+            x *= x
+            y *= y
+            x += y
+            rho = np.sqrt(x, out=x)
+            near = rp < t.cols[6]
+            near &= point
         code = rho.astype(np.float32).view(np.int32).astype(np.int64)
         code[rho < lim_lo] = _grid.CODE_NEG_INF
         code[rho > lim_hi] = _grid.CODE_POS_INF
-        special = np.full(rp.shape, _grid.CODE_NAN, np.int64)
-        special[rp == np.inf] = _grid.CODE_POS_INF
-        special[rp == -np.inf] = _grid.CODE_NEG_INF
-        value = (np.where(point, code, special) << 32) | t.keys.astype(np.int64)
         neg = rp == -np.inf
+        code[~point] = _grid.CODE_NAN
+        code[rp == np.inf] = _grid.CODE_POS_INF
+        code[neg] = _grid.CODE_NEG_INF
+        code <<= 32
+        code |= t.keys
+        value = code
         n_binned = int(t.bin_start[size])
         starts = t.bin_start[:size]               # <= n_binned: a sentinel follows the values
         empty_bin = starts == t.bin_start[1:size + 1]
+        qual = np.where(neg, t.qn, t.qf)
+        takes = []
+        for s, sl in enumerate(self.slices):
+            take = z >= sl.min_z
+            take &= z <= sl.max_z
+            take &= point
+            take |= ~point & ((qual & (t.mask_dtype(1) << t.mask_dtype(s))) != 0)
+            takes.append(take)
+        near &= np.logical_or.reduce(takes)
         near_idx = np.flatnonzero(near)
         near_bins = None
         if near_idx.size:
-            near_bins = grid.bins(np.arctan2(y[near_idx], x[near_idx]))
-        far_value = np.append(np.where(near, _grid.EMPTY, value)[:n_binned], _grid.EMPTY)
-        for s, (sl, off) in enumerate(zip(self.slices, self._offsets)):
-            bit = t.mask_dtype(1) << t.mask_dtype(s)
-            qual = (np.where(neg, t.qn, t.qf) & bit) != 0
-            take = np.where(point, (z >= sl.min_z) & (z <= sl.max_z), qual)
+            rd = rd[near_idx]
+            near_bins = grid.bins(np.arctan2(rd * dy[near_idx] + oy[near_idx],
+                                             rd * dx[near_idx] + ox[near_idx]))
+        runs_in = np.empty(n_binned + 1, np.int64)
+        far = ~near[:n_binned]
+        for take, off in zip(takes, self._offsets):
             if n_binned:
-                runs = np.minimum.reduceat(
-                    np.where(np.append(take[:n_binned], False), far_value, _grid.EMPTY), starts)
+                runs_in.fill(_grid.EMPTY)
+                np.copyto(runs_in[:n_binned], value[:n_binned],
+                          where=take[:n_binned] & far)
+                runs = np.minimum.reduceat(runs_in, starts)
                 runs[empty_bin] = _grid.EMPTY
                 np.minimum(best[off:off + size], runs, out=best[off:off + size])
             if near_bins is not None:
