@@ -67,6 +67,26 @@ def interleaved_medians(candidates: dict[str, Callable[[], Any]], rounds: int = 
     return {name: statistics.median(values) * 1e3 for name, values in times.items()}
 
 
+def steady_medians(candidates: dict[str, Callable[[], Any]], rounds: int = 30, block: int = 10
+                   ) -> dict[str, float]:
+    """Median ms of each candidate in steady state, as a driver runs it frame after frame: each
+    round runs every candidate ``block`` times back to back (shuffled order of candidates) and
+    keeps the second half of each block, when its own tables and buffers are warm again."""
+    times: dict[str, list[float]] = {name: [] for name in candidates}
+    order = list(candidates)
+    shuffle = np.random.default_rng(1).shuffle
+    for _ in range(rounds):
+        shuffle(order)
+        for name in order:
+            fn = candidates[name]
+            for i in range(block):
+                start = time.perf_counter()
+                fn()
+                if i >= block // 2:
+                    times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(values) * 1e3 for name, values in times.items()}
+
+
 def main() -> int:
     info = info_from_metadata(METADATA, stamp_ns=1_000_000_000)
     height, width = int(info.height), int(info.width)
@@ -157,6 +177,17 @@ def main() -> int:
             else:
                 print(f"  {label:<24} / XYZLut xyz = skipped   / copy = {ms / copy_ms:5.2f} "
                       f"(target <= 3)")
+    steady_names = [n for n in ("lut", "lutf", "copy", "kernel1", "numpy1", "kernel-kept")
+                    if n in candidates]
+    steady = steady_medians({n: candidates[n] for n in steady_names})
+    print("steady state (each candidate frame after frame, warm; medians):")
+    for name in steady_names:
+        line = f"  {name:<12} {steady[name]:8.3f} ms"
+        if "lut" in steady and name not in ("lut", "copy"):
+            line += f"   / XYZLut xyz = {steady[name] / steady['lut']:5.2f}"
+        if name not in ("copy",):
+            line += f"   / copy = {steady[name] / steady['copy']:5.2f}"
+        print(line)
     if "kernel1" in med:
         print(f"  numpy / kernel (threads=1)     = {med['numpy1'] / med['kernel1']:5.2f}")
     if lut_ms is not None:

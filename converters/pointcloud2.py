@@ -175,6 +175,10 @@ _kernel_lock = threading.Lock()
 _kernel_cache: list[Any] = []
 
 
+#: Output buffers a converter keeps for reuse (the caller may hold the previous messages).
+_POOL = 3
+
+
 def _kernel() -> Any:
     """``lsk_project`` of the compiled kernel (ctypes, releases the GIL), or None.
 
@@ -658,7 +662,7 @@ class PointCloud2Converter:
         self._mask2 = np.empty(shape, bool)
         self._rolls: dict[bool, np.ndarray[Any, Any]] = {}
         self._grid: np.ndarray[Any, Any] | None = None
-        self._spare: array.array[int] | None = None         # see _output
+        self._spares: list[array.array[int]] = []            # see _output
         self._coverage: dict[tuple[int, int], bool] = {}
         self._order_index: np.ndarray[Any, Any] | None = None
 
@@ -750,20 +754,24 @@ class PointCloud2Converter:
 
         The message takes the buffer over without a copy, so every message gets its own: a new
         zero-filled one, or with ``recycle`` (layouts whose every byte is written each time)
-        the buffer of this converter's previous message once nothing else references it any
-        more (the message was dropped, e.g. after publishing: CPython reference count), which
-        saves the allocation and zero-fill of a buffer that is still in the caches."""
+        the buffer of one of this converter's last ``_POOL`` messages that nothing else
+        references any more (the message was dropped, e.g. after publishing: CPython reference
+        count), which saves the allocation, page faults and zero-fill of a fresh buffer."""
         size = points * dtype.itemsize
-        buf = None
-        if recycle:
-            if (self._spare is not None and len(self._spare) == size
-                    and sys.getrefcount(self._spare) == 2):     # self._spare + the argument
-                buf = self._spare
-            else:
-                buf = self._spare = self._output_buffer(size)
-        else:
-            self._spare = None
+        if not recycle:
+            self._spares.clear()
             buf = self._output_buffer(size)
+        else:
+            for spare in self._spares:  # a plain list iteration holds no extra reference
+                if len(spare) == size and sys.getrefcount(spare) == 3:  # list, `spare`, argument
+                    buf = spare
+                    break
+            else:
+                # every recent buffer is still in use (the caller keeps the last message, a
+                # publisher queues it): a fresh one, keeping at most _POOL candidates
+                buf = self._output_buffer(size)
+                self._spares.append(buf)
+                del self._spares[:-_POOL]
         return buf, np.frombuffer(buf, dtype=dtype)
 
     def _full_coverage(self, specs: Sequence[FieldSpec], step: int) -> bool:

@@ -1269,14 +1269,32 @@ def test_dropped_message_buffer_is_recycled_and_fully_rewritten(tiny: tuple[Any,
         del cloud, data
         cloud = conv.convert(other)
         if preset == "velodyne":                         # firing order: copied out, new
-            assert conv._spare is None
-        else:                                            # (the spare keeps the id unique)
-            assert cloud.data is conv._spare and id(cloud.data) == first_id, preset
+            assert conv._spares == []
+        else:                                            # (the pool keeps the id unique)
+            assert cloud.data is conv._spares[0] and id(cloud.data) == first_id, preset
         assert bytes(cloud.data) == expected[1]
         kept = cloud
         again = conv.convert(scan)                       # kept still referenced: a new buffer
         assert again.data is not kept.data
         assert bytes(kept.data) == expected[1] and bytes(again.data) == expected[0]
+
+
+def test_recycling_pool_serves_a_caller_that_keeps_the_last_messages(
+        tiny: tuple[Any, Any]) -> None:
+    info, scan = tiny
+    conv = pc.PointCloud2Converter(info)
+    expected = bytes(pc.PointCloud2Converter(info, kernel=False).convert(scan).data)
+    kept: list[Any] = []
+    ids = []
+    for _ in range(12):                                  # the caller keeps the last two
+        cloud = conv.convert(scan)
+        assert bytes(cloud.data) == expected
+        assert all(cloud.data is not k.data for k in kept)
+        ids.append(id(cloud.data))
+        kept = [*kept, cloud][-2:]
+        del cloud
+    assert len(set(ids[3:])) == pc._POOL                 # three buffers take turns, no more
+    assert len(conv._spares) <= pc._POOL
 
 
 def array_of(data: bytes) -> Any:
@@ -1301,6 +1319,6 @@ def test_layouts_with_padding_never_recycle(tiny: tuple[Any, Any]) -> None:
     for _ in range(3):
         cloud = conv.convert(scan)
         ids.add(id(cloud.data))
-        assert conv._spare is None
+        assert conv._spares == []
         assert not any(np.frombuffer(cloud.data, np.uint8).reshape(-1, 48)[:, 12:16].ravel())
         del cloud
