@@ -152,8 +152,9 @@ def _field_codec(field: FieldDef, what: str, scalar: Any, string: Any, struct_: 
 
 
 def _field_reader(field: FieldDef, what: str) -> Reader:
-    return _field_codec(field, what, _scalar_reader, _string_reader, _struct_reader,
-                        _array_reader, _list_reader)  # type: ignore[no-any-return]
+    reader: Reader = _field_codec(field, what, _scalar_reader, _string_reader, _struct_reader,
+                                  _array_reader, _list_reader)
+    return reader
 
 
 def _run_reader(codes: list[str], what: str) -> Reader:
@@ -433,8 +434,9 @@ def _list_writer(elem: Writer, count: int | None, bound: int | None, what: str) 
 
 
 def _field_writer(field: FieldDef, what: str) -> Writer:
-    return _field_codec(field, what, _scalar_writer, _string_writer, _struct_writer,
-                        _array_writer, _list_writer)  # type: ignore[no-any-return]
+    writer: Writer = _field_codec(field, what, _scalar_writer, _string_writer, _struct_writer,
+                                  _array_writer, _list_writer)
+    return writer
 
 
 @lru_cache(maxsize=None)

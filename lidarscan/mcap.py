@@ -72,7 +72,8 @@ class McapWriter:
             from lidarscan.errors import ConfigError
             raise ConfigError("compression", compression, "one of 'zstd', 'lz4', 'none'")
         self._own = not hasattr(output, "write")
-        self._stream: Any = open(output, "wb") if self._own else output  # noqa: SIM115
+        target: Any = output
+        self._stream: Any = open(target, "wb") if self._own else target  # noqa: SIM115
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=kinds[compression])
         self._writer.start(profile="ros2", library="lidarscan")
         self._schemas: dict[str, int] = {}
@@ -129,7 +130,7 @@ class McapWriter:
         if self._closed:
             return
         self._closed = True
-        self._writer.finish()
+        self._writer.finish()  # type: ignore[no-untyped-call]
         if self._own:
             self._stream.close()
 
@@ -273,9 +274,9 @@ def read_messages(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
                 record = next(records)
             except StopIteration:
                 break
-            except Exception as err:  # damaged or truncated file: report and stop
-                yield BadMessage(index, "", 0, f"file damaged after {index} messages: {err}",
-                                 McapFormatError("file", type(err).__name__,
+            except Exception as damage:  # damaged or truncated file: report and stop
+                yield BadMessage(index, "", 0, f"file damaged after {index} messages: {damage}",
+                                 McapFormatError("file", type(damage).__name__,
                                                  "a complete MCAP file"))
                 break
             if isinstance(record, Schema):
@@ -285,13 +286,13 @@ def read_messages(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
                                               "encoding 'ros2msg'")
                     try:
                         text = record.data.decode("utf-8")
-                    except UnicodeDecodeError as err:
+                    except UnicodeDecodeError as bad_text:
                         raise McapFormatError(f"schema {record.name}", bytes(record.data[:40]),
-                                              "UTF-8 message definition text") from err
+                                              "UTF-8 message definition text") from bad_text
                     name = _register_schema(record.name, text)
                     schemas[record.id] = (name, None)
-                except LidarScanError as err:
-                    schemas[record.id] = (record.name, err)
+                except LidarScanError as bad_schema:
+                    schemas[record.id] = (record.name, bad_schema)
             elif isinstance(record, Channel):
                 name, err = schemas.get(record.schema_id, ("", McapFormatError(
                     f"channel {record.topic}", record.schema_id, "a known schema id")))
