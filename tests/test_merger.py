@@ -23,66 +23,16 @@ from converters._grid import AngleGrid
 from converters.merger import LaserScanMerger, MergerInput, Pose, interpolate_pose
 from lidarscan.errors import ConfigError, ValidationError
 from lidarscan.types import Header, Time, message_class
+from grid_reference import RANK, pose, ref_bin, ref_grid, ref_qualify
 
 DATA = pathlib.Path(__file__).parent / "data" / "laserscan"
 MCAP = DATA / "scan_tools_laser_scan_matcher_demo.mcap"
 LaserScanDC = message_class("sensor_msgs/msg/LaserScan")
-TWO_PI = 2 * math.pi
+TWO_PI = 2 * math.pi  # as in grid_reference
 F32 = np.float32
 
 
 # ------------------------------------------------------------------------------ reference code
-
-def ref_grid(amin: float, amax: float, inc: float) -> tuple[float, float, int, bool]:
-    """(angle_min, increment, N, full) from the documented rule."""
-    span = amax - amin
-    n_full = round(TWO_PI / inc)
-    n_sector = round(span / inc) + 1
-    if n_sector >= n_full:
-        return amin, TWO_PI / n_full, n_full, True
-    return amin, inc, n_sector, False
-
-
-def ref_bin(theta: float, grid: tuple[float, float, int, bool]) -> int | None:
-    amin, inc, n, full = grid
-    if full:
-        t = (theta - amin) / inc
-        return math.ceil(t - 0.5) % n
-    d = theta - amin
-    d = d - TWO_PI * math.floor((d + inc / 2) / TWO_PI)
-    k = math.ceil(d / inc - 0.5)
-    return k if 0 <= k < n else None
-
-
-def ref_qualify(d: tuple[float, ...], o: tuple[float, ...], zmin: float, zmax: float,
-                rmin: float, rmax: float, near: float) -> tuple[bool, bool]:
-    dx, dy, dz = d
-    ox, oy, oz = o
-    if dz == 0:
-        if not zmin <= oz <= zmax:
-            return False, False
-        lo, hi = 0.0, math.inf
-    else:
-        a, b = (zmin - oz) / dz, (zmax - oz) / dz
-        lo, hi = max(min(a, b), 0.0), max(a, b)
-    if lo > hi:
-        return False, False
-
-    def rho(r: float) -> float:
-        if math.isinf(r):
-            return math.inf if (dx or dy) else math.hypot(ox, oy)
-        x, y = r * dx + ox, r * dy + oy
-        return math.sqrt(x * x + y * y)
-
-    a2 = dx * dx + dy * dy
-    r_star = -(dx * ox + dy * oy) / a2 if a2 > 0 else 0.0
-    r_star = min(max(r_star, lo), max(hi, lo))
-    far = rho(r_star) <= rmax and max(rho(lo), rho(hi)) >= rmin
-    return far, lo <= near
-
-
-RANK = {"finite": 0, "neg": 1, "pos": 2, "nan": 3}
-
 
 def ref_fuse(cands: dict[int, tuple[Any, ...]], b: int, cls: str, value: float, key: int,
              intensity: float) -> None:
@@ -211,19 +161,6 @@ def make_scan(ranges: Any, *, angle_min: float = -math.pi, inc: float | None = N
                            intensities=list(np.asarray(intensities, float)), **fields)
     return LaserScanDC(header=Header(Time(sec, nsec), frame), ranges=ranges,
                        intensities=np.asarray(intensities, np.float32), **fields)
-
-
-def pose(x: float = 0.0, y: float = 0.0, z: float = 0.0, yaw: float = 0.0, roll: float = 0.0,
-         pitch: float = 0.0) -> np.ndarray:
-    """4x4 pose from translation and ZYX Euler angles."""
-    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
-                              math.cos(yaw), math.sin(yaw))
-    m = np.eye(4)
-    m[:3, :3] = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ \
-        np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ \
-        np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    m[:3, 3] = (x, y, z)
-    return m
 
 
 def out_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
