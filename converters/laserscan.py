@@ -243,6 +243,12 @@ class _Sorted:
         #: bit s: slice s may report +Inf/NaN (qf) or -Inf (qn), bin order
         self.qf, self.qn = qf.astype(self.mask_dtype), qn.astype(self.mask_dtype)
         self.max_width = int(np.diff(self.bin_start).max(initial=0))
+        #: (size + 1,) float32 largest r_thr per bin (0 for an empty bin)
+        thr = self.cols[6]
+        self.bin_thr = np.zeros(size + 1, np.float32)
+        filled = np.flatnonzero(np.diff(self.bin_start[:size + 2]) > 0)
+        if filled.size:
+            self.bin_thr[filled] = np.maximum.reduceat(thr, self.bin_start[filled])
         self.cols64: tuple[np.ndarray[Any, Any], ...] | None = None   # numpy backend
 
 
@@ -492,7 +498,7 @@ class SliceConverter:
         g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
         kernel.sorted_fuse(np.ascontiguousarray(r, np.float32), t.src, t.keys, *t.cols, t.qf,
                            t.qn, *self._kbands, len(self.slices), float(rmin[0]), float(rmax[0]),
-                           t.bin_start, max(t.max_width, _grid.SORTED_CHUNK), offset,
+                           t.bin_start, t.bin_thr, max(t.max_width, _grid.SORTED_CHUNK), offset,
                            float(g_min), float(g_inc), int(g_size), bool(g_full), best)
 
     def _fuse_sorted_numpy(self, r: np.ndarray[Any, Any], t: _Sorted,

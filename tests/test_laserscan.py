@@ -627,6 +627,36 @@ def test_far_field_tables_avoid_atan2_for_most_pixels(sensor: Any) -> None:
     assert tables.near_fraction(r, 0) < 0.05
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_points_at_their_far_field_threshold(sensor: Any, backend: str) -> None:
+    """Pixels an ulp below / at their far-field threshold ``r_thr`` (atan2 path / far-field
+    bin) in a few runs of bins, the rest far: the compiled kernel reads the thresholds only
+    for runs of bins where some range is below the run's largest threshold (``bin_thr``)."""
+    ext = MOUNTS["offset"]
+    scan = room_scan(sensor, ext)
+    conv = SliceConverter(sensor, {"all": SliceSpec(-1.0, 3.0), "low": SliceSpec(0.0, 0.62)},
+                          extrinsics=ext, frame_id="b", range_min=0.0, backend=backend)
+    tables = conv._tables_for(scan)
+    thr = tables.k_r_thr[0]                                    # float32, per pixel
+    r = lidarscan.range_m(scan, sensor).reshape(-1).copy()
+    pick = np.flatnonzero(np.isfinite(thr) & (thr > 0))[::97][:40]
+    below = np.nextafter(thr[pick[::2]], np.float32(0))
+    r[pick[::2]] = below
+    r[pick[1::2]] = thr[pick[1::2]]
+    scan = lidarscan.make_scan(sensor, {"range": r.reshape(sensor.height, sensor.width),
+                                        "intensity": lidarscan.channel(scan, "intensity")},
+                               lidarscan.stamps.to_ns(scan.header.stamp), as_dataclass=True)
+    if tables.sorted is not None:
+        t = tables.sorted
+        for b in range(conv._grids[0].size + 1):
+            seg = t.cols[6][t.bin_start[b]:t.bin_start[b + 1]]
+            assert t.bin_thr[b] == (seg.max() if seg.size else 0)
+    out = conv.convert(scan)
+    assert np.any(r[pick] < thr[pick]) and np.any(r[pick] >= thr[pick])
+    for name, (zmin, zmax) in (("all", (-1.0, 3.0)), ("low", (0.0, 0.62))):
+        assert_same(out[name], ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext, rmin=0.0))
+
+
 # ---------------------------------------------------------------------------- properties
 
 @st.composite
