@@ -13,6 +13,15 @@
  *     are computed from it like every other (NaN * D + O propagates that NaN);
  *   - integer ranges: r = (float)raw, then r * mult (if asked), then r + offset (if asked), all
  *     float32; raw 0 = no return. Float ranges: valid iff 0 < r < +Inf, nothing else applied.
+ *
+ * lsk_project_rc() is the same job from the factored beam model (lidarscan/geometry.py,
+ * beam_factors): per-beam and per-column factors instead of two per-pixel tables, so a point
+ * costs a few float32 products on data that stays in the caches instead of 24 bytes of tables
+ * streamed from memory. Its arithmetic is spelled out at lsk_rc_xyz; it rounds differently from
+ * r * D + O (both are float32 evaluations of the same model, a few ulps apart). Built with
+ * -fno-trapping-math so the branch-free selects vectorise, and, where the compiler and the
+ * platform support it, as AVX-512 / AVX2 / baseline clones picked at load time: without
+ * fused multiply-add every clone gives the same bits.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -22,7 +31,7 @@
 #include <string.h>
 
 /* Bump with any change of lsk_project's signature or semantics (checked by pointcloud2.py). */
-#define LSK_ABI 2
+#define LSK_ABI 3
 
 /* Source element types (the codes pointcloud2.py passes). */
 enum {
@@ -41,6 +50,8 @@ enum {
 #define LSK_OFFSET 2
 
 #define LSK_CHUNK 256
+/* pixels per run of lsk_project_rc: 5 float buffers of it stay in L1 */
+#define LSK_RC_CHUNK 1024
 
 #if defined(_WIN32)
 #define LSK_EXPORT __declspec(dllexport)
@@ -288,6 +299,273 @@ LSK_EXPORT int64_t lsk_project(char *out, int64_t point_step, int64_t xyz_offset
             }
 #undef LSK_CHUNK_CALL
         }
+    }
+    return valid;
+}
+
+/* ---------------------------------------------------------------- factored beam model */
+
+#if defined(__x86_64__) && defined(__ELF__) && defined(__has_attribute)
+#if __has_attribute(target_clones) && ((defined(__clang__) && __clang_major__ >= 14) || \
+                                       (!defined(__clang__) && __GNUC__ >= 8))
+#define LSK_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
+#endif
+#endif
+#ifndef LSK_CLONES
+#define LSK_CLONES
+#endif
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#define LSK_AVX512 1
+#include <immintrin.h>
+#else
+#define LSK_AVX512 0
+#endif
+
+/*
+ * x, y, z of n pixels of beam row (o'x, o'y, o'z, d'x, d'y, d'z) and measurement columns
+ * c0 .. c0 + n - 1 (factor planes a_x, b_x, a_y, b_y, a_z, b_z of `width` floats each, then the
+ * constant g = R02, R12, R22, tx, ty, tz), float32, each product and sum rounded:
+ *   q = o' + r * d'                                  (per axis: r * d' first)
+ *   x = (a_x[c] * qx + b_x[c] * qy) + (g0 * qz + g3)  (y, z alike)
+ * A NaN range (no return) gives NaN coordinates (its canonical NaN propagates).
+ */
+LSK_INLINE void lsk_rc_xyz(float *restrict x, float *restrict y, float *restrict z,
+                           const float *restrict r, int64_t n, const float *restrict row,
+                           const float *restrict cols, int64_t width, int64_t c0,
+                           const float *restrict g)
+{
+    const float ox = row[0], oy = row[1], oz = row[2], dx = row[3], dy = row[4], dz = row[5];
+    const float *ax = cols + c0, *bx = ax + width, *ay = bx + width, *by = ay + width;
+    const float *az = by + width, *bz = az + width;
+    int64_t i;
+    for (i = 0; i < n; ++i) {
+        const float qx = ox + r[i] * dx;
+        const float qy = oy + r[i] * dy;
+        const float qz = oz + r[i] * dz;
+        x[i] = (ax[i] * qx + bx[i] * qy) + (g[0] * qz + g[3]);
+        y[i] = (ay[i] * qx + by[i] * qy) + (g[1] * qz + g[4]);
+        z[i] = (az[i] * qx + bz[i] * qy) + (g[2] * qz + g[5]);
+    }
+}
+
+/* ranges of rbuf (as loaded) -> metres, canonical NaN where there is no return */
+LSK_INLINE void lsk_metres(float *rbuf, int64_t count, int is_float, int32_t scale, float mult,
+                           float offset)
+{
+    const float nan = lsk_nan();
+    int64_t i;
+    if (is_float) {
+        for (i = 0; i < count; ++i) {
+            const float r = rbuf[i];
+            rbuf[i] = (r > 0.0f && r < INFINITY) ? r : nan;
+        }
+        return;
+    }
+    for (i = 0; i < count; ++i) {
+        float r = rbuf[i];
+        const int ok = r != 0.0f;
+        if (scale & LSK_MULTIPLY) r = r * mult;
+        if (scale & LSK_OFFSET) r = r + offset;
+        rbuf[i] = ok ? r : nan;
+    }
+}
+
+/*
+ * Points of one run (x, y, z, e as separate arrays) into the cloud: organized at pixel
+ * first + i, or dense (NaN points skipped) at the running count. Returns the updated count.
+ */
+LSK_INLINE int64_t lsk_rc_write(char *out, int64_t point_step, int64_t xyz_offset,
+                                int64_t extra_offset, const float *x, const float *y,
+                                const float *z, const float *e, int64_t first, int64_t count,
+                                int64_t valid, int dense, int mode)
+{
+    int64_t i = 0;
+    if (!dense) {
+        char *base = out + first * point_step + xyz_offset;
+        for (i = 0; i < count; ++i) valid += x[i] == x[i];
+        i = 0;
+#if LSK_SSE2
+        if (mode == LSK_EXTRA_AFTER_Z) {
+            /* x, y, z, e of 4 points -> 4 consecutive 16-byte stores (a 4 x 4 transpose) */
+            for (; i + 4 <= count; i += 4) {
+                __m128 p0 = _mm_loadu_ps(x + i), p1 = _mm_loadu_ps(y + i);
+                __m128 p2 = _mm_loadu_ps(z + i), p3 = _mm_loadu_ps(e + i);
+                _MM_TRANSPOSE4_PS(p0, p1, p2, p3);
+                _mm_storeu_ps((float *)(void *)(base + i * point_step), p0);
+                _mm_storeu_ps((float *)(void *)(base + (i + 1) * point_step), p1);
+                _mm_storeu_ps((float *)(void *)(base + (i + 2) * point_step), p2);
+                _mm_storeu_ps((float *)(void *)(base + (i + 3) * point_step), p3);
+            }
+        }
+#endif
+        for (; i < count; ++i) {
+            float p[3];
+            p[0] = x[i], p[1] = y[i], p[2] = z[i];
+            memcpy(base + i * point_step, p, sizeof p);
+            if (mode != LSK_NO_EXTRA) memcpy(base - xyz_offset + i * point_step + extra_offset,
+                                             e + i, sizeof(float));
+        }
+        return valid;
+    }
+    for (i = 0; i < count; ++i) {
+        char *point;
+        float p[3];
+        if (x[i] != x[i]) continue;
+        point = out + valid * point_step;
+        ++valid;
+        p[0] = x[i], p[1] = y[i], p[2] = z[i];
+        memcpy(point + xyz_offset, p, sizeof p);
+        if (mode != LSK_NO_EXTRA) memcpy(point + extra_offset, e + i, sizeof(float));
+    }
+    return valid;
+}
+
+#if LSK_AVX512
+/*
+ * The organized x, y, z, e (extra right after z) case of a run, 16 pixels at a time with
+ * AVX-512: the arithmetic of lsk_rc_xyz lane by lane (same operations, same order, no fused
+ * multiply-add, so the same bits), then a 4 x 16 transpose into four 64-byte stores. Handles
+ * the first n - n % 16 pixels; returns how many of them are valid.
+ */
+__attribute__((target("avx512f"))) static int64_t lsk_rc_avx512(
+    char *base, int64_t point_step, const float *r, const float *e, int64_t n,
+    const float *row, const float *cols, int64_t width, int64_t c0, const float *g)
+{
+    const __m512 ox = _mm512_set1_ps(row[0]), oy = _mm512_set1_ps(row[1]);
+    const __m512 oz = _mm512_set1_ps(row[2]), dx = _mm512_set1_ps(row[3]);
+    const __m512 dy = _mm512_set1_ps(row[4]), dz = _mm512_set1_ps(row[5]);
+    const __m512 g0 = _mm512_set1_ps(g[0]), g1 = _mm512_set1_ps(g[1]);
+    const __m512 g2 = _mm512_set1_ps(g[2]), g3 = _mm512_set1_ps(g[3]);
+    const __m512 g4 = _mm512_set1_ps(g[4]), g5 = _mm512_set1_ps(g[5]);
+    const float *ax = cols + c0, *bx = ax + width, *ay = bx + width, *by = ay + width;
+    const float *az = by + width, *bz = az + width;
+    int64_t valid = 0, i;
+    for (i = 0; i + 16 <= n; i += 16) {
+        const __m512 rv = _mm512_loadu_ps(r + i);
+        const __m512 qx = _mm512_add_ps(ox, _mm512_mul_ps(rv, dx));
+        const __m512 qy = _mm512_add_ps(oy, _mm512_mul_ps(rv, dy));
+        const __m512 qz = _mm512_add_ps(oz, _mm512_mul_ps(rv, dz));
+#define LSK_AXIS(A, B, G, T)                                                                   \
+    _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(_mm512_loadu_ps(A + i), qx),                    \
+                                _mm512_mul_ps(_mm512_loadu_ps(B + i), qy)),                   \
+                  _mm512_add_ps(_mm512_mul_ps(G, qz), T))
+        const __m512 x = LSK_AXIS(ax, bx, g0, g3);
+        const __m512 y = LSK_AXIS(ay, by, g1, g4);
+        const __m512 z = LSK_AXIS(az, bz, g2, g5);
+#undef LSK_AXIS
+        const __m512 ev = _mm512_loadu_ps(e + i);
+        /* per 128-bit lane: [x y z e] of points k, k + 4, k + 8, k + 12 in register k */
+        const __m512 xy_lo = _mm512_unpacklo_ps(x, y), xy_hi = _mm512_unpackhi_ps(x, y);
+        const __m512 ze_lo = _mm512_unpacklo_ps(z, ev), ze_hi = _mm512_unpackhi_ps(z, ev);
+        const __m512 p0 = _mm512_shuffle_ps(xy_lo, ze_lo, _MM_SHUFFLE(1, 0, 1, 0));
+        const __m512 p1 = _mm512_shuffle_ps(xy_lo, ze_lo, _MM_SHUFFLE(3, 2, 3, 2));
+        const __m512 p2 = _mm512_shuffle_ps(xy_hi, ze_hi, _MM_SHUFFLE(1, 0, 1, 0));
+        const __m512 p3 = _mm512_shuffle_ps(xy_hi, ze_hi, _MM_SHUFFLE(3, 2, 3, 2));
+        /* then a 4 x 4 transpose of 128-bit lanes: points 4j .. 4j + 3 in output j */
+        const __m512 a = _mm512_shuffle_f32x4(p0, p1, _MM_SHUFFLE(1, 0, 1, 0));
+        const __m512 b = _mm512_shuffle_f32x4(p0, p1, _MM_SHUFFLE(3, 2, 3, 2));
+        const __m512 c = _mm512_shuffle_f32x4(p2, p3, _MM_SHUFFLE(1, 0, 1, 0));
+        const __m512 d = _mm512_shuffle_f32x4(p2, p3, _MM_SHUFFLE(3, 2, 3, 2));
+        char *out = base + i * point_step;
+        if (point_step == 16) {
+            _mm512_storeu_ps(out, _mm512_shuffle_f32x4(a, c, _MM_SHUFFLE(2, 0, 2, 0)));
+            _mm512_storeu_ps(out + 64, _mm512_shuffle_f32x4(a, c, _MM_SHUFFLE(3, 1, 3, 1)));
+            _mm512_storeu_ps(out + 128, _mm512_shuffle_f32x4(b, d, _MM_SHUFFLE(2, 0, 2, 0)));
+            _mm512_storeu_ps(out + 192, _mm512_shuffle_f32x4(b, d, _MM_SHUFFLE(3, 1, 3, 1)));
+        } else {
+            /* wider points: one 16-byte store per point */
+            float tmp[64];
+            int k;
+            _mm512_storeu_ps(tmp, _mm512_shuffle_f32x4(a, c, _MM_SHUFFLE(2, 0, 2, 0)));
+            _mm512_storeu_ps(tmp + 16, _mm512_shuffle_f32x4(a, c, _MM_SHUFFLE(3, 1, 3, 1)));
+            _mm512_storeu_ps(tmp + 32, _mm512_shuffle_f32x4(b, d, _MM_SHUFFLE(2, 0, 2, 0)));
+            _mm512_storeu_ps(tmp + 48, _mm512_shuffle_f32x4(b, d, _MM_SHUFFLE(3, 1, 3, 1)));
+            for (k = 0; k < 16; ++k) memcpy(out + k * point_step, tmp + 4 * k, 16);
+        }
+        valid += __builtin_popcount((unsigned)_mm512_cmp_ps_mask(rv, rv, _CMP_ORD_Q));
+    }
+    return valid;
+}
+
+static int lsk_avx512_ok(void)
+{
+    static int known = -1;
+    if (known < 0) known = __builtin_cpu_supports("avx512f") ? 1 : 0;
+    return known;
+}
+#endif
+
+/* One run: pixels first .. first + count - 1 of one grid row, measurement columns c0 .. */
+LSK_CLONES
+static int64_t lsk_rc_run(char *out, int64_t point_step, int64_t xyz_offset, int64_t first,
+                          int64_t count, const void *range, int32_t range_type,
+                          const int64_t *roll, int64_t width, int32_t scale, float mult,
+                          float offset, const float *row, const float *cols, int64_t c0,
+                          const float *g, const void *extra, int32_t extra_type,
+                          int64_t extra_offset, float *r_out, int32_t dense, int64_t valid)
+{
+    float rbuf[LSK_RC_CHUNK], ebuf[LSK_RC_CHUNK], x[LSK_RC_CHUNK], y[LSK_RC_CHUNK];
+    float z[LSK_RC_CHUNK];
+    const int mode = !extra ? LSK_NO_EXTRA
+                     : extra_offset == xyz_offset + 12 ? LSK_EXTRA_AFTER_Z : LSK_EXTRA_APART;
+    if (!lsk_load(rbuf, range, range_type, NULL, roll, width, first, count)) return -1;
+    if (extra && !lsk_load(ebuf, extra, extra_type, NULL, roll, width, first, count)) return -1;
+    lsk_metres(rbuf, count, range_type == LSK_F32 || range_type == LSK_F64, scale, mult, offset);
+    if (r_out) memcpy(r_out + first, rbuf, (size_t)count * sizeof(float));
+#if LSK_AVX512
+    if (!dense && mode == LSK_EXTRA_AFTER_Z && count >= 16 && lsk_avx512_ok()) {
+        const int64_t done = count - count % 16;
+        valid += lsk_rc_avx512(out + first * point_step + xyz_offset, point_step, rbuf, ebuf,
+                               done, row, cols, width, c0, g);
+        if (done == count) return valid;
+        lsk_rc_xyz(x, y, z, rbuf + done, count - done, row, cols, width, c0 + done, g);
+        return lsk_rc_write(out, point_step, xyz_offset, extra_offset, x, y, z, ebuf + done,
+                            first + done, count - done, valid, 0, mode);
+    }
+#endif
+    lsk_rc_xyz(x, y, z, rbuf, count, row, cols, width, c0, g);
+    if (dense) return lsk_rc_write(out, point_step, xyz_offset, extra_offset, x, y, z, ebuf,
+                                   first, count, valid, 1, mode);
+    return lsk_rc_write(out, point_step, xyz_offset, extra_offset, x, y, z, ebuf, first, count,
+                        valid, 0, mode);
+}
+
+/*
+ * lsk_project with the factored model: arguments as lsk_project, except (gather not supported)
+ *   rows: (H, 6) float32 beam factors o', d' (lidarscan.geometry.beam_factors);
+ *   cols: (6, width) float32 column factors, indexed by measurement column;
+ *   g: (6,) float32 constant;
+ *   colshift: per-row 0 <= colshift[u] < width: grid column v of row u is measurement column
+ *       (v - colshift[u]) mod width (destaggered grid), or NULL (grid in measurement order).
+ * Returns the number of valid pixels, or -1 for an unknown type code.
+ */
+LSK_EXPORT int64_t lsk_project_rc(char *out, int64_t point_step, int64_t xyz_offset,
+                                  int64_t start, int64_t n, const void *range,
+                                  int32_t range_type, const int64_t *roll,
+                                  const int64_t *colshift, int64_t width, int32_t scale,
+                                  float mult, float offset, const float *rows,
+                                  const float *cols, const float *g, const void *extra,
+                                  int32_t extra_type, int64_t extra_offset, float *r_out,
+                                  int32_t dense)
+{
+    int64_t valid = 0;
+    int64_t j = start;
+    const int64_t end = start + n;
+    while (j < end) {
+        const int64_t u = j / width;
+        const int64_t v = j - u * width;
+        int64_t c = colshift ? v - colshift[u] : v;
+        int64_t run = end - j;
+        if (c < 0) c += width;
+        if (run > width - v) run = width - v;          /* stay in the row */
+        if (run > width - c) run = width - c;          /* contiguous measurement columns */
+        if (run > LSK_RC_CHUNK) run = LSK_RC_CHUNK;
+        valid = lsk_rc_run(out, point_step, xyz_offset, j, run, range, range_type, roll, width,
+                           scale, mult, offset, rows + 6 * u, cols, c, g, extra, extra_type,
+                           extra_offset, r_out, dense, valid);
+        if (valid < 0) return -1;
+        j += run;
     }
     return valid;
 }

@@ -13,6 +13,19 @@ max on a real OS-2-128 frame against the vendor formula). :func:`beam_tables` an
 :func:`exact_xyz` evaluate the same model in float64, without the cache (verification, or users
 who need float64).
 
+**Factored form.** Without per-pixel angles the model separates into per-beam and per-column
+terms, because ``Rz(theta) = Rz(alpha_c) Rz(beta_u)``::
+
+    P = M_c (o'_u + rho d'_u) + t,     M_c = R Rz(alpha_c)
+    d'_u = Rz(beta_u) e_u,  e_u = (cos phi_u, 0, sin phi_u),   o'_u = Rz(beta_u) (o_u + delta_u e_u)
+
+and since the third column of ``Rz(alpha)`` is ``(0, 0, 1)``, coordinate k of a point is
+``a_k[c] q_x + b_k[c] q_y + (R[k, 2] q_z + t_k)`` with ``q = o'_u + rho d'_u``,
+``a_k[c] = R[k, 0] cos alpha_c + R[k, 1] sin alpha_c`` and
+``b_k[c] = R[k, 1] cos alpha_c - R[k, 0] sin alpha_c``. :func:`beam_factors` gives these
+(H x 6 + 6 x W + 6 numbers instead of two H x W x 3 tables); the compiled PointCloud2 kernel
+projects from them.
+
 Column order: tables are indexed by measurement column; ``tables(destaggered=True)`` gives the
 same tables re-indexed to the destaggered image, where column v of row u holds measurement column
 ``c = (v - s_u) mod W``.
@@ -34,6 +47,7 @@ from lidarscan.stamps import to_ns
 
 __all__ = [
     "Projector",
+    "beam_factors",
     "beam_tables",
     "exact_xyz",
     "info_key",
@@ -130,6 +144,62 @@ def beam_tables(info: Any, column_azimuth_angles: Any = None
     return d @ rot.T, off @ rot.T + trans
 
 
+def beam_factors(info: Any, column_azimuth_angles: Any = None
+                 ) -> tuple[np.ndarray[Any, np.dtype[np.float64]],
+                            np.ndarray[Any, np.dtype[np.float64]],
+                            np.ndarray[Any, np.dtype[np.float64]]] | None:
+    """The beam model split into per-beam and per-column factors (module docstring), float64.
+
+    Args:
+        info: a LidarInfo (rclpy message or dataclass); not validated here.
+        column_azimuth_angles: (W,) radians replacing ``info.horizontal_angles``, or None.
+
+    Returns:
+        None when the info has per-pixel angles (the model does not factor), else
+        ``(rows, columns, constant)``:
+
+        * rows: (H, 6) ``o'_u`` (x, y, z, metres) then ``d'_u`` (x, y, z, unit);
+        * columns: (6, W) ``a_x, b_x, a_y, b_y, a_z, b_z`` per measurement column;
+        * constant: (6,) ``R[0, 2], R[1, 2], R[2, 2], t_x, t_y, t_z``.
+
+        A point is ``x = a_x q_x + b_x q_y + (R[0, 2] q_z + t_x)`` (y, z alike) with
+        ``q = o'_u + rho d'_u``, in ``info.header.frame_id``.
+    """
+    if _as_array(info.pixel_azimuth_angles, np.float64).size:
+        return None
+    height, width = int(info.height), int(info.width)
+    if column_azimuth_angles is None:
+        alpha = _as_array(info.horizontal_angles, np.float64).astype(np.float64)
+    else:
+        alpha = np.asarray(column_azimuth_angles, dtype=np.float64).reshape(-1)
+    if alpha.size != width:
+        raise ValidationError("column_azimuth_angles", f"length {alpha.size}",
+                              f"length {width} (LidarInfo.width)")
+    beta = _per_beam(info, "beam_azimuth_offsets", height)
+    phi = _as_array(info.vertical_angles, np.float64).astype(np.float64)
+    origins = _as_array(info.beam_origins, np.float64).astype(np.float64)
+    origins = origins.reshape(height, 3) if origins.size else np.zeros((height, 3))
+    delta = _per_beam(info, "beam_range_offsets", height)
+    cos_b, sin_b = np.cos(beta), np.sin(beta)
+    e = np.stack([np.cos(phi), np.zeros(height), np.sin(phi)], -1)          # (H, 3)
+    shifted = origins + delta[:, None] * e
+
+    def rotate(v: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        return np.stack([cos_b * v[:, 0] - sin_b * v[:, 1],
+                         sin_b * v[:, 0] + cos_b * v[:, 1], v[:, 2]], -1)
+
+    rows = np.concatenate([rotate(shifted), rotate(e)], axis=1)
+    matrix = transform_matrix(info)
+    rot, trans = matrix[:3, :3], matrix[:3, 3]
+    cos_a, sin_a = np.cos(alpha), np.sin(alpha)
+    columns = np.empty((6, width))
+    for k in range(3):
+        columns[2 * k] = rot[k, 0] * cos_a + rot[k, 1] * sin_a
+        columns[2 * k + 1] = rot[k, 1] * cos_a - rot[k, 0] * sin_a
+    constant = np.concatenate([rot[:, 2], trans])
+    return rows, columns, constant
+
+
 def exact_xyz(info: Any, ranges: Any, *, destaggered: bool = False,
               column_azimuth_angles: Any = None) -> np.ndarray[Any, np.dtype[np.float64]]:
     """Float64 projection straight from the beam model (no float32 tables, no cache).
@@ -209,12 +279,29 @@ class Projector:
         self.restagger_index = (columns[None, :] + self.shifts[:, None]) % max(self.width, 1)
         self._destaggered: tuple[Any, Any] | None = None
         self._planar: dict[bool, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] = {}
+        self._factors: tuple[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any],
+                                   np.ndarray[Any, Any]] | None] | None = None
 
     def _tables(self, alpha: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any],
                                                             np.ndarray[Any, Any]]:
         """Directions and offsets (float32, (H, W, 3)) for column azimuths ``alpha`` (W,)."""
         d, o = beam_tables(self._info, alpha)
         return d.astype(np.float32), o.astype(np.float32)
+
+    def factors(self, column_azimuth_angles: Any = None
+                ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any],
+                           np.ndarray[Any, Any]] | None:
+        """:func:`beam_factors` as C-contiguous float32 arrays (rows (H, 6), columns (6, W),
+        constant (6,)), or None when the info has per-pixel angles. Cached for the info's own
+        column azimuths; ``column_azimuth_angles`` (a scan's measured ones) are computed anew."""
+        if column_azimuth_angles is None and self._factors is not None:
+            return self._factors[0]
+        found = beam_factors(self._info, column_azimuth_angles)
+        result = None if found is None else tuple(
+            np.ascontiguousarray(a, dtype=np.float32) for a in found)
+        if column_azimuth_angles is None:
+            self._factors = (result,)  # type: ignore[assignment]
+        return result  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ column order helpers
     def destagger(self, image: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:

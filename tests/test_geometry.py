@@ -151,6 +151,41 @@ def test_projector_matches_loop_reference(seed: int, height: int, width: int,
                                expected_d, rtol=0, atol=1e-9)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), height=st.integers(1, 5), width=st.integers(1, 9),
+       transform=st.booleans(), measured=st.booleans())
+def test_beam_factors_reproduce_the_loop_reference(seed: int, height: int, width: int,
+                                                   transform: bool, measured: bool) -> None:
+    """The factored form (module docstring) gives the reference's points in float64."""
+    p = _random_params(seed, height, width, transform=transform)
+    info = _info(p)
+    ranges = _ranges(seed, height, width)
+    alpha = (list(np.random.default_rng(seed).uniform(-math.pi, math.pi, width))
+             if measured else None)
+    found = geometry.beam_factors(info, alpha)
+    assert found is not None
+    rows, cols, const = found
+    assert (rows.shape, cols.shape, const.shape) == ((height, 6), (6, width), (6,))
+    for u in range(height):
+        for c in range(width):
+            expected = _ref_point(p, u, c, float(ranges[u, c]), alpha)
+            if expected is None:
+                continue
+            q = rows[u, :3] + float(ranges[u, c]) * rows[u, 3:]
+            got = [cols[2 * k, c] * q[0] + cols[2 * k + 1, c] * q[1] + const[k] * q[2]
+                   + const[3 + k] for k in range(3)]
+            np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+    f32 = geometry.Projector(info).factors(alpha)
+    assert f32 is not None and all(a.dtype == np.float32 and a.flags.c_contiguous for a in f32)
+
+
+def test_beam_factors_none_with_per_pixel_angles() -> None:
+    p = _random_params(3, 2, 3, pixel_angles=True)
+    info = _info(p)
+    assert geometry.beam_factors(info) is None
+    assert geometry.Projector(info).factors() is None
+
+
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), height=st.integers(1, 4), width=st.integers(1, 8),
        destaggered=st.booleans())
