@@ -206,6 +206,11 @@ def main() -> None:
     near = [tables.near_fraction(rr, i) for i in range(len(tables.r_thr))]
     print("  fraction of finite pixels needing atan2 (r < r_thr), per grid:",
           ", ".join(f"{f:.3f}" for f in near))
+    if have_numba:
+        srt = next(iter(conv._tables.values())).sorted
+        path = ("per-pixel passes" if srt is None else "bin-ordered kernel" if srt.rows is None
+                else "row-ordered kernel (per-row float32 band intervals)")
+        print("  compiled path:", path)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,10 @@ vectorises (height, planar range and code per pixel, band bits for all slices) a
 minimum per bin over contiguous positions: no scatter, no atan2
 (:func:`converters._grid._sorted_fuse`; the numpy backend does the same with
 ``minimum.reduceat``). ``atan2`` runs only for in-band points closer than their ``r_thr``.
+The usual case, a full circle at the sensor's column resolution seen by an upright (or
+upside-down) sensor, has one pixel of every row per bin and ``dz``, ``oz`` constant along each
+row: then the height test is an exact per-row float32 range interval and fusion and decoding run
+in one compiled call (:func:`converters._grid._row_fuse`, :func:`converters._grid._row_convert`).
 Measured on the benchmark's OS-1-128-like sensor on the target's z axis: 0.000 of the pixels (the
 sensor's own 15.8 mm beam offsets only matter within a few cm). With the sensor far off the
 target's z axis (e.g. 0.3 m in front of ``base_link``) most in-band points need atan2 (about 5x
@@ -202,7 +206,7 @@ class _Tables:
         self.sorted: _Sorted | None = None
         if len(grids) == 1 and len(slices) <= 60 and len(
                 {(s.options.range_min, s.options.range_max) for s in slices}) == 1:
-            self.sorted = _Sorted(self, grids[0].size, len(slices))
+            self.sorted = _Sorted(self, grids[0].size, slices, width)
 
     def key(self, index: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
         """Tie keys of pixel indices."""
@@ -223,7 +227,8 @@ class _Sorted:
     bins, then pixel index, for the bin-ordered compiled kernel
     :func:`converters._grid._sorted_fuse`."""
 
-    def __init__(self, t: _Tables, size: int, n_slices: int) -> None:
+    def __init__(self, t: _Tables, size: int, slices: list[_Slice], width: int) -> None:
+        n_slices = len(slices)
         far = t.bin_far[0]
         sort_key = np.where(far < 0, size, far)
         order = np.argsort(sort_key, kind="stable")
@@ -250,6 +255,53 @@ class _Sorted:
         if filled.size:
             self.bin_thr[filled] = np.maximum.reduceat(thr, self.bin_start[filled])
         self.cols64: tuple[np.ndarray[Any, Any], ...] | None = None   # numpy backend
+        self.rows = _RowLayout.create(t, self, size, slices, width)
+
+
+class _RowLayout:
+    """Extra tables of the row-ordered kernel :func:`converters._grid._row_fuse`, when it
+    applies: every bin holds exactly one pixel of every row, in row order (a full circle at
+    the sensor's column resolution), and ``dz``, ``oz`` are bitwise constant along every row
+    (an upright sensor), so each band is an exact float32 range interval per row."""
+
+    def __init__(self, src: np.ndarray[Any, Any], keys: np.ndarray[Any, Any],
+                 lo: np.ndarray[Any, Any], hi: np.ndarray[Any, Any], q_rows: bool,
+                 qf: np.ndarray[Any, Any], qn: np.ndarray[Any, Any]) -> None:
+        self.src, self.keys = src, keys           # uint32 views: no negative-index checks
+        #: (S, H) float32 band intervals per row (S padded to a multiple of four)
+        self.lo, self.hi = lo, hi
+        #: qualifiers per row ((H,), the same in every bin) or per position ((n,), bin order)
+        self.q_rows, self.qf, self.qn = q_rows, qf, qn
+
+    @classmethod
+    def create(cls, t: _Tables, st: _Sorted, size: int, slices: list[_Slice], width: int
+               ) -> _RowLayout | None:
+        """The layout, or None when the tables do not have that structure."""
+        n = t.n
+        if len(slices) > 32:                  # the kernel keeps qualifier bits in int32
+            return None
+        if size < 1 or width < 1 or n % size or n % width:
+            return None
+        height = n // size
+        if height != n // width or not np.array_equal(st.bin_start[:size + 1],
+                                                      np.arange(size + 1) * height):
+            return None
+        if not np.array_equal(st.src.reshape(size, height) // width, np.broadcast_to(
+                np.arange(height), (size, height))):
+            return None
+        dz = t.dz.reshape(height, width).view(np.int32)
+        oz = t.oz.reshape(height, width).view(np.int32)
+        if not (np.all(dz == dz[:, :1]) and np.all(oz == oz[:, :1])):
+            return None
+        pad = -len(slices) % 4                    # empty bands up to a multiple of four
+        zmin = np.r_[[s.min_z for s in slices], np.full(pad, np.inf)]
+        zmax = np.r_[[s.max_z for s in slices], np.full(pad, -np.inf)]
+        lo, hi = _grid.band_intervals_f32(t.dz[::width], t.oz[::width], zmin, zmax)
+        q_rows = bool(np.all(st.qf.reshape(size, height) == st.qf[:height])
+                      and np.all(st.qn.reshape(size, height) == st.qn[:height]))
+        qf, qn = (st.qf[:height].copy(), st.qn[:height].copy()) if q_rows else (st.qf, st.qn)
+        return cls(st.src.view(np.uint32), st.keys.view(np.uint32), np.ascontiguousarray(lo),
+                   np.ascontiguousarray(hi), q_rows, qf, qn)
 
 
 class SliceConverter:
@@ -437,15 +489,17 @@ class SliceConverter:
         self._check(scan)
         tables = self._tables_for(scan)
         r = np.ascontiguousarray(range_m(scan, self.info, self.range_channel)).reshape(-1)
-        best = self._fuse(r, tables)
         intensity = None
         if self.intensity_channel is not None:
             values = channel(scan, self.intensity_channel)
             intensity = (values[..., 0] if values.ndim == 3 else values).reshape(-1)
+        decoded = self._row_convert(r, tables, intensity)
+        if decoded is None:
+            best = self._fuse(r, tables)
+            decoded = self._decode_all(best, tables, intensity)
         stamp = to_ns(scan.header.stamp)
         period = self._scan_period_ns(self.info, scan)
         out: dict[str, Any] = {}
-        decoded = self._decode_all(best, tables, intensity)
         for s, off in zip(self.slices, self._offsets):
             if decoded is not None:
                 ranges = decoded[0][off:off + s.grid.size]
@@ -463,6 +517,27 @@ class SliceConverter:
                 intensities=ints, options=s.options, scan_time=period * 1e-9,
                 time_increment=time_inc)
         return out
+
+    def _row_convert(self, r: np.ndarray[Any, Any], tables: _Tables,
+                     intensity: np.ndarray[Any, Any] | None
+                     ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
+        """Fusion and decoding in one compiled call (:func:`converters._grid._row_convert`)
+        when the row-ordered kernel applies, else None."""
+        t = tables.sorted
+        if t is None or t.rows is None or self._kernel is None:
+            return None
+        rows, cols = t.rows, t.cols
+        rmin, rmax, offset = self._kslices[2], self._kslices[3], self._kslices[5]
+        g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
+        inten = _NO_VALUES if intensity is None else np.ascontiguousarray(intensity)
+        key_to_pos = _NO_KEYS if tables.key_to_pos is None else tables.key_to_pos
+        ranges, ints = self._kernel.row_convert(
+            np.ascontiguousarray(r, np.float32), rows.src, rows.keys, cols[2], cols[3], cols[4],
+            cols[5], cols[6], rows.qf, rows.qn, rows.q_rows, rows.lo, rows.hi, len(self.slices),
+            float(rmin[0]), float(rmax[0]), rows.lo.shape[1], t.bin_thr, offset, float(g_min),
+            float(g_inc), int(g_size), bool(g_full), self._size, self._kdecode[1],
+            self._kdecode[2], self._kdecode[3], inten, key_to_pos, intensity is not None)
+        return ranges, ints
 
     def _decode_all(self, best: np.ndarray[Any, Any], tables: _Tables,
                     intensity: np.ndarray[Any, Any] | None
@@ -496,6 +571,15 @@ class SliceConverter:
         kernel: Any = self._kernel
         rmin, rmax, offset = self._kslices[2], self._kslices[3], self._kslices[5]
         g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
+        rows = t.rows
+        if rows is not None:
+            cols = t.cols
+            kernel.row_fuse(np.ascontiguousarray(r, np.float32), rows.src, rows.keys, cols[2],
+                            cols[3], cols[4], cols[5], cols[6], rows.qf, rows.qn, rows.q_rows,
+                            rows.lo, rows.hi, len(self.slices), float(rmin[0]), float(rmax[0]),
+                            rows.lo.shape[1], t.bin_thr, offset, float(g_min), float(g_inc),
+                            int(g_size), bool(g_full), best)
+            return
         kernel.sorted_fuse(np.ascontiguousarray(r, np.float32), t.src, t.keys, *t.cols, t.qf,
                            t.qn, *self._kbands, len(self.slices), float(rmin[0]), float(rmax[0]),
                            t.bin_start, t.bin_thr, max(t.max_width, _grid.SORTED_CHUNK), offset,

@@ -752,3 +752,165 @@ def test_numba_is_optional() -> None:
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                           check=False)
     assert done.returncode == 0, done.stderr
+
+
+# ------------------------------------------------- row-ordered kernel (exact band intervals)
+
+def _z(r: np.ndarray, dz: np.ndarray, oz: np.ndarray) -> np.ndarray:
+    """Height of float32 ranges as the kernels compute it (float64, no fused multiply-add)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        return r.astype(np.float64) * dz.astype(np.float64) + oz.astype(np.float64)
+
+
+def test_band_intervals_are_exact_float32_intervals() -> None:
+    """lo <= r <= hi iff the float64 height of r is in the band, for every float32 r next to
+    the interval ends and at random, including bands whose limits are exactly the height of
+    some float32 range (inclusive boundaries), flat rays (+-0), downward rays, open and empty
+    bands; non-points (+-Inf, NaN, 0, negative) are never inside."""
+    from converters import _grid
+    rng = np.random.default_rng(5)
+    n = 400
+    dz = rng.normal(0.0, 0.5, n).astype(np.float32)
+    dz[:20] = 0.0
+    dz[20:40] = -0.0
+    dz[40:60] = rng.choice([1e-30, -1e-30, 1.0, -1.0], 20).astype(np.float32)
+    oz = rng.normal(0.0, 1.0, n).astype(np.float32)
+    oz[60:80] = 0.0
+    # bands at the exact height of a float32 range of some ray (boundary hits)
+    r_hit = np.float32(rng.uniform(0.1, 50.0, 4)).astype(np.float32)
+    z_hit = _z(r_hit, dz[100:104], oz[100:104])
+    zmin = np.array([0.05, -np.inf, z_hit[0], -1.0, 0.5, np.inf, 0.3, z_hit[2]])
+    zmax = np.array([0.5, 0.0, z_hit[0] + 5.0, z_hit[1], 0.5, -np.inf, np.inf, z_hit[2]])
+    zmin[3] = min(zmin[3], zmax[3])
+    lo, hi = _grid.band_intervals_f32(dz, oz, zmin, zmax)
+    assert lo.dtype == np.float32 and lo.shape == (len(zmin), n)
+    tiny = np.float32(1e-45)
+    big = np.finfo(np.float32).max
+    specials = np.array([np.inf, -np.inf, np.nan, 0.0, -0.0, -1.0], np.float32)
+    for s in range(len(zmin)):
+        cands = [lo[s], hi[s], np.nextafter(lo[s], np.float32(0)), np.nextafter(hi[s], big),
+                 np.nextafter(lo[s], big), np.nextafter(hi[s], np.float32(0)),
+                 np.full(n, tiny), np.full(n, big),
+                 rng.uniform(0, 100, n).astype(np.float32)]
+        cands += [np.full(n, r, np.float32) for r in r_hit]
+        for r in cands:
+            r = r.astype(np.float32)
+            point = np.isfinite(r) & (r > 0)
+            z = _z(r, dz, oz)
+            expect = point & (z >= zmin[s]) & (z <= zmax[s])
+            np.testing.assert_array_equal((r >= lo[s]) & (r <= hi[s]), expect)
+        for r in specials:
+            assert not np.any((r >= lo[s]) & (r <= hi[s]))
+    # ranges whose height is exactly a band limit are inside (inclusive limits), also for a
+    # band of zero thickness
+    assert lo[2, 100] <= r_hit[0] <= hi[2, 100]
+    assert lo[3, 101] <= r_hit[1] <= hi[3, 101]
+    assert lo[7, 102] <= r_hit[2] <= hi[7, 102]
+
+
+def _row_layout(conv: SliceConverter, scan: Any) -> Any:
+    tables = conv._tables_for(scan)
+    assert tables.sorted is not None
+    return tables.sorted.rows
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.parametrize(("mount", "n_slices", "destagger"), [
+    ("level", 1, False), ("level", 3, True), ("level", 5, False), ("level", 9, True),
+    ("offset", 3, False), ("offset", 5, True), ("upside_down", 2, False),
+    ("upside_down", 5, True)])
+def test_row_kernel_matches_general_kernel_and_oracle(mount: str, n_slices: int,
+                                                      destagger: bool) -> None:
+    """An upright (or upside-down) mount on the default grid takes the row-ordered kernel
+    (per-row float32 band intervals); it equals the general bin-ordered kernel, the numpy backend and the oracle, for
+    slice counts that are not a multiple of 4 or above 4, staggered or destaggered scans, and
+    an off-axis mount (points closer than their far-field threshold: the atan2 path). One band
+    ends exactly at the height of a pixel (inclusive boundaries)."""
+    from converters import _grid
+    sensor = make_sensor(shifts=True)
+    ext = MOUNTS[mount]
+    scan = room_scan(sensor, ext, destagger=destagger)
+    # a band edge exactly at the height of one pixel of the scan
+    proj = lidarscan.make_projector(sensor)
+    d32, o32 = proj.tables_for(scan)
+    r = lidarscan.range_m(scan, sensor).reshape(-1)
+    z = r.astype(np.float64) * np.float64(ext[2, 2]) * d32.reshape(-1, 3)[:, 2] \
+        + (np.float32(o32.reshape(-1, 3)[:, 2] + ext[2, 3]))
+    finite = np.flatnonzero(np.isfinite(z) & (z > 0.2) & (z < 0.6))
+    edge = float(z[finite[len(finite) // 2]])
+    bands = {f"s{i}": (-0.2 + 0.3 * i, 0.35 + 0.3 * i) for i in range(n_slices)}
+    bands["s0"] = (0.05, edge)
+    specs = {k: SliceSpec(*v) for k, v in bands.items()}
+    conv = SliceConverter(sensor, specs, extrinsics=ext, frame_id="b", backend="numba")
+    rows = _row_layout(conv, scan)
+    assert rows is not None and rows.lo.shape == (n_slices + (-n_slices % 4), sensor.height)
+    fast = conv.convert(scan)
+    again = conv.convert(scan)                # tables are reused: same result
+    # the reduction array of the row kernel alone (SliceConverter._fuse) decodes the same
+    flat = np.ascontiguousarray(lidarscan.range_m(scan, sensor)).reshape(-1)
+    best = conv._fuse(flat, conv._tables_for(scan))
+    if mount == "offset":                     # the row kernel's atan2 path did run
+        assert conv._tables_for(scan).near_fraction(flat.astype(np.float64)) > 0.1
+    for s, off in zip(conv.slices, conv._offsets):
+        ranges = _grid.decode(best[off:off + s.grid.size], s.options)[0]
+        np.testing.assert_array_equal(ranges, arrays(fast[s.name])[0])
+        assert_same(again[s.name], arrays(fast[s.name]))
+    conv._tables_for(scan).sorted.rows = None
+    general = conv.convert(scan)
+    numpy = SliceConverter(sensor, specs, extrinsics=ext, frame_id="b",
+                           backend="numpy").convert(scan)
+    for name, (zmin, zmax) in bands.items():
+        ref = ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext)
+        assert_same(fast[name], ref)
+        assert_same(general[name], ref)
+        assert_same(numpy[name], ref)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+def test_row_kernel_per_position_qualifiers() -> None:
+    """The row kernel reads +Inf/NaN/-Inf qualifiers per row when they are the same in every
+    bin, else per position; both give the same slices (here forced on the same tables)."""
+    from converters import _grid
+    sensor = make_sensor()
+    ext = MOUNTS["level"]
+    scan = room_scan(sensor, ext)
+    specs = {"a": SliceSpec(0.05, 0.5), "b": SliceSpec(0.3, 1.5), "c": SliceSpec(-1.0, 0.2)}
+    conv = SliceConverter(sensor, specs, extrinsics=ext, frame_id="b", backend="numba",
+                          range_min=0.5, range_max=3.0)
+    rows = _row_layout(conv, scan)
+    assert rows is not None
+    out = conv.convert(scan)
+    st_ = conv._tables_for(scan).sorted
+    conv._tables_for(scan).sorted.rows = type(rows)(rows.src, rows.keys, rows.lo, rows.hi,
+                                                    False, st_.qf, st_.qn)
+    per_position = conv.convert(scan)
+    for name, (zmin, zmax) in (("a", (0.05, 0.5)), ("b", (0.3, 1.5)), ("c", (-1.0, 0.2))):
+        ref = ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext, rmin=0.5, rmax=3.0)
+        assert_same(out[name], ref)
+        assert_same(per_position[name], ref)
+    assert _grid.EMPTY > 0
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.parametrize("case", ["tilted", "coarse_grid", "fine_grid", "many_slices"])
+def test_row_kernel_falls_back_when_it_does_not_apply(case: str) -> None:
+    """A tilted mount (dz, oz vary along a row), grids other than one bin per column,
+    and more than 32 slices use the general bin-ordered kernel; results match the oracle."""
+    sensor = make_sensor()
+    ext = MOUNTS["level"] if case not in MOUNTS else MOUNTS[case]
+    scan = room_scan(sensor, ext)
+    kw: dict[str, Any] = {}
+    if case == "coarse_grid":
+        kw["angle_increment"] = 2 * TWO_PI / sensor.width
+    elif case == "fine_grid":
+        kw["angle_increment"] = TWO_PI / sensor.width / 2
+    n = 33 if case == "many_slices" else 2
+    bands = {f"s{i}": (0.05 * i, 0.3 + 0.05 * i) for i in range(n)}
+    conv = SliceConverter(sensor, {k: SliceSpec(*v) for k, v in bands.items()}, extrinsics=ext,
+                          frame_id="b", backend="numba", **kw)
+    assert _row_layout(conv, scan) is None
+    out = conv.convert(scan)
+    for name in list(bands)[:2] + list(bands)[-1:]:
+        zmin, zmax = bands[name]
+        assert_same(out[name], ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext,
+                                         inc=kw.get("angle_increment")))
