@@ -1,8 +1,9 @@
 """Benchmark: 4 height slices of a 128 x 2048 LidarScan vs a pointcloud_to_laserscan-style loop.
 
 Run: ``.venv/bin/python bench/bench_slices.py [--repeat N] [--offset]``. Prints medians, minima
-and ratios measured in the same run (the timings of the candidates are interleaved, so machine
-load hits all alike); no assertions. Target: >= 5x the baseline.
+and ratios measured in the same run (the timings of the candidates are interleaved, in a new
+random order every round, so machine load and cache leftovers hit all alike); no assertions.
+Target: >= 5x the baseline.
 
 Scene: an OS-1-128-like sensor (2048 columns, +-22.5 deg, 15.8 mm beam origins, +-4.2 deg beam
 azimuth offsets) 0.5 m above ``base_link`` in an 8 x 6 m room with a table and a pillar, 5 % of
@@ -182,9 +183,16 @@ def main() -> None:
         fn()                                              # tables + JIT outside the timing
     candidates.update(ours)
 
+    # the candidates run in a new random order every round: what ran just before decides what
+    # is left in the caches, so a fixed order would always hand one candidate the leftovers of
+    # the same (heavy) predecessor
     times: dict[str, list[float]] = {k: [] for k in candidates}
+    order = list(candidates)
+    shuffle = np.random.default_rng(0).shuffle
     for _ in range(args.repeat):
-        for name, fn in candidates.items():
+        shuffle(order)
+        for name in order:
+            fn = candidates[name]
             t0 = time.perf_counter()
             fn()
             times[name].append(time.perf_counter() - t0)

@@ -221,6 +221,28 @@ LSK_INLINE int64_t lsk_chunk(char *out, int64_t point_step, int64_t xyz_offset,
     return valid;
 }
 
+/* ranges of rbuf (as loaded) -> metres, canonical NaN where there is no return */
+LSK_INLINE void lsk_metres(float *rbuf, int64_t count, int is_float, int32_t scale, float mult,
+                           float offset)
+{
+    const float nan = lsk_nan();
+    int64_t i;
+    if (is_float) {
+        for (i = 0; i < count; ++i) {
+            const float r = rbuf[i];
+            rbuf[i] = (r > 0.0f && r < INFINITY) ? r : nan;
+        }
+        return;
+    }
+    for (i = 0; i < count; ++i) {
+        float r = rbuf[i];
+        const int ok = r != 0.0f;
+        if (scale & LSK_MULTIPLY) r = r * mult;
+        if (scale & LSK_OFFSET) r = r + offset;
+        rbuf[i] = ok ? r : nan;
+    }
+}
+
 LSK_EXPORT int32_t lsk_abi(void) { return LSK_ABI; }
 
 /*
@@ -250,7 +272,6 @@ LSK_EXPORT int64_t lsk_project(char *out, int64_t point_step, int64_t xyz_offset
 {
     float rbuf[LSK_CHUNK];
     float ebuf[LSK_CHUNK];
-    const float nan = lsk_nan();
     const int is_float = range_type == LSK_F32 || range_type == LSK_F64;
     int64_t valid = 0;
     int64_t done;
@@ -258,24 +279,10 @@ LSK_EXPORT int64_t lsk_project(char *out, int64_t point_step, int64_t xyz_offset
     for (done = 0; done < n; done += LSK_CHUNK) {
         const int64_t count = n - done < LSK_CHUNK ? n - done : LSK_CHUNK;
         const int64_t first = start + done;
-        int64_t i;
         if (!lsk_load(rbuf, range, range_type, gather, roll, width, first, count)) return -1;
         if (extra && !lsk_load(ebuf, extra, extra_type, gather, roll, width, first, count))
             return -1;
-        if (is_float) {
-            for (i = 0; i < count; ++i) {
-                const float r = rbuf[i];
-                rbuf[i] = (r > 0.0f && r < INFINITY) ? r : nan;
-            }
-        } else {
-            for (i = 0; i < count; ++i) {
-                float r = rbuf[i];
-                const int ok = r != 0.0f;
-                if (scale & LSK_MULTIPLY) r = r * mult;
-                if (scale & LSK_OFFSET) r = r + offset;
-                rbuf[i] = ok ? r : nan;
-            }
-        }
+        lsk_metres(rbuf, count, is_float, scale, mult, offset);
         if (r_out) memcpy(r_out + first, rbuf, (size_t)count * sizeof(float));
         {
             /* the 4-lane form reads one float past the pixel: not for the call's last one */
@@ -346,28 +353,6 @@ LSK_INLINE void lsk_rc_xyz(float *restrict x, float *restrict y, float *restrict
         x[i] = (ax[i] * qx + bx[i] * qy) + (g[0] * qz + g[3]);
         y[i] = (ay[i] * qx + by[i] * qy) + (g[1] * qz + g[4]);
         z[i] = (az[i] * qx + bz[i] * qy) + (g[2] * qz + g[5]);
-    }
-}
-
-/* ranges of rbuf (as loaded) -> metres, canonical NaN where there is no return */
-LSK_INLINE void lsk_metres(float *rbuf, int64_t count, int is_float, int32_t scale, float mult,
-                           float offset)
-{
-    const float nan = lsk_nan();
-    int64_t i;
-    if (is_float) {
-        for (i = 0; i < count; ++i) {
-            const float r = rbuf[i];
-            rbuf[i] = (r > 0.0f && r < INFINITY) ? r : nan;
-        }
-        return;
-    }
-    for (i = 0; i < count; ++i) {
-        float r = rbuf[i];
-        const int ok = r != 0.0f;
-        if (scale & LSK_MULTIPLY) r = r * mult;
-        if (scale & LSK_OFFSET) r = r + offset;
-        rbuf[i] = ok ? r : nan;
     }
 }
 

@@ -140,6 +140,7 @@ from lidarscan.errors import (
     UnknownChannelError,
     ValidationError,
 )
+from converters._rosmsg import bare_message
 from lidarscan.geometry import info_key, make_projector
 from lidarscan.scan import _as_array, channel, make_info, make_scan
 from lidarscan.stamps import split_ns, to_ns
@@ -1247,36 +1248,10 @@ class PointCloud2Converter:
         header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame)
         fields = [PointField(name=s.name, offset=s.offset, datatype=s.datatype, count=s.count)
                   for s in specs]
-        return _bare_message(PointCloud2, header=header, height=int(shape[0]),
-                             width=int(shape[1]), fields=fields, is_bigendian=False,
-                             point_step=int(step), row_step=int(step) * int(shape[1]),
-                             data=buf, is_dense=bool(dense))
-
-
-_SLOTS: dict[type, frozenset[str]] = {}
-
-
-def _bare_message(cls: type, **fields: Any) -> Any:
-    """An rclpy message of ``cls`` with exactly these field values, built without the generated
-    constructor, which first builds a default for every field (for a PointCloud2 a Header, a
-    Time and an empty array: ~6 us) and copies ``data`` given as an argument.
-
-    The values must already have the field types (the converter's own, checked values:
-    ``data`` an ``array.array('B')``, which the message then holds without a copy) and every
-    field must be given; rosidl's generated classes keep field ``f`` in the slot ``_f``.
-    ``tests/test_pointcloud2.py`` compares the result with normally built messages.
-    """
-    names = _SLOTS.get(cls)
-    if names is None:
-        names = frozenset(cls.get_fields_and_field_types())  # type: ignore[attr-defined]
-        _SLOTS[cls] = names
-    if fields.keys() != names:
-        raise ConversionError(f"{cls.__name__} fields", sorted(fields), sorted(names))
-    msg = cls.__new__(cls)
-    msg._check_fields = False
-    for name, value in fields.items():
-        setattr(msg, "_" + name, value)
-    return msg
+        return bare_message(PointCloud2, header=header, height=int(shape[0]),
+                            width=int(shape[1]), fields=fields, is_bigendian=False,
+                            point_step=int(step), row_step=int(step) * int(shape[1]),
+                            data=buf, is_dense=bool(dense))
 
 
 _CONVERTERS: OrderedDict[Any, PointCloud2Converter] = OrderedDict()

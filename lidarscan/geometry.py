@@ -95,6 +95,24 @@ def info_key(info: Any) -> tuple[int, str]:
     return to_ns(info.header.stamp), digest.hexdigest()
 
 
+def _angles(info: Any, column_azimuth_angles: Any) -> tuple[np.ndarray[Any, Any],
+                                                            np.ndarray[Any, Any],
+                                                            np.ndarray[Any, Any]]:
+    """(alpha (W,), beta (H,), phi (H,)) float64 radians: column azimuths (the info's or the
+    given measured ones), beam azimuth offsets, beam elevations."""
+    height, width = int(info.height), int(info.width)
+    if column_azimuth_angles is None:
+        alpha = _as_array(info.horizontal_angles, np.float64).astype(np.float64)
+    else:
+        alpha = np.asarray(column_azimuth_angles, dtype=np.float64).reshape(-1)
+    if alpha.size != width:
+        raise ValidationError("column_azimuth_angles", f"length {alpha.size}",
+                              f"length {width} (LidarInfo.width)")
+    beta = _per_beam(info, "beam_azimuth_offsets", height)
+    phi = _as_array(info.vertical_angles, np.float64).astype(np.float64)
+    return alpha, beta, phi
+
+
 def beam_tables(info: Any, column_azimuth_angles: Any = None
                 ) -> tuple[np.ndarray[Any, np.dtype[np.float64]],
                            np.ndarray[Any, np.dtype[np.float64]]]:
@@ -111,15 +129,7 @@ def beam_tables(info: Any, column_azimuth_angles: Any = None
         (D, O): each (H, W, 3) float64 in ``info.header.frame_id``; D unit vectors, O metres.
     """
     height, width = int(info.height), int(info.width)
-    if column_azimuth_angles is None:
-        alpha = _as_array(info.horizontal_angles, np.float64).astype(np.float64)
-    else:
-        alpha = np.asarray(column_azimuth_angles, dtype=np.float64).reshape(-1)
-    if alpha.size != width:
-        raise ValidationError("column_azimuth_angles", f"length {alpha.size}",
-                              f"length {width} (LidarInfo.width)")
-    beta = _per_beam(info, "beam_azimuth_offsets", height)
-    phi = _as_array(info.vertical_angles, np.float64).astype(np.float64)
+    alpha, beta, phi = _angles(info, column_azimuth_angles)
     theta = alpha[None, :] + beta[:, None]                                    # (H, W)
     pix_az = _as_array(info.pixel_azimuth_angles, np.float64).astype(np.float64)
     if pix_az.size:
@@ -168,15 +178,7 @@ def beam_factors(info: Any, column_azimuth_angles: Any = None
     if _as_array(info.pixel_azimuth_angles, np.float64).size:
         return None
     height, width = int(info.height), int(info.width)
-    if column_azimuth_angles is None:
-        alpha = _as_array(info.horizontal_angles, np.float64).astype(np.float64)
-    else:
-        alpha = np.asarray(column_azimuth_angles, dtype=np.float64).reshape(-1)
-    if alpha.size != width:
-        raise ValidationError("column_azimuth_angles", f"length {alpha.size}",
-                              f"length {width} (LidarInfo.width)")
-    beta = _per_beam(info, "beam_azimuth_offsets", height)
-    phi = _as_array(info.vertical_angles, np.float64).astype(np.float64)
+    alpha, beta, phi = _angles(info, column_azimuth_angles)
     origins = _as_array(info.beam_origins, np.float64).astype(np.float64)
     origins = origins.reshape(height, 3) if origins.size else np.zeros((height, 3))
     delta = _per_beam(info, "beam_range_offsets", height)

@@ -1503,3 +1503,24 @@ def test_layouts_with_padding_never_recycle(tiny: tuple[Any, Any]) -> None:
         assert conv._spares == []
         assert not any(np.frombuffer(cloud.data, np.uint8).reshape(-1, 48)[:, 12:16].ravel())
         del cloud
+
+
+def test_cloud_messages_equal_normally_built_ones(tiny: tuple[Any, Any]) -> None:
+    """The converter fills message slots directly (converters._rosmsg.bare_message): the result
+    must equal the message rosidl's constructor builds from the same values."""
+    from sensor_msgs.msg import PointCloud2
+
+    from converters._rosmsg import bare_message
+
+    info, scan = tiny
+    cloud = pc.to_pointcloud2(scan, info, preset="ouster")
+    normal = PointCloud2(header=cloud.header, height=cloud.height, width=cloud.width,
+                         fields=list(cloud.fields), is_bigendian=cloud.is_bigendian,
+                         point_step=cloud.point_step, row_step=cloud.row_step,
+                         data=bytes(cloud.data), is_dense=cloud.is_dense)
+    assert cloud == normal
+    kind = "sensor_msgs/msg/PointCloud2"             # (rclpy leaves padding uninitialised)
+    assert lidarscan.encode(cloud, kind) == lidarscan.encode(normal, kind)
+    assert cloud._check_fields == normal._check_fields     # honours ROS_PYTHON_CHECK_FIELDS
+    with pytest.raises(ConversionError, match="height"):
+        bare_message(PointCloud2, width=3)                  # every field or nothing
