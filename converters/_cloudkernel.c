@@ -407,16 +407,54 @@ LSK_INLINE int64_t lsk_rc_write(char *out, int64_t point_step, int64_t xyz_offse
 }
 
 #if LSK_AVX512
+/* 16 elements first + i .. of a source image as float32, converted like (float) in C */
+__attribute__((target("avx512f"))) static inline __m512 lsk_v_load(const void *src,
+                                                                   int32_t type, int64_t i)
+{
+    switch (type) {
+    case LSK_F32: return _mm512_loadu_ps((const float *)src + i);
+    case LSK_F64:
+        return _mm512_castpd_ps(_mm512_insertf64x4(
+            _mm512_castps_pd(_mm512_castps256_ps512(
+                _mm512_cvtpd_ps(_mm512_loadu_pd((const double *)src + i)))),
+            _mm256_castps_pd(_mm512_cvtpd_ps(_mm512_loadu_pd((const double *)src + i + 8))),
+            1));
+    case LSK_U8:
+        return _mm512_cvtepi32_ps(_mm512_cvtepu8_epi32(
+            _mm_loadu_si128((const __m128i *)(const void *)((const uint8_t *)src + i))));
+    case LSK_U16:
+        return _mm512_cvtepi32_ps(_mm512_cvtepu16_epi32(
+            _mm256_loadu_si256((const __m256i *)(const void *)((const uint16_t *)src + i))));
+    case LSK_U32:
+        return _mm512_cvtepu32_ps(
+            _mm512_loadu_si512((const void *)((const uint32_t *)src + i)));
+    case LSK_I8:
+        return _mm512_cvtepi32_ps(_mm512_cvtepi8_epi32(
+            _mm_loadu_si128((const __m128i *)(const void *)((const int8_t *)src + i))));
+    case LSK_I16:
+        return _mm512_cvtepi32_ps(_mm512_cvtepi16_epi32(
+            _mm256_loadu_si256((const __m256i *)(const void *)((const int16_t *)src + i))));
+    default: /* LSK_I32 (types are checked before) */
+        return _mm512_cvtepi32_ps(_mm512_loadu_si512((const void *)((const int32_t *)src + i)));
+    }
+}
+
 /*
  * The organized x, y, z, e (extra right after z) case of a run, 16 pixels at a time with
- * AVX-512: the arithmetic of lsk_rc_xyz lane by lane (same operations, same order, no fused
- * multiply-add, so the same bits), then a 4 x 16 transpose into four 64-byte stores. Handles
- * the first n - n % 16 pixels; returns how many of them are valid.
+ * AVX-512, straight from the source images (range and extra start at their element `first`,
+ * contiguous): lsk_load + lsk_metres + lsk_rc_xyz lane by lane (same conversions, operations
+ * and order, no fused multiply-add, so the same bits), then a 4 x 16 transpose into four
+ * 64-byte stores. Handles the first n - n % 16 pixels; returns how many of them are valid.
  */
 __attribute__((target("avx512f"))) static int64_t lsk_rc_avx512(
-    char *base, int64_t point_step, const float *r, const float *e, int64_t n,
-    const float *row, const float *cols, int64_t width, int64_t c0, const float *g)
+    char *base, int64_t point_step, const void *range, int32_t range_type, const void *extra,
+    int32_t extra_type, int64_t first, int32_t scale, float mult, float offset, float *r_out,
+    int64_t n, const float *row, const float *cols, int64_t width, int64_t c0, const float *g)
 {
+    const int is_float = range_type == LSK_F32 || range_type == LSK_F64;
+    const __m512 nan = _mm512_set1_ps(lsk_nan()), zero = _mm512_setzero_ps();
+    const __m512 inf = _mm512_set1_ps(INFINITY);
+    const __m512 vmult = _mm512_set1_ps(mult), voffset = _mm512_set1_ps(offset);
     const __m512 ox = _mm512_set1_ps(row[0]), oy = _mm512_set1_ps(row[1]);
     const __m512 oz = _mm512_set1_ps(row[2]), dx = _mm512_set1_ps(row[3]);
     const __m512 dy = _mm512_set1_ps(row[4]), dz = _mm512_set1_ps(row[5]);
@@ -427,7 +465,18 @@ __attribute__((target("avx512f"))) static int64_t lsk_rc_avx512(
     const float *az = by + width, *bz = az + width;
     int64_t valid = 0, i;
     for (i = 0; i + 16 <= n; i += 16) {
-        const __m512 rv = _mm512_loadu_ps(r + i);
+        __m512 rv = lsk_v_load(range, range_type, first + i);
+        if (is_float) {
+            const __mmask16 ok = _mm512_cmp_ps_mask(rv, zero, _CMP_GT_OQ)
+                                 & _mm512_cmp_ps_mask(rv, inf, _CMP_LT_OQ);
+            rv = _mm512_mask_blend_ps(ok, nan, rv);
+        } else {
+            const __mmask16 ok = _mm512_cmp_ps_mask(rv, zero, _CMP_NEQ_UQ);
+            if (scale & LSK_MULTIPLY) rv = _mm512_mul_ps(rv, vmult);
+            if (scale & LSK_OFFSET) rv = _mm512_add_ps(rv, voffset);
+            rv = _mm512_mask_blend_ps(ok, nan, rv);
+        }
+        if (r_out) _mm512_storeu_ps(r_out + first + i, rv);
         const __m512 qx = _mm512_add_ps(ox, _mm512_mul_ps(rv, dx));
         const __m512 qy = _mm512_add_ps(oy, _mm512_mul_ps(rv, dy));
         const __m512 qz = _mm512_add_ps(oz, _mm512_mul_ps(rv, dz));
@@ -439,7 +488,7 @@ __attribute__((target("avx512f"))) static int64_t lsk_rc_avx512(
         const __m512 y = LSK_AXIS(ay, by, g1, g4);
         const __m512 z = LSK_AXIS(az, bz, g2, g5);
 #undef LSK_AXIS
-        const __m512 ev = _mm512_loadu_ps(e + i);
+        const __m512 ev = lsk_v_load(extra, extra_type, first + i);
         /* per 128-bit lane: [x y z e] of points k, k + 4, k + 8, k + 12 in register k */
         const __m512 xy_lo = _mm512_unpacklo_ps(x, y), xy_hi = _mm512_unpackhi_ps(x, y);
         const __m512 ze_lo = _mm512_unpacklo_ps(z, ev), ze_hi = _mm512_unpackhi_ps(z, ev);
@@ -485,8 +534,8 @@ static int lsk_avx512_ok(void)
 LSK_CLONES
 static int64_t lsk_rc_run(char *out, int64_t point_step, int64_t xyz_offset, int64_t first,
                           int64_t count, const void *range, int32_t range_type,
-                          const int64_t *roll, int64_t width, int32_t scale, float mult,
-                          float offset, const float *row, const float *cols, int64_t c0,
+                          int64_t src_first, int32_t scale, float mult, float offset,
+                          const float *row, const float *cols, int64_t width, int64_t c0,
                           const float *g, const void *extra, int32_t extra_type,
                           int64_t extra_offset, float *r_out, int32_t dense, int64_t valid)
 {
@@ -494,21 +543,22 @@ static int64_t lsk_rc_run(char *out, int64_t point_step, int64_t xyz_offset, int
     float z[LSK_RC_CHUNK];
     const int mode = !extra ? LSK_NO_EXTRA
                      : extra_offset == xyz_offset + 12 ? LSK_EXTRA_AFTER_Z : LSK_EXTRA_APART;
-    if (!lsk_load(rbuf, range, range_type, NULL, roll, width, first, count)) return -1;
-    if (extra && !lsk_load(ebuf, extra, extra_type, NULL, roll, width, first, count)) return -1;
-    lsk_metres(rbuf, count, range_type == LSK_F32 || range_type == LSK_F64, scale, mult, offset);
-    if (r_out) memcpy(r_out + first, rbuf, (size_t)count * sizeof(float));
 #if LSK_AVX512
     if (!dense && mode == LSK_EXTRA_AFTER_Z && count >= 16 && lsk_avx512_ok()) {
         const int64_t done = count - count % 16;
-        valid += lsk_rc_avx512(out + first * point_step + xyz_offset, point_step, rbuf, ebuf,
-                               done, row, cols, width, c0, g);
-        if (done == count) return valid;
-        lsk_rc_xyz(x, y, z, rbuf + done, count - done, row, cols, width, c0 + done, g);
-        return lsk_rc_write(out, point_step, xyz_offset, extra_offset, x, y, z, ebuf + done,
-                            first + done, count - done, valid, 0, mode);
+        /* the 16-pixel path reads the sources itself (no staging buffers) */
+        valid += lsk_rc_avx512(out + first * point_step + xyz_offset, point_step, range,
+                               range_type, extra, extra_type, src_first, scale, mult, offset,
+                               r_out ? r_out + (first - src_first) : NULL, done, row, cols,
+                               width, c0, g);
+        first += done, src_first += done, count -= done, c0 += done;
+        if (!count) return valid;
     }
 #endif
+    if (!lsk_load_run(rbuf, range, range_type, src_first, count)) return -1;
+    if (extra && !lsk_load_run(ebuf, extra, extra_type, src_first, count)) return -1;
+    lsk_metres(rbuf, count, range_type == LSK_F32 || range_type == LSK_F64, scale, mult, offset);
+    if (r_out) memcpy(r_out + first, rbuf, (size_t)count * sizeof(float));
     lsk_rc_xyz(x, y, z, rbuf, count, row, cols, width, c0, g);
     if (dense) return lsk_rc_write(out, point_step, xyz_offset, extra_offset, x, y, z, ebuf,
                                    first, count, valid, 1, mode);
@@ -541,14 +591,17 @@ LSK_EXPORT int64_t lsk_project_rc(char *out, int64_t point_step, int64_t xyz_off
         const int64_t u = j / width;
         const int64_t v = j - u * width;
         int64_t c = colshift ? v - colshift[u] : v;
+        int64_t sc = roll ? v - roll[u] : v;            /* the source image's column */
         int64_t run = end - j;
         if (c < 0) c += width;
+        if (sc < 0) sc += width;
         if (run > width - v) run = width - v;          /* stay in the row */
         if (run > width - c) run = width - c;          /* contiguous measurement columns */
+        if (run > width - sc) run = width - sc;        /* contiguous source pixels */
         if (run > LSK_RC_CHUNK) run = LSK_RC_CHUNK;
-        valid = lsk_rc_run(out, point_step, xyz_offset, j, run, range, range_type, roll, width,
-                           scale, mult, offset, rows + 6 * u, cols, c, g, extra, extra_type,
-                           extra_offset, r_out, dense, valid);
+        valid = lsk_rc_run(out, point_step, xyz_offset, j, run, range, range_type,
+                           u * width + sc, scale, mult, offset, rows + 6 * u, cols, width, c, g,
+                           extra, extra_type, extra_offset, r_out, dense, valid);
         if (valid < 0) return -1;
         j += run;
     }

@@ -1321,20 +1321,23 @@ def factored_oracle(info: Any, metres: np.ndarray, grid_destaggered: bool,
 @settings(max_examples=40, deadline=None)
 @given(height=st.integers(1, 5), width=st.integers(1, 600), seed=st.integers(0, 2**31 - 1),
        destagger=st.booleans(), staggered_input=st.booleans(), measured=st.booleans(),
-       integer=st.booleans(), organized=st.booleans(), threads=st.integers(1, 3),
+       range_dtype=st.sampled_from(["f4", "f8", "u2", "u4", "i4", "u1", "i2"]),
+       extra_dtype=st.sampled_from(["u1", "u2", "u4", "i1", "i2", "i4", "f4", "f8"]),
+       organized=st.booleans(), threads=st.integers(1, 3),
        layout=st.sampled_from([("x", "y", "z"), ("x", "y", "z", "intensity"),
                                ("x", "y", "z", "intensity", "ring"),
                                ("intensity", "x", "y", "z")]))
 def test_factored_kernel_is_bit_exact_to_its_float32_oracle(
         height: int, width: int, seed: int, destagger: bool, staggered_input: bool,
-        measured: bool, integer: bool, organized: bool, threads: int,
+        measured: bool, range_dtype: str, extra_dtype: str, organized: bool, threads: int,
         layout: tuple[str, ...]) -> None:
     """lsk_project_rc, through the converter: every byte of x, y, z equals the numpy oracle of
     its arithmetic (rows over several runs and chunks, column wrap-around of the destagger, a
-    scan's measured azimuths, integer ranges with multiplier and offset, dense output; the
-    layouts with the channel right after z, 16 and 18 bytes per point, take the 16-pixel
-    AVX-512 path where the CPU has it)."""
+    scan's measured azimuths, every source type, integer ranges with multiplier and offset,
+    dense output; the layouts with the channel right after z, 16 and 18 bytes per point, take
+    the 16-pixel AVX-512 path, which converts the sources itself, where the CPU has it)."""
     rng = np.random.default_rng(seed)
+    integer = np.dtype(range_dtype).kind != "f"
     yaw = rng.uniform(-np.pi, np.pi)
     tilt = rng.uniform(-0.3, 0.3)
     rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
@@ -1353,18 +1356,32 @@ def test_factored_kernel_is_bit_exact_to_its_float32_oracle(
         pixel_shift_by_row=rng.integers(-2 * width, 2 * width, height),
         range_multiplier=0.004 if integer else 1.0, range_offset=-0.5 if integer else 0.0,
         column_time_increment=100)
+    kind = np.dtype(range_dtype)
     if integer:
-        raw = rng.integers(0, 100_000, (height, width)).astype(np.uint32)
+        limits = np.iinfo(kind)
+        raw = rng.integers(max(limits.min, -1000), min(limits.max, 100_000), (height, width),
+                           endpoint=True).astype(kind)
         raw[rng.random((height, width)) < 0.1] = 0
         metres = raw.astype(np.float32) * np.float32(0.004) + np.float32(-0.5)
         metres[raw == 0] = np.nan
     else:
-        raw = rng.uniform(0.0, 400, (height, width)).astype(np.float32)
+        raw = rng.uniform(-5.0, 400, (height, width)).astype(kind)
         raw[rng.random((height, width)) < 0.1] = np.inf
-        metres = np.where(raw > 0, raw, np.float32(np.nan)).astype(np.float32)
-        metres[np.isinf(raw)] = np.nan
+        raw[rng.random((height, width)) < 0.05] = np.nan
+        raw[rng.random((height, width)) < 0.05] = 0.0          # zero: no return
+        raw[rng.random((height, width)) < 0.02] = -0.0
+        raw[rng.random((height, width)) < 0.02] = -np.inf
+        with np.errstate(invalid="ignore"):
+            r32 = raw.astype(np.float32)
+            metres = np.where((r32 > 0) & (r32 < np.inf), r32, np.float32(np.nan))
+        metres = metres.astype(np.float32)
     azimuths = rng.uniform(-np.pi, np.pi, width) if measured else None
-    intensity = rng.integers(0, 65535, (height, width)).astype(np.uint16)
+    if np.dtype(extra_dtype).kind == "f":
+        intensity = (rng.standard_normal((height, width)) * 1e3).astype(extra_dtype)
+    else:
+        limits = np.iinfo(extra_dtype)
+        intensity = rng.integers(limits.min, limits.max, (height, width),
+                                 endpoint=True).astype(extra_dtype)
     scan = lidarscan.make_scan(info, {"range": raw, "intensity": intensity}, 10**9,
                                as_dataclass=True, column_azimuth_angles=azimuths)
     proj = lidarscan.make_projector(info)
@@ -1390,7 +1407,8 @@ def test_factored_kernel_is_bit_exact_to_its_float32_oracle(
     got = np.stack([pts[n] for n in "xyz"], -1)
     np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
     if "intensity" in layout:
-        np.testing.assert_array_equal(pts["intensity"], inten.astype(np.float32))
+        np.testing.assert_array_equal(pts["intensity"].view(np.uint32),
+                                      inten.astype(np.float32).view(np.uint32))
 
 
 @needs_kernel
