@@ -39,6 +39,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _timing import interleaved_times  # noqa: E402 - bench/ is the script's directory
+
 import lidarscan
 from converters.ouster import info_from_metadata
 from converters.pointcloud2 import PointCloud2Converter, kernel_available, to_pointcloud2
@@ -49,21 +51,8 @@ ROUNDS = 100
 
 def interleaved_medians(candidates: dict[str, Callable[[], Any]], rounds: int = ROUNDS
                         ) -> dict[str, float]:
-    """Median ms of each candidate, run in turn round after round (shared load hits all alike),
-    in a new random order every round (so no candidate always follows the same one: what ran
-    before decides what is left in the caches)."""
-    times: dict[str, list[float]] = {name: [] for name in candidates}
-    order = list(candidates)
-    shuffle = np.random.default_rng(0).shuffle
-    for fn in candidates.values():
-        fn()
-    for _ in range(rounds):
-        shuffle(order)
-        for name in order:
-            fn = candidates[name]
-            start = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - start)
+    """Median ms of each candidate over :func:`_timing.interleaved_times` (cold caches)."""
+    times = interleaved_times(candidates, rounds)
     return {name: statistics.median(values) * 1e3 for name, values in times.items()}
 
 

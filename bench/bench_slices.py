@@ -30,12 +30,12 @@ import argparse
 import math
 import statistics
 import sys
-import time
 from typing import Any
 
 import numpy as np
 
 import lidarscan
+from _timing import interleaved_times
 from converters.laserscan import SliceConverter, SliceSpec
 
 H, W = 128, 2048
@@ -183,19 +183,7 @@ def main() -> None:
         fn()                                              # tables + JIT outside the timing
     candidates.update(ours)
 
-    # the candidates run in a new random order every round: what ran just before decides what
-    # is left in the caches, so a fixed order would always hand one candidate the leftovers of
-    # the same (heavy) predecessor
-    times: dict[str, list[float]] = {k: [] for k in candidates}
-    order = list(candidates)
-    shuffle = np.random.default_rng(0).shuffle
-    for _ in range(args.repeat):
-        shuffle(order)
-        for name in order:
-            fn = candidates[name]
-            t0 = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - t0)
+    times = interleaved_times(candidates, args.repeat)
     med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
     low = {k: min(v) * 1e3 for k, v in times.items()}
 

@@ -903,24 +903,25 @@ def kernel_and_numpy(scan: Any, info: Any, **options: Any) -> tuple[Any, Any, in
     return with_kernel, without, spies[0].calls + spies[1].calls
 
 
-def assert_identical(a: Any, b: Any) -> None:
-    """Same message, byte for byte (NaN payloads and signs of zero included)."""
+def assert_same_layout(a: Any, b: Any) -> None:
+    """Same header, fields, shape and flags."""
     assert fields_of(a) == fields_of(b)
     assert (a.height, a.width, a.point_step, a.row_step, a.is_dense, a.is_bigendian) == (
         b.height, b.width, b.point_step, b.row_step, b.is_dense, b.is_bigendian)
     assert (a.header.stamp.sec, a.header.stamp.nanosec, a.header.frame_id) == (
         b.header.stamp.sec, b.header.stamp.nanosec, b.header.frame_id)
+
+
+def assert_identical(a: Any, b: Any) -> None:
+    """Same message, byte for byte (NaN payloads and signs of zero included)."""
+    assert_same_layout(a, b)
     assert bytes(a.data) == bytes(b.data)
 
 
 def assert_equivalent(a: Any, b: Any) -> None:
     """Same message up to float32 rounding of x, y, z (the kernel's factored form against the
     numpy path's tables): every other byte identical, NaN points the same canonical NaN."""
-    assert fields_of(a) == fields_of(b)
-    assert (a.height, a.width, a.point_step, a.row_step, a.is_dense, a.is_bigendian) == (
-        b.height, b.width, b.point_step, b.row_step, b.is_dense, b.is_bigendian)
-    assert (a.header.stamp.sec, a.header.stamp.nanosec, a.header.frame_id) == (
-        b.header.stamp.sec, b.header.stamp.nanosec, b.header.frame_id)
+    assert_same_layout(a, b)
     da, db = np.frombuffer(bytes(a.data), np.uint8), np.frombuffer(bytes(b.data), np.uint8)
     assert da.size == db.size
     points = da.size // a.point_step
