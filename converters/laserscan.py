@@ -526,18 +526,29 @@ class SliceConverter:
         t = tables.sorted
         if t is None or t.rows is None or self._kernel is None:
             return None
-        rows, cols = t.rows, t.cols
+        ranges, ints = self._kernel.row_convert(
+            *self._row_args(r, t), self._size, *self._kdecode[1:],
+            *self._decode_inputs(tables, intensity), intensity is not None)
+        return ranges, ints
+
+    def _row_args(self, r: np.ndarray[Any, Any], t: _Sorted) -> tuple[Any, ...]:
+        """Arguments of :func:`converters._grid._row_fuse` before ``best`` (``t.rows`` set)."""
+        rows: Any = t.rows
+        cols = t.cols
         rmin, rmax, offset = self._kslices[2], self._kslices[3], self._kslices[5]
         g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
+        return (np.ascontiguousarray(r, np.float32), rows.src, rows.keys, cols[2], cols[3],
+                cols[4], cols[5], cols[6], rows.qf, rows.qn, rows.q_rows, rows.lo, rows.hi,
+                len(self.slices), float(rmin[0]), float(rmax[0]), rows.lo.shape[1], t.bin_thr,
+                offset, float(g_min), float(g_inc), int(g_size), bool(g_full))
+
+    @staticmethod
+    def _decode_inputs(tables: _Tables, intensity: np.ndarray[Any, Any] | None
+                       ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """(intensity image, key -> pixel map) as the compiled decoding takes them."""
         inten = _NO_VALUES if intensity is None else np.ascontiguousarray(intensity)
         key_to_pos = _NO_KEYS if tables.key_to_pos is None else tables.key_to_pos
-        ranges, ints = self._kernel.row_convert(
-            np.ascontiguousarray(r, np.float32), rows.src, rows.keys, cols[2], cols[3], cols[4],
-            cols[5], cols[6], rows.qf, rows.qn, rows.q_rows, rows.lo, rows.hi, len(self.slices),
-            float(rmin[0]), float(rmax[0]), rows.lo.shape[1], t.bin_thr, offset, float(g_min),
-            float(g_inc), int(g_size), bool(g_full), self._size, self._kdecode[1],
-            self._kdecode[2], self._kdecode[3], inten, key_to_pos, intensity is not None)
-        return ranges, ints
+        return inten, key_to_pos
 
     def _decode_all(self, best: np.ndarray[Any, Any], tables: _Tables,
                     intensity: np.ndarray[Any, Any] | None
@@ -548,9 +559,8 @@ class SliceConverter:
             return None
         ranges = np.empty(self._size, np.float32)
         ints = np.empty(self._size if intensity is not None else 0, np.float32)
-        inten = _NO_VALUES if intensity is None else np.ascontiguousarray(intensity)
-        key_to_pos = _NO_KEYS if tables.key_to_pos is None else tables.key_to_pos
-        self._kernel.decode_slices(best, *self._kdecode, inten, key_to_pos, ranges, ints)
+        self._kernel.decode_slices(best, *self._kdecode, *self._decode_inputs(tables, intensity),
+                                   ranges, ints)
         return ranges, ints
 
     def _check(self, scan: Any) -> None:
@@ -569,17 +579,11 @@ class SliceConverter:
                      ) -> None:
         """The bin-ordered compiled path (one grid, shared range limits)."""
         kernel: Any = self._kernel
+        if t.rows is not None:        # (convert() runs it with the decoding: _row_convert)
+            kernel.row_fuse(*self._row_args(r, t), best)
+            return
         rmin, rmax, offset = self._kslices[2], self._kslices[3], self._kslices[5]
         g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
-        rows = t.rows
-        if rows is not None:
-            cols = t.cols
-            kernel.row_fuse(np.ascontiguousarray(r, np.float32), rows.src, rows.keys, cols[2],
-                            cols[3], cols[4], cols[5], cols[6], rows.qf, rows.qn, rows.q_rows,
-                            rows.lo, rows.hi, len(self.slices), float(rmin[0]), float(rmax[0]),
-                            rows.lo.shape[1], t.bin_thr, offset, float(g_min), float(g_inc),
-                            int(g_size), bool(g_full), best)
-            return
         kernel.sorted_fuse(np.ascontiguousarray(r, np.float32), t.src, t.keys, *t.cols, t.qf,
                            t.qn, *self._kbands, len(self.slices), float(rmin[0]), float(rmax[0]),
                            t.bin_start, t.bin_thr, max(t.max_width, _grid.SORTED_CHUNK), offset,
