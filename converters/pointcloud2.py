@@ -689,7 +689,7 @@ class PointCloud2Converter:
         self._planes: _Planes | None = None
         self._scan_planes: tuple[np.ndarray[Any, Any], _Planes] | None = None
         self._scan_factors: tuple[np.ndarray[Any, Any], Any] | None = None
-        self._static_args: dict[tuple[int, bool], Any] = {}
+        self._static_args: tuple[Any, ...] | None = None      # see _kernel_job
         self._times_cache: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None = None
         self._layouts: dict[Any, tuple[tuple[FieldSpec, ...], int, np.dtype[Any]]] = {}
         shape = (self.height, self.width)
@@ -1035,12 +1035,12 @@ class PointCloud2Converter:
             scale = ((_KERNEL_MULTIPLY if self._mult != 1.0 else 0)
                      | (_KERNEL_OFFSET if self._offset != 0.0 else 0))
         source = factors if factors is not None else tables
-        key = (id(source), scan_dest)
-        static = self._static_args.get(key)
-        if static is None or static[0] is not source:
-            static = self._static_kernel_args(source, factors is not None, scan_dest)
-            self._static_args = {key: static}              # the latest geometry only
-        _, fn, geometry, roll_addr, keep = static
+        static = self._static_args                 # of the latest geometry and column order
+        if static is None or static[0] is not source or static[1] != scan_dest:
+            static = (source, scan_dest,
+                      *self._static_kernel_args(source, factors is not None, scan_dest))
+            self._static_args = static
+        fn, geometry, roll_addr, keep = static[2:]
         return _KernelJob(
             fn=fn, out=out, step=int(step), xyz_offset=int(plan.xyz_offset),
             range=_addr(raw), range_type=plan.raw_type,
@@ -1054,9 +1054,9 @@ class PointCloud2Converter:
             keep=(raw, image, keep), factored=factors is not None)
 
     def _static_kernel_args(self, source: Any, factored: bool, scan_dest: bool
-                            ) -> tuple[Any, Any, tuple[int | None, ...], int | None, Any]:
-        """(source, kernel function, geometry addresses, roll address, arrays to keep alive)
-        of one geometry (factors or tables) and scan column order: the same for every scan."""
+                            ) -> tuple[Any, tuple[int | None, ...], int | None, Any]:
+        """(kernel function, geometry addresses, roll address, arrays to keep alive) of one
+        geometry (factors or tables) and scan column order: the same for every scan."""
         kernels: Any = self._kfn
         roll = self._roll(scan_dest)
         geometry: tuple[int | None, ...]
@@ -1064,13 +1064,13 @@ class PointCloud2Converter:
             colshift = self._colshift()
             geometry = (None if colshift is None else _addr(colshift),
                         *(_addr(a) for a in source))
-            return (source, kernels.project_rc, geometry,
-                    None if roll is None else _addr(roll), (roll, colshift, source))
+            return (kernels.project_rc, geometry, None if roll is None else _addr(roll),
+                    (roll, colshift, source))
         if source is None:                                     # unreachable: see convert()
             raise ConversionError("kernel geometry", None, "tables or factors")
         d, o, d_addr, o_addr = source.interleaved()
-        return (source, kernels.project, (d_addr, o_addr),
-                None if roll is None else _addr(roll), (roll, d, o))
+        return (kernels.project, (d_addr, o_addr), None if roll is None else _addr(roll),
+                (roll, d, o))
 
     def _images(self, scan: Any, specs: Sequence[FieldSpec]) -> dict[str, Any]:
         """The scan channel (view) feeding each channel field; None: zero-fill (presets)."""
