@@ -39,11 +39,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import sys
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
+from converters.nodes.common import entry_points
 from lidarscan.errors import LidarScanError
 
 __all__ = ["CloudToScanCore", "geometry_matches", "main"]
@@ -229,17 +229,7 @@ def _node_class() -> type:
     return CloudToScanNode
 
 
-def __getattr__(name: str) -> Any:
-    if name == "CloudToScanNode":
-        return _node_class()
-    raise AttributeError(name)
-
-
-def main(args: Sequence[str] | None = None) -> int:
-    """Console script ``lidarscan-cloud-to-scan`` (ROS arguments after ``--ros-args``)."""
-    from converters.nodes.common import run_node
-
-    return run_node(lambda: _node_class()(), args)
+__getattr__, main = entry_points("CloudToScanNode", _node_class, "lidarscan-cloud-to-scan")
 
 
 if __name__ == "__main__":

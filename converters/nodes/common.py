@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-__all__ = ["LogLimiter", "run_node"]
+__all__ = ["LogLimiter", "entry_points", "run_node"]
 
 
 class LogLimiter:
@@ -81,3 +81,24 @@ def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) ->
                 node.destroy_node()
         try_shutdown()
     return status
+
+
+def entry_points(class_name: str, node_class: Callable[[], Any], script: str
+                 ) -> tuple[Callable[[str], Any], Callable[..., int]]:
+    """A node module's ``__getattr__`` and ``main``, assigned at its top level.
+
+    ``__getattr__`` builds the rclpy node class (``node_class()``) on the first access of
+    ``module.<class_name>``, so importing the module does not import rclpy; ``main`` is the
+    console script ``script`` (ROS arguments after ``--ros-args``), run by :func:`run_node`.
+    """
+
+    def module_getattr(name: str) -> Any:
+        if name == class_name:
+            return node_class()
+        raise AttributeError(name)
+
+    def main(args: Sequence[str] | None = None) -> int:
+        return run_node(lambda: node_class()(), args)
+
+    main.__doc__ = f"Console script ``{script}`` (ROS arguments after ``--ros-args``)."
+    return module_getattr, main

@@ -59,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from converters.nodes.common import entry_points
 from converters.nodes.params import SliceConfig, parse_extrinsics
 from lidarscan.errors import ConfigError, LidarScanError
 
@@ -436,17 +437,7 @@ def _node_class() -> type:
     return ConverterNode
 
 
-def __getattr__(name: str) -> Any:
-    if name == "ConverterNode":
-        return _node_class()
-    raise AttributeError(name)
-
-
-def main(args: Sequence[str] | None = None) -> int:
-    """Console script ``lidarscan-converter`` (ROS arguments after ``--ros-args``)."""
-    from converters.nodes.common import run_node
-
-    return run_node(lambda: _node_class()(), args)
+__getattr__, main = entry_points("ConverterNode", _node_class, "lidarscan-converter")
 
 
 if __name__ == "__main__":

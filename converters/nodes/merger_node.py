@@ -49,11 +49,12 @@ import functools
 import math
 import sys
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
+from converters.nodes.common import entry_points
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
 
 __all__ = ["MergerCore", "main"]
@@ -371,17 +372,7 @@ def _node_class() -> type:
     return MergerNode
 
 
-def __getattr__(name: str) -> Any:
-    if name == "MergerNode":
-        return _node_class()
-    raise AttributeError(name)
-
-
-def main(args: Sequence[str] | None = None) -> int:
-    """Console script ``lidarscan-merger`` (ROS arguments after ``--ros-args``)."""
-    from converters.nodes.common import run_node
-
-    return run_node(lambda: _node_class()(), args)
+__getattr__, main = entry_points("MergerNode", _node_class, "lidarscan-merger")
 
 
 if __name__ == "__main__":
