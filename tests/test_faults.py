@@ -349,13 +349,16 @@ def _decoded(out: Any) -> dict[str, int | None]:
     return result
 
 
+#: Merger options of the fault tests (library and node alike), overridden per test.
+_MERGER_OPTIONS: dict[str, Any] = {"frame_id": "base_link", "angle_increment": np.radians(1.0),
+                                   "slop_ns": 20_000_000, "policy": "timeout",
+                                   "timeout_ns": 500_000_000, "queue_size": 10,
+                                   "motion_compensation": False}
+
+
 def _merger(**options: Any) -> Any:
     merger = _converter_module("merger")
-    defaults: dict[str, Any] = {"frame_id": "base_link", "angle_increment": np.radians(1.0),
-                                "slop_ns": 20_000_000, "policy": "timeout",
-                                "timeout_ns": 500_000_000, "queue_size": 10,
-                                "motion_compensation": False}
-    defaults.update(options)
+    defaults = {**_MERGER_OPTIONS, **options}
     return merger.LaserScanMerger({"a": merger.MergerInput(), "b": merger.MergerInput()},
                                   **defaults)
 
@@ -529,11 +532,7 @@ def test_merger_recovers_from_a_clock_jump_backwards() -> None:
 
 def _merger_core(**options: Any) -> Any:
     node = _converter_module("nodes.merger_node")
-    defaults: dict[str, Any] = {"frame_id": "base_link", "angle_increment": np.radians(1.0),
-                                "slop_ns": 20_000_000, "policy": "timeout",
-                                "timeout_ns": 500_000_000, "queue_size": 10,
-                                "motion_compensation": False}
-    defaults.update(options)
+    defaults = {**_MERGER_OPTIONS, **options}
     return node.MergerCore({"a": {}, "b": {}}, **defaults)
 
 

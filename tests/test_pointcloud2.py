@@ -1197,6 +1197,22 @@ def test_kernel_option_and_env_switch(tiny: tuple[Any, Any], monkeypatch: Any) -
     assert pc._load_kernel() is None
 
 
+def fallback_case() -> tuple[Any, Any]:
+    """(info, scan) of the LIDARSCAN_NO_KERNEL test, built alike in the test and its child."""
+    info = lidarscan.make_info(
+        stamp_ns=7, frame_id="lidar", vertical_angles=np.radians([10.0, 3.0, -3.0, -10.0]),
+        horizontal_angles=2 * np.pi * (1 - np.arange(12) / 12),
+        beam_origins=np.linspace(-0.02, 0.02, 12), pixel_shift_by_row=[3, 2, 1, 0],
+        column_time_increment=1000)
+    rng = np.random.default_rng(5)
+    ranges = rng.uniform(0.5, 50, (4, 12)).astype(np.float32)
+    ranges[0, 1], ranges[1, 2], ranges[2, 3], ranges[3, 4] = np.inf, np.nan, 0.0, -np.inf
+    scan = lidarscan.make_scan(
+        info, {"range": ranges, "intensity": rng.integers(0, 999, (4, 12)).astype(np.uint16)},
+        10**9)
+    return info, scan
+
+
 _NO_KERNEL_SCRIPT = """
 import hashlib, sys
 import numpy as np
@@ -1204,18 +1220,8 @@ import lidarscan
 from converters import pointcloud2 as pc
 from lidarscan.errors import ConfigError
 sys.path.insert(0, sys.argv[1])
-from test_pointcloud2 import destaggered
-info = lidarscan.make_info(
-    stamp_ns=7, frame_id="lidar", vertical_angles=np.radians([10.0, 3.0, -3.0, -10.0]),
-    horizontal_angles=2 * np.pi * (1 - np.arange(12) / 12),
-    beam_origins=np.linspace(-0.02, 0.02, 12), pixel_shift_by_row=[3, 2, 1, 0],
-    column_time_increment=1000)
-rng = np.random.default_rng(5)
-ranges = rng.uniform(0.5, 50, (4, 12)).astype(np.float32)
-ranges[0, 1], ranges[1, 2], ranges[2, 3], ranges[3, 4] = np.inf, np.nan, 0.0, -np.inf
-scan = lidarscan.make_scan(info, {"range": ranges,
-                                  "intensity": rng.integers(0, 999, (4, 12)).astype(np.uint16)},
-                           10**9)
+from test_pointcloud2 import destaggered, fallback_case
+info, scan = fallback_case()
 assert not pc.kernel_available()
 try:
     pc.PointCloud2Converter(info, kernel=True)
@@ -1232,8 +1238,8 @@ for source in (scan, destaggered(scan, info)):
 
 
 def test_numpy_fallback_with_no_kernel_env(tmp_path: Path) -> None:
-    """LIDARSCAN_NO_KERNEL=1: the kernel is not loaded and the clouds are the same bytes as
-    the kernel's (here) and numpy's (in a child process)."""
+    """LIDARSCAN_NO_KERNEL=1: the kernel is not loaded; the child's clouds are the same bytes
+    as numpy's here (and equivalent to the kernel's)."""
     import hashlib
     import os
 
@@ -1245,17 +1251,7 @@ def test_numpy_fallback_with_no_kernel_env(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     child = out.stdout.split("\n")[:-1]
     assert len(child) == 8
-    info = lidarscan.make_info(
-        stamp_ns=7, frame_id="lidar", vertical_angles=np.radians([10.0, 3.0, -3.0, -10.0]),
-        horizontal_angles=2 * np.pi * (1 - np.arange(12) / 12),
-        beam_origins=np.linspace(-0.02, 0.02, 12), pixel_shift_by_row=[3, 2, 1, 0],
-        column_time_increment=1000)
-    rng = np.random.default_rng(5)
-    ranges = rng.uniform(0.5, 50, (4, 12)).astype(np.float32)
-    ranges[0, 1], ranges[1, 2], ranges[2, 3], ranges[3, 4] = np.inf, np.nan, 0.0, -np.inf
-    scan = lidarscan.make_scan(
-        info, {"range": ranges, "intensity": rng.integers(0, 999, (4, 12)).astype(np.uint16)},
-        10**9)
+    info, scan = fallback_case()
     mine = []
     for source in (scan, destaggered(scan, info)):
         for options in ({}, {"organized": False}, {"preset": "ouster"}, {"preset": "velodyne"}):
