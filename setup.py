@@ -1,7 +1,8 @@
 """Build of the optional compiled kernel; all other metadata lives in pyproject.toml.
 
-``converters/_cloudkernel.c`` speeds up LidarScan -> PointCloud2 (converters/pointcloud2.py).
-It is optional: without a C compiler the install still succeeds and the numpy path is used.
+``converters/_cloudkernel.c`` speeds up LidarScan -> PointCloud2 (converters/pointcloud2.py),
+``converters/_slicekernel.c`` LidarScan -> LaserScan slices (converters/laserscan.py). Both are
+optional: without a C compiler the install still succeeds and the numba / numpy paths are used.
 (A setup.py because ``[tool.setuptools] ext-modules`` needs setuptools >= 74.1.)
 """
 
@@ -26,6 +27,8 @@ class BuildExt(build_ext):  # type: ignore[misc]
 
 setup(
     ext_modules=[Extension("converters._cloudkernel", ["converters/_cloudkernel.c"],
+                           optional=True),
+                 Extension("converters._slicekernel", ["converters/_slicekernel.c"],
                            optional=True)],
     cmdclass={"build_ext": BuildExt},
 )

@@ -13,9 +13,10 @@ table-to-head 0.8-1.8 m, low obstacles 0.02-0.3 m.
 Candidates:
 
 * ``SliceConverter.convert`` (ours): all 4 slices in one pass, including building the 4 rclpy
-  LaserScan messages; the compiled (numba) bin-ordered kernel when numba is installed, and the
-  numpy backend (same algorithm with ``minimum.reduceat``). Both use tables precomputed once per
-  LidarInfo version (outside the timing, like the JIT).
+  LaserScan messages; the default backend (the C kernel converters/_slicekernel.c when built),
+  the numba kernel when numba is installed, and the numpy backend (same algorithm with
+  ``minimum.reduceat``). All use tables precomputed once per LidarInfo version (outside the
+  timing, like the JIT).
 * baseline ``p2l``: pointcloud_to_laserscan's per-point algorithm on the equivalent organised
   cloud (x, y, z float32 in base_link, NaN where no return), one pass per slice as four nodes
   would run it: NaN check, height test, hypot, range test, atan2, angle test, bin = trunc, keep
@@ -174,6 +175,9 @@ def main() -> None:
     candidates["p2l vectorised numpy"] = p2l_np
 
     ours: dict[str, Any] = {}
+    conv_auto = SliceConverter(info, specs, **common)
+    if conv_auto._c_kernel:
+        ours["ours, one pass (C kernel)"] = lambda: conv_auto.convert(scan)
     if have_numba:
         conv = SliceConverter(info, specs, backend="numba", **common)
         ours["ours, one pass (numba kernel)"] = lambda: conv.convert(scan)
@@ -206,7 +210,13 @@ def main() -> None:
         srt = next(iter(conv._tables.values())).sorted
         path = ("per-pixel passes" if srt is None else "bin-ordered kernel" if srt.rows is None
                 else "row-ordered kernel (per-row float32 band intervals)")
-        print("  compiled path:", path)
+        print("  numba path:", path)
+    if conv_auto._c_kernel:
+        t = next(iter(conv_auto._tables.values()))
+        rows = None if t.sorted is None else t.sorted.rows
+        used = rows is not None and rows.c_plan(t, conv_auto.slices) is not None
+        print("  C kernel:", "row-ordered, streamed in pixel order" if used
+              else "does not apply here (the numba / numpy path runs)")
 
 
 if __name__ == "__main__":

@@ -31,16 +31,23 @@ The usual case, a full circle at the sensor's column resolution seen by an uprig
 upside-down) sensor, has one pixel of every row per bin and ``dz``, ``oz`` constant along each
 row: then the height test is an exact per-row float32 range interval and fusion and decoding run
 in one compiled call (:func:`converters._grid._row_fuse`, :func:`converters._grid._row_convert`).
+When moreover every row maps its columns onto the bins as ``start + step*c mod W`` (always, for
+a real spinning sensor) the optional C kernel ``converters/_slicekernel.c``
+(:mod:`converters._slicec`) does the same without any gather: it streams the scan row by row in
+pixel order, updates eight consecutive bins per vector step, and skips the slices a row cannot
+reach (beams pointing up never see a band below the sensor); bit-identical results.
 Measured on the benchmark's OS-1-128-like sensor on the target's z axis: 0.000 of the pixels (the
 sensor's own 15.8 mm beam offsets only matter within a few cm). With the sensor far off the
 target's z axis (e.g. 0.3 m in front of ``base_link``) most in-band points need atan2 (about 5x
 slower): prefer a target frame below the sensor. Scans carrying ``column_azimuth_angles``
 rebuild the tables for every scan (correct, not fast).
 
-Backends: compiled numba kernels when numba is installed (the bin-ordered kernel above; else one
-pass over the pixels for all slices, with a row-wise path when all slices share a full circle at
-the sensor's column resolution), else numpy. Both give identical slices (up to points within an
-ulp of a bin edge, where numpy's SIMD ``atan2`` may differ from libm's in the last bit).
+Backends: the C kernel where it applies (built by ``pip install`` when a C compiler is
+available; ``LIDARSCAN_NO_KERNEL=1`` disables it), else compiled numba kernels when numba is
+installed (the bin-ordered kernel above; else one pass over the pixels for all slices, with a
+row-wise path when all slices share a full circle at the sensor's column resolution), else
+numpy. All give identical slices (up to points within an ulp of a bin edge, where numpy's SIMD
+``atan2`` may differ from libm's in the last bit).
 
 Time fields: ``header.stamp`` is the scan's stamp (measurement column 0), identical for all slices
 of a scan; ``scan_time`` is ``W * column_time_increment`` (or from ``column_time_offsets``);
@@ -62,7 +69,7 @@ from typing import Any
 
 import numpy as np
 
-from converters import _grid
+from converters import _grid, _slicec
 from converters._grid import AngleGrid, OutputOptions
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
 from lidarscan.geometry import info_key, make_projector
@@ -272,6 +279,44 @@ class _RowLayout:
         self.lo, self.hi = lo, hi
         #: qualifiers per row ((H,), the same in every bin) or per position ((n,), bin order)
         self.q_rows, self.qf, self.qn = q_rows, qf, qn
+        self._c_plan: _slicec.SlicePlan | None = None
+        self._c_plan_tried = False
+
+    def c_plan(self, t: _Tables, slices: list[_Slice]) -> _slicec.SlicePlan | None:
+        """Arguments of the compiled kernel (converters/_slicekernel.c), built at the first
+        call; None when its extra condition fails: bins and tie keys of every row affine in
+        the column (``start + step*c mod W``), at most 32 slices."""
+        if self._c_plan_tried:
+            return self._c_plan
+        self._c_plan_tried = True
+        height = self.lo.shape[1]
+        width = t.n // height
+        cols = np.arange(width)
+        keys = (np.broadcast_to(cols, (height, width)) if t.keys is None
+                else t.keys.reshape(height, width) - np.arange(height)[:, None] * width)
+        bin_rows = _slicec.affine_rows(t.bin_far[0].reshape(height, width), width)
+        key_rows = _slicec.affine_rows(keys, width)
+        if bin_rows is None or key_rows is None or len(slices) > _slicec.MAX_SLICES:
+            return None
+        if self.q_rows:
+            qf, qn = self.qf, self.qn
+        else:                                     # per pixel, in pixel order
+            qf = np.zeros(t.n, np.uint32)
+            qn = np.zeros(t.n, np.uint32)
+            for s, (far_ok, near_ok) in enumerate(zip(t.q_far, t.q_near)):
+                qf |= far_ok.astype(np.uint32) << np.uint32(s)
+                qn |= near_ok.astype(np.uint32) << np.uint32(s)
+        grid, options = slices[0].grid, slices[0].options
+        self._c_plan = _slicec.SlicePlan(
+            height=height, width=width, n_slices=len(slices), dx=t.dx, dy=t.dy, ox=t.ox,
+            oy=t.oy, r_thr=t.k_r_thr[0], bins=bin_rows, keys=key_rows, qf=qf, qn=qn,
+            lo=self.lo, hi=self.hi, lim_lo=float(options.range_min),
+            lim_hi=float(options.range_max), g_min=grid.angle_min, g_inc=grid.increment,
+            g_full=grid.full_circle,
+            inf_value=np.array([s.options.inf_value for s in slices], np.float32),
+            fill_value=np.array([s.options.fill_value for s in slices], np.float32),
+            key_to_pos=t.key_to_pos)
+        return self._c_plan
 
     @classmethod
     def create(cls, t: _Tables, st: _Sorted, size: int, slices: list[_Slice], width: int
@@ -323,9 +368,10 @@ class SliceConverter:
             dtype, cast to float32), or None for an empty ``intensities``.
         use_inf, inf_epsilon, fill: output values (see :class:`converters._grid.OutputOptions`).
         range_channel: the range channel (float metres or integer with the info's multiplier).
-        backend: ``"auto"`` (the compiled kernel of :func:`converters._grid.numba_kernel` when
-            numba is installed, else numpy), ``"numba"`` or ``"numpy"``. Both give the same
-            slices (up to points within an ulp of a bin edge).
+        backend: ``"auto"`` (the C kernel of :mod:`converters._slicec` where it applies and is
+            built, else the compiled kernels of :func:`converters._grid.numba_kernel` when numba
+            is installed, else numpy), ``"numba"`` (numba kernels only) or ``"numpy"``. All give
+            the same slices (up to points within an ulp of a bin edge).
 
     Raises:
         ConfigError: a bad option (empty band set, inverted band, increment <= 0, ...).
@@ -341,6 +387,7 @@ class SliceConverter:
         if backend not in ("auto", "numba", "numpy"):
             raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
         self._kernel = None if backend == "numpy" else _grid.numba_kernel()
+        self._c_kernel = backend == "auto" and _slicec.available()
         if backend == "numba" and self._kernel is None:
             raise ConfigError("backend", backend, "numba installed (pip install numba)")
         if not slices:
@@ -524,7 +571,14 @@ class SliceConverter:
         """Fusion and decoding in one compiled call (:func:`converters._grid._row_convert`)
         when the row-ordered kernel applies, else None."""
         t = tables.sorted
-        if t is None or t.rows is None or self._kernel is None:
+        if t is None or t.rows is None:
+            return None
+        if self._c_kernel:
+            plan = t.rows.c_plan(tables, self.slices)
+            if plan is not None:
+                ranges, ints, _ = plan.run(r, intensity)
+                return ranges, ints
+        if self._kernel is None:
             return None
         ranges, ints = self._kernel.row_convert(
             *self._row_args(r, t), self._size, *self._kdecode[1:],

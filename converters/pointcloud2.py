@@ -122,7 +122,6 @@ import ctypes
 import dataclasses
 import itertools
 import math
-import os
 import sys
 import threading
 from collections import OrderedDict
@@ -140,6 +139,7 @@ from lidarscan.errors import (
     UnknownChannelError,
     ValidationError,
 )
+from converters import _ckernel
 from converters._rosmsg import bare_message
 from lidarscan.geometry import info_key, make_projector
 from lidarscan.scan import _as_array, channel, make_info, make_scan
@@ -179,8 +179,6 @@ _KERNEL_ABI = 3
 #: Source type codes of the kernel (native byte order only).
 _KERNEL_TYPES = {"f4": 0, "f8": 1, "u1": 2, "u2": 3, "u4": 4, "i1": 5, "i2": 6, "i4": 7}
 _KERNEL_MULTIPLY, _KERNEL_OFFSET = 1, 2
-_kernel_lock = threading.Lock()
-_kernel_cache: list[Any] = []
 
 
 #: Output buffers a converter keeps for reuse (the caller may hold the previous messages).
@@ -202,27 +200,15 @@ def _kernel() -> _Kernels | None:
     or the environment variable ``LIDARSCAN_NO_KERNEL`` is set to anything but "" / "0" (read at
     the first conversion of the process).
     """
-    with _kernel_lock:
-        if not _kernel_cache:
-            _kernel_cache.append(_load_kernel())
-        return _kernel_cache[0]
+    kernels: _Kernels | None = _kernel_once.get()
+    return kernels
 
 
 def _load_kernel() -> Any:
-    if os.environ.get("LIDARSCAN_NO_KERNEL", "") not in ("", "0"):
+    lib = _ckernel.load_library("converters._cloudkernel", "lsk_abi", _KERNEL_ABI)
+    if lib is None:
         return None
-    try:
-        import importlib
-
-        _cloudkernel = importlib.import_module("converters._cloudkernel")
-        lib = ctypes.CDLL(_cloudkernel.__file__)
-        lib.lsk_abi.restype = ctypes.c_int32
-        lib.lsk_abi.argtypes = []
-        if lib.lsk_abi() != _KERNEL_ABI or getattr(_cloudkernel, "ABI", None) != _KERNEL_ABI:
-            return None
-        fn, rc = lib.lsk_project, lib.lsk_project_rc
-    except (ImportError, OSError, AttributeError):
-        return None
+    fn, rc = lib.lsk_project, lib.lsk_project_rc
     i64, i32, f32, ptr = ctypes.c_int64, ctypes.c_int32, ctypes.c_float, ctypes.c_void_p
     fn.restype = i64
     fn.argtypes = [ptr, i64, i64, i64, i64,          # out, point_step, xyz_offset, start, n
@@ -241,6 +227,9 @@ def _load_kernel() -> Any:
                    ptr, i32, i64,                    # extra, extra_type, extra_offset
                    ptr, i32]                         # r_out, dense
     return _Kernels(fn, rc)
+
+
+_kernel_once = _ckernel.LoadOnce(_load_kernel)
 
 
 def kernel_available() -> bool:

@@ -678,6 +678,15 @@ def test_points_at_their_far_field_threshold(sensor: Any, backend: str) -> None:
 
 # ---------------------------------------------------------------------------- properties
 
+SPECIALS = [np.inf, -np.inf, np.nan, 0.0, -2.0]      # every non-point range class
+
+
+def draw_image(draw: Any, height: int, width: int, values: Any, dtype: Any) -> np.ndarray:
+    """A (height, width) image of ``dtype`` drawn element by element from ``values``."""
+    return np.array(draw(st.lists(values, min_size=height * width, max_size=height * width)),
+                    dtype).reshape(height, width)
+
+
 @st.composite
 def slice_case(draw: Any) -> tuple[Any, Any, dict[str, Any]]:
     height = draw(st.integers(1, 5))
@@ -693,12 +702,9 @@ def slice_case(draw: Any) -> tuple[Any, Any, dict[str, Any]]:
     info = lidarscan.make_info(stamp_ns=3, frame_id="l", vertical_angles=vert,
                                horizontal_angles=TWO_PI * (1 - np.arange(width) / width)
                                + draw(st.floats(-1, 1)), as_dataclass=True, **fields)
-    values = st.one_of(st.floats(0.015625, 10, width=32),
-                       st.sampled_from([np.inf, -np.inf, np.nan, 0.0, -2.0]))
-    r = np.array(draw(st.lists(values, min_size=height * width, max_size=height * width)),
-                 np.float32).reshape(height, width)
-    inten = np.array(draw(st.lists(st.integers(0, 3), min_size=height * width,
-                                   max_size=height * width)), np.float32).reshape(r.shape)
+    r = draw_image(draw, height, width, st.one_of(st.floats(0.015625, 10, width=32),
+                                                  st.sampled_from(SPECIALS)), np.float32)
+    inten = draw_image(draw, height, width, st.integers(0, 3), np.float32)
     scan = lidarscan.make_scan(info, {"range": r, "intensity": inten}, 0, as_dataclass=True)
     zmin = draw(st.floats(-1.5, 1.5))
     amin = draw(st.floats(-4, 1))
@@ -754,20 +760,22 @@ def test_property_full_circle_wrap(case: Any) -> None:
 
 
 def test_numba_is_optional() -> None:
-    """With the compiled kernels disabled (or numba missing) everything runs on numpy."""
+    """With the compiled kernels disabled (numba missing, the C kernel not built) everything
+    runs on numpy."""
     import subprocess
     import sys
     code = ("import numpy as np, math, lidarscan\n"
             "from converters import _grid\n"
             "from converters.laserscan import to_laserscan\n"
-            "assert _grid.numba_kernel() is None\n"
+            "from converters import _slicec\n"
+            "assert _grid.numba_kernel() is None and not _slicec.available()\n"
             "info = lidarscan.make_info(stamp_ns=1, frame_id='l', vertical_angles=[0.0],\n"
             "    horizontal_angles=[0.0, math.pi], as_dataclass=True)\n"
             "scan = lidarscan.make_scan(info, {'range': np.ones((1, 2), np.float32)}, 0,\n"
             "    as_dataclass=True)\n"
             "out = to_laserscan(scan, info, min_height=-1, max_height=1, intensity_channel=None)\n"
             "assert list(out.ranges) == [1.0, 1.0]\n")
-    env = {**__import__("os").environ, "LIDARSCAN_NUMBA": "0"}
+    env = {**__import__("os").environ, "LIDARSCAN_NUMBA": "0", "LIDARSCAN_NO_KERNEL": "1"}
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                           check=False)
     assert done.returncode == 0, done.stderr
