@@ -34,7 +34,7 @@
 #include <string.h>
 
 /* Bump with any change of lss_plan or of a function's signature or semantics. */
-#define LSS_ABI 1
+#define LSS_ABI 2
 
 #define LSS_EMPTY INT64_MAX
 #define LSS_CODE_NEG_INF 0x7F800000
@@ -399,6 +399,16 @@ static int lss_avx512_ok(void)
     return known;
 }
 #endif
+
+/* Whether lss_slices takes the vector path on this CPU (with simd = 1). */
+LSS_EXPORT int32_t lss_vectorised(void)
+{
+#if LSS_AVX512
+    return lss_avx512_ok();
+#else
+    return 0;
+#endif
+}
 
 /* intensity[pix] as float32 (a C cast: numpy's astype); 0 for an unknown type */
 LSS_INLINE float lss_intensity(const void *src, int32_t type, int64_t pix)

@@ -369,7 +369,7 @@ class SliceConverter:
         use_inf, inf_epsilon, fill: output values (see :class:`converters._grid.OutputOptions`).
         range_channel: the range channel (float metres or integer with the info's multiplier).
         backend: ``"auto"`` (the C kernel of :mod:`converters._slicec` where it applies and is
-            built, else the compiled kernels of :func:`converters._grid.numba_kernel` when numba
+            built, on CPUs with AVX-512 or without numba; else the compiled kernels of :func:`converters._grid.numba_kernel` when numba
             is installed, else numpy), ``"numba"`` (numba kernels only) or ``"numpy"``. All give
             the same slices (up to points within an ulp of a bin edge).
 
@@ -387,7 +387,9 @@ class SliceConverter:
         if backend not in ("auto", "numba", "numpy"):
             raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
         self._kernel = None if backend == "numpy" else _grid.numba_kernel()
-        self._c_kernel = backend == "auto" and _slicec.available()
+        # the C kernel's scalar path (no AVX-512) is slower than numba's kernel
+        self._c_kernel = backend == "auto" and _slicec.available() and (
+            _slicec.vectorised() or self._kernel is None)
         if backend == "numba" and self._kernel is None:
             raise ConfigError("backend", backend, "numba installed (pip install numba)")
         if not slices:

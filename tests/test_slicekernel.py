@@ -47,6 +47,13 @@ def assert_bits(a: Any, b: Any) -> None:
     np.testing.assert_array_equal(ia, ib)
 
 
+def kernel_converter(*args: Any, **kw: Any) -> SliceConverter:
+    """A converter on the kernel, even where "auto" would prefer numba (no AVX-512)."""
+    conv = SliceConverter(*args, **kw)
+    conv._c_kernel = True
+    return conv
+
+
 def c_plan(conv: SliceConverter, scan: Any) -> Any:
     tables = conv._tables_for(scan)
     rows = None if tables.sorted is None else tables.sorted.rows
@@ -75,7 +82,7 @@ def test_kernel_equals_numba_numpy_and_oracle(mount: str, n_slices: int, destagg
     bands = {f"s{i}": (-0.2 + 0.3 * i, 0.35 + 0.3 * i) for i in range(n_slices)}
     specs = {k: SliceSpec(*v) for k, v in bands.items()}
     kw = {"extrinsics": ext, "frame_id": "b"}
-    conv = SliceConverter(sensor, specs, **kw)
+    conv = kernel_converter(sensor, specs, **kw)
     assert c_plan(conv, scan) is not None
     out = conv.convert(scan)
     if mount == "offset":
@@ -142,7 +149,7 @@ def row_case(draw: Any) -> tuple[Any, Any, dict[str, Any], dict[str, Any]]:
 @given(row_case())
 def test_property_kernel_equals_numba_and_numpy(case: Any) -> None:
     info, scan, specs, kw = case
-    conv = SliceConverter(info, specs, **kw)
+    conv = kernel_converter(info, specs, **kw)
     expect = [o.convert(scan) for o in others(info, specs, **kw)]
     for mode in (1, 0):
         _slicec.SIMD = mode
@@ -172,7 +179,7 @@ def test_per_pixel_qualifiers(simd: int) -> None:
     scan = room_scan(sensor, ext)
     specs = {"a": SliceSpec(0.05, 0.5), "b": SliceSpec(0.3, 1.5), "c": SliceSpec(-1.0, 0.2)}
     kw = {"extrinsics": ext, "frame_id": "b", "range_min": 0.5, "range_max": 3.0}
-    conv = SliceConverter(sensor, specs, **kw)
+    conv = kernel_converter(sensor, specs, **kw)
     per_row = conv.convert(scan)
     tables = conv._tables_for(scan)
     rows = tables.sorted.rows
@@ -195,7 +202,7 @@ def test_intensity_types(dtype: str) -> None:
     ext = MOUNTS["level"]
     scan = room_scan(sensor, ext, intensity_dtype=np.dtype(dtype))
     specs = {"a": SliceSpec(0.05, 0.5)}
-    conv = SliceConverter(sensor, specs, extrinsics=ext, frame_id="b")
+    conv = kernel_converter(sensor, specs, extrinsics=ext, frame_id="b")
     assert c_plan(conv, scan) is not None
     out = conv.convert(scan)["a"]
     ref = SliceConverter(sensor, specs, extrinsics=ext, frame_id="b",
@@ -225,7 +232,10 @@ def test_backend_choice_and_kill_switch(monkeypatch: pytest.MonkeyPatch) -> None
     (ABI) or a different plan layout disable it."""
     sensor = make_sensor()
     specs = {"a": SliceSpec(0.05, 0.5)}
-    assert SliceConverter(sensor, specs)._c_kernel
+    assert SliceConverter(sensor, specs)._c_kernel == (_slicec.vectorised() or not HAVE_NUMBA)
+    monkeypatch.setattr(_slicec, "vectorised", lambda: False)   # a CPU without AVX-512
+    assert SliceConverter(sensor, specs)._c_kernel == (not HAVE_NUMBA)
+    monkeypatch.undo()
     assert not SliceConverter(sensor, specs, backend="numpy")._c_kernel
     if HAVE_NUMBA:
         assert not SliceConverter(sensor, specs, backend="numba")._c_kernel
@@ -278,7 +288,7 @@ def test_scans_of_one_class(value: float, mount: str, simd: int) -> None:
     bands = {"around": (0.0, 1.0), "origin_up": (oz, oz + 2.0), "origin_down": (oz - 2.0, oz),
              "far": (-30.0, -20.0)}
     specs = {k: SliceSpec(*v) for k, v in bands.items()}
-    conv = SliceConverter(sensor, specs, extrinsics=ext, frame_id="b")
+    conv = kernel_converter(sensor, specs, extrinsics=ext, frame_id="b")
     assert c_plan(conv, scan) is not None
     out = conv.convert(scan)
     for other in others(sensor, specs, extrinsics=ext, frame_id="b"):
