@@ -1293,8 +1293,10 @@ SORTED_CHUNK = 512
 
 def aligned_rows(bin_far: np.ndarray[Any, Any], width: int, size: int
                  ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
-    """(row_start, row_step) if every row of far-field bins is ``start + step*c mod size`` with
-    step +-1 and ``size == width`` (a full circle at the sensor's resolution), else None."""
+    """(row_start, row_step) if every row (``width`` columns) of the integer array ``bin_far``
+    (far-field bins, or any per-pixel column index such as tie-key columns) is
+    ``start + step*c mod size`` with step +-1 and ``size == width`` (a full circle at the
+    sensor's resolution), else None."""
     if size != width or width < 2 or bin_far.size % width:
         return None
     rows = bin_far.reshape(-1, width).astype(np.int64)

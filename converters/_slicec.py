@@ -83,31 +83,13 @@ def vectorised() -> bool:
     return fn is not None and bool(fn.vectorised)
 
 
-def affine_rows(cols: np.ndarray[Any, Any], width: int
-                ) -> tuple[np.ndarray[Any, np.dtype[np.int64]],
-                           np.ndarray[Any, np.dtype[np.int64]]] | None:
-    """(start, step) int64 (H,) if every row of the (H, W) integer array ``cols`` is
-    ``start + step*c mod width`` with ``0 <= start < width`` and step +-1, else None."""
-    if cols.ndim != 2 or cols.shape[1] != width or width < 2:
-        return None
-    rows = cols.astype(np.int64)
-    if np.any(rows < 0) or np.any(rows >= width):
-        return None
-    start = rows[:, 0]
-    step = np.where((rows[:, 1] - start) % width == 1, 1, -1).astype(np.int64)
-    expect = (start[:, None] + step[:, None] * np.arange(width)[None, :]) % width
-    if not np.array_equal(rows, expect):
-        return None
-    return np.ascontiguousarray(start), np.ascontiguousarray(step)
-
-
 class SlicePlan:
     """Everything the kernel needs but the scan, for one table version (arrays kept alive here).
 
     Args:
         dx, dy, ox, oy: (H*W,) float32 rays in the target frame, pixel order.
         r_thr: (H*W,) float32 far-field thresholds, rounded up, pixel order.
-        bins: (start, step) of the far-field bins per row (:func:`affine_rows`).
+        bins: (start, step) of the far-field bins per row (:func:`converters._grid.aligned_rows`).
         keys: (start, step) of the tie-key columns per row (key = u*W + column).
         qf, qn: uint bit masks of the qualifiers, (H,) per row or (H*W,) in pixel order.
         lo, hi: (>= S, H) float32 band intervals (rows beyond S ignored).

@@ -294,8 +294,8 @@ class _RowLayout:
         cols = np.arange(width)
         keys = (np.broadcast_to(cols, (height, width)) if t.keys is None
                 else t.keys.reshape(height, width) - np.arange(height)[:, None] * width)
-        bin_rows = _slicec.affine_rows(t.bin_far[0].reshape(height, width), width)
-        key_rows = _slicec.affine_rows(keys, width)
+        bin_rows = _grid.aligned_rows(t.bin_far[0], width, width)
+        key_rows = _grid.aligned_rows(keys, width, width)
         if bin_rows is None or key_rows is None or len(slices) > _slicec.MAX_SLICES:
             return None
         if self.q_rows:

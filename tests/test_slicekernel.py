@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan
-from converters import _slicec
+from converters import _grid, _slicec
 from converters.laserscan import SliceConverter, SliceSpec
 from grid_reference import pose
 from test_laserscan import (MOUNTS, SPECIALS, TWO_PI, arrays, draw_image, make_sensor,
@@ -211,20 +211,21 @@ def test_intensity_types(dtype: str) -> None:
     assert np.count_nonzero(arrays(out)[1]) > 10
 
 
-def test_affine_rows() -> None:
+def test_aligned_rows() -> None:
+    """(Also the kernel's test of its tie-key columns.)"""
     w = 6
     fwd = (np.array([[2], [5]]) + np.arange(w)) % w
-    start, step = _slicec.affine_rows(fwd, w)
+    start, step = _grid.aligned_rows(fwd, w, w)
     assert start.tolist() == [2, 5] and step.tolist() == [1, 1]
     back = (np.array([[0], [3]]) - np.arange(w)) % w
-    start, step = _slicec.affine_rows(np.vstack([fwd[:1], back[1:]]), w)
+    start, step = _grid.aligned_rows(np.vstack([fwd[:1], back[1:]]), w, w)
     assert start.tolist() == [2, 3] and step.tolist() == [1, -1]
     swapped = fwd.copy()
     swapped[1, [2, 3]] = swapped[1, [3, 2]]
-    assert _slicec.affine_rows(swapped, w) is None
-    assert _slicec.affine_rows(fwd + w, w) is None           # out of range
-    assert _slicec.affine_rows(fwd[:, :4], w) is None        # wrong width
-    assert _slicec.affine_rows(np.zeros((2, 1), np.int64), 1) is None
+    assert _grid.aligned_rows(swapped, w, w) is None
+    assert _grid.aligned_rows(fwd + w, w, w) is None           # out of range
+    assert _grid.aligned_rows(fwd[:, :4], w, w) is None        # wrong width
+    assert _grid.aligned_rows(np.zeros((2, 1), np.int64), 1, 1) is None
 
 
 def test_backend_choice_and_kill_switch(monkeypatch: pytest.MonkeyPatch) -> None:
