@@ -93,6 +93,7 @@ _MODELS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
 _TOLERANCE = 1e-12       # undistortion residual, normalised image units
 _SAME_RAYS = 1e-9        # rad: raw and rectified models count as the same below this
 _MAX_ITER = 50
+_CHUNK = 8192          # points per block (numpy temporaries of 64 KiB)
 _CACHE_SIZE = 8
 
 
@@ -247,7 +248,21 @@ def undistort(xd: Any, yd: Any, model: str, d: Any
         Jacobian, a fisheye angle >= 90 deg); there the ray is the pinhole ray of (xd, yd).
     """
     c = _coefficients(model, tuple(float(v) for v in np.asarray(d, np.float64).reshape(-1)))
-    xd, yd = np.asarray(xd, np.float64), np.asarray(yd, np.float64)
+    xd, yd = np.broadcast_arrays(np.asarray(xd, np.float64), np.asarray(yd, np.float64))
+    shape = xd.shape
+    flat_x, flat_y = xd.reshape(-1), yd.reshape(-1)
+    rays = np.empty((flat_x.size, 3))
+    ok = np.empty(flat_x.size, bool)
+    # blocks of a few thousand points: the temporaries stay in cache and are not mmapped anew
+    for start in range(0, flat_x.size, _CHUNK):
+        part = slice(start, start + _CHUNK)
+        rays[part], ok[part] = _undistort_block(flat_x[part], flat_y[part], model, c)
+    return rays.reshape(shape + (3,)), ok.reshape(shape)
+
+
+def _undistort_block(xd: np.ndarray[Any, Any], yd: np.ndarray[Any, Any], model: str,
+                     c: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any],
+                                                       np.ndarray[Any, Any]]:
     if model == "equidistant":
         theta_d = np.hypot(xd, yd)
         theta, ok = _newton_1d(theta_d, c)
@@ -497,6 +512,9 @@ class DepthImageConverter:
             vendor_metadata=json.dumps(metadata), as_dataclass=self.as_dataclass)
         self.rays = np.einsum("ij,...j->...i", rotation, rays)
         self.scale = scale
+        self._scales: dict[float, np.ndarray[Any, Any]] = {}
+        missing = np.flatnonzero(~ok)
+        self._no_ray = missing if missing.size else None
         self.rectified = rectified
         self.frame_id = frame
         self._camera = cam
@@ -517,16 +535,30 @@ class DepthImageConverter:
             raise ValidationError("image.shape", depth.shape,
                                   f"{self.scale.shape} (CameraInfo size // binning, ROI)")
         unit = ENCODINGS[encoding][1]
-        scale = self.scale * unit if unit != 1.0 else self.scale
-        r64 = np.multiply(depth, scale, dtype=np.float64)
-        if depth.dtype.kind == "u":
-            bad = depth == 0
-        else:
-            with np.errstate(invalid="ignore"):
-                bad = ~(depth > 0) & ~np.isinf(depth)
-        r64[bad] = self.invalid
-        r64[np.isnan(self.scale)] = np.nan   # no ray: invalid whatever the depth
-        return r64.astype(np.float32)
+        scale = self._scales.get(unit)
+        if scale is None:
+            scale = self._scales[unit] = self.scale * unit
+        height, width = depth.shape
+        out = np.empty((height, width), np.float32)
+        rows = max(1, _CHUNK // max(width, 1))
+        tmp = np.empty((rows, width))
+        integer = depth.dtype.kind == "u"
+        # row blocks: float64 product rounded once to float32, without image-sized temporaries
+        for start in range(0, height, rows):
+            z = depth[start:start + rows]
+            r64 = tmp[:z.shape[0]]
+            np.multiply(z, scale[start:start + rows], out=r64)
+            if integer:
+                bad = z == 0
+            else:
+                with np.errstate(invalid="ignore"):
+                    bad = ~(z > 0)
+                bad &= ~np.isinf(z)
+            r64[bad] = self.invalid
+            out[start:start + rows] = r64
+        if self._no_ray is not None:          # no ray: invalid whatever the depth
+            out.reshape(-1)[self._no_ray] = np.nan
+        return out
 
     def convert(self, image: Any, *, camera_info: Any = None, stamp_ns: int | None = None,
                 encoding: str | None = None) -> tuple[Any, Any]:
