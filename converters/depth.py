@@ -180,9 +180,10 @@ def _coefficients(model: str, d: tuple[float, ...]) -> np.ndarray[Any, Any]:
         raise ConversionError("CameraInfo.distortion_model", model,
                               f"one of {sorted(_MODELS)} (or D empty / all zero)")
     size = _MODELS[model]
-    if len(d) > size:
-        raise ConversionError("CameraInfo.d", f"length {len(d)}",
-                              f"at most {size} coefficients for {model}")
+    if any(d[size:]):
+        raise ConversionError("CameraInfo.d", list(d),
+                              f"at most {size} coefficients for {model} (extra ones all zero)")
+    d = d[:size]
     return np.array(list(d) + [0.0] * (8 - len(d)) if model != "equidistant"
                     else list(d) + [0.0] * (4 - len(d)))
 
@@ -272,11 +273,8 @@ def _undistort_block(xd: np.ndarray[Any, Any], yd: np.ndarray[Any, Any], model: 
         rays = np.stack([xd * s, yd * s, np.cos(theta)], -1)
     else:
         x, y, ok = _newton_2d(xd, yd, c)
-        rays = np.stack([x, y, np.ones_like(x)], -1)
-    fallback = np.stack([xd, yd, np.ones_like(xd)], -1)
-    rays = np.where(ok[..., None], rays, fallback)
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    return rays, ok
+        rays = _unit(x, y)
+    return np.where(ok[..., None], rays, _unit(xd, yd)), ok
 
 
 def _newton_2d(xd: np.ndarray[Any, Any], yd: np.ndarray[Any, Any], c: np.ndarray[Any, Any]
@@ -358,6 +356,16 @@ def _pinhole(cam: _Camera, matrix: tuple[float, ...], stride: int
     return x, np.array(y)
 
 
+def _unit(x: np.ndarray[Any, Any], y: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """(..., 3) unit vectors along (x, y, 1)."""
+    inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
+    rays = np.empty(x.shape + (3,))
+    np.multiply(x, inv, out=rays[..., 0])
+    np.multiply(y, inv, out=rays[..., 1])
+    rays[..., 2] = inv
+    return rays
+
+
 def pixel_rays(camera_info: Any, rectified: bool | None = None
                ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any], bool]:
     """The ray of every pixel of the images described by ``camera_info`` (module docstring).
@@ -377,8 +385,7 @@ def pixel_rays(camera_info: Any, rectified: bool | None = None
         rectified = _choose_model(cam)
     if rectified:
         x, y = _pinhole(cam, cam.p, 4)
-        rays = np.stack([x, y, np.ones_like(x)], -1)
-        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+        rays = _unit(x, y)
         r = np.array(cam.r).reshape(3, 3)
         rotation = np.eye(3) if _is_zero(cam.r) else r.T
         if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) or \
@@ -387,8 +394,7 @@ def pixel_rays(camera_info: Any, rectified: bool | None = None
         return rays, np.ones(x.shape, bool), rotation, True
     xd, yd = _pinhole(cam, cam.k, 3)
     if _is_zero(cam.d):
-        rays = np.stack([xd, yd, np.ones_like(xd)], -1)
-        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+        rays = _unit(xd, yd)
         ok = np.ones(xd.shape, bool)
     else:
         rays, ok = undistort(xd, yd, cam.model, cam.d)
@@ -494,9 +500,9 @@ class DepthImageConverter:
             scale = np.where(ok, 1.0 / rays[..., 2], np.nan)
         transform = np.eye(4)
         transform[:3, :3] = rotation @ OPTICAL_FROM_BODY
-        body = np.stack([rays[..., 2], -rays[..., 0], -rays[..., 1]], -1)
-        azimuth = np.arctan2(body[..., 1], body[..., 0])
-        altitude = np.arctan2(body[..., 2], np.hypot(body[..., 0], body[..., 1]))
+        # body axes (x, y, z) = optical (z, -x, -y)
+        azimuth = np.arctan2(-rays[..., 0], rays[..., 2])
+        altitude = np.arctan2(-rays[..., 1], np.hypot(rays[..., 2], rays[..., 0]))
         rows, cols = scale.shape
         frame = self._frame_option if self._frame_option is not None else cam.frame_id
         version = stamp_ns if stamp_ns > self._version else self._version + 1
@@ -510,7 +516,7 @@ class DepthImageConverter:
             lidar_to_sensor_transform=transform.reshape(-1), model="depth camera",
             range_min=self._limits[0], range_max=self._limits[1],
             vendor_metadata=json.dumps(metadata), as_dataclass=self.as_dataclass)
-        self.rays = np.einsum("ij,...j->...i", rotation, rays)
+        self.rays = rays if np.array_equal(rotation, np.eye(3)) else rays @ rotation.T
         self.scale = scale
         self._scales: dict[float, np.ndarray[Any, Any]] = {}
         missing = np.flatnonzero(~ok)

@@ -218,9 +218,9 @@ def test_range_is_depth_over_cosine_rounded_once(case: str) -> None:
     h, w = r.shape
     for v in range(0, h, 5):
         for u in range(0, w, 3):
-            p = ref_point(ci, u, v, float(z[v, u]), rectified)
-            assert r[v, u] == np.float32(math.sqrt(sum(c * c for c in p))) or \
-                abs(r[v, u] - math.sqrt(sum(c * c for c in p))) <= 1e-6 * r[v, u]
+            ref = math.sqrt(sum(c * c for c in ref_point(ci, u, v, float(z[v, u]), rectified)))
+            # float32 of the exact range: within half an ulp (+ the reference's float64 error)
+            assert abs(float(r[v, u]) - ref) <= 0.5 * float(np.spacing(np.float32(ref))) + 1e-12
     # a 16UC1 depth is recovered exactly from the float32 range
     assert np.array_equal(np.rint(r / conv.scale * 1000).astype(np.uint16), values)
 
@@ -339,6 +339,7 @@ def test_bad_inputs_raise_project_errors() -> None:
         lambda: DepthImageConverter(camera_info(k=[0] * 9, p=[0] * 12), rectified=False),
         lambda: DepthImageConverter(camera_info(model="kannala", d=[0.1]), rectified=False),
         lambda: DepthImageConverter(camera_info(d=[0.1] * 6), rectified=False),
+        lambda: DepthImageConverter(camera_info(d=PLUMB_BOB + [0, 0, 1e-3]), rectified=False),
         lambda: DepthImageConverter(camera_info(k=[1, 0, 0, 0, np.nan, 0, 0, 0, 1])),
     ]
     for i, case in enumerate(cases):
@@ -352,6 +353,12 @@ def _fields(msg: Any) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------- model choice, versions
+
+def test_trailing_zero_coefficients_are_accepted() -> None:
+    eight = DepthImageConverter(camera_info(d=PLUMB_BOB + [0.0, 0.0, 0.0]), rectified=False)
+    five = DepthImageConverter(camera_info(d=PLUMB_BOB), rectified=False)
+    assert np.array_equal(eight.rays, five.rays)
+
 
 def test_default_model_comes_from_the_data() -> None:
     ci = camera_info(d=[0.0] * 5)                       # D zero, P == K: both the same
