@@ -126,7 +126,7 @@ class _Camera:
 
     def image_size(self) -> tuple[int, int]:
         """(rows, columns) of the published image."""
-        x0, y0, rh, rw = self.roi
+        _, _, rh, rw = self.roi
         full_h, full_w = (rh, rw) if any(self.roi) else (self.height, self.width)
         return full_h // self.binning[1], full_w // self.binning[0]
 

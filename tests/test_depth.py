@@ -24,7 +24,7 @@ import converters
 from converters.depth import DepthImageConverter, from_depth_image, pixel_rays
 from lidarscan import channel, geometry, types
 from lidarscan.stamps import to_ns
-from lidarscan.errors import ConfigError, ConversionError, LidarScanError, ValidationError
+from lidarscan.errors import ConfigError, ConversionError, LidarScanError
 
 from grid_reference import pose, ref_bin, ref_grid
 
@@ -396,6 +396,26 @@ def test_info_is_built_once_per_camera_info_content() -> None:
     newer = from_depth_image(values, changed, rectified=False, info=a[1], stamp_ns=1,
                              encoding="32FC1", as_dataclass=True)[1]
     assert to_ns(newer.header.stamp) == to_ns(a[1].header.stamp) + 1
+
+
+def test_plain_python_inputs_without_ros_types() -> None:
+    """A mapping for the CameraInfo and a numpy array for the image (non-ROS users)."""
+    ci = camera_info(d=RATIONAL, model="rational_polynomial", bx=2, by=2, roi=(8, 6, 32, 48))
+    mapping = {"height": 48, "width": 64, "distortion_model": "rational_polynomial",
+               "d": list(ci.d), "k": list(ci.k), "r": list(ci.r), "p": list(ci.p),
+               "binning_x": 2, "binning_y": 2,
+               "roi": {"x_offset": 8, "y_offset": 6, "height": 32, "width": 48},
+               "header": {"frame_id": "cam_optical", "stamp": types.Time(10, 0)}}
+    values, _ = random_depth(np.random.default_rng(6), (16, 24), "16UC1")
+    scan, info = from_depth_image(values, mapping, encoding="16UC1", stamp_ns=20 * 10**9,
+                                  rectified=False, as_dataclass=True)
+    ref, ref_info = DepthImageConverter(ci, rectified=False, as_dataclass=True).convert(
+        image_msg(values, "16UC1"))
+    assert scan.data.tobytes() == ref.data.tobytes() and scan.header == ref.header
+    assert np.array_equal(info.pixel_azimuth_angles, ref_info.pixel_azimuth_angles)
+    with pytest.raises(LidarScanError):          # no K
+        from_depth_image(values, {"height": 48, "width": 64}, encoding="16UC1", stamp_ns=0,
+                         rectified=False)
 
 
 def test_lazy_registration() -> None:
