@@ -5,7 +5,8 @@
 * LidarScan -> height-filtered LaserScan slices: :func:`to_laserscan`, :class:`SliceConverter`;
 * N LaserScans -> one: :class:`LaserScanMerger` configured with :class:`MergerInput`;
 * importers: :mod:`converters.ouster` (metadata JSON, frames), :mod:`converters.velodyne`
-  (calibration YAML), :func:`from_laserscan_sweep` (tilting 2D lasers).
+  (calibration YAML), :func:`from_laserscan_sweep` (tilting 2D lasers), :func:`from_depth_image`
+  (depth cameras, :mod:`converters.depth`).
 
 Names are resolved lazily (importing this package imports neither rclpy nor the submodules);
 the rclpy nodes live in :mod:`converters.nodes` and the CLI in :mod:`converters.cli`.
@@ -25,6 +26,7 @@ __all__ = [
     "LaserScanMerger",
     "MergerInput",
     "from_laserscan_sweep",
+    "from_depth_image",
     "ouster",
     "velodyne",
 ]
@@ -38,8 +40,9 @@ _LAZY = {
     "LaserScanMerger": "converters.merger",
     "MergerInput": "converters.merger",
     "from_laserscan_sweep": "converters.sweep",
+    "from_depth_image": "converters.depth",
 }
-_SUBMODULES = {"ouster", "velodyne", "pointcloud2", "laserscan", "merger", "sweep"}
+_SUBMODULES = {"ouster", "velodyne", "pointcloud2", "laserscan", "merger", "sweep", "depth"}
 
 
 def __getattr__(name: str) -> Any:
