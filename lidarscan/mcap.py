@@ -76,6 +76,9 @@ class McapWriter:
 
         from lidarscan.rosbag2 import qos_profile
 
+        self._qos = {topic: tuple(qos_profile(p) for p in (
+            value if isinstance(value, (list, tuple)) else [value]))
+            for topic, value in (qos or {}).items()}
         kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                  "none": CompressionType.NONE}
         if compression not in kinds:
@@ -89,9 +92,6 @@ class McapWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
         self._sequence: dict[int, int] = {}
-        self._qos = {topic: tuple(qos_profile(p) for p in (
-            value if isinstance(value, (list, tuple)) else [value]))
-            for topic, value in (qos or {}).items()}
         self._topics: dict[int, tuple[str, str, tuple[Any, ...]]] = {}
         self._times: list[int] = []  # first and last log time
         self.count = 0
@@ -151,7 +151,7 @@ class McapWriter:
             if self._times else [int(log_time_ns), int(log_time_ns)]
 
     def bag_metadata(self) -> dict[str, Any]:
-        """The rosbag2 metadata of what was written so far (:func:`lidarscan.rosbag2.bag_metadata`)."""
+        """The rosbag2 metadata of what was written so far (see :mod:`lidarscan.rosbag2`)."""
         from lidarscan.rosbag2 import TopicRecord, bag_metadata
 
         name = getattr(self._stream, "name", "")
