@@ -56,16 +56,29 @@ class McapWriter:
             writer.write("/lidar/info", info)          # rclpy message or lidarscan dataclass
             writer.write("/lidar/scan", scan)
 
+    The file is a rosbag2 recording (:mod:`lidarscan.rosbag2`): each channel records the QoS
+    its publishers offer (``offered_qos_profiles``: LidarInfo and /tf_static latched, scans and
+    clouds sensor-data, others reliable, unless ``qos`` says otherwise) and the file ends with
+    the ``rosbag2`` metadata record, so ``ros2 bag play`` replays latched topics as latched.
+
     Args:
         output: path or binary stream.
         compression: "zstd" (default), "lz4" or "none".
         chunk_size: bytes per chunk; a smaller chunk loses less when a run is interrupted.
+        qos: recorded QoS per topic: a name of :data:`lidarscan.rosbag2.QOS_PROFILES`
+            ("sensor_data", "best_effort", "reliable", "latched"), a
+            :class:`lidarscan.rosbag2.QosProfile`, rosbag2's dict form, or a list of these.
     """
 
     def __init__(self, output: str | os.PathLike[str] | IO[bytes], *, compression: str = "zstd",
-                 chunk_size: int = 4 * 1024 * 1024) -> None:
+                 chunk_size: int = 4 * 1024 * 1024, qos: dict[str, Any] | None = None) -> None:
         from mcap.writer import CompressionType, Writer
 
+        from lidarscan.rosbag2 import qos_profile
+
+        self._qos = {topic: tuple(qos_profile(p) for p in (
+            value if isinstance(value, (list, tuple)) else [value]))
+            for topic, value in (qos or {}).items()}
         kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                  "none": CompressionType.NONE}
         if compression not in kinds:
@@ -79,18 +92,27 @@ class McapWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
         self._sequence: dict[int, int] = {}
+        self._topics: dict[int, tuple[str, str, tuple[Any, ...]]] = {}
+        self._times: list[int] = []  # first and last log time
         self.count = 0
         self._closed = False
 
     def _channel(self, topic: str, msgtype: str, metadata: dict[str, str] | None) -> int:
         key = (topic, msgtype)
         if key not in self._channels:
+            from lidarscan.rosbag2 import default_qos, dump_qos, parse_qos
+
             if msgtype not in self._schemas:
                 self._schemas[msgtype] = self._writer.register_schema(
                     name=msgtype, encoding="ros2msg", data=schema_text(msgtype).encode())
+            given = dict(metadata or {})
+            offered = tuple(parse_qos(given.get("offered_qos_profiles", ""))) \
+                or self._qos.get(topic) or (default_qos(topic, msgtype),)
+            given["offered_qos_profiles"] = dump_qos(offered)
             self._channels[key] = self._writer.register_channel(
                 topic=topic, message_encoding="cdr", schema_id=self._schemas[msgtype],
-                metadata=metadata or {})
+                metadata=given)
+            self._topics[self._channels[key]] = (topic, msgtype, offered)
         return self._channels[key]
 
     def write(self, topic: str, msg: Any, *, log_time_ns: int | None = None,
@@ -105,7 +127,8 @@ class McapWriter:
             log_time_ns: record time; default the message's ``header.stamp`` (0 if it has none).
             publish_time_ns: default ``log_time_ns``.
             msgtype: ``pkg/msg/Name``; default from the message.
-            metadata: channel metadata (e.g. ``offered_qos_profiles``), used on first write.
+            metadata: channel metadata, used on first write; its ``offered_qos_profiles``
+                (e.g. copied from another recording) wins over ``qos`` and the defaults.
         """
         if isinstance(msg, (bytes, bytearray, memoryview)):
             if msgtype is None:
@@ -124,13 +147,33 @@ class McapWriter:
                                  publish_time=int(publish_time_ns if publish_time_ns is not None
                                                   else log_time_ns), sequence=sequence)
         self.count += 1
+        self._times = [min(self._times[0], log_time_ns), max(self._times[1], log_time_ns)] \
+            if self._times else [int(log_time_ns), int(log_time_ns)]
+
+    def bag_metadata(self) -> dict[str, Any]:
+        """The rosbag2 metadata of what was written so far (see :mod:`lidarscan.rosbag2`)."""
+        from lidarscan.rosbag2 import TopicRecord, bag_metadata
+
+        name = getattr(self._stream, "name", "")
+        topics = [TopicRecord(topic, msgtype, offered, self._sequence.get(channel_id, 0))
+                  for channel_id, (topic, msgtype, offered) in self._topics.items()]
+        start, end = self._times or [0, 0]
+        return bag_metadata(topics, file_name=os.path.basename(name) if isinstance(name, str)
+                            else "", start_ns=start, end_ns=end)
 
     def close(self) -> None:
-        """Finish the file (summary, footer) and close it if we opened it."""
+        """Write the ``rosbag2`` metadata record, finish the file (summary, footer) and close it
+        if we opened it."""
         if self._closed:
             return
         self._closed = True
-        self._writer.finish()  # type: ignore[no-untyped-call]
+        from lidarscan.rosbag2 import metadata_yaml
+
+        try:
+            self._writer.add_metadata("rosbag2", {
+                "serialized_metadata": metadata_yaml(self.bag_metadata(), root=False)})
+        finally:
+            self._writer.finish()  # type: ignore[no-untyped-call]
         if self._own:
             self._stream.close()
 
