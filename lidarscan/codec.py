@@ -106,9 +106,11 @@ def _zd(frame: bytes, limit: int, what: str) -> bytes:
 # ------------------------------------------------------------------------ transforms
 
 def _planes(arr: np.ndarray[Any, Any]) -> bytes:
-    """Byte planes of a (contiguous, any order) numeric array: all bytes 0, then all bytes 1..."""
+    """Byte planes of a numeric array's values: all least significant bytes, then all second
+    bytes, ... (the value's little-endian bytes, whatever the array's byte order)."""
     size = arr.dtype.itemsize
-    raw = np.ascontiguousarray(arr).reshape(-1).view(np.uint8).reshape(-1, size)
+    little = np.ascontiguousarray(arr).astype(arr.dtype.newbyteorder("<"), copy=False)
+    raw = little.reshape(-1).view(np.uint8).reshape(-1, size)
     return np.ascontiguousarray(raw.T).tobytes()
 
 
@@ -116,7 +118,10 @@ def _unplanes(buf: bytes, itemsize: int, n: int, what: str) -> np.ndarray[Any, A
     if len(buf) != itemsize * n:
         raise DecodeError(what, len(buf), f"{itemsize * n} bytes of byte planes")
     planes = np.frombuffer(buf, np.uint8).reshape(itemsize, n)
-    return np.ascontiguousarray(planes.T).reshape(-1)
+    out = planes[0].astype(f"<u{itemsize}")
+    for k in range(1, itemsize):
+        out |= planes[k].astype(out.dtype) << out.dtype.type(8 * k)
+    return out.view(np.uint8)
 
 
 def _residual(x: np.ndarray[Any, Any], predictor: int) -> np.ndarray[Any, Any]:
@@ -150,9 +155,9 @@ def _unzigzag(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     return (z >> one) ^ (np.zeros_like(z) - (z & one))
 
 
-def _cost(r: np.ndarray[Any, Any]) -> float:
-    """Rough size estimate of zigzag residuals: the sum of their bit lengths."""
-    return float(np.log2(_zigzag(r).astype(np.float64) + 1.0).sum())
+def _cost(r: np.ndarray[Any, Any]) -> int:
+    """Size proxy of residuals: the sum of their magnitudes (zigzag values)."""
+    return int(_zigzag(r).sum(dtype=np.uint64))
 
 
 def _choose(x: np.ndarray[Any, Any]) -> int:
@@ -292,13 +297,13 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
             payload, predictor = got
             shuffled = None
             if len(payload) > len(block) // 2:  # mostly off-grid: compare with SHUFFLE
-                shuffled = _zc(level).compress(_planes(raw.view(f"u{size}")))
+                shuffled = _zc(level).compress(_planes(np.frombuffer(block, f"<u{size}")))
             if shuffled is None or len(payload) <= len(shuffled):
                 return (QUANT, _GRID.pack(datatype, big, *shape, predictor)
                         + struct.pack("<d", float_step), payload)
             return SHUFFLE, bytes([size]), shuffled
     return SHUFFLE, bytes([size]), _zc(level).compress(_planes(
-        np.frombuffer(block, f"u{size}")))
+        np.frombuffer(block, f"<u{size}")))
 
 
 def compress_scan(scan: Any, *, level: int = 3, float_step: float | None = 0.001) -> bytes:
