@@ -15,7 +15,7 @@ Byte format, version 1 (every integer little-endian)::
     u32 data_len                        len(scan.data)
     n_segments x segment                contiguous, in order, covering data[0:data_len] exactly
 
-    segment := u32 offset  u32 length  u8 method  u8 params_len  params  u32 payload_len  payload
+    segment := u32 offset  u32 length  u8 method  u16 params_len  params  u32 payload_len  payload
 
 Every zstd frame carries its content checksum (a damaged payload raises, never decodes to
 other values). Methods (a segment is a channel block, or the bytes between/after blocks):
@@ -27,11 +27,12 @@ id    name       params / payload
 1     ZSTD       - / zstd frame of the bytes
 2     SHUFFLE    u8 itemsize / zstd frame of the byte planes (all first bytes, then all
                  second bytes, ...)
-3     PREDICT    u8 datatype, u8 bigendian, u32 H, u32 W, u32 count, u8 predictor /
+3     PREDICT    u8 datatype, u8 bigendian, u32 H, u32 W, u32 count, u8 predictor,
+                 u8 rolled [, H x i32 row shifts when rolled] /
                  zstd frame of the byte planes of zigzag(residual), residuals in the
                  unsigned type of the channel's size (modular: every value is exact)
 4     QUANT      u8 datatype (FLOAT32), u8 bigendian, u32 H, u32 W, u32 count, u8 predictor,
-                 f64 step / u32 n + PREDICT payload of the int32 grid q (n bytes),
+                 u8 rolled, f64 step [, H x i32 row shifts] / u32 n + PREDICT payload of the int32 grid q (n bytes),
                  u32 n + zstd frame of the packed exception mask (n bytes), zstd frame of
                  the exceptions' original 4-byte words. A value v is coded as
                  q = rint(v / step) when float32(float64(q) * step) has v's exact bits
@@ -43,6 +44,9 @@ id    name       params / payload
 Predictors (on the (H, W, count) array, per count index): 0 none, 1 left (x[r, c-1]), 2 up
 (x[r-1, c]), 3 planar (left + up - up-left); out-of-grid neighbours are 0. Residuals are
 computed and inverted with wrapping integer arithmetic, so decoding is two cumulative sums.
+"Rolled": before prediction row r was rotated right by its shift s_r (element c moved to
+(c + s_r) mod W): a staggered scan is predicted in destaggered order, where the row above sees
+the same azimuth; the decoder rotates back.
 
 ``decompress_scan`` returns a :class:`lidarscan.types.LidarScan` whose CDR (``lidarscan.encode``)
 is byte-identical to the input's. Errors: :class:`lidarscan.errors.EncodeError` (a scan that does
@@ -82,8 +86,8 @@ NONE, LEFT, UP, PLANAR = 0, 1, 2, 3
 _INT_CODES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
 _FLOAT32, _FLOAT64 = 7, 8
 _SIZES = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 8: 8}
-_GRID = struct.Struct("<BBIIIB")  # datatype, bigendian, H, W, count, predictor
-_SEG = struct.Struct("<IIBB")       # offset, length, method, params_len
+_GRID = struct.Struct("<BBIIIBB")  # datatype, bigendian, H, W, count, predictor, rolled
+_SEG = struct.Struct("<IIBH")       # offset, length, method, params_len
 _HEAD = struct.Struct("<4sBBH")
 
 
@@ -184,6 +188,20 @@ def _unpredict(payload: bytes, shape: tuple[int, int, int], itemsize: int, predi
     return _unresidual(_unzigzag(z).reshape(shape), predictor)
 
 
+def _roll(x: np.ndarray[Any, Any], shifts: np.ndarray[Any, Any] | None, sign: int
+          ) -> np.ndarray[Any, Any]:
+    """Rotate row r of (H, W, C) right by sign * shifts[r] (None: unchanged)."""
+    if shifts is None:
+        return x
+    width = x.shape[1]
+    index = (np.arange(width)[None, :] - sign * shifts[:, None]) % max(width, 1)
+    return np.take_along_axis(x, index[:, :, None], axis=1)
+
+
+def _shift_params(shifts: np.ndarray[Any, Any] | None) -> bytes:
+    return b"" if shifts is None else shifts.astype("<i4").tobytes()
+
+
 # --------------------------------------------------------------------------- QUANT
 
 def _quantise(v: np.ndarray[Any, Any], step: float
@@ -276,42 +294,46 @@ def _layout(scan: Any, data_len: int) -> list[tuple[int, int, Any]] | None:
     return [b for b in blocks if b[1] > 0]
 
 
-def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: float | None
-                  ) -> tuple[int, bytes, bytes]:
+def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: float | None,
+                  shifts: np.ndarray[Any, Any] | None) -> tuple[int, bytes, bytes]:
     """(method, params, payload) of one channel block."""
     datatype, big = int(desc.datatype), bool(scan.is_bigendian)
     shape = (int(scan.height), int(scan.width), int(desc.count))
     size = _SIZES[datatype]
+    rolled = shifts is not None
     if datatype in _INT_CODES:
         u = np.frombuffer(block, np.dtype((">" if big else "<") + f"u{size}")).reshape(shape)
-        u = _as_unsigned(u)
+        u = _roll(_as_unsigned(u), shifts, 1)
         predictor = _choose(u)
-        return (PREDICT, _GRID.pack(datatype, big, *shape, predictor),
-                _predict_payload(u, predictor, level))
+        return (PREDICT, _GRID.pack(datatype, big, *shape, predictor, rolled)
+                + _shift_params(shifts), _predict_payload(u, predictor, level))
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
-        native = raw.astype(np.float32)
-        got = _quant_payload(native, np.frombuffer(block, np.uint32).reshape(shape),
-                             float_step, level)
+        native = _roll(raw.astype(np.float32), shifts, 1)
+        words = _roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
+        got = _quant_payload(native, words, float_step, level)
         if got is not None:
             payload, predictor = got
             shuffled = None
             if len(payload) > len(block) // 2:  # mostly off-grid: compare with SHUFFLE
                 shuffled = _zc(level).compress(_planes(np.frombuffer(block, f"<u{size}")))
             if shuffled is None or len(payload) <= len(shuffled):
-                return (QUANT, _GRID.pack(datatype, big, *shape, predictor)
-                        + struct.pack("<d", float_step), payload)
+                return (QUANT, _GRID.pack(datatype, big, *shape, predictor, rolled)
+                        + struct.pack("<d", float_step) + _shift_params(shifts), payload)
             return SHUFFLE, bytes([size]), shuffled
     return SHUFFLE, bytes([size]), _zc(level).compress(_planes(
         np.frombuffer(block, f"<u{size}")))
 
 
-def compress_scan(scan: Any, *, level: int = 3, float_step: float | None = 0.001) -> bytes:
+def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
+                  float_step: float | None = 0.001) -> bytes:
     """Compress a LidarScan losslessly (format above).
 
     Args:
         scan: a LidarScan, rclpy message or :class:`lidarscan.types.LidarScan`; any channel
             datatypes, counts and byte order.
+        info: its LidarInfo, optional: a staggered scan is then predicted in destaggered order
+            (``pixel_shift_by_row``; the shifts travel in the format, decoding needs no info).
         level: zstd level of every part (1..22; 3 is the measured speed/size balance).
         float_step: grid of float32 channels in their unit (0.001: metres from millimetres);
             None codes float32 channels by byte shuffle only.
@@ -346,6 +368,12 @@ def compress_scan(scan: Any, *, level: int = 3, float_step: float | None = 0.001
             chunk = raw[start:stop]
             segs.append((start, stop - start, ZSTD, b"", _zc(level).compress(chunk)))
 
+    shifts = None
+    if info is not None and not bool(scan.is_destaggered):
+        found = np.asarray(info.pixel_shift_by_row, np.int64).reshape(-1)
+        if (found.size == int(scan.height) and np.any(found) and int(scan.width)
+                and 4 * found.size + 32 < 2**16):
+            shifts = found % int(scan.width)
     layout = _layout(scan, data_len)
     if layout is None:
         gap(0, data_len)
@@ -354,7 +382,7 @@ def compress_scan(scan: Any, *, level: int = 3, float_step: float | None = 0.001
         for offset, length, desc in layout:
             gap(pos, offset)
             method, params, payload = _encode_block(raw[offset:offset + length], desc, scan,
-                                                    level, float_step)
+                                                    level, float_step, shifts)
             segs.append((offset, length, method, params, payload))
             pos = offset + length
         gap(pos, data_len)
@@ -432,21 +460,26 @@ def _decode_segment(i: int, length: int, method: int, params: bytes, payload: by
         size = params[0]
         out = _unplanes(_zd(payload, length, what), size, length // size, what).tobytes()
     elif method in (PREDICT, QUANT):
-        want = _GRID.size + (8 if method == QUANT else 0)
+        if len(params) < _GRID.size:
+            raise DecodeError(f"{what} params", len(params), f"at least {_GRID.size} bytes")
+        datatype, big, h, w, c, predictor, rolled = _GRID.unpack_from(params)
+        base = _GRID.size + (8 if method == QUANT else 0)
+        want = base + (4 * h if rolled else 0)
         if len(params) != want:
             raise DecodeError(f"{what} params", len(params), f"{want} bytes")
-        datatype, big, h, w, c, predictor = _GRID.unpack_from(params)
         ok_type = datatype in _INT_CODES if method == PREDICT else datatype == _FLOAT32
         if not ok_type or predictor > PLANAR or h * w * c * _SIZES.get(datatype, 0) != length:
             raise DecodeError(f"{what} params", (datatype, h, w, c, predictor),
                               f"a grid of {length} bytes with a known datatype and predictor")
+        shifts = (np.frombuffer(params, "<i4", h, base).astype(np.int64) if rolled else None)
         if method == PREDICT:
             size = _SIZES[datatype]
-            u = _unpredict(payload, (h, w, c), size, predictor, what)
+            u = _roll(_unpredict(payload, (h, w, c), size, predictor, what), shifts, -1)
             out = u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
         else:
             (step,) = struct.unpack_from("<d", params, _GRID.size)
-            out = _unquant(payload, (h, w, c), predictor, step, bool(big), what)
+            bits = _unquant(payload, (h, w, c), predictor, step, bool(big), what)
+            out = _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
     else:
         raise DecodeError(f"{what} method", method, "0..4 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT)")
     if len(out) != length:

@@ -25,10 +25,10 @@ from lidarscan.types import LidarChannel, LidarScan
 GOLDEN = bytes.fromhex(
     "4c53435a010002006700000028b52ffd248cd5020042840e1ac03573ef023affff9d0b242e9d6cc8adeb3f69"
     "dd9d254e92c814277e3cf018a0add7d88df4c534e5120115a20fc860756a61cd8b44a0fcf90c0c00df206c0a"
-    "49684c176c319501ce023030180832af981d2a7097cd26e2be558b2400000000000000180000000201042500"
-    "000028b52ffd2418c1000000000000006f00000000001280208000c0833f407f807f424a699d95180000000c"
-    "000000030f0400020000000300000001000000001900000028b52ffd240c61000014161a2001000000000300"
-    "00eb5f80ad")
+    "49684c176c319501ce023030180832af981d2a7097cd26e2be558b2400000000000000180000000201000425"
+    "00000028b52ffd2418c1000000000000006f00000000001280208000c0833f407f807f424a699d9518000000"
+    "0c000000031000040002000000030000000100000000001900000028b52ffd240c61000014161a2001000000"
+    "00030000eb5f80ad")
 
 
 def _golden_scan() -> Any:
@@ -64,6 +64,7 @@ def test_golden_layout_magic_version_and_methods() -> None:
     # PREDICT params: UINT16, little-endian, 2 x 3 x 1, a predictor 0..3
     assert segs[1]["params"][:14] == struct.pack("<BBIII", 4, 0, 2, 3, 1)
     assert segs[1]["params"][14] in (0, 1, 2, 3)
+    assert segs[1]["params"][15:] == b"\x00"  # not rolled: no row shifts
 
 
 def test_golden_bytes_are_what_the_encoder_writes() -> None:
@@ -159,9 +160,14 @@ def _scans(draw: Any) -> Any:
                      channels=tuple(channels[i] for i in order), data=data)
 
 
-@given(_scans(), st.sampled_from([None, 0.001]), st.sampled_from([1, 3]))
-def test_roundtrip_is_bit_exact(scan: Any, step: float | None, level: int) -> None:
-    buf = codec.compress_scan(scan, level=level, float_step=step)
+@given(_scans(), st.sampled_from([None, 0.001]), st.sampled_from([1, 3]),
+       st.lists(st.integers(-40, 40), min_size=1, max_size=6))
+def test_roundtrip_is_bit_exact(scan: Any, step: float | None, level: int,
+                                shifts: list[int]) -> None:
+    from types import SimpleNamespace
+    info = SimpleNamespace(pixel_shift_by_row=(shifts * 6)[:scan.height])
+    buf = codec.compress_scan(scan, info if len(shifts) > 1 else None, level=level,
+                              float_step=step)
     back = codec.decompress_scan(buf)
     _same(back, scan)
     assert back.data.tobytes() == scan.data.tobytes()
@@ -201,8 +207,10 @@ def test_real_frames_roundtrip_and_beat_zstd_of_the_buffer(range_encoding: str,
             continue
         scan = scan_from_frame(load_frame(frame_path), ouster_info(meta), as_dataclass=True,
                                range_encoding=range_encoding, destagger=destagger)
-        buf = codec.compress_scan(scan)
+        buf = codec.compress_scan(scan, ouster_info(meta))
         _same(codec.decompress_scan(buf), scan)
+        rolled = [s["params"][15] for s in codec.segments(buf) if s["method"] == "predict"]
+        assert set(rolled) == {int(not destagger)}  # staggered scans predicted destaggered
         whole = zstandard.ZstdCompressor(level=3).compress(scan.data.tobytes())
         assert len(buf) < 0.8 * len(whole), meta.name
         methods = {s["method"] for s in codec.segments(buf) if s["length"]}
