@@ -17,6 +17,7 @@ module                 answers
                        (zstd, lidarscan.codec, PNG, JPEG-XL), the goals per real sensor
 ``images``             2: one sensor_msgs/Image per channel vs one LidarScan; synchronisers
 ``range_error``        3: float32 metres vs integer units, worst round-trip error
+``units``              3: uint32 mm vs float32 m on the real frames: bytes, precision, cost
 ``geometry``           4: cost of omitting a geometry field, on real metadata
 ``transport``          2: CPU per frame through real rclpy; receiver-side conversions
 ``linkage``            5: the info link, scenario counts, resolver vs "latest info wins"
@@ -52,6 +53,7 @@ def _deterministic_sections() -> list[tuple[str, Callable[[], list[Block]]]]:
         sizes,
         slicing,
         summary,
+        units,
     )
     return [
         ("sizes", sizes.blocks),
@@ -59,6 +61,7 @@ def _deterministic_sections() -> list[tuple[str, Callable[[], list[Block]]]]:
         ("codec study", lambda: codec_study.blocks(timing=False)),
         ("images", lambda: images.blocks(timing=False)),
         ("range_error", range_error.blocks),
+        ("units", lambda: units.blocks(timing=False)),
         ("geometry", geometry.blocks),
         ("linkage", linkage.blocks),
         ("slicing", lambda: slicing.blocks(timing=False)),
@@ -74,6 +77,7 @@ _SECTION_BLOCKS = {
     "compression timing": ("timing-compression",),
     "codec study": ("codec-study", "codec-goals"), "codec timing": ("timing-codec",),
     "images": ("images-sizes", "images-sync"), "images timing": ("timing-images",),
+    "units": ("int-vs-float",), "units timing": ("timing-int-vs-float",),
     "transport": ("timing-transport", "timing-receiver"), "slicing timing": ("timing-slicing",),
 }
 
@@ -119,13 +123,15 @@ def generate(fast: bool = False, log: Callable[[str], None] | None = None) -> li
         out += _run(name, fn, True, say)
     if fast:
         return out
-    from converters.evidence import codec_study, compression, images, slicing, transport
+    from converters.evidence import codec_study, compression, images, slicing, transport, units
     for name, fn in (("compression timing", lambda: [b for b in compression.blocks(timing=True)
                                                      if not b.deterministic]),
                      ("codec timing", lambda: [b for b in codec_study.blocks(timing=True)
                                                if not b.deterministic]),
                      ("images timing", lambda: [b for b in images.blocks(timing=True)
                                                 if not b.deterministic]),
+                     ("units timing", lambda: [b for b in units.blocks(timing=True)
+                                               if not b.deterministic]),
                      ("transport", transport.blocks),
                      ("slicing timing", lambda: [b for b in slicing.blocks(timing=True)
                                                  if not b.deterministic])):
