@@ -190,12 +190,19 @@ def _unpredict(payload: bytes, shape: tuple[int, int, int], itemsize: int, predi
 
 def _roll(x: np.ndarray[Any, Any], shifts: np.ndarray[Any, Any] | None, sign: int
           ) -> np.ndarray[Any, Any]:
-    """Rotate row r of (H, W, C) right by sign * shifts[r] (None: unchanged)."""
+    """Rotate row r of (H, W, C) right by sign * shifts[r] (None: unchanged); rows sharing a
+    shift are moved together (spinning sensors have a handful of distinct shifts)."""
     if shifts is None:
         return x
     width = x.shape[1]
-    index = (np.arange(width)[None, :] - sign * shifts[:, None]) % max(width, 1)
-    return np.take_along_axis(x, index[:, :, None], axis=1)
+    out = np.empty_like(x)
+    for shift in np.unique(shifts):
+        rows = np.flatnonzero(shifts == shift)
+        k = int(sign * shift) % max(width, 1)
+        src = x[rows]
+        out[rows, k:] = src[:, :width - k]
+        out[rows, :k] = src[:, width - k:]
+    return out
 
 
 def _shift_params(shifts: np.ndarray[Any, Any] | None) -> bytes:
