@@ -143,7 +143,10 @@ def _unresidual(r: np.ndarray[Any, Any], predictor: int) -> np.ndarray[Any, Any]
     if predictor in (LEFT, PLANAR):
         x = np.cumsum(x, axis=1, dtype=r.dtype)
     if predictor in (UP, PLANAR):
-        x = np.cumsum(x, axis=0, dtype=r.dtype)
+        # row by row: numpy's cumulative sum along the outer axis is ~5x slower than H adds
+        x = x.copy() if x is r else x
+        for row in range(1, x.shape[0]):
+            np.add(x[row], x[row - 1], out=x[row])
     return x
 
 
