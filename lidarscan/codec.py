@@ -25,25 +25,28 @@ id    name       params / payload
 ====  =========  ==========================================================================
 0     RAW        - / the bytes
 1     ZSTD       - / zstd frame of the bytes
-2     SHUFFLE    u8 itemsize / zstd frame of the byte planes (all first bytes, then all
-                 second bytes, ...)
+2     SHUFFLE    u8 itemsize / zstd frame of the byte planes: the least significant byte
+                 of every value (little-endian reading of the block), then every second
+                 byte, ...
 3     PREDICT    u8 datatype, u8 bigendian, u32 H, u32 W, u32 count, u8 predictor,
-                 u8 rolled [, H x i32 row shifts when rolled] /
-                 zstd frame of the byte planes of zigzag(residual), residuals in the
-                 unsigned type of the channel's size (modular: every value is exact)
-4     QUANT      u8 datatype (FLOAT32), u8 bigendian, u32 H, u32 W, u32 count, u8 predictor,
-                 u8 rolled, f64 step [, H x i32 row shifts] / u32 n + PREDICT payload of the int32 grid q (n bytes),
-                 u32 n + zstd frame of the packed exception mask (n bytes), zstd frame of
-                 the exceptions' original 4-byte words. A value v is coded as
-                 q = rint(v / step) when float32(float64(q) * step) has v's exact bits
-                 (the decode rule of :func:`lidarscan.range_m`); every other value (NaN,
-                 +-Inf, -0, off-grid) is an exception kept bit for bit. Exceptions take
-                 their left neighbour's q (0 at a row start) so they cost no residual.
+                 u8 rolled [, H x i32 row shifts when rolled] / zstd frame of the byte
+                 planes of zigzag(residual), residuals in the unsigned type of the
+                 channel's size (wrapping: every value is exact)
+4     QUANT      u8 datatype (FLOAT32), u8 bigendian, u32 H, u32 W, u32 count,
+                 u8 predictor, u8 rolled, f64 step [, H x i32 row shifts] /
+                 u32 n + the PREDICT payload of the int32 grid q (n bytes),
+                 u32 n + zstd frame of the packed exception mask (n bytes, row-major,
+                 numpy packbits order), zstd frame of the exceptions' original 4 bytes.
+                 A value v is coded as q = rint(v / step) when float32(float64(q) * step)
+                 has v's exact bits (the decode rule of :func:`lidarscan.range_m`); every
+                 other value (NaN, +-Inf, -0, off-grid) is an exception kept bit for bit.
+                 Exceptions take their left neighbour's q (0 at a row start) so they cost
+                 no residual.
 ====  =========  ==========================================================================
 
 Predictors (on the (H, W, count) array, per count index): 0 none, 1 left (x[r, c-1]), 2 up
 (x[r-1, c]), 3 planar (left + up - up-left); out-of-grid neighbours are 0. Residuals are
-computed and inverted with wrapping integer arithmetic, so decoding is two cumulative sums.
+computed and inverted with wrapping integer arithmetic (decoding: cumulative sums).
 "Rolled": before prediction row r was rotated right by its shift s_r (element c moved to
 (c + s_r) mod W): a staggered scan is predicted in destaggered order, where the row above sees
 the same azimuth; the decoder rotates back.

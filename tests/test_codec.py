@@ -237,3 +237,14 @@ def test_a_corrupt_payload_raises_decode_error() -> None:
     bad[-8] ^= 0xFF  # a literal of the last zstd frame: its checksum fails
     with pytest.raises(DecodeError):
         codec.decompress_scan(bytes(bad))
+
+
+def test_a_hand_built_raw_segment_decodes() -> None:
+    """RAW (method 0) is never chosen by the encoder but is part of the format."""
+    skeleton_len = struct.unpack_from("<I", GOLDEN, 8)[0]
+    head = GOLDEN[:12 + skeleton_len]                      # magic .. skeleton
+    data = _golden_scan().data.tobytes()
+    buf = (head[:6] + struct.pack("<H", 1) + head[8:] + struct.pack("<I", len(data))
+           + struct.pack("<IIBH", 0, len(data), codec.RAW, 0) + struct.pack("<I", len(data))
+           + data)
+    _same(codec.decompress_scan(buf), _golden_scan())

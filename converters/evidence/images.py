@@ -36,19 +36,26 @@ DROP_P = (0.001, 0.01, 0.05)
 SLOPS_S = (0.05, 0.15)
 
 
-class ExactTimeSync:
-    """``message_filters.TimeSynchronizer`` semantics: equal stamps on every topic."""
+class _Policy:
+    """Per-topic queues (stamp ns -> message) of at most ``queue_size``, oldest dropped."""
 
     def __init__(self, n: int, queue_size: int, callback: Callable[..., None]) -> None:
         self.queues: list[dict[int, Any]] = [{} for _ in range(n)]
         self.queue_size = queue_size
         self.callback = callback
 
-    def add(self, msg: Any, stamp: int, index: int) -> None:
+    def _enqueue(self, msg: Any, stamp: int, index: int) -> None:
         queue = self.queues[index]
         queue[stamp] = msg
         while len(queue) > self.queue_size:
             del queue[min(queue)]
+
+
+class ExactTimeSync(_Policy):
+    """``message_filters.TimeSynchronizer`` semantics: equal stamps on every topic."""
+
+    def add(self, msg: Any, stamp: int, index: int) -> None:
+        self._enqueue(msg, stamp, index)
         common = set.intersection(*(set(q) for q in self.queues))
         for t in sorted(common):
             self.callback(*(q[t] for q in self.queues))
@@ -56,21 +63,16 @@ class ExactTimeSync:
                 del q[t]
 
 
-class ApproximateTimeSync:
+class ApproximateTimeSync(_Policy):
     """``message_filters.ApproximateTimeSynchronizer`` (Python) semantics, stamps in ns."""
 
     def __init__(self, n: int, queue_size: int, slop_ns: int,
                  callback: Callable[..., None]) -> None:
-        self.queues: list[dict[int, Any]] = [{} for _ in range(n)]
-        self.queue_size = queue_size
+        super().__init__(n, queue_size, callback)
         self.slop = slop_ns
-        self.callback = callback
 
     def add(self, msg: Any, stamp: int, index: int) -> None:
-        queue = self.queues[index]
-        queue[stamp] = msg
-        while len(queue) > self.queue_size:
-            del queue[min(queue)]
+        self._enqueue(msg, stamp, index)
         others = [q for i, q in enumerate(self.queues) if i != index]
         candidates = []
         for q in others:
