@@ -1,4 +1,4 @@
-"""Question 1c: compressed against compressed, on real frames: the driver's PointCloud2 vs LidarScan.
+"""Question 1c: compressed against compressed, real frames: driver's PointCloud2 vs LidarScan.
 
 For every real frame (:data:`SOURCES`: the Ouster fixtures; another sensor is one more line
 there, once its decoder exists) the driver's cloud (``converters.to_pointcloud2`` with the
@@ -295,7 +295,8 @@ def goal_lines(records: list[dict[str, Any]] | None = None) -> list[str]:
         if draco:
             line += (f" Range channel, lossless: {fmt_int(rng)} B = {rng / draco:.3f}× Draco's "
                      f"lossy 1 mm x,y,z ({fmt_int(draco)} B, grid step "
-                     f"{rec['draco_step_m'] * 1e3:.3f} mm, points reordered): goal ≤ {GOALS['range']}× "
+                     f"{rec['draco_step_m'] * 1e3:.3f} mm, points reordered): "
+                     f"goal ≤ {GOALS['range']}× "
                      f"{'met' if rng / draco <= GOALS['range'] else '**not met**'}.")
         lines.append(line)
     return lines

@@ -226,10 +226,8 @@ def blocks(timing: bool = True) -> list[Block]:
     out = [_sizes_block(), _sync_block()]
     if timing:
         ok, why = have("rclpy")
-        try:
-            import sensor_msgs.msg  # noqa: F401
-        except ImportError as err:
-            ok, why = False, str(err)
+        if ok:
+            ok, why = have("sensor_msgs.msg", "Image")
         out.append(_timing_block() if ok else
                    pending("timing-images", "images through rclpy", why, False))
     return out
