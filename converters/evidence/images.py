@@ -211,7 +211,8 @@ def _timing_block() -> Block:
             t_to = time_call(lambda: to_images(scan, info, as_dataclass=True), repeat=5)
             t_from = time_call(lambda: from_images(dc, info, is_destaggered=False,
                                                    as_dataclass=True), repeat=5)
-            rows.append([label, "to_images / from_images (destagger, dataclasses)",
+            rows.append([label, "conversion: to_images ms (col. 3), from_images ms (col. 4); "
+                         "destaggering, dataclasses",
                          f"{t_to * 1e3:.2f}", f"{t_from * 1e3:.2f}", "—", "—"])
     finally:
         ros.close()
