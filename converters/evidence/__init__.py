@@ -13,7 +13,11 @@ module                 answers
 =====================  =====================================================================
 ``sizes``              1: bytes per frame and MB/s, LidarScan vs PointCloud2 layouts
 ``compression``        1, 3: lossless compression of real channel blocks; range encodings
+``codec_study``        1: compressed vs compressed: driver's cloud (zstd, Draco) vs LidarScan
+                       (zstd, lidarscan.codec, PNG, JPEG-XL), the goals per real sensor
+``images``             2: one sensor_msgs/Image per channel vs one LidarScan; synchronisers
 ``range_error``        3: float32 metres vs integer units, worst round-trip error
+``units``              3: uint32 mm vs float32 m on the real frames: bytes, precision, cost
 ``geometry``           4: cost of omitting a geometry field, on real metadata
 ``transport``          2: CPU per frame through real rclpy; receiver-side conversions
 ``linkage``            5: the info link, scenario counts, resolver vs "latest info wins"
@@ -40,18 +44,24 @@ _MARKER = re.compile(r"<!-- evidence:([a-z0-9-]+):begin -->\n(.*?)\n?<!-- eviden
 
 def _deterministic_sections() -> list[tuple[str, Callable[[], list[Block]]]]:
     from converters.evidence import (
+        codec_study,
         compression,
         geometry,
+        images,
         linkage,
         range_error,
         sizes,
         slicing,
         summary,
+        units,
     )
     return [
         ("sizes", sizes.blocks),
         ("compression", lambda: compression.blocks(timing=False)),
+        ("codec study", lambda: codec_study.blocks(timing=False)),
+        ("images", lambda: images.blocks(timing=False)),
         ("range_error", range_error.blocks),
+        ("units", lambda: units.blocks(timing=False)),
         ("geometry", geometry.blocks),
         ("linkage", linkage.blocks),
         ("slicing", lambda: slicing.blocks(timing=False)),
@@ -65,6 +75,9 @@ _SECTION_BLOCKS = {
     "range_error": ("range-error",), "geometry": ("geometry",), "linkage": ("linkage",),
     "slicing": ("slicing", "merger"), "summary": ("headline", "headline-compression"),
     "compression timing": ("timing-compression",),
+    "codec study": ("codec-study", "codec-goals"), "codec timing": ("timing-codec",),
+    "images": ("images-sizes", "images-sync"), "images timing": ("timing-images",),
+    "units": ("int-vs-float",), "units timing": ("timing-int-vs-float",),
     "transport": ("timing-transport", "timing-receiver"), "slicing timing": ("timing-slicing",),
 }
 
@@ -110,9 +123,15 @@ def generate(fast: bool = False, log: Callable[[str], None] | None = None) -> li
         out += _run(name, fn, True, say)
     if fast:
         return out
-    from converters.evidence import compression, slicing, transport
+    from converters.evidence import codec_study, compression, images, slicing, transport, units
     for name, fn in (("compression timing", lambda: [b for b in compression.blocks(timing=True)
                                                      if not b.deterministic]),
+                     ("codec timing", lambda: [b for b in codec_study.blocks(timing=True)
+                                               if not b.deterministic]),
+                     ("images timing", lambda: [b for b in images.blocks(timing=True)
+                                                if not b.deterministic]),
+                     ("units timing", lambda: [b for b in units.blocks(timing=True)
+                                               if not b.deterministic]),
                      ("transport", transport.blocks),
                      ("slicing timing", lambda: [b for b in slicing.blocks(timing=True)
                                                  if not b.deterministic])):

@@ -123,11 +123,12 @@ class _Ros:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
-    def roundtrip(self, msgs: list[Any], repeat: int) -> tuple[float, float]:
+    def roundtrip(self, msgs: list[Any], repeat: int, depth: int = 4) -> tuple[float, float]:
         """(best wall s, best process CPU s) over ``repeat`` rounds, from publishing ``msgs``
-        until every one of them has been received and deserialised by the subscription."""
+        until every one of them has been received and deserialised by the subscription
+        (``depth``: the QoS history depth, at least ``len(msgs)`` for a burst)."""
         from rclpy.qos import QoSProfile, ReliabilityPolicy
-        qos = QoSProfile(depth=4,  # type: ignore[no-untyped-call]
+        qos = QoSProfile(depth=depth,  # type: ignore[no-untyped-call]
                          reliability=ReliabilityPolicy.RELIABLE)
         topic = f"/evidence/t{id(msgs)}"
         got: list[Any] = []

@@ -1,0 +1,101 @@
+"""Benchmark: lidarscan.codec against zstd of the raw LidarScan buffer, measured in one run.
+
+Scan: 128 x 2048 from the real OS-2-128 frame (tests/data/ouster, 128 x 1024: tiled twice
+horizontally, the second copy mirrored left-right so that no byte sequence repeats for zstd to
+find), five canonical channels (range float32 m, intensity, reflectivity, ambient,
+flags), staggered as published; the codec gets the info (destaggered prediction).
+
+Baselines, same run, one thread: zstd-3 and zstd-1 of the whole ``data`` buffer (what MCAP's
+chunk compression does) and lz4. Printed: bytes and ratio to zstd-3's bytes; median encode /
+decode ms, ratio to zstd-3's time, and frames per second. Targets (issue): encode and decode
+>= 50 Hz on one core at 128 x 2048; bytes below zstd-3's. Exits 1 when one is missed.
+
+Usage: ``.venv/bin/python bench/bench_compression.py [--rounds N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _timing import interleaved_times  # noqa: E402
+
+import lidarscan as ls  # noqa: E402
+from lidarscan import codec  # noqa: E402
+
+
+def make_scan() -> tuple[Any, Any]:
+    """(128 x 2048 LidarScan dataclass, an info-like object with its row shifts)."""
+    from converters.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.ouster import scan_from_frame
+    meta, path = next((m, p) for m, p in ouster_files() if p is not None and "128" in m.name)
+    info = ouster_info(meta)
+    scan = scan_from_frame(load_frame(path), info, as_dataclass=True)
+    chans = {c.name: np.hstack([ls.channel(scan, c.name), ls.channel(scan, c.name)[:, ::-1]])
+             for c in scan.channels}
+    height, width = next(iter(chans.values())).shape
+    wide = ls.make_info(stamp_ns=1_000_000_000, frame_id="os_sensor",
+                        vertical_angles=info.vertical_angles,
+                        horizontal_angles=2 * np.pi * (1 - np.arange(width) / width),
+                        pixel_shift_by_row=np.asarray(info.pixel_shift_by_row) * 2,
+                        as_dataclass=True)
+    out = ls.make_scan(wide, chans, 1_000_000_000,
+                       column_time_offsets=np.arange(width, dtype=np.int64) * 48_828,
+                       as_dataclass=True)
+    return out, SimpleNamespace(pixel_shift_by_row=np.asarray(info.pixel_shift_by_row) * 2)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=15, help="timed rounds")
+    args = parser.parse_args(argv)
+
+    import lz4.frame
+    import zstandard
+
+    scan, info = make_scan()
+    raw = scan.data.tobytes()
+    z3, z1 = zstandard.ZstdCompressor(level=3), zstandard.ZstdCompressor(level=1)
+    dz = zstandard.ZstdDecompressor()
+    packed = {"zstd-3 (buffer)": z3.compress(raw), "zstd-1 (buffer)": z1.compress(raw),
+              "lz4 (buffer)": lz4.frame.compress(raw),
+              "lidarscan.codec": codec.compress_scan(scan, info)}
+    assert ls.encode(codec.decompress_scan(packed["lidarscan.codec"])) == ls.encode(scan)
+    enc = {"zstd-3 (buffer)": lambda: z3.compress(raw), "zstd-1 (buffer)": lambda: z1.compress(raw),
+           "lz4 (buffer)": lambda: lz4.frame.compress(raw),
+           "lidarscan.codec": lambda: codec.compress_scan(scan, info)}
+    dec = {"zstd-3 (buffer)": lambda: dz.decompress(packed["zstd-3 (buffer)"]),
+           "zstd-1 (buffer)": lambda: dz.decompress(packed["zstd-1 (buffer)"]),
+           "lz4 (buffer)": lambda: lz4.frame.decompress(packed["lz4 (buffer)"]),
+           "lidarscan.codec": lambda: codec.decompress_scan(packed["lidarscan.codec"])}
+    te = {k: statistics.median(v) for k, v in interleaved_times(enc, args.rounds).items()}
+    td = {k: statistics.median(v) for k, v in interleaved_times(dec, args.rounds, 1).items()}
+    base_b, base_e, base_d = (len(packed["zstd-3 (buffer)"]), te["zstd-3 (buffer)"],
+                              td["zstd-3 (buffer)"])
+    print(f"LidarScan {scan.height}x{scan.width}, {len(scan.channels)} channels, "
+          f"{len(raw) / 1e6:.2f} MB raw; medians of {args.rounds} interleaved rounds")
+    print(f"  {'coding':<18s} {'bytes':>10s} {'÷zstd-3':>8s} {'enc ms':>8s} {'÷zstd-3':>8s} "
+          f"{'dec ms':>8s} {'÷zstd-3':>8s} {'enc Hz':>7s} {'dec Hz':>7s}")
+    for name in packed:
+        size = len(packed[name])
+        print(f"  {name:<18s} {size:>10d} {size / base_b:>8.3f} {te[name] * 1e3:>8.2f} "
+              f"{te[name] / base_e:>8.2f} {td[name] * 1e3:>8.2f} {td[name] / base_d:>8.2f} "
+              f"{1 / te[name]:>7.0f} {1 / td[name]:>7.0f}")
+    ours = "lidarscan.codec"
+    checks = [("bytes below zstd-3 of the buffer", len(packed[ours]) < base_b),
+              ("encode >= 50 Hz", 1 / te[ours] >= 50), ("decode >= 50 Hz", 1 / td[ours] >= 50)]
+    for label, ok in checks:
+        print(f"{label:<34s} {'OK' if ok else 'MISSED'}")
+    return 0 if all(ok for _, ok in checks) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
