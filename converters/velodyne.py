@@ -24,10 +24,67 @@ pass ``rpm`` to fold that nominal rotation into ``beta_u``.
 Timing (VLP-16 firing table): laser ``k`` of a firing sequence fires 2.304 us * k after the
 sequence starts, one sequence every 55.296 us; so ``beam_time_offsets[u] = 2304 ns * laser_id``
 and ``column_time_increment = 55296 ns`` for 16-laser calibrations (zeros otherwise unless given).
+
+Packet decoding (:class:`PacketDecoder`, :func:`decode_packets`; facts of the VLP-16, VLP-32C,
+HDL-32E and VLS-128 user manuals). A data packet payload is 1206 bytes: 12 blocks of 100 bytes
+(flag 0xFF + 0xEE/0xDD/0xCC/0xBB, azimuth u16 in 0.01 deg clockwise, 32 points of distance u16
+and reflectivity u8, little-endian), the timestamp (u32, microseconds past the hour) and two
+factory bytes: return mode (0x37 strongest, 0x38 last, 0x39 dual) and product id (0x22 VLP-16
+and Puck LITE, 0x24 Puck Hi-Res, 0x28 VLP-32C, 0x21 HDL-32E, 0xA1 VLS-128 / Alpha Prime). The
+model and return mode come from these bytes only.
+
+============  ==========================  ==================  ===========================
+model         sequences per packet        laser k fires at    first firing vs timestamp
+============  ==========================  ==================  ===========================
+VLP-16/Puck   2 per block: 24 (dual 12)   2.304 us * k        0
+VLP-32C       1 per block: 12 (dual 6)    2.304 us * (k//2)   0 (lasers fire in pairs)
+HDL-32E       1 per block: 12 (dual 6)    1.152 us * k        the stamp is the last firing
+VLS-128       4 blocks (banks): 3 (dual   2.665 us *          -8.7 us
+              1: blocks 0-7, 4 unused)    (k//8 + k//64)
+============  ==========================  ==================  ===========================
+
+Sequence periods: 55.296 us (VLP-16, VLP-32C), 46.08 us (HDL-32E), 53.3 us (VLS-128); distance
+units 2 mm (VLP-16, Puck, HDL-32E) and 4 mm (VLP-32C, VLS-128): the model's unit is used, not
+the calibration's ``distance_resolution``. Dual return: blocks in pairs, the even block the last
+return and the odd block the strongest (the second strongest when the strongest is also the
+last, as the manuals specify).
+
+What the decoder produces (conventions):
+
+- Axes: REP 103 as velodyne_pointcloud publishes them (x forward = packet azimuth 0, y left,
+  z up). ``column_azimuth_angles[c] = -radians(azimuth_c)`` (the packets' azimuth is clockwise);
+  the azimuth of a VLP-16's second sequence in a block is interpolated half-way to the next block.
+- Rows: sorted by elevation, row 0 the highest; ``beam_ids`` = the vendor laser id (position in
+  the sequence). Columns = firing sequences in firing order, one rotation per scan, cut before
+  the first sequence whose azimuth passed ``cut_angle_deg``; short rotations are padded with
+  no-return columns, long ones get a wider info version (see :class:`PacketDecoder`).
+- Channels: ``range`` UINT16 raw distance (``range_multiplier`` = the model's unit, 0 = no
+  return) and ``intensity`` UINT8 reflectivity; dual return adds ``range2``/``intensity2``:
+  ``range`` is the strongest-return slot, ``range2`` the last-return slot, both exactly as sent
+  (identical pairs are kept).
+- Time: ``header.stamp`` = first firing of the rotation; ``column_time_offsets`` = each
+  sequence's first firing (timestamp + the table above); ``beam_time_offsets`` = the firing
+  offset of each laser; ``column_time_increment`` = the measured mean column period. Stamps come
+  from the packets' own clock completed with the hour of the recorded stamps when the two agree
+  (GPS/PTP), else from the recorded stamps (``time_source``).
+- Intra-sequence rotation: ``beam_azimuth_offsets[u] = rot_correction_u - omega * t_u`` with
+  omega the rotation rate measured on the first rotation of the info version. The residual is
+  (omega_actual - omega) * t_u: on the shared VLP-32C and VLS-128 recordings the local rate
+  (10 ms windows) stays within 0.23 % of omega, i.e. <= 0.6 mm at 100 m; between rotations
+  0.01 %. A rotation whose rate differs by more than 1 % from the info's (measured over >= 100
+  columns) starts a new info version.
+- LidarInfo: ``vertical_angles`` = vert_correction, ``beam_origins`` from the vertical and
+  horizontal offsets, ``beam_range_offsets`` = dist_correction, ``range_min``/``range_max`` =
+  0 and 65535 units unless given; ``model`` = the product name. Not representable, so not
+  applied: the HDL-64 two-point distance corrections and the intensity (focal) corrections.
+- A sensor with a restricted field of view sends a packet that ends before the gap and continues
+  after it: sequences after an azimuth jump (> 5 deg) inside a packet are timed from the next
+  packet.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import struct
@@ -38,7 +95,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan.errors import ConfigError, DecodeError, ValidationError
+from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
 from lidarscan.scan import make_info, make_scan
 
 __all__ = [
@@ -306,7 +363,10 @@ _RETURN_MODES = {_STRONGEST: "strongest", _LAST: "last", _DUAL: "dual"}
 _AZIMUTHS = struct.Struct("<" + "2xH96x" * _BLOCKS)      # the 12 block azimuths
 _TIMESTAMP = struct.Struct("<I")
 _HOUR_NS = 3_600_000_000_000
-_JUMP_CENTIDEG = 500.0      # an azimuth step this large between two firings is a gap (FOV)
+_POINT = np.dtype([("distance", "<u2"), ("reflectivity", "u1")])
+_JUMP_CENTIDEG = 500.0
+_RATE_CHANGE = 0.01         # a rotation rate this much off the info's makes a new version
+_RATE_COLUMNS = 100         # ... when measured over at least this many columns      # an azimuth step this large between two firings is a gap (FOV)
 
 
 @dataclass(frozen=True)
@@ -377,6 +437,7 @@ class _Layout:
     seq_ns: np.ndarray[Any, Any]   # (sequences,) first-firing time relative to the timestamp
     measured: np.ndarray[Any, Any]  # (sequences,) block whose azimuth is the sequence's, or -1
     flags: bytes              # expected second flag byte of each used block (first is 0xFF)
+    last_offset: int          # byte offset of the packet's last measured azimuth
 
 
 def _layout(product: int, mode: int) -> _Layout:
@@ -399,7 +460,8 @@ def _layout(product: int, mode: int) -> _Layout:
     seq_ns = np.arange(seqs) * model.sequence_ns + model.first_firing_ns
     if model.last_firing_stamp:           # HDL-32E: the stamp is the last firing of the packet
         seq_ns -= (seqs - 1) * model.sequence_ns + model.laser_ns[-1]
-    return _Layout(model, dual, seqs, seq_ns, measured.astype(np.int64), flags)
+    return _Layout(model, dual, seqs, seq_ns, measured.astype(np.int64), flags,
+                   2 + 100 * int(measured[measured >= 0][-1]))
 
 
 def _blocks_to_sequences(values: np.ndarray[Any, Any], layout: _Layout
@@ -451,7 +513,8 @@ class PacketDecoder:
         as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
 
     Width: W = ceil((1 + width_margin) * 2 pi / (omega * T)), omega the rotation rate and T the
-    mean column period, both measured on the first rotation of an info version. A shorter
+    mean column period, both measured on the first rotation of an info version (a rotation
+    whose rate differs by more than 1 % starts a new version). A shorter
     rotation is padded with no-return columns (their azimuths and times extrapolated at the
     measured rate); a rotation with more than W firings gets a new info version whose width
     fits it (again with the margin), so no firing is ever dropped.
@@ -476,8 +539,9 @@ class PacketDecoder:
         self._as_dataclass = as_dataclass
         self._key: tuple[int, int] | None = None      # (product, mode) of the packets buffered
         self._layout: _Layout | None = None
-        self._packets: list[bytes] = []
-        self._stamps: list[int] = []                   # recorded stamps (ns)
+        self._packets: list[Any] = []                  # payloads (bytes) or (k, 1206) rows
+        self._stamps: list[Any] = []                   # recorded stamps (ns): ints or arrays
+        self._rows = 0                                  # packets buffered
         self._first_seq = 0                             # first sequence of _packets[0] to keep
         self._prev_rel = -1                             # phase-relative azimuth of the last firing
         self._info: Any = None
@@ -501,53 +565,112 @@ class PacketDecoder:
                               "data packet payload)")
         key = (data[1205], data[1204])
         out: list[tuple[Any, Any]] = []
-        if key != self._key:
-            layout = self._check_key(key)
-            out.extend(self.flush())
-            self._key, self._layout = key, layout
-        layout = self._layout
+        layout = self._layout if key == self._key else self._check_key(key)
         assert layout is not None
-        nflags = len(layout.flags)
-        if data[0:nflags * 100:100] != b"\xff" * nflags or \
-                data[1:nflags * 100:100] != layout.flags:
-            raise DecodeError("packet.blocks[*].flag", _flags(data, nflags),
+        used = len(layout.flags) * 100
+        if data[0:used:100] != b"\xff" * len(layout.flags) or data[1:used:100] != layout.flags:
+            raise DecodeError("packet.blocks[*].flag", _flags(data, used // 100),
                               f"{_flag_names(layout.flags)} for a {layout.model.name} "
                               f"{_RETURN_MODES[key[1]]} packet")
-        azimuths = _AZIMUTHS.unpack_from(data)
-        if max(azimuths) > 35999:
-            raise DecodeError("packet.blocks[*].azimuth", max(azimuths),
-                              "0..35999 (hundredths of a degree)")
+        if max(data[3:used:100]) >= 0x8C:              # 36000 = 0x8CA0: check exactly
+            worst = max(_AZIMUTHS.unpack_from(data)[: used // 100])
+            if worst > 35999:
+                raise DecodeError("packet.blocks[*].azimuth", worst,
+                                  "0..35999 (hundredths of a degree)")
+        if key != self._key:                          # a valid packet of another mode/model
+            out.extend(self.flush())
+            self._key, self._layout = key, layout
         cut = self._cut
-        rel_first = (azimuths[0] - cut) % 36000
-        rel_last = (azimuths[layout.measured[-1]] - cut) % 36000
+        first, last = 2, layout.last_offset
+        rel_first = ((data[first] | data[first + 1] << 8) - cut) % 36000
+        rel_last = ((data[last] | data[last + 1] << 8) - cut) % 36000
         if rel_first >= self._prev_rel and rel_last >= rel_first:
             self._packets.append(data)                   # fast path: no cut in this packet
             self._stamps.append(int(stamp_ns))
+            self._rows += 1
             self._prev_rel = rel_last
             return out
-        prev = self._prev_rel
-        for s, block in enumerate(layout.measured.tolist()):
-            if block < 0:
-                continue
-            rel = (azimuths[block] - cut) % 36000
-            if rel < prev:                  # passed the cut angle: sequence s starts a rotation
-                if s > 0:
-                    self._packets.append(data)
-                    self._stamps.append(int(stamp_ns))
-                    out.extend(self._emit(stop=s))
-                else:
-                    out.extend(self._emit(stop=None))
-                self._packets, self._stamps, self._first_seq = [], [], s
-            prev = rel
-        self._packets.append(data)
-        self._stamps.append(int(stamp_ns))
-        self._prev_rel = prev
+        out.extend(self._push_rows(np.array([int(stamp_ns)], np.int64),
+                                   np.frombuffer(data, np.uint8).reshape(1, PACKET_SIZE)))
         return out
+
+    def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]
+                   ) -> list[tuple[Any, Any]]:
+        """Add validated packets (m, 1206) of the current model and mode; cut rotations."""
+        layout = self._layout
+        assert layout is not None
+        index = np.nonzero(layout.measured >= 0)[0]
+        offsets = 2 + 100 * layout.measured[index]
+        az = rows[:, offsets].astype(np.int64) | (rows[:, offsets + 1].astype(np.int64) << 8)
+        rel = ((az - self._cut) % 36000).reshape(-1)
+        cuts = np.nonzero(rel < np.concatenate([[self._prev_rel], rel[:-1]]))[0]
+        out: list[tuple[Any, Any]] = []
+        row0 = 0
+        for j in cuts.tolist():                     # sequence s of packet p starts a rotation
+            p, s = divmod(j, index.size)
+            s = int(index[s])
+            self._add(stamps[row0:p + (s > 0)], rows[row0:p + (s > 0)])
+            out.extend(self._emit(stop=s if s > 0 else None))
+            self._packets, self._stamps, self._rows, self._first_seq = [], [], 0, s
+            row0 = p
+        self._add(stamps[row0:], rows[row0:])
+        self._prev_rel = int(rel[-1])
+        return out
+
+    def _add(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]) -> None:
+        if rows.shape[0]:
+            self._packets.append(rows)
+            self._stamps.append(stamps)
+            self._rows += rows.shape[0]
+
+    def _push_chunk(self, chunk: list[tuple[int, Any]]
+                    ) -> tuple[list[tuple[Any, Any]], LidarScanError | None]:
+        """push() of each packet, vectorised over runs of well-formed packets of one mode.
+
+        Returns the completed rotations and the error of the first malformed packet (the
+        packets after it are not used), or None.
+        """
+        out: list[tuple[Any, Any]] = []
+        payloads = [p for _, p in chunk]
+        if not all(type(p) is bytes and len(p) == PACKET_SIZE for p in payloads):
+            for stamp, payload in chunk:            # odd inputs: one by one
+                try:
+                    out.extend(self.push(stamp, payload))
+                except LidarScanError as err:
+                    return out, err
+            return out, None
+        rows = np.frombuffer(b"".join(payloads), np.uint8).reshape(-1, PACKET_SIZE)
+        stamps = np.fromiter((int(s) for s, _ in chunk), np.int64, len(chunk))
+        i = 0
+        while i < len(chunk):
+            layout, key = self._layout, self._key
+            good_len = 0
+            if layout is not None and key is not None:
+                sub = rows[i:]
+                used = len(layout.flags) * 100
+                flags = np.frombuffer(layout.flags, np.uint8)
+                az = sub[:, 2:used:100].astype(np.int64) | (
+                    sub[:, 3:used:100].astype(np.int64) << 8)
+                good = ((sub[:, 1205] == key[0]) & (sub[:, 1204] == key[1])
+                        & np.all(sub[:, 0:used:100] == 0xFF, axis=1)
+                        & np.all(sub[:, 1:used:100] == flags, axis=1)
+                        & np.all(az <= 35999, axis=1))
+                good_len = int(np.argmin(good)) if not good.all() else good.size
+                if good_len:
+                    out.extend(self._push_rows(stamps[i:i + good_len], sub[:good_len]))
+            i += good_len
+            if i < len(chunk):                      # model/mode change or malformed packet
+                try:
+                    out.extend(self.push(chunk[i][0], chunk[i][1]))
+                except LidarScanError as err:
+                    return out, err
+                i += 1
+        return out, None
 
     def flush(self) -> list[tuple[Any, Any]]:
         """The last, partial rotation (if it has any firing); the decoder is then empty."""
         out = self._emit(stop=None) if self._packets else []
-        self._packets, self._stamps, self._first_seq = [], [], 0
+        self._packets, self._stamps, self._rows, self._first_seq = [], [], 0, 0
         self._prev_rel = -1
         return out
 
@@ -579,8 +702,7 @@ class PacketDecoder:
         """Decode the buffered packets' sequences [first_seq, stop of the last packet)."""
         layout = self._layout
         assert layout is not None and self._key is not None
-        packets, stamps = self._packets, self._stamps
-        n = len(packets)
+        n = self._rows
         if n == 0:
             return []
         s_per = layout.sequences
@@ -588,8 +710,15 @@ class PacketDecoder:
         end = (n - 1) * s_per + (s_per if stop is None else stop)
         if end - begin <= 0:
             return []
-        buf = np.frombuffer(b"".join(packets), np.uint8).reshape(n, PACKET_SIZE)
-        cols = _decode(buf, np.asarray(stamps, np.int64), layout, self._time_source)
+        if all(type(p) is bytes for p in self._packets):
+            buf = np.frombuffer(b"".join(self._packets), np.uint8).reshape(n, PACKET_SIZE)
+            stamps = np.asarray(self._stamps, np.int64)
+        else:
+            buf = np.concatenate([np.frombuffer(p, np.uint8).reshape(1, PACKET_SIZE)
+                                  if type(p) is bytes else p for p in self._packets])
+            stamps = np.concatenate([np.atleast_1d(np.asarray(t, np.int64))
+                                     for t in self._stamps])
+        cols = _decode(buf, stamps, layout, self._time_source)
         cols = {k: v[begin:end] for k, v in cols.items()}
         return [self._assemble(cols)]
 
@@ -601,8 +730,11 @@ class PacketDecoder:
         count = times.size
         period, omega = _rates(cols)
         key = (self._key, layout.dual)
-        if self._info is None or self._info_key != key or count > int(self._info.width):
-            if self._info is not None and self._info_key == key:
+        changed = (self._info is None or self._info_key != key
+                   or (count >= _RATE_COLUMNS and omega > 0
+                       and abs(omega - self._omega) > _RATE_CHANGE * self._omega))
+        if changed or count > int(self._info.width):
+            if not changed:
                 period, omega = self._period, self._omega   # same sensor, only wider
             per_rev = 2.0 * math.pi / (omega * period * 1e-9) if omega > 0 else count
             width = max(count, int(math.ceil(per_rev * (1.0 + self._margin))))
@@ -617,7 +749,7 @@ class PacketDecoder:
                                     .astype(np.int64)])
             azimuth = np.concatenate([azimuth, azimuth[-1] + step * self._period * 1e-9
                                       * math.degrees(self._omega) * 100.0])
-        order = laser_ids_by_row(self._calib_for(model))
+        order = self._order
         channels: dict[str, np.ndarray[Any, Any]] = {}
         names = (("range", "intensity"), ("range2", "intensity2"))
         for r, (rname, iname) in enumerate(names[: 2 if layout.dual else 1]):
@@ -655,6 +787,7 @@ class PacketDecoder:
             model=model.name, distance_resolution=model.distance_resolution,
             beam_ids="laser_id", as_dataclass=self._as_dataclass)
         self._info_key, self._period, self._omega = key, period, omega
+        self._order = laser_ids_by_row(self._calib_for(model))
         self._last_info_stamp = stamp
 
 
@@ -705,13 +838,11 @@ def _decode(buf: np.ndarray[Any, Any], stamps: np.ndarray[Any, Any], layout: _La
     """
     n = buf.shape[0]
     blocks = buf[:, :1200].reshape(n, _BLOCKS, 100)
-    azimuth = (blocks[:, :, 2].astype(np.int64) | (blocks[:, :, 3].astype(np.int64) << 8))
-    points = blocks[:, :, 4:].reshape(n, _BLOCKS, 32, 3)
-    dist = points[..., 0].astype(np.uint16) | (points[..., 1].astype(np.uint16) << 8)
-    refl = points[..., 2]
+    azimuth = blocks[:, :, 2:4].copy().view("<u2")[..., 0]
+    points = blocks[:, :, 4:].view(_POINT)                 # (n, 12, 32) distance, reflectivity
     out: dict[str, np.ndarray[Any, Any]] = {}
-    for r, (d, i) in enumerate(zip(_blocks_to_sequences(dist, layout),
-                                   _blocks_to_sequences(refl, layout))):
+    for r, (d, i) in enumerate(zip(_blocks_to_sequences(points["distance"], layout),
+                                   _blocks_to_sequences(points["reflectivity"], layout))):
         if d is None or i is None:
             continue
         out[f"range{r}"] = d.reshape(-1, layout.model.lasers)
@@ -767,6 +898,10 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
     (use :class:`PacketDecoder` directly to report and continue).
     """
     decoder = PacketDecoder(calibration, **kw)
-    for stamp_ns, payload in packets:
-        yield from decoder.push(stamp_ns, payload)
+    source = iter(packets)
+    while chunk := list(itertools.islice(source, 2048)):
+        done, error = decoder._push_chunk(chunk)   # = push() of each, vectorised
+        yield from done
+        if error is not None:
+            raise error
     yield from decoder.flush()

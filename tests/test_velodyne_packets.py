@@ -527,7 +527,8 @@ def test_model_and_return_mode_change_make_a_new_info_version() -> None:
     assert [c.name for c in s1.channels] == ["range", "intensity"]
     assert [c.name for c in s2.channels][2:] == ["range2", "intensity2"]
     # the same geometry keeps its version; a calibration for another model is refused
-    again = list(decode_packets(first + synthetic_stream(0x28, 0x37, 10, start_deg=360.0),
+    again = list(decode_packets(first + synthetic_stream(0x28, 0x37, 10, start_deg=360.0,
+                                                         deg_per_sequence=0.5),
                                 calib, as_dataclass=True))
     assert len({lidarscan.stamps.to_ns(i.header.stamp) for _, i in again}) == 1
     with pytest.raises(LidarScanError, match="32 lasers"):
@@ -552,3 +553,17 @@ def test_default_rclpy_messages() -> None:
     [(scan, info)] = list(decode_packets(synthetic_stream(0x28, 0x37, 3, start_deg=10.0), calib))
     assert type(scan).__name__ == "LidarScan" and type(info).__name__ == "LidarInfo"
     lidarscan.validate(scan, info)
+
+
+def test_rotation_rate_change_makes_a_new_version_with_new_beam_offsets() -> None:
+    calib = _random_calibration(32, 9)
+    slow = synthetic_stream(0x28, 0x37, 40, deg_per_sequence=1.0, start_deg=1.0)
+    fast = synthetic_stream(0x28, 0x37, 40, deg_per_sequence=1.5, start_deg=1.0,
+                            stamp_ns=slow[-1][0] + 10**6, toh_us=3_599_100_000)
+    results = list(decode_packets(slow + fast, calib, as_dataclass=True))
+    first, last = results[0][1], results[-1][1]
+    assert lidarscan.stamps.to_ns(first.header.stamp) != lidarscan.stamps.to_ns(last.header.stamp)
+    late = int(np.argmax(first.beam_time_offsets))
+    rot = {las["laser_id"]: las["rot_correction"] for las in calib["lasers"]}
+    swept = [rot[int(i.beam_ids[late])] - i.beam_azimuth_offsets[late] for i in (first, last)]
+    assert swept[1] == pytest.approx(1.5 * swept[0], rel=1e-3)
