@@ -361,7 +361,6 @@ _BLOCKS = 12
 _STRONGEST, _LAST, _DUAL = 0x37, 0x38, 0x39
 _RETURN_MODES = {_STRONGEST: "strongest", _LAST: "last", _DUAL: "dual"}
 _AZIMUTHS = struct.Struct("<" + "2xH96x" * _BLOCKS)      # the 12 block azimuths
-_TIMESTAMP = struct.Struct("<I")
 _HOUR_NS = 3_600_000_000_000
 _POINT = np.dtype([("distance", "<u2"), ("reflectivity", "u1")])
 _JUMP_CENTIDEG = 500.0

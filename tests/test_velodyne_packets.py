@@ -6,7 +6,8 @@ chapters): block = flag (0xFF, 0xEE/0xDD/0xCC/0xBB), azimuth (u16, 0.01 deg), 32
 u16, reflectivity u8); then timestamp (u32 us past the hour), return mode (0x37/0x38/0x39) and
 product id. Laser k of a sequence fires laser_ns[k] after the sequence's first firing, whose
 azimuth the block reports (VLP-16: the second sequence of a block is half-way to the next
-block); the point of laser k is the ros-drivers formula at rotation = azimuth + omega * t_k.
+block); the point of laser k is the ros-drivers formula (``test_velodyne._rawdata_point``) at
+rotation = azimuth + omega * t_k.
 
 The ground truth (tests/data/nebula/*/NOTICE.md) was made by Nebula, whose decoder interpolates
 each laser's azimuth differently from the manuals' firing tables (VLP-32C: laser index j times
@@ -39,6 +40,7 @@ from converters import velodyne
 from converters.velodyne import MODELS, PacketDecoder, decode_packets
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from pcd import read_xyz
+from test_velodyne import _rawdata_point    # the ros-drivers point formula (per point)
 
 DATA = Path(__file__).parent / "data" / "nebula"
 MODES = {"strongest": 0x37, "last": 0x38, "dual": 0x39}
@@ -264,19 +266,6 @@ def _oracle(packets: list[tuple[int, bytes]], calib: dict[str, Any], cut: float
     return [r for r in rotations if r]
 
 
-def _oracle_point(laser: dict[str, float], raw: int, rotation_deg: float, unit: float
-                  ) -> tuple[float, float, float]:
-    """ros-drivers point formula (see tests/test_velodyne.py), ROS axes."""
-    distance = raw * unit + laser["dist_correction"]
-    rot = math.radians(rotation_deg) - laser["rot_correction"]
-    vert = laser["vert_correction"]
-    vo, ho = laser["vert_offset_correction"], laser["horiz_offset_correction"]
-    xy = distance * math.cos(vert) - vo * math.sin(vert)
-    x = xy * math.sin(rot) - ho * math.cos(rot)
-    y = xy * math.cos(rot) + ho * math.sin(rot)
-    return y, -x, distance * math.sin(vert) + vo * math.cos(vert)
-
-
 def _compare_with_oracle(packets: list[tuple[int, bytes]], calib: dict[str, Any], cut: float,
                          max_points: int = 4000) -> None:
     results = list(decode_packets(packets, calib, cut_angle_deg=cut, as_dataclass=True))
@@ -316,8 +305,8 @@ def _compare_with_oracle(packets: list[tuple[int, bytes]], calib: dict[str, Any]
                 if ret or raw == 0 or checked > max_points and rng.random() > 0.01:
                     continue
                 t = model.laser_ns[laser] * 1e-9
-                expected = _oracle_point(by_id[laser], raw, az + math.degrees(omega * t),
-                                         model.distance_resolution)
+                expected = _rawdata_point(by_id[laser], raw, az + math.degrees(omega * t),
+                                          model.distance_resolution)
                 np.testing.assert_allclose(points[u, c], expected, atol=2e-4 + 2e-6 * raw)
                 checked += 1
     assert checked > 0 or returns == 0
