@@ -546,12 +546,18 @@ class PacketDecoder:
         self._info: Any = None
         self._info_key: tuple[Any, ...] | None = None
         self._omega = 0.0                               # rad/s of the current info version
+        self._period = 0.0                              # ns, mean column period of the version
+        self._order = np.zeros(0, np.int64)             # laser id of each row
         self._last_info_stamp: int | None = None
 
     # -------------------------------------------------------------------------------- public
 
     def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
         """Add one packet (1206-byte payload, never modified); return the rotations it completed.
+
+        A packet of another model or return mode ends the current rotation (returned here);
+        the info version changes only when the geometry does (model, calibration, single <->
+        dual, width, rotation rate).
 
         Raises:
             DecodeError: malformed packet (size, block flags, azimuth, unknown product or
@@ -728,7 +734,7 @@ class PacketDecoder:
         times = cols["time"]
         count = times.size
         period, omega = _rates(cols)
-        key = (self._key, layout.dual)
+        key = (self._key[0], layout.dual)     # strongest <-> last keeps the geometry
         changed = (self._info is None or self._info_key != key
                    or (count >= _RATE_COLUMNS and omega > 0
                        and abs(omega - self._omega) > _RATE_CHANGE * self._omega))

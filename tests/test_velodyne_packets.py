@@ -556,3 +556,13 @@ def test_rotation_rate_change_makes_a_new_version_with_new_beam_offsets() -> Non
     rot = {las["laser_id"]: las["rot_correction"] for las in calib["lasers"]}
     swept = [rot[int(i.beam_ids[late])] - i.beam_azimuth_offsets[late] for i in (first, last)]
     assert swept[1] == pytest.approx(1.5 * swept[0], rel=1e-3)
+
+
+def test_strongest_and_last_share_a_version() -> None:
+    calib = _random_calibration(32, 10)
+    first = synthetic_stream(0x28, 0x37, 10, deg_per_sequence=0.5)
+    second = synthetic_stream(0x28, 0x38, 10, deg_per_sequence=0.5, start_deg=360.0,
+                              stamp_ns=first[-1][0] + 10**6)
+    results = list(decode_packets(first + second, calib, as_dataclass=True))
+    assert len(results) == 2
+    assert len({lidarscan.stamps.to_ns(i.header.stamp) for _, i in results}) == 1
