@@ -24,25 +24,89 @@ pass ``rpm`` to fold that nominal rotation into ``beta_u``.
 Timing (VLP-16 firing table): laser ``k`` of a firing sequence fires 2.304 us * k after the
 sequence starts, one sequence every 55.296 us; so ``beam_time_offsets[u] = 2304 ns * laser_id``
 and ``column_time_increment = 55296 ns`` for 16-laser calibrations (zeros otherwise unless given).
+
+Packet decoding (:class:`PacketDecoder`, :func:`decode_packets`; facts of the VLP-16, VLP-32C,
+HDL-32E and VLS-128 user manuals). A data packet payload is 1206 bytes: 12 blocks of 100 bytes
+(flag 0xFF + 0xEE/0xDD/0xCC/0xBB, azimuth u16 in 0.01 deg clockwise, 32 points of distance u16
+and reflectivity u8, little-endian), the timestamp (u32, microseconds past the hour) and two
+factory bytes: return mode (0x37 strongest, 0x38 last, 0x39 dual) and product id (0x22 VLP-16
+and Puck LITE, 0x24 Puck Hi-Res, 0x28 VLP-32C, 0x21 HDL-32E, 0xA1 VLS-128 / Alpha Prime). The
+model and return mode come from these bytes only.
+
+============  ==========================  ==================  ===========================
+model         sequences per packet        laser k fires at    first firing vs timestamp
+============  ==========================  ==================  ===========================
+VLP-16/Puck   2 per block: 24 (dual 12)   2.304 us * k        0
+VLP-32C       1 per block: 12 (dual 6)    2.304 us * (k//2)   0 (lasers fire in pairs)
+HDL-32E       1 per block: 12 (dual 6)    1.152 us * k        the stamp is the last firing
+VLS-128       4 blocks (banks): 3 (dual   2.665 us *          -8.7 us
+              1: blocks 0-7, 4 unused)    (k//8 + k//64)
+============  ==========================  ==================  ===========================
+
+Sequence periods: 55.296 us (VLP-16, VLP-32C), 46.08 us (HDL-32E), 53.3 us (VLS-128); distance
+units 2 mm (VLP-16, Puck, HDL-32E) and 4 mm (VLP-32C, VLS-128): the model's unit is used, not
+the calibration's ``distance_resolution``. Dual return: blocks in pairs, the even block the last
+return and the odd block the strongest (the second strongest when the strongest is also the
+last, as the manuals specify).
+
+What the decoder produces (conventions):
+
+- Axes: REP 103 as velodyne_pointcloud publishes them (x forward = packet azimuth 0, y left,
+  z up). ``column_azimuth_angles[c] = -radians(azimuth_c)`` (the packets' azimuth is clockwise);
+  the azimuth of a VLP-16's second sequence in a block is interpolated half-way to the next block.
+- Rows: sorted by elevation, row 0 the highest; ``beam_ids`` = the vendor laser id (position in
+  the sequence). Columns = firing sequences in firing order, one rotation per scan, cut before
+  the first sequence whose azimuth passed ``cut_angle_deg``; short rotations are padded with
+  no-return columns, long ones get a wider info version (see :class:`PacketDecoder`).
+- Channels: ``range`` UINT16 raw distance (``range_multiplier`` = the model's unit, 0 = no
+  return) and ``intensity`` UINT8 reflectivity; dual return adds ``range2``/``intensity2``:
+  ``range`` is the strongest-return slot, ``range2`` the last-return slot, both exactly as sent
+  (identical pairs are kept).
+- Time: ``header.stamp`` = first firing of the rotation; ``column_time_offsets`` = each
+  sequence's first firing (timestamp + the table above); ``beam_time_offsets`` = the firing
+  offset of each laser; ``column_time_increment`` = the measured mean column period. Stamps come
+  from the packets' own clock completed with the hour of the recorded stamps when the two agree
+  (GPS/PTP), else from the recorded stamps (``time_source``).
+- Intra-sequence rotation: ``beam_azimuth_offsets[u] = rot_correction_u - omega * t_u`` with
+  omega the rotation rate measured on the first rotation of the info version. The residual is
+  (omega_actual - omega) * t_u: on the shared VLP-32C and VLS-128 recordings the local rate
+  (10 ms windows) stays within 0.23 % of omega, i.e. <= 0.6 mm at 100 m; between rotations
+  0.01 %. A rotation whose rate differs by more than 1 % from the info's (measured over >= 100
+  columns) starts a new info version.
+- LidarInfo: ``vertical_angles`` = vert_correction, ``beam_origins`` from the vertical and
+  horizontal offsets, ``beam_range_offsets`` = dist_correction, ``range_min``/``range_max`` =
+  0 and 65535 units unless given; ``model`` = the product name. Not representable, so not
+  applied: the HDL-64 two-point distance corrections and the intensity (focal) corrections.
+- A sensor with a restricted field of view sends a packet that ends before the gap and continues
+  after it: sequences after an azimuth jump (> 5 deg) inside a packet are timed from the next
+  packet.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
-from collections.abc import Mapping
+import struct
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lidarscan.errors import DecodeError, ValidationError
+from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
 from lidarscan.scan import make_info, make_scan
 
 __all__ = [
+    "MODELS",
+    "PACKET_SIZE",
+    "PacketDecoder",
     "VLP16_CALIBRATION",
     "VLP16_CYCLE_NS",
     "VLP16_FIRING_NS",
+    "VelodyneModel",
+    "decode_packets",
     "info_from_calibration",
     "laser_ids_by_row",
     "load_calibration",
@@ -147,7 +211,8 @@ def info_from_calibration(calib: Mapping[str, Any] | str | os.PathLike[str], *, 
                           horizontal_angles: Any = None, rpm: float | None = None,
                           beam_time_offsets: Any = None, column_time_increment: int | None = None,
                           range_min: float | None = None, range_max: float | None = None,
-                          model: str = "", as_dataclass: bool = False) -> Any:
+                          model: str = "", distance_resolution: float | None = None,
+                          beam_ids: str = "ring", as_dataclass: bool = False) -> Any:
     """LidarInfo of a Velodyne-style sensor from its calibration (see the module docstring).
 
     Args:
@@ -164,6 +229,10 @@ def info_from_calibration(calib: Mapping[str, Any] | str | os.PathLike[str], *, 
         column_time_increment: ns between columns; default 55296 for 16 lasers, else 0.
         range_min, range_max: valid interval (m); default 0.9 / 130 (velodyne_pointcloud).
         model: free-text model name (default "VLP-16" for 16 lasers).
+        distance_resolution: metres per raw distance unit, overriding the calibration's
+            ``distance_resolution`` (the packet decoder passes the model's unit from the manual).
+        beam_ids: "ring" (default: Velodyne ring numbers, 0 = lowest beam) or "laser_id" (the
+            vendor's laser number, the position of the laser in a firing sequence).
         as_dataclass: return :class:`lidarscan.types.LidarInfo` instead of the rclpy message.
 
     Returns:
@@ -213,9 +282,16 @@ def info_from_calibration(calib: Mapping[str, Any] | str | os.PathLike[str], *, 
         if alpha.size != width:
             raise ValidationError("horizontal_angles", f"length {alpha.size}",
                                   f"length {width} (columns)")
-    resolution = float(data.get("distance_resolution", 0.002))
+    resolution = float(data.get("distance_resolution", 0.002) if distance_resolution is None
+                       else distance_resolution)
     if not resolution > 0 or not math.isfinite(resolution):
         raise ValidationError("calibration.distance_resolution", resolution, "> 0 metres")
+    if beam_ids == "ring":
+        ids = (height - 1 - np.arange(height)).astype(np.uint16)
+    elif beam_ids == "laser_id":
+        ids = order.astype(np.uint16)
+    else:
+        raise ValidationError("beam_ids", beam_ids, '"ring" or "laser_id"')
     lo, hi = _DEFAULT_RANGE
     return make_info(
         stamp_ns=stamp_ns, frame_id=frame_id,
@@ -225,7 +301,7 @@ def info_from_calibration(calib: Mapping[str, Any] | str | os.PathLike[str], *, 
         beam_range_offsets=values["dist_correction"][order],
         beam_time_offsets=per_laser[order],
         column_time_increment=int(column_time_increment),
-        beam_ids=(height - 1 - np.arange(height)).astype(np.uint16),
+        beam_ids=ids,
         range_multiplier=resolution, range_offset=0.0,
         range_min=lo if range_min is None else range_min,
         range_max=hi if range_max is None else range_max,
@@ -275,3 +351,562 @@ def scan_from_firings(calib: Mapping[str, Any] | str | os.PathLike[str], info: A
     return make_scan(info, channels, stamp_ns, column_azimuth_angles=-np.deg2rad(rot),
                      column_time_offsets=column_time_offsets, as_dataclass=as_dataclass)
 
+
+
+# ------------------------------------------------------------------------------------------------
+# Packet decoding (1206-byte UDP payloads; see the module docstring for the layout and timing).
+
+PACKET_SIZE = 1206
+_BLOCKS = 12
+_STRONGEST, _LAST, _DUAL = 0x37, 0x38, 0x39
+_RETURN_MODES = {_STRONGEST: "strongest", _LAST: "last", _DUAL: "dual"}
+_AZIMUTHS = struct.Struct("<" + "2xH96x" * _BLOCKS)      # the 12 block azimuths
+_HOUR_NS = 3_600_000_000_000
+_POINT = np.dtype([("distance", "<u2"), ("reflectivity", "u1")])
+_JUMP_CENTIDEG = 500.0
+_RATE_CHANGE = 0.01         # a rotation rate this much off the info's makes a new version
+_RATE_COLUMNS = 100         # ... when measured over at least this many columns      # an azimuth step this large between two firings is a gap (FOV)
+
+
+@dataclass(frozen=True)
+class VelodyneModel:
+    """Packet layout and firing timing of one product line (facts of its user manual).
+
+    Attributes:
+        name: model name written to ``LidarInfo.model``.
+        lasers: lasers per firing sequence (= calibration length = scan height).
+        distance_resolution: metres per raw distance unit.
+        sequence_ns: firing-sequence period in ns (one column).
+        laser_ns: (lasers,) firing time of each laser after its sequence's first firing, ns.
+        first_firing_ns: time of the packet's first firing relative to its timestamp, ns
+            (single return); ``last_firing_stamp``: the timestamp marks the packet's last firing.
+        nominal: public nominal calibration (elevations only), or None when the model needs
+            its calibration file.
+    """
+
+    name: str
+    lasers: int
+    distance_resolution: float
+    sequence_ns: float
+    laser_ns: tuple[int, ...]
+    first_firing_ns: float = 0.0
+    last_firing_stamp: bool = False
+    nominal: Mapping[str, Any] | None = None
+
+
+def _nominal(elevations_deg: Any, resolution: float) -> dict[str, Any]:
+    return {"num_lasers": len(elevations_deg), "distance_resolution": resolution,
+            "lasers": [{"laser_id": k, "vert_correction": math.radians(e), "rot_correction": 0.0,
+                        "dist_correction": 0.0, "vert_offset_correction": 0.0,
+                        "horiz_offset_correction": 0.0} for k, e in enumerate(elevations_deg)]}
+
+
+def _fans(low: float, high: float, count: int) -> list[float]:
+    """Elevations (deg) of lasers alternating between two fans 4/3 deg apart (Puck Hi-Res,
+    HDL-32E): even laser k at low + 4/3 (k // 2), odd at high + 4/3 (k // 2)."""
+    return [(low if k % 2 == 0 else high) + 4.0 / 3.0 * (k // 2) for k in range(count)]
+
+
+_VLP16_TIMES = tuple(2304 * k for k in range(16))
+#: product id (factory byte 0x4DF) -> model. VLP-16 and Puck LITE share 0x22; the VLS-128 (and
+#: Alpha Prime) reports 0xA1 (0x63 in some manual tables, accepted too).
+MODELS: dict[int, VelodyneModel] = {
+    0x22: VelodyneModel("VLP-16", 16, 0.002, 55296.0, _VLP16_TIMES,
+                        nominal=VLP16_CALIBRATION),
+    0x24: VelodyneModel("Puck Hi-Res", 16, 0.002, 55296.0, _VLP16_TIMES,
+                        nominal=_nominal(_fans(-10.0, 2.0 / 3.0, 16), 0.002)),
+    0x28: VelodyneModel("VLP-32C", 32, 0.004, 55296.0, tuple(2304 * (k // 2) for k in range(32))),
+    0x21: VelodyneModel("HDL-32E", 32, 0.002, 46080.0, tuple(1152 * k for k in range(32)),
+                        last_firing_stamp=True,
+                        nominal=_nominal(_fans(-92.0 / 3.0, -28.0 / 3.0, 32), 0.002)),
+    0xA1: VelodyneModel("VLS-128", 128, 0.004, 53300.0,
+                        tuple(2665 * (k // 8 + k // 64) for k in range(128)),
+                        first_firing_ns=-8700.0),
+}
+MODELS[0x63] = MODELS[0xA1]
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where a packet's sequences are: blocks -> (sequences, lasers[, returns])."""
+
+    model: VelodyneModel
+    dual: bool
+    sequences: int            # firing sequences per packet
+    seq_ns: np.ndarray[Any, Any]   # (sequences,) first-firing time relative to the timestamp
+    measured: np.ndarray[Any, Any]  # (sequences,) block whose azimuth is the sequence's, or -1
+    flags: bytes              # expected second flag byte of each used block (first is 0xFF)
+    last_offset: int          # byte offset of the packet's last measured azimuth
+
+
+def _layout(product: int, mode: int) -> _Layout:
+    model = MODELS[product]
+    dual = mode == _DUAL
+    lasers = model.lasers
+    if lasers == 16:                       # two sequences per block
+        seqs = 12 if dual else 24
+        index = np.arange(seqs)               # even sequences carry their block's azimuth
+        measured = np.where(index % 2 == 0, index if dual else index // 2, -1)
+        flags = b"\xee" * _BLOCKS
+    elif lasers == 32:
+        seqs = 6 if dual else 12
+        measured = np.arange(seqs) * (2 if dual else 1)
+        flags = b"\xee" * _BLOCKS
+    else:                                  # 128: four banks per sequence
+        seqs = 1 if dual else 3
+        measured = np.arange(seqs) * 4
+        flags = b"\xee\xee\xdd\xdd\xcc\xcc\xbb\xbb" if dual else b"\xee\xdd\xcc\xbb" * 3
+    seq_ns = np.arange(seqs) * model.sequence_ns + model.first_firing_ns
+    if model.last_firing_stamp:           # HDL-32E: the stamp is the last firing of the packet
+        seq_ns -= (seqs - 1) * model.sequence_ns + model.laser_ns[-1]
+    return _Layout(model, dual, seqs, seq_ns, measured.astype(np.int64), flags,
+                   2 + 100 * int(measured[measured >= 0][-1]))
+
+
+def _blocks_to_sequences(values: np.ndarray[Any, Any], layout: _Layout
+                         ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
+    """(n, 12, 32) per-block values -> (n, S, L) first/only return and (n, S, L) last return.
+
+    Dual return: blocks come in pairs (even = last return, odd = strongest, or second strongest
+    when the strongest is also the last); the first array is the strongest slot.
+    """
+    n = values.shape[0]
+    lasers = layout.model.lasers
+    if lasers == 128:
+        if layout.dual:
+            pairs = values[:, :8].reshape(n, 4, 2, 32)            # bank, return, laser
+            return (pairs[:, :, 1].reshape(n, 1, 128), pairs[:, :, 0].reshape(n, 1, 128))
+        return values.reshape(n, 3, 128), None
+    if layout.dual:
+        pairs = values.reshape(n, 6, 2, 32)
+        strong, last = pairs[:, :, 1], pairs[:, :, 0]
+        if lasers == 16:
+            return strong.reshape(n, 12, 16), last.reshape(n, 12, 16)
+        return strong, last
+    if lasers == 16:
+        return values.reshape(n, 24, 16), None
+    return values, None
+
+
+class PacketDecoder:
+    """Velodyne packets -> one (LidarScan, LidarInfo) per rotation (the packet decoder contract).
+
+    Args:
+        calibration: ros-drivers style calibration YAML path or mapping; None -> the model's
+            nominal public calibration (VLP-16, Puck LITE, Puck Hi-Res, HDL-32E) or a
+            :class:`~lidarscan.errors.ConfigError` naming the file the model needs.
+        frame_id: header.frame_id of scans and infos.
+        cut_angle_deg: packet azimuth (degrees, clockwise, the packets' own convention) where a
+            rotation starts (Nebula's ``scan_phase``): a rotation is cut before the first firing
+            sequence whose azimuth has passed it.
+        time_source: "auto" (default), "sensor" or "receive". The packets' timestamp counts
+            microseconds past the hour; "sensor" completes it with the hour of the recorded
+            stamp (a GPS/PTP-synchronised sensor: absolute times), "receive" anchors the
+            sensor's relative times at the recorded stamps (shifted so that no packet of the
+            rotation is received before its own timestamp).
+            "auto" uses "sensor" when the two agree within 1 s, else "receive".
+        range_min, range_max: ``LidarInfo.range_min/max`` in metres (default 0 and the packet
+            format's maximum, 65535 raw units: nothing is hidden).
+        width_margin: relative slack of the scan width over the measured columns per
+            revolution (default 0.02).
+        as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
+
+    Width: W = ceil((1 + width_margin) * 2 pi / (omega * T)), omega the rotation rate and T the
+    mean column period, both measured on the first rotation of an info version (a rotation
+    whose rate differs by more than 1 % starts a new version). A shorter
+    rotation is padded with no-return columns (their azimuths and times extrapolated at the
+    measured rate); a rotation with more than W firings gets a new info version whose width
+    fits it (again with the margin), so no firing is ever dropped.
+    """
+
+    def __init__(self, calibration: Any = None, *, frame_id: str = "lidar",
+                 cut_angle_deg: float = 0.0, time_source: str = "auto",
+                 range_min: float | None = None, range_max: float | None = None,
+                 width_margin: float = 0.02, as_dataclass: bool = False) -> None:
+        if time_source not in ("auto", "sensor", "receive"):
+            raise ConfigError("time_source", time_source, '"auto", "sensor" or "receive"')
+        if not (math.isfinite(float(cut_angle_deg))):
+            raise ConfigError("cut_angle_deg", cut_angle_deg, "a finite angle in degrees")
+        if not (0.0 <= float(width_margin) < 1.0):
+            raise ConfigError("width_margin", width_margin, "a fraction in [0, 1)")
+        self._calib = None if calibration is None else load_calibration(calibration)
+        self._frame_id = frame_id
+        self._cut = int(round(float(cut_angle_deg) * 100)) % 36000
+        self._time_source = time_source
+        self._range = (range_min, range_max)
+        self._margin = float(width_margin)
+        self._as_dataclass = as_dataclass
+        self._key: tuple[int, int] | None = None      # (product, mode) of the packets buffered
+        self._layout: _Layout | None = None
+        self._packets: list[Any] = []                  # payloads (bytes) or (k, 1206) rows
+        self._stamps: list[Any] = []                   # recorded stamps (ns): ints or arrays
+        self._rows = 0                                  # packets buffered
+        self._first_seq = 0                             # first sequence of _packets[0] to keep
+        self._prev_rel = -1                             # phase-relative azimuth of the last firing
+        self._info: Any = None
+        self._info_key: tuple[Any, ...] | None = None
+        self._omega = 0.0                               # rad/s of the current info version
+        self._period = 0.0                              # ns, mean column period of the version
+        self._order = np.zeros(0, np.int64)             # laser id of each row
+        self._last_info_stamp: int | None = None
+
+    # -------------------------------------------------------------------------------- public
+
+    def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
+        """Add one packet (1206-byte payload, never modified); return the rotations it completed.
+
+        A packet of another model or return mode ends the current rotation (returned here);
+        the info version changes only when the geometry does (model, calibration, single <->
+        dual, width, rotation rate).
+
+        Raises:
+            DecodeError: malformed packet (size, block flags, azimuth, unknown product or
+                return mode); the packet is skipped and the decoder stays usable.
+            ConfigError / ValidationError: the calibration does not fit the detected model.
+        """
+        data = packet if isinstance(packet, bytes) else _as_bytes(packet)
+        if len(data) != PACKET_SIZE:
+            raise DecodeError("packet", f"{len(data)} bytes", f"{PACKET_SIZE} bytes (a Velodyne "
+                              "data packet payload)")
+        key = (data[1205], data[1204])
+        out: list[tuple[Any, Any]] = []
+        layout = self._layout if key == self._key else self._check_key(key)
+        assert layout is not None
+        used = len(layout.flags) * 100
+        if data[0:used:100] != b"\xff" * len(layout.flags) or data[1:used:100] != layout.flags:
+            raise DecodeError("packet.blocks[*].flag", _flags(data, used // 100),
+                              f"{_flag_names(layout.flags)} for a {layout.model.name} "
+                              f"{_RETURN_MODES[key[1]]} packet")
+        if max(data[3:used:100]) >= 0x8C:              # 36000 = 0x8CA0: check exactly
+            worst = max(_AZIMUTHS.unpack_from(data)[: used // 100])
+            if worst > 35999:
+                raise DecodeError("packet.blocks[*].azimuth", worst,
+                                  "0..35999 (hundredths of a degree)")
+        if key != self._key:                          # a valid packet of another mode/model
+            out.extend(self.flush())
+            self._key, self._layout = key, layout
+        cut = self._cut
+        first, last = 2, layout.last_offset
+        rel_first = ((data[first] | data[first + 1] << 8) - cut) % 36000
+        rel_last = ((data[last] | data[last + 1] << 8) - cut) % 36000
+        if rel_first >= self._prev_rel and rel_last >= rel_first:
+            self._packets.append(data)                   # fast path: no cut in this packet
+            self._stamps.append(int(stamp_ns))
+            self._rows += 1
+            self._prev_rel = rel_last
+            return out
+        out.extend(self._push_rows(np.array([int(stamp_ns)], np.int64),
+                                   np.frombuffer(data, np.uint8).reshape(1, PACKET_SIZE)))
+        return out
+
+    def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]
+                   ) -> list[tuple[Any, Any]]:
+        """Add validated packets (m, 1206) of the current model and mode; cut rotations."""
+        layout = self._layout
+        assert layout is not None
+        index = np.nonzero(layout.measured >= 0)[0]
+        offsets = 2 + 100 * layout.measured[index]
+        az = rows[:, offsets].astype(np.int64) | (rows[:, offsets + 1].astype(np.int64) << 8)
+        rel = ((az - self._cut) % 36000).reshape(-1)
+        cuts = np.nonzero(rel < np.concatenate([[self._prev_rel], rel[:-1]]))[0]
+        out: list[tuple[Any, Any]] = []
+        row0 = 0
+        for j in cuts.tolist():                     # sequence s of packet p starts a rotation
+            p, s = divmod(j, index.size)
+            s = int(index[s])
+            self._add(stamps[row0:p + (s > 0)], rows[row0:p + (s > 0)])
+            out.extend(self._emit(stop=s if s > 0 else None))
+            self._packets, self._stamps, self._rows, self._first_seq = [], [], 0, s
+            row0 = p
+        self._add(stamps[row0:], rows[row0:])
+        self._prev_rel = int(rel[-1])
+        return out
+
+    def _add(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]) -> None:
+        if rows.shape[0]:
+            self._packets.append(rows)
+            self._stamps.append(stamps)
+            self._rows += rows.shape[0]
+
+    def _push_chunk(self, chunk: list[tuple[int, Any]]
+                    ) -> tuple[list[tuple[Any, Any]], LidarScanError | None]:
+        """push() of each packet, vectorised over runs of well-formed packets of one mode.
+
+        Returns the completed rotations and the error of the first malformed packet (the
+        packets after it are not used), or None.
+        """
+        out: list[tuple[Any, Any]] = []
+        payloads = [p for _, p in chunk]
+        if not all(type(p) is bytes and len(p) == PACKET_SIZE for p in payloads):
+            for stamp, payload in chunk:            # odd inputs: one by one
+                try:
+                    out.extend(self.push(stamp, payload))
+                except LidarScanError as err:
+                    return out, err
+            return out, None
+        rows = np.frombuffer(b"".join(payloads), np.uint8).reshape(-1, PACKET_SIZE)
+        stamps = np.fromiter((int(s) for s, _ in chunk), np.int64, len(chunk))
+        i = 0
+        while i < len(chunk):
+            layout, key = self._layout, self._key
+            good_len = 0
+            if layout is not None and key is not None:
+                sub = rows[i:]
+                used = len(layout.flags) * 100
+                flags = np.frombuffer(layout.flags, np.uint8)
+                az = sub[:, 2:used:100].astype(np.int64) | (
+                    sub[:, 3:used:100].astype(np.int64) << 8)
+                good = ((sub[:, 1205] == key[0]) & (sub[:, 1204] == key[1])
+                        & np.all(sub[:, 0:used:100] == 0xFF, axis=1)
+                        & np.all(sub[:, 1:used:100] == flags, axis=1)
+                        & np.all(az <= 35999, axis=1))
+                good_len = int(np.argmin(good)) if not good.all() else good.size
+                if good_len:
+                    out.extend(self._push_rows(stamps[i:i + good_len], sub[:good_len]))
+            i += good_len
+            if i < len(chunk):                      # model/mode change or malformed packet
+                try:
+                    out.extend(self.push(chunk[i][0], chunk[i][1]))
+                except LidarScanError as err:
+                    return out, err
+                i += 1
+        return out, None
+
+    def flush(self) -> list[tuple[Any, Any]]:
+        """The last, partial rotation (if it has any firing); the decoder is then empty."""
+        out = self._emit(stop=None) if self._packets else []
+        self._packets, self._stamps, self._rows, self._first_seq = [], [], 0, 0
+        self._prev_rel = -1
+        return out
+
+    # ------------------------------------------------------------------------------ internals
+
+    def _check_key(self, key: tuple[int, int]) -> _Layout:
+        product, mode = key
+        if product not in MODELS:
+            raise DecodeError("packet.product_id", hex(product), "a known Velodyne product id "
+                              "(0x21 HDL-32E, 0x22 VLP-16/Puck LITE, 0x24 Puck Hi-Res, "
+                              "0x28 VLP-32C, 0xA1 VLS-128)")
+        if mode not in _RETURN_MODES:
+            raise DecodeError("packet.return_mode", hex(mode),
+                              "0x37 strongest, 0x38 last or 0x39 dual")
+        model = MODELS[product]
+        calib = self._calib if self._calib is not None else model.nominal
+        if calib is None:
+            raise ConfigError("calibration", None, f"the {model.name} calibration YAML "
+                              "(ros-drivers format, from the sensor's XML or the vendor); this "
+                              "model has no nominal calibration")
+        count = len(calib["lasers"])
+        if count != model.lasers:
+            raise ValidationError("calibration.lasers", f"{count} lasers",
+                                  f"{model.lasers} lasers for the {model.name} that sent "
+                                  "these packets")
+        return _layout(product, mode)
+
+    def _emit(self, stop: int | None) -> list[tuple[Any, Any]]:
+        """Decode the buffered packets' sequences [first_seq, stop of the last packet)."""
+        layout = self._layout
+        assert layout is not None and self._key is not None
+        n = self._rows
+        if n == 0:
+            return []
+        s_per = layout.sequences
+        begin = self._first_seq
+        end = (n - 1) * s_per + (s_per if stop is None else stop)
+        if end - begin <= 0:
+            return []
+        if all(type(p) is bytes for p in self._packets):
+            buf = np.frombuffer(b"".join(self._packets), np.uint8).reshape(n, PACKET_SIZE)
+            stamps = np.asarray(self._stamps, np.int64)
+        else:
+            buf = np.concatenate([np.frombuffer(p, np.uint8).reshape(1, PACKET_SIZE)
+                                  if type(p) is bytes else p for p in self._packets])
+            stamps = np.concatenate([np.atleast_1d(np.asarray(t, np.int64))
+                                     for t in self._stamps])
+        cols = _decode(buf, stamps, layout, self._time_source)
+        cols = {k: v[begin:end] for k, v in cols.items()}
+        return [self._assemble(cols)]
+
+    def _assemble(self, cols: dict[str, np.ndarray[Any, Any]]) -> tuple[Any, Any]:
+        layout = self._layout
+        assert layout is not None and self._key is not None
+        model = layout.model
+        times = cols["time"]
+        count = times.size
+        period, omega = _rates(cols)
+        key = (self._key[0], layout.dual)     # strongest <-> last keeps the geometry
+        changed = (self._info is None or self._info_key != key
+                   or (count >= _RATE_COLUMNS and omega > 0
+                       and abs(omega - self._omega) > _RATE_CHANGE * self._omega))
+        if changed or count > int(self._info.width):
+            if not changed:
+                period, omega = self._period, self._omega   # same sensor, only wider
+            per_rev = 2.0 * math.pi / (omega * period * 1e-9) if omega > 0 else count
+            width = max(count, int(math.ceil(per_rev * (1.0 + self._margin))))
+            self._new_info(key, width, int(times[0]), period, omega)
+        info = self._info
+        width = int(info.width)
+        pad = width - count
+        azimuth = cols["azimuth"]                       # clockwise centidegrees, float
+        if pad:
+            step = np.arange(1, pad + 1, dtype=np.float64)
+            times = np.concatenate([times, times[-1] + np.round(step * self._period)
+                                    .astype(np.int64)])
+            azimuth = np.concatenate([azimuth, azimuth[-1] + step * self._period * 1e-9
+                                      * math.degrees(self._omega) * 100.0])
+        order = self._order
+        channels: dict[str, np.ndarray[Any, Any]] = {}
+        names = (("range", "intensity"), ("range2", "intensity2"))
+        for r, (rname, iname) in enumerate(names[: 2 if layout.dual else 1]):
+            for name, src, dtype in ((rname, cols[f"range{r}"], np.uint16),
+                                     (iname, cols[f"intensity{r}"], np.uint8)):
+                grid = np.zeros((model.lasers, width), dtype)
+                grid[:, :count] = src.T[order]
+                channels[name] = grid
+        stamp = int(times[0])
+        column_azimuth = -np.deg2rad(np.mod(azimuth, 36000.0) / 100.0)
+        scan = make_scan(info, channels, stamp, column_azimuth_angles=column_azimuth,
+                         column_time_offsets=times - stamp, as_dataclass=self._as_dataclass)
+        return scan, info
+
+    def _calib_for(self, model: VelodyneModel) -> Mapping[str, Any]:
+        calib = self._calib if self._calib is not None else model.nominal
+        assert calib is not None
+        return calib
+
+    def _new_info(self, key: tuple[Any, ...], width: int, stamp: int, period: float,
+                  omega: float) -> None:
+        layout = self._layout
+        assert layout is not None
+        model = layout.model
+        if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
+            stamp = self._last_info_stamp + 1               # a new version needs a new stamp
+        lo, hi = self._range
+        self._info = info_from_calibration(
+            self._calib_for(model), columns=width, stamp_ns=stamp, frame_id=self._frame_id,
+            rpm=omega * 60.0 / (2.0 * math.pi),
+            beam_time_offsets=np.asarray(model.laser_ns, np.int64),
+            column_time_increment=int(round(period)),
+            range_min=0.0 if lo is None else lo,
+            range_max=65535 * model.distance_resolution if hi is None else hi,
+            model=model.name, distance_resolution=model.distance_resolution,
+            beam_ids="laser_id", as_dataclass=self._as_dataclass)
+        self._info_key, self._period, self._omega = key, period, omega
+        self._order = laser_ids_by_row(self._calib_for(model))
+        self._last_info_stamp = stamp
+
+
+def _as_bytes(packet: Any) -> bytes:
+    if isinstance(packet, (bytearray, memoryview)):
+        return bytes(packet)
+    if isinstance(packet, np.ndarray):
+        if packet.ndim != 1 or packet.dtype != np.uint8:
+            raise DecodeError("packet", f"{packet.dtype} {packet.shape}", "a 1-D uint8 array")
+        return packet.tobytes()
+    raise DecodeError("packet", type(packet).__name__,
+                      "bytes, bytearray, memoryview or a 1-D uint8 ndarray")
+
+
+def _flags(data: bytes, count: int) -> list[str]:
+    return [f"0x{data[100 * b + 1]:02X}{data[100 * b]:02X}" for b in range(count)]
+
+
+def _flag_names(second: bytes) -> str:
+    names = [f"0x{b:02X}FF" for b in second]
+    return "block flags " + (names[0] + " in every block" if len(set(names)) == 1
+                             else " ".join(names))
+
+
+def _packet_times(buf: np.ndarray[Any, Any], stamps: np.ndarray[Any, Any],
+                  source: str) -> np.ndarray[Any, Any]:
+    """(n,) int64 ns of each packet's timestamp (see PacketDecoder ``time_source``)."""
+    toh = (buf[:, 1200:1204].copy().view("<u4").reshape(-1).astype(np.int64)) * 1000
+    delta = (toh - toh[0]) % _HOUR_NS                 # forward in time, across the hour wrap
+    delta = np.where(delta > _HOUR_NS // 2, delta - _HOUR_NS, delta)
+    # receive time of the least delayed packet, relative to the sensor clock
+    anchor = int(np.min(stamps - delta))
+    if source != "receive":
+        cand = anchor - anchor % _HOUR_NS + int(toh[0])
+        cand += _HOUR_NS * int(round((anchor - cand) / _HOUR_NS))
+        if source == "sensor" or abs(cand - anchor) < 1_000_000_000:
+            anchor = cand
+    return anchor + delta
+
+
+def _decode(buf: np.ndarray[Any, Any], stamps: np.ndarray[Any, Any], layout: _Layout,
+            source: str) -> dict[str, np.ndarray[Any, Any]]:
+    """Vectorised decoding of n packets into per-sequence columns (sequence order).
+
+    Returns time (N,) int64 ns of each sequence's first firing, azimuth (N,) float64
+    clockwise centidegrees (measured, or interpolated for VLP-16's second sequence of a block),
+    range0/intensity0 (N, L) raw (and range1/intensity1 for dual return, the last-return slot).
+    """
+    n = buf.shape[0]
+    blocks = buf[:, :1200].reshape(n, _BLOCKS, 100)
+    azimuth = blocks[:, :, 2:4].copy().view("<u2")[..., 0]
+    points = blocks[:, :, 4:].view(_POINT)                 # (n, 12, 32) distance, reflectivity
+    out: dict[str, np.ndarray[Any, Any]] = {}
+    for r, (d, i) in enumerate(zip(_blocks_to_sequences(points["distance"], layout),
+                                   _blocks_to_sequences(points["reflectivity"], layout))):
+        if d is None or i is None:
+            continue
+        out[f"range{r}"] = d.reshape(-1, layout.model.lasers)
+        out[f"intensity{r}"] = i.reshape(-1, layout.model.lasers)
+    seq_az = azimuth[:, np.maximum(layout.measured, 0)].astype(np.float64)
+    if np.any(layout.measured < 0):      # VLP-16: second sequence of a block, half-way in time
+        meas = seq_az[:, 0::2]
+        gap = np.mod(np.diff(meas, axis=1), 36000.0)
+        gap = np.concatenate([gap, gap[:, -1:]], axis=1) if gap.shape[1] else np.zeros_like(meas)
+        seq_az[:, 1::2] = meas + gap / 2.0
+    out["azimuth"] = seq_az.reshape(-1)
+    times = _packet_times(buf, stamps, source)
+    seq_ns = np.round(layout.seq_ns).astype(np.int64)
+    grid = times[:, None] + seq_ns[None]
+    # A sensor with a restricted field of view completes its last packet before the gap with
+    # the first firings after it: sequences after an azimuth jump inside a packet are timed
+    # backwards from the next packet (they directly precede it).
+    meas = seq_az[:, layout.measured >= 0]
+    if meas.shape[1] > 1 and n > 1:
+        jump = np.mod(np.diff(meas, axis=1), 36000.0) > _JUMP_CENTIDEG
+        rows = np.nonzero(jump[:-1].any(axis=1))[0]
+        if rows.size:
+            index = np.nonzero(layout.measured >= 0)[0]
+            for p in rows.tolist():
+                first = int(index[int(np.argmax(jump[p])) + 1])
+                grid[p, first:] = (times[p + 1] + seq_ns[0] - int(round(layout.model.sequence_ns))
+                                   - (seq_ns[-1] - seq_ns[first:]))
+    out["time"] = grid.reshape(-1)
+    return out
+
+
+def _rates(cols: dict[str, np.ndarray[Any, Any]]) -> tuple[float, float]:
+    """(mean column period in ns, rotation rate in rad/s) measured on decoded columns."""
+    times = cols["time"].astype(np.float64)
+    azimuth = cols["azimuth"]
+    if times.size < 2:
+        return 0.0, 0.0
+    dt = np.diff(times)
+    da = np.mod(np.diff(azimuth), 36000.0)
+    regular = (dt > 0) & (dt < 1.5 * np.median(dt))   # consecutive firings, not gaps
+    if not np.any(regular):
+        return 0.0, 0.0
+    period = float(dt[regular].mean())
+    omega = float(np.radians(da[regular].sum() / 100.0) / (dt[regular].sum() * 1e-9))
+    return period, omega
+
+
+def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
+                   **kw: Any) -> Iterator[tuple[Any, Any]]:
+    """Decode (stamp_ns, payload) pairs: :meth:`PacketDecoder.push` each, then ``flush``.
+
+    Keyword arguments go to :class:`PacketDecoder`. A malformed packet raises its DecodeError
+    (use :class:`PacketDecoder` directly to report and continue).
+    """
+    decoder = PacketDecoder(calibration, **kw)
+    source = iter(packets)
+    while chunk := list(itertools.islice(source, 2048)):
+        done, error = decoder._push_chunk(chunk)   # = push() of each, vectorised
+        yield from done
+        if error is not None:
+            raise error
+    yield from decoder.flush()

@@ -1,0 +1,119 @@
+"""Benchmark: Velodyne packet decoding (converters.velodyne.decode_packets) vs real time.
+
+Run: ``.venv/bin/python bench/bench_velodyne.py [--seconds S] [--repeat N]``. Prints medians and
+the multiple of real time on one core (no assertions). Target: >= 50x real time.
+
+Input: a VLS-128 in dual-return mode at 600 rpm (one firing sequence of 128 lasers x 2 returns
+per packet, 18 761 packets per second of sensor time), random returns with 20 % no-return,
+built in memory with numpy (the manual's layout). Candidates: the decoder (LidarScan + LidarInfo
+dataclasses, one per rotation) and a plain per-point Python loop that unpacks each point and
+computes x, y, z with the manual's formula (measured on a slice of the packets in the same run,
+scaled to the same number of packets).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import struct
+import time
+
+import numpy as np
+
+from converters.velodyne import MODELS, decode_packets
+
+SEQUENCE_S = 53.3e-6                                # one VLS-128 firing sequence
+
+
+def make_packets(seconds: float, seed: int = 0) -> list[tuple[int, bytes]]:
+    """VLS-128 dual-return packets: blocks EE EE DD DD CC CC BB BB + 4 padding blocks."""
+    rng = np.random.default_rng(seed)
+    count = int(seconds / SEQUENCE_S)
+    packets = np.zeros((count, 1206), np.uint8)
+    blocks = packets[:, :1200].reshape(count, 12, 100)
+    azimuth = np.round(np.arange(count) * SEQUENCE_S * 3600.0 * 100).astype(np.int64) % 36000
+    for b, flag in enumerate((0xEE, 0xEE, 0xDD, 0xDD, 0xCC, 0xCC, 0xBB, 0xBB)):
+        blocks[:, b, 0], blocks[:, b, 1] = 0xFF, flag
+        blocks[:, b, 2], blocks[:, b, 3] = azimuth & 0xFF, azimuth >> 8
+        dist = rng.integers(1, 50000, (count, 32))
+        dist[rng.random((count, 32)) < 0.2] = 0
+        points = blocks[:, b, 4:].reshape(count, 32, 3)
+        points[..., 0], points[..., 1] = dist & 0xFF, dist >> 8
+        points[..., 2] = rng.integers(0, 256, (count, 32))
+    toh = (np.arange(count) * SEQUENCE_S * 1e6).astype(np.int64) % 3_600_000_000
+    packets[:, 1200:1204] = toh.astype("<u4").view(np.uint8).reshape(count, 4)
+    packets[:, 1204], packets[:, 1205] = 0x39, 0xA1
+    stamp = 1_700_000_000_000_000_000
+    return [(stamp + int(t) * 1000, packets[i].tobytes()) for i, t in enumerate(toh)]
+
+
+def calibration() -> dict[str, object]:
+    rng = np.random.default_rng(1)
+    return {"lasers": [{"laser_id": k, "vert_correction": float(rng.uniform(-0.4, 0.3)),
+                        "rot_correction": float(rng.uniform(-0.1, 0.1))} for k in range(128)]}
+
+
+def loop_baseline(packets: list[tuple[int, bytes]], calib: dict[str, object]) -> int:
+    """Per-point loop: unpack each point, x y z by the manual's formula (the work a naive
+    decoder does); returns the number of points."""
+    lasers = calib["lasers"]
+    assert isinstance(lasers, list)
+    cos_v = [math.cos(las["vert_correction"]) for las in lasers]
+    sin_v = [math.sin(las["vert_correction"]) for las in lasers]
+    rot = [las["rot_correction"] for las in lasers]
+    laser_ns = MODELS[0xA1].laser_ns
+    omega = math.radians(3600.0) * 1e-9
+    point = struct.Struct("<HB")
+    n = 0
+    for _, data in packets:
+        for b in range(8):
+            bank = (b // 2) * 32
+            azimuth = math.radians((data[100 * b + 2] | data[100 * b + 3] << 8) / 100.0)
+            for k in range(32):
+                raw, _refl = point.unpack_from(data, 100 * b + 4 + 3 * k)
+                if raw == 0:
+                    continue
+                laser = bank + k
+                d = raw * 0.004
+                a = azimuth + omega * laser_ns[laser] - rot[laser]
+                xy = d * cos_v[laser]
+                _ = (xy * math.cos(a), -xy * math.sin(a), d * sin_v[laser])
+                n += 1
+    return n
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=1.0, help="sensor time to decode")
+    parser.add_argument("--repeat", type=int, default=5)
+    args = parser.parse_args()
+    packets = make_packets(args.seconds)
+    calib = calibration()
+    span = args.seconds
+    print(f"VLS-128 dual return, 600 rpm: {len(packets)} packets = {span:.2f} s of data")
+
+    def decoder() -> int:
+        return sum(1 for _ in decode_packets(packets, calib, as_dataclass=True))
+
+    subset = packets[: max(1, len(packets) // 20)]
+    decode_times, loop_times = [], []
+    decoder()                                                   # warm-up
+    for _ in range(args.repeat):
+        start = time.perf_counter()
+        rotations = decoder()
+        decode_times.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        loop_baseline(subset, calib)
+        loop_times.append((time.perf_counter() - start) * len(packets) / len(subset))
+    dec, loop = statistics.median(decode_times), statistics.median(loop_times)
+    print(f"decoder      : {dec * 1e3:8.1f} ms median ({min(decode_times) * 1e3:.1f} min), "
+          f"{rotations} rotations, {span / dec:6.1f}x real time, "
+          f"{dec / len(packets) * 1e6:.2f} us/packet")
+    print(f"per-point loop: {loop * 1e3:8.1f} ms median (scaled from {len(subset)} packets), "
+          f"{span / loop:6.2f}x real time")
+    print(f"decoder / loop speed-up: {loop / dec:.1f}x")
+
+
+if __name__ == "__main__":
+    main()
