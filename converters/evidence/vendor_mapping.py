@@ -105,9 +105,9 @@ def _draft_table() -> str:
          "set to the driver's scan time", "maps"),
         ("`header.stamp` (info)", "version key", "not set (zero)",
          "the draft's info has no version: lost"),
-        ("`header.frame_id`", "frame of the projected points (Ouster: `os_sensor`)",
-         "the lidar frame (`os_lidar`)", "maps; our `lidar_to_sensor_transform` makes the "
-         "draft's frame choice explicit"),
+        ("`header.frame_id`", "frame of the projected points",
+         "the driver's lidar frame (`os_lidar`)", "maps, with `lidar_to_sensor_transform` = "
+         "identity; here the frame can also be `os_sensor` (transform in the info)"),
         ("`lidar_info_time`", "link to the info version", "✖ (no link)",
          "draft → here: the receiver must assume the latest info (§5: misprojections)"),
         ("`height`, `width`", "grid", "same", "maps"),
@@ -163,7 +163,8 @@ def _draft_table() -> str:
 
 #: per-point field -> (ouster-ros original, velodyne XYZIRT, Nebula, source in LidarScan/Info)
 _CLOUD_ROWS = [
-    ("x, y, z", "float32, `os_sensor` frame", "float32", "float32",
+    ("x, y, z", "float32, in `point_cloud_frame` (`os_lidar` in the shipped configs, or "
+     "`os_sensor`)", "float32", "float32",
      "projected from `range` with the LidarInfo geometry (`lidarscan.geometry`)"),
     ("range / distance", "`range` uint32 mm", "✖", "`distance` float32 m",
      "`range` channel (float32 m, or native integer × `range_multiplier`)"),
