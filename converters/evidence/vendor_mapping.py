@@ -120,7 +120,7 @@ def _draft_table() -> str:
         ("`column_azimuth_angles`", "measured azimuth per firing (Velodyne/Hesai)", "✖",
          "here → draft: lost for sensors that measure it"),
         ("`channels[].name`", "`range`, `intensity`, `reflectivity`, `ambient`, `flags`, "
-         "`range2`…", "lowercased SDK names sorted alphabetically: `flags`, `near_ir`, `range`, "
+         "`range2`…", "lowercased SDK names sorted alphabetically, e.g. `flags`, `near_ir`, `range`, "
          "`reflectivity`, `signal` (+`…2` for the second return)",
          "renames only: `signal` → `intensity`, `near_ir` → `ambient`"),
         ("`channels[].datatype`, `offset`, `count`", "PointField ids, planar blocks",
@@ -181,7 +181,9 @@ _CLOUD_ROWS = [
      "per point", "`horizontal_angles`/`column_azimuth_angles` + `beam_azimuth_offsets`; "
      "`vertical_angles`"),
     ("return", "second return → second cloud `points2`", "dual returns as separate points "
-     "(not confirmed)", "`return_type` uint8 per point", "`range2`… channels (or `count` 2)"),
+     "(not confirmed)", "`return_type` uint8 per point (which echo: first, last, strongest…)",
+     "`range2`… channels (or `count` 2) number the returns; the echo kind only as an extra "
+     "uint8 channel (no canonical name)"),
     ("no return", "pixel kept (organized H×W, destaggered), `range` 0", "NaN point (organized: "
      "one row per firing, width = lasers, the transpose of the grid)", "dropped (not "
      "confirmed for every sensor)", "`range` +Inf (REP 117); the grid position is kept"),
