@@ -54,8 +54,10 @@ Conventions
   appendices, firing ``k`` of a packet starts at ``t0 + block_offset(k)`` and channel ``l``
   fires ``channel_offset(l)`` later. ``LidarInfo.beam_time_offsets`` = ``channel_offset`` minus
   its minimum (so they are >= 0) and ``column_time_offsets`` the firing times (plus that
-  minimum) relative to the scan stamp, the time of column 0. With ``time_source="receive"``
-  the recorded packet stamps replace ``t0`` (relative timing still from the sensor's clock).
+  minimum) relative to the scan stamp, the time of column 0. The sensor's clock is the
+  default (it is absolute when the sensor is synchronised by GPS/PTP; Hesai packets carry no
+  flag saying so). With ``time_source="receive"`` each rotation's times are shifted so that
+  its first packet has its recorded (host) stamp; relative timing stays the sensor's.
 * Azimuth and firing time: the manuals compute a point's azimuth as the block azimuth plus the
   calibration's azimuth correction (no term for the rotation between the block azimuth and the
   channel's own firing); that is the default and it reproduces the reference decoder. With
@@ -347,7 +349,8 @@ class PacketDecoder:
             Hesai publishes no nominal table this module could default to.
         frame_id: header.frame_id of scans and infos.
         time_source: "sensor" (default): stamps from the packets' UTC date-time + timestamp;
-            "receive": from the recorded packet stamps (relative timing from the sensor).
+            "receive": the sensor's times shifted so that the first packet of each rotation
+            has its recorded stamp (relative timing stays the sensor's).
         firing_rotation: fold the rotation between block azimuth and each channel's firing into
             beam_azimuth_offsets (default False: the manuals' formula).
         range_min, range_max: LidarInfo valid interval (m); default the model's limits.
@@ -405,11 +408,10 @@ class PacketDecoder:
         last = _U16.unpack_from(data, at + stream.last_firing_at)[0]
         if first >= 36000 or last >= 36000:
             raise DecodeError("hesai block azimuth", max(first, last), "0..35999 (0.01 deg)")
-        if self.time_source == "sensor":
-            date = data[fmt.datetime_at:fmt.datetime_at + 6]
-            if date != self._date:
-                _date_seconds(date)               # validates it before any state changes
-                self._date = date
+        date = data[fmt.datetime_at:fmt.datetime_at + 6]
+        if date != self._date:
+            _date_seconds(date)                   # validates it before any state changes
+            self._date = date
         out: list[tuple[Any, Any]] = []
         if new is not None:
             if self._stream is not None and new != self._stream:
@@ -468,17 +470,16 @@ class PacketDecoder:
         dist = units[..., 0].astype(np.uint16) | (units[..., 1].astype(np.uint16) << 8)
         refl = units[..., 2]
         firings = fmt.blocks // stream.returns
-        if self.time_source == "sensor":
-            us = raw[:, fmt.timestamp_at:fmt.timestamp_at + 4].astype(np.int64)
-            us = us[:, 0] | (us[:, 1] << 8) | (us[:, 2] << 16) | (us[:, 3] << 24)
-            dates = raw[:, fmt.datetime_at:fmt.datetime_at + 6].astype(np.int64)
-            keys = dates @ (np.int64(256) ** np.arange(6, dtype=np.int64))
-            uniq, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-            secs = np.array([_date_seconds(bytes(dates[i].astype(np.uint8))) for i in first],
-                            np.int64)
-            t0 = secs[inverse.reshape(-1)] * 1_000_000_000 + us * 1000
-        else:
-            t0 = np.asarray(self._stamps, np.int64)
+        us = raw[:, fmt.timestamp_at:fmt.timestamp_at + 4].astype(np.int64)
+        us = us[:, 0] | (us[:, 1] << 8) | (us[:, 2] << 16) | (us[:, 3] << 24)
+        dates = raw[:, fmt.datetime_at:fmt.datetime_at + 6].astype(np.int64)
+        keys = dates @ (np.int64(256) ** np.arange(6, dtype=np.int64))
+        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        secs = np.array([_date_seconds(bytes(dates[i].astype(np.uint8))) for i in first],
+                        np.int64)
+        t0 = secs[inverse.reshape(-1)] * 1_000_000_000 + us * 1000
+        if self.time_source == "receive":         # the host's clock at the first packet
+            t0 += self._stamps[0] - t0[0]
         times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
         cols = n * firings
         out = {"azimuth": azimuth.reshape(cols), "time": times.reshape(cols)}
