@@ -5,7 +5,8 @@
 * LidarScan -> height-filtered LaserScan slices: :func:`to_laserscan`, :class:`SliceConverter`;
 * N LaserScans -> one: :class:`LaserScanMerger` configured with :class:`MergerInput`;
 * importers: :mod:`converters.ouster` (metadata JSON, frames), :mod:`converters.velodyne`
-  (calibration YAML), :func:`from_laserscan_sweep` (tilting 2D lasers).
+  (calibration YAML), :mod:`converters.hesai` (raw packets -> scans per rotation),
+  :func:`from_laserscan_sweep` (tilting 2D lasers).
 
 Names are resolved lazily (importing this package imports neither rclpy nor the submodules);
 the rclpy nodes live in :mod:`converters.nodes` and the CLI in :mod:`converters.cli`.
@@ -39,7 +40,7 @@ _LAZY = {
     "MergerInput": "converters.merger",
     "from_laserscan_sweep": "converters.sweep",
 }
-_SUBMODULES = {"ouster", "velodyne", "pointcloud2", "laserscan", "merger", "sweep"}
+_SUBMODULES = {"ouster", "velodyne", "hesai", "pointcloud2", "laserscan", "merger", "sweep"}
 
 
 def __getattr__(name: str) -> Any:

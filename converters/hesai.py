@@ -380,6 +380,7 @@ class PacketDecoder:
         self._skip = 0                      # leading firings of _packets[0] already emitted
         self._last_az = -1
         self._date = b""                    # last tail date-time bytes seen valid
+        self._fast: tuple[Any, ...] | None = None   # what push() compares on its fast path
         self._info: Any = None
         self._info_key: tuple[Any, ...] | None = None
         self._last_info_stamp: int | None = None
@@ -395,6 +396,20 @@ class PacketDecoder:
             DecodeError: malformed or unsupported packet (the decoder stays usable).
         """
         data = packet if type(packet) is bytes else _as_bytes(packet)
+        fast = self._fast
+        if (fast is not None and len(data) == fast[0] and data.startswith(fast[1])
+                and data[fast[2]] == fast[3]):
+            first, last = fast[4].unpack_from(data, fast[5])
+            if first < 36000 and last < 36000 and data.startswith(self._date, fast[6]):
+                wrapped = first < self._last_az - 18000 or last < first - 18000
+                self._packets.append(data)
+                self._stamps.append(stamp_ns)
+                self._last_az = last
+                return self._emit(final=False) if wrapped else []
+        return self._push_checked(stamp_ns, data)
+
+    def _push_checked(self, stamp_ns: int, data: bytes) -> list[tuple[Any, Any]]:
+        """push() for a packet that is not plainly the next one of the current stream."""
         stream = self._stream
         new = None
         if (stream is None or len(data) != stream.packet_size
@@ -417,6 +432,8 @@ class PacketDecoder:
             if self._stream is not None and new != self._stream:
                 out = self.flush()
             self._stream, self._key = new, data[:max(2, fmt.body)]
+            self._fast = (new.packet_size, self._key, fmt.return_mode_at, new.mode,
+                          struct.Struct(f"<H{new.last_firing_at - 2}xH"), at, fmt.datetime_at)
         wrapped = first < self._last_az - 18000 or last < first - 18000
         self._packets.append(data)
         self._stamps.append(stamp_ns)
@@ -452,24 +469,25 @@ class PacketDecoder:
         """Firings of the buffered packets: azimuth (0.01 deg), time (ns), per-return units.
 
         Returns arrays over all firings of all buffered packets (firing-major): ``azimuth``
-        (F,) int32, ``time`` (F,) int64 ns of the firing's start, ``dist<r>`` (F, L) uint16 and
-        ``refl<r>`` (F, L) uint8 for each return r in block order.
+        (F,) int32, ``time`` (F,) int64 ns of the firing's start, ``dist<r>`` (L, F) uint16 and
+        ``refl<r>`` (L, F) uint8 for each return r in block order (rows: laser index).
         """
         stream = self._stream
         assert stream is not None
         fmt = stream.fmt
         n = len(self._packets)
-        raw = np.frombuffer(b"".join(self._packets), np.uint8).reshape(n, stream.packet_size)
-        body = raw[:, fmt.body:fmt.body + fmt.blocks * fmt.block_size]
-        body = body.reshape(n, fmt.blocks, fmt.block_size)
-        a = fmt.azimuth_at
-        firing = body[:, ::stream.returns]
-        azimuth = firing[:, :, a].astype(np.int32) | (firing[:, :, a + 1].astype(np.int32) << 8)
-        units = body[:, :, a + 2:a + 2 + fmt.lasers * fmt.unit_size]
-        units = units.reshape(n, fmt.blocks, fmt.lasers, fmt.unit_size)
-        dist = units[..., 0].astype(np.uint16) | (units[..., 1].astype(np.uint16) << 8)
-        refl = units[..., 2]
+        size = stream.packet_size
+        joined = b"".join(self._packets)
+        raw = np.frombuffer(joined, np.uint8).reshape(n, size)
         firings = fmt.blocks // stream.returns
+        # zero-copy strided views of the little-endian fields (numpy reads them unaligned)
+        at = fmt.body + fmt.azimuth_at
+        azimuth = np.ndarray((n, firings), "<u2", joined, at,
+                             (size, fmt.block_size * stream.returns))
+        shape = (n, firings, stream.returns, fmt.lasers)
+        strides = (size, fmt.block_size * stream.returns, fmt.block_size, fmt.unit_size)
+        dist = np.ndarray(shape, "<u2", joined, at + 2, strides)
+        refl = np.ndarray(shape, np.uint8, joined, at + 4, strides)
         us = raw[:, fmt.timestamp_at:fmt.timestamp_at + 4].astype(np.int64)
         us = us[:, 0] | (us[:, 1] << 8) | (us[:, 2] << 16) | (us[:, 3] << 24)
         dates = raw[:, fmt.datetime_at:fmt.datetime_at + 6].astype(np.int64)
@@ -482,12 +500,10 @@ class PacketDecoder:
             t0 += self._stamps[0] - t0[0]
         times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
         cols = n * firings
-        out = {"azimuth": azimuth.reshape(cols), "time": times.reshape(cols)}
-        dist = dist.reshape(n, firings, stream.returns, fmt.lasers)
-        refl = refl.reshape(n, firings, stream.returns, fmt.lasers)
-        for r in range(stream.returns):
-            out[f"dist{r}"] = dist[:, :, r]
-            out[f"refl{r}"] = refl[:, :, r]
+        out = {"azimuth": azimuth.reshape(cols).astype(np.int32), "time": times.reshape(cols)}
+        for r in range(stream.returns):      # (L, F): rows are then gathered with memcpy
+            out[f"dist{r}"] = np.ascontiguousarray(dist[:, :, r].reshape(cols, fmt.lasers).T)
+            out[f"refl{r}"] = np.ascontiguousarray(refl[:, :, r].reshape(cols, fmt.lasers).T)
         return out
 
     def _emit(self, final: bool) -> list[tuple[Any, Any]]:
@@ -532,9 +548,8 @@ class PacketDecoder:
         channels: dict[str, np.ndarray[Any, Any]] = {}
         for r, (rname, iname) in enumerate(_channel_names(_block_kinds(fmt, stream.mode))):
             for name, key, dtype in ((rname, "dist", np.uint16), (iname, "refl", np.uint8)):
-                values = cols[f"{key}{r}"].reshape(-1, fmt.lasers)[lo:hi, order]
                 grid = np.zeros((fmt.lasers, width), dtype)
-                grid[:, :count] = values.T
+                grid[:, :count] = cols[f"{key}{r}"][order, lo:hi]
                 channels[name] = grid
         channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
         scan = make_scan(info, channels, stamp, column_time_offsets=times - stamp,
