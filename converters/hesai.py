@@ -392,6 +392,8 @@ class PacketDecoder:
         if time_source not in ("sensor", "receive"):
             raise ConfigError("time_source", time_source, '"sensor" or "receive"')
         self.calibration = load_calibration(calibration)
+        self._order = self.calibration.order          # laser index of each row
+        self._rows = np.argsort(self._order)          # row of each laser index
         self.frame_id = frame_id
         self.time_source = time_source
         self.firing_rotation = bool(firing_rotation)
@@ -492,9 +494,8 @@ class PacketDecoder:
     def _decode(self) -> dict[str, np.ndarray[Any, Any]]:
         """Firings of the buffered packets: azimuth (0.01 deg), time (ns), per-return units.
 
-        Returns arrays over all firings of all buffered packets (firing-major): ``azimuth``
-        (F,) int32, ``time`` (F,) int64 ns of the firing's start, ``dist<r>`` (L, F) uint16 and
-        ``refl<r>`` (L, F) uint8 for each return r in block order (rows: laser index).
+        Returns arrays over all firings of all buffered packets: ``azimuth`` (F,) int32,
+        ``time`` (F,) int64 ns of the firing's start, and ``raw``, the packets' bytes (uint8).
         """
         stream = self._stream
         assert stream is not None
@@ -508,10 +509,6 @@ class PacketDecoder:
         at = fmt.body + fmt.azimuth_at
         azimuth = np.ndarray((n, firings), "<u2", joined, at,
                              (size, fmt.block_size * stream.returns))
-        shape = (n, firings, stream.returns, fmt.lasers)
-        strides = (size, fmt.block_size * stream.returns, fmt.block_size, fmt.unit_size)
-        dist = np.ndarray(shape, "<u2", joined, at + 2, strides)
-        refl = np.ndarray(shape, np.uint8, joined, at + 4, strides)
         us = raw[:, fmt.timestamp_at:fmt.timestamp_at + 4].astype(np.int64)
         us = us[:, 0] | (us[:, 1] << 8) | (us[:, 2] << 16) | (us[:, 3] << 24)
         dates = raw[:, fmt.datetime_at:fmt.datetime_at + 6].astype(np.int64)
@@ -524,11 +521,8 @@ class PacketDecoder:
             t0 += self._stamps[0] - t0[0]
         times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
         cols = n * firings
-        out = {"azimuth": azimuth.reshape(cols).astype(np.int32), "time": times.reshape(cols)}
-        for r in range(stream.returns):      # (L, F): rows are then gathered with memcpy
-            out[f"dist{r}"] = np.ascontiguousarray(dist[:, :, r].reshape(cols, fmt.lasers).T)
-            out[f"refl{r}"] = np.ascontiguousarray(refl[:, :, r].reshape(cols, fmt.lasers).T)
-        return out
+        return {"azimuth": azimuth.reshape(cols).astype(np.int32), "time": times.reshape(cols),
+                "raw": raw.reshape(-1)}
 
     def _emit(self, final: bool) -> list[tuple[Any, Any]]:
         """Scans of every rotation completed in the buffer (all that is left when ``final``)."""
@@ -561,7 +555,6 @@ class PacketDecoder:
         times = cols["time"][lo:hi] + stream.first_channel_ns
         stamp = int(times[0])
         info = self._info_for(stream, width, stamp)
-        order = self._order
         az = cols["azimuth"][lo:hi].astype(np.float64)
         pad = width - count
         if pad:
@@ -569,22 +562,16 @@ class PacketDecoder:
             az = np.concatenate([az, az[-1] + (36000.0 / nominal) * steps])
             times = np.concatenate([times, times[-1]
                                     + np.rint(fmt.firing_period_ns * steps).astype(np.int64)])
+        dist, refl = _units(cols["raw"], stream, self._rows, lo, count, width)
         channels: dict[str, np.ndarray[Any, Any]] = {}
         for r, (rname, iname) in enumerate(_channel_names(_block_kinds(fmt, stream.mode))):
-            for name, key, dtype in ((rname, "dist", np.uint16), (iname, "refl", np.uint8)):
-                grid = np.zeros((fmt.lasers, width), dtype)
-                grid[:, :count] = cols[f"{key}{r}"][order, lo:hi]
-                channels[name] = grid
+            channels[rname], channels[iname] = dist[r], refl[r]
         channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
         scan = make_scan(info, channels, stamp, column_time_offsets=times - stamp,
                          column_azimuth_angles=np.pi / 2 - np.deg2rad(az * 0.01),
                          as_dataclass=self.as_dataclass)
         return scan, info
 
-    @property
-    def _order(self) -> np.ndarray[Any, Any]:
-        """(H,) laser index (0-based) of each row: highest elevation first, ties by laser id."""
-        return self.calibration.order
 
     def _info_for(self, stream: _Stream, width: int, stamp: int) -> Any:
         key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
@@ -631,6 +618,33 @@ def _date_seconds(date: bytes) -> int:
         raise DecodeError("hesai tail date-time", list(date),
                           "year-1900, month 1..12, day 1..31, hour < 24, minute < 60, second")
     return calendar.timegm((1900 + y, mo, d, h, mi, s, 0, 0, 0))
+
+
+def _units(raw: np.ndarray[Any, Any], stream: _Stream, rows: np.ndarray[Any, Any], first: int,
+           count: int, width: int) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """Distances and reflectivities of firings first..first+count-1 of the packet bytes ``raw``.
+
+    Returns (returns, L, width) uint16 raw distances and uint8 reflectivities, row ``rows[l]``
+    for laser index l, columns count.. zero (no return). The fields are read through strided
+    views of the bytes, copied firing-major and transposed (a numba loop writing the rows
+    directly measured no faster, so there is no compiled path).
+    """
+    fmt = stream.fmt
+    shape = (stream.returns, fmt.lasers, width)
+    dist, refl = np.zeros(shape, np.uint16), np.zeros(shape, np.uint8)
+    size, at, block, returns = (stream.packet_size, fmt.body + fmt.azimuth_at + 2,
+                                fmt.block_size, stream.returns)
+    firings = fmt.blocks // returns
+    n = raw.size // size
+    strides = (size, block * returns, block, fmt.unit_size)
+    view = np.ndarray((n, firings, returns, fmt.lasers), "<u2", raw, at, strides)
+    order = np.argsort(rows)
+    for r in range(returns):
+        for out, values in ((dist, view),
+                            (refl, np.ndarray(view.shape, np.uint8, raw, at + 2, strides))):
+            part = values[:, :, r].reshape(n * firings, fmt.lasers)[first:first + count]
+            out[r, :, :count] = np.ascontiguousarray(part.T)[order]
+    return dist, refl
 
 
 def _block_kinds(fmt: HesaiFormat, mode: int) -> tuple[str, ...]:
