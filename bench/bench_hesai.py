@@ -4,7 +4,8 @@ Run: ``.venv/bin/python bench/bench_hesai.py [--rounds N]``. Prints medians and 
 in one run (no assertions). Target: >= 50x real time.
 
 Input: the real Pandar64 recording of ``tests/data/nebula/hesai_pandar64`` (2400 packets of
-1198 bytes, 0.4 s of sensor time at 600 rpm, dual return 0x39), read once with ``rosbags``.
+1198 bytes, 0.4 s of sensor time at 600 rpm, dual return 0x39), read once with ``rosbags``
+(by ``tests/test_hesai.py``'s reader).
 Candidates, interleaved round after round:
 
 * ``decoder``: ``converters.hesai.decode_packets`` -> (LidarScan, LidarInfo) dataclasses;
@@ -39,22 +40,11 @@ DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "nebula" / "h
 
 
 def read_packets() -> list[tuple[int, bytes]]:
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    """(stamp ns, payload) of every packet, read with rosbags by the tests' reader."""
+    sys.path.insert(0, str(DATA.parents[2]))
+    from test_hesai import _packets
 
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    store.register(get_types_from_msg("builtin_interfaces/Time stamp\nuint8[1500] data\n"
-                                      "uint32 size", "pandar_msgs/msg/PandarPacket"))
-    store.register(get_types_from_msg("std_msgs/Header header\n"
-                                      "pandar_msgs/PandarPacket[] packets",
-                                      "pandar_msgs/msg/PandarScan"))
-    out = []
-    with AnyReader([DATA / "bag"], default_typestore=store) as reader:
-        for conn, _, raw in reader.messages():
-            msg = reader.deserialize(raw, conn.msgtype)
-            out += [(p.stamp.sec * 10**9 + p.stamp.nanosec, bytes(p.data[:p.size]))
-                    for p in msg.packets]
-    return out
+    return _packets("hesai_pandar64")
 
 
 def loop_decode(packets: list[tuple[int, bytes]], elevation: list[float],

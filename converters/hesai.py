@@ -134,10 +134,10 @@ RETURN_MODES: dict[int, tuple[str, ...]] = {
     0x3C: ("first", "strongest"),
 }
 
-# Firing-time tables (ns). Pandar40P: Table II.4 of its manual (time before the block's end,
-# per laser id 1..40). Pandar64: its manual's per-laser table (1.304 / 1.968 us steps + 3.62 us
-# before the block's end). PandarQT64: its manual's per-channel firing times after the block's
-# start. PandarXT32: 0.368 us + 1.512 us * (channel - 1) after the block's start.
+# Firing-time tables (ns; sources in the module docstring). Pandar40P: time of each laser id
+# 1..40 before its block's end. Pandar64: the same per laser index (1.304 / 1.968 us steps from
+# 3.62 us). PandarQT64: per channel after the block's start (2.04-2.06 us apart, 2.44-3.05 us
+# between groups of 8 or 16). PandarXT32: 0.368 us + 1.512 us * channel index (in HesaiFormat).
 _P40P_BEFORE_END_US = {
     4: 3.62, 40: 3.62, 36: 4.92, 28: 6.23, 12: 8.19, 16: 8.19, 32: 9.5, 24: 11.47, 29: 12.77,
     17: 14.74, 3: 16.04, 39: 16.04, 35: 17.35, 25: 18.65, 9: 20.62, 13: 20.62, 31: 21.92,

@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 import lidarscan
 from converters import hesai
 from lidarscan.errors import ConfigError, DecodeError
-from pcd import nearest_within, read_pcd
+from pcd import read_pcd
 
 DATA = Path(__file__).parent / "data" / "nebula"
 #: folder -> (calibration CSV, range limits of the ground-truth decoder)
@@ -148,6 +148,51 @@ def _compare(oracle: list[Any], decoded: list[Any]) -> None:
 
 
 # ------------------------------------------------------------------------------ real recordings
+def nearest_within(query: np.ndarray, ref: np.ndarray, tol: float) -> np.ndarray:
+    """(N,) distance from each query point to its nearest ``ref`` point, +inf beyond ``tol``.
+
+    Uses scipy's cKDTree when installed, else a grid hash with cells of ``tol`` (27 cells).
+    """
+    query = np.asarray(query, np.float64).reshape(-1, 3)
+    ref = np.asarray(ref, np.float64).reshape(-1, 3)
+    try:
+        from scipy.spatial import cKDTree
+    except ImportError:
+        pass
+    else:
+        dist, _ = cKDTree(ref).query(query, distance_upper_bound=tol)
+        return np.where(dist <= tol, dist, np.inf)
+    cells = np.floor(ref / tol).astype(np.int64)
+    lo = cells.min(0) - 1
+    dims = cells.max(0) - lo + 2
+
+    def key_of(c: np.ndarray) -> np.ndarray:
+        return ((c[:, 0] - lo[0]) * dims[1] + (c[:, 1] - lo[1])) * dims[2] + (c[:, 2] - lo[2])
+
+    keys = key_of(cells)
+    order = np.argsort(keys, kind="stable")
+    keys, ref = keys[order], ref[order]
+    qcells = np.floor(query / tol).astype(np.int64)
+    inside = np.all((qcells >= lo + 1) & (qcells < lo + dims - 1), axis=1)
+    best = np.full(len(query), np.inf)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                k = key_of(qcells + np.array([dx, dy, dz]))
+                start = np.searchsorted(keys, k, "left")
+                stop = np.searchsorted(keys, k, "right")
+                stop = np.where(inside, stop, start)
+                j = start.copy()
+                while True:
+                    live = np.flatnonzero(j < stop)
+                    if live.size == 0:
+                        break
+                    d = np.linalg.norm(ref[j[live]] - query[live], axis=1)
+                    best[live] = np.minimum(best[live], d)
+                    j[live] += 1
+    return np.where(best <= tol, best, np.inf)
+
+
 @functools.lru_cache(maxsize=None)
 def _bag(name: str) -> tuple[tuple[int, tuple[tuple[int, bytes], ...]], ...]:
     """(receive ns, ((packet stamp ns, payload[:size]), ...)) of each bag message, via rosbags."""
