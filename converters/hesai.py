@@ -256,6 +256,11 @@ def detect_format(packet: bytes) -> HesaiFormat:
         if n not in (fmt.size, fmt.size + 4):
             raise DecodeError("hesai packet size", n, f"{fmt.size} or {fmt.size + 4} bytes for "
                               "a Pandar40P packet (block flag 0xFFEE)")
+        flags = {bytes(packet[b * fmt.block_size:b * fmt.block_size + 2])
+                 for b in range(fmt.blocks)}
+        if flags != {b"\xff\xee"}:
+            raise DecodeError("Pandar40P block flags", sorted(f.hex() for f in flags),
+                              "0xFFEE at the start of each of the 10 blocks")
         return fmt
     if packet[0] != 0xEE or packet[1] != 0xFF:
         raise DecodeError("hesai pre-header", packet[:2].hex(), "0xEE 0xFF (Hesai point-cloud "

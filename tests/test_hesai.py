@@ -505,6 +505,7 @@ def test_malformed_packets_raise_and_the_decoder_continues() -> None:
            good[:12] + struct.pack("<H", 36000) + good[14:],             # azimuth 360.00
            good[:1065] + bytes([119, 13, 1, 0, 0, 0]) + good[1071:],     # month 13
            good[:9] + b"\x00" + good[10:],                               # dis unit 0
+           b"\xff\xee" + bytes(1264),                                     # 40P, one block flag
            "not bytes", np.zeros((2, 540), np.uint8)]
     dec = hesai.PacketDecoder(csv, as_dataclass=True)
     out = []
@@ -555,16 +556,17 @@ def test_info_fields_of_a_real_recording() -> None:
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.binary(min_size=0, max_size=1300), st.sampled_from(["raw", "xt32", "p64", "qt64"]))
+@given(st.binary(min_size=0, max_size=1300),
+       st.sampled_from(["raw", "xt32", "p64", "qt64", "p40p"]))
 def test_random_payloads_only_raise_decode_errors(payload: bytes, prefix: str) -> None:
     headers = {"raw": b"", "xt32": bytes([0xEE, 0xFF, 6, 1, 0, 0, 32, 8, 1, 4, 2, 1]),
                "p64": bytes([0xEE, 0xFF, 64, 6, 0, 4, 2, 0]),
-               "qt64": bytes([0xEE, 0xFF, 3, 1, 0, 0, 64, 4, 1, 4, 2, 1])}
-    sizes = {"raw": None, "xt32": 1080, "p64": 1198, "qt64": 1072}
+               "qt64": bytes([0xEE, 0xFF, 3, 1, 0, 0, 64, 4, 1, 4, 2, 1]), "p40p": b"\xff\xee"}
+    sizes = {"raw": None, "xt32": 1080, "p64": 1198, "qt64": 1072, "p40p": 1266}
     data = headers[prefix] + payload
     if sizes[prefix] is not None:
         data = (data + bytes(sizes[prefix]))[:sizes[prefix]]
-    lasers = {"raw": 32, "xt32": 32, "p64": 64, "qt64": 64}[prefix]
+    lasers = {"raw": 32, "xt32": 32, "p64": 64, "qt64": 64, "p40p": 40}[prefix]
     dec = hesai.PacketDecoder(_calibration_csv(lasers), as_dataclass=True)
     for _ in range(2):
         try:
