@@ -5,8 +5,9 @@
 * LidarScan -> height-filtered LaserScan slices: :func:`to_laserscan`, :class:`SliceConverter`;
 * N LaserScans -> one: :class:`LaserScanMerger` configured with :class:`MergerInput`;
 * importers: :mod:`converters.ouster` (metadata JSON, frames), :mod:`converters.velodyne`
-  (calibration YAML), :func:`from_laserscan_sweep` (tilting 2D lasers), :func:`from_depth_image`
-  (depth cameras, :mod:`converters.depth`).
+  (calibration YAML, raw packets), :mod:`converters.hesai` (raw packets -> scans per rotation),
+  :func:`from_laserscan_sweep` (tilting 2D lasers), :func:`from_depth_image` (depth cameras,
+  :mod:`converters.depth`).
 
 Names are resolved lazily (importing this package imports neither rclpy nor the submodules);
 the rclpy nodes live in :mod:`converters.nodes` and the CLI in :mod:`converters.cli`.
@@ -29,6 +30,8 @@ __all__ = [
     "from_depth_image",
     "ouster",
     "velodyne",
+    "hesai",
+    "depth",
 ]
 
 _LAZY = {
@@ -42,7 +45,8 @@ _LAZY = {
     "from_laserscan_sweep": "converters.sweep",
     "from_depth_image": "converters.depth",
 }
-_SUBMODULES = {"ouster", "velodyne", "pointcloud2", "laserscan", "merger", "sweep", "depth"}
+_SUBMODULES = {"ouster", "velodyne", "hesai", "pointcloud2", "laserscan", "merger", "sweep",
+               "depth"}
 
 
 def __getattr__(name: str) -> Any:

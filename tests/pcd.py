@@ -1,24 +1,30 @@
-"""Minimal PCD v0.7 reader for the ground-truth clouds in tests/data (binary x y z float32)."""
+"""Minimal PCD v0.7 reader for the test fixtures: binary, float32 x y z fields (others skipped)."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 
-def read_xyz(path: str | Path) -> np.ndarray[Any, Any]:
-    """(N, 3) float32 x y z of a binary PCD v0.7 file whose fields start with x y z (F 4)."""
+def read_pcd(path: str | Path) -> np.ndarray:
+    """(N, 3) float32 x, y, z of a binary PCD v0.7 file (fields of any PCD type)."""
     raw = Path(path).read_bytes()
-    header, sep, body = raw.partition(b"DATA binary\n")
-    if not sep:
-        raise ValueError(f"{path}: not a binary PCD file")
-    fields = dict(line.split(b" ", 1) for line in header.splitlines() if b" " in line)
-    names, sizes = fields[b"FIELDS"].split(), [int(v) for v in fields[b"SIZE"].split()]
-    if names[:3] != [b"x", b"y", b"z"] or sizes[:3] != [4, 4, 4] \
-            or fields[b"TYPE"].split()[:3] != [b"F"] * 3:
-        raise ValueError(f"{path}: expected leading float32 fields x y z")
-    count, step = int(fields[b"POINTS"]), sum(sizes)
-    rows = np.frombuffer(body, np.uint8, count * step).reshape(count, step)
-    return rows[:, :12].copy().view("<f4")
+    header: dict[str, list[str]] = {}
+    pos = 0
+    while True:
+        end = raw.index(b"\n", pos)
+        key, *values = raw[pos:end].decode("ascii").split()
+        pos = end + 1
+        header[key] = values
+        if key == "DATA":
+            break
+    if header["DATA"] != ["binary"]:
+        raise ValueError(f"PCD DATA {header['DATA']}: only binary is supported")
+    kinds = {"F": "f", "I": "i", "U": "u"}
+    dtype = np.dtype([(f, f"<{kinds[t]}{s}", (int(c),) if int(c) > 1 else ())
+                      for f, t, s, c in zip(header["FIELDS"], header["TYPE"], header["SIZE"],
+                                            header.get("COUNT", ["1"] * len(header["FIELDS"])))])
+    points = np.frombuffer(raw, dtype, int(header["POINTS"][0]), pos)
+    return np.stack([points[k].astype(np.float32) for k in ("x", "y", "z")], axis=-1)
+

@@ -39,7 +39,7 @@ import lidarscan.stamps
 from converters import velodyne
 from converters.velodyne import MODELS, PacketDecoder, decode_packets
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError
-from pcd import read_xyz
+from pcd import read_pcd
 from test_velodyne import _rawdata_point    # the ros-drivers point formula (per point)
 
 DATA = Path(__file__).parent / "data" / "nebula"
@@ -179,7 +179,7 @@ def test_real_recording_matches_ground_truth(folder: str, tmp_path: Path) -> Non
     assert not np.any(info.beam_origins)        # the rotation below assumes no beam offsets
     points = lidarscan.make_projector(info).project(scan, info)
     keep = _limits(scan, info, points, settings_)
-    truth = read_xyz(root / f"ground_truth_{gt_stamp}.pcd").astype(np.float64)
+    truth = read_pcd(root / f"ground_truth_{gt_stamp}.pcd").astype(np.float64)
 
     modelled = _ground_truth_model(scan, info, calib, points)[keep]
     to_ours, to_truth = _nearest(truth, modelled), _nearest(modelled, truth)
