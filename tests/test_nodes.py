@@ -458,7 +458,7 @@ def test_converter_node_end_to_end(graph: Graph) -> None:
     # the info is latched: published BEFORE the node exists, it still reaches it
     info_pub = graph.publisher(LidarInfo, "lidar_info", "latched")
     info_pub.publish(info)
-    scan_pub = graph.publisher(LidarScan, "scan")
+    scan_pub = graph.publisher(LidarScan, "lidar_scan")
     clouds = graph.collect(PointCloud2, "points")
     lows = graph.collect(LaserScan, "slices/low")
     node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
@@ -501,7 +501,7 @@ def test_converter_node_is_lazy_without_subscribers(graph: Graph) -> None:
 
     info = small_info()
     graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
-    scan_pub = graph.publisher(LidarScan, "scan")
+    scan_pub = graph.publisher(LidarScan, "lidar_scan")
     node = graph.add(ConverterNode(context=graph.context))
     assert graph.wait(lambda: node.stats.scans_idle >= 3,
                       tick=lambda: scan_pub.publish(small_scan(info, 10**9)))
@@ -530,7 +530,7 @@ def test_converter_node_takes_extrinsics_from_tf_static(graph: Graph) -> None:
     graph.publisher(tf2_msgs.TFMessage, "/tf_static", "latched").publish(
         tf2_msgs.TFMessage(transforms=[t]))
     graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
-    scan_pub = graph.publisher(LidarScan, "scan")
+    scan_pub = graph.publisher(LidarScan, "lidar_scan")
     out = graph.collect(LaserScan, "slices/band")
     node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
         target_frame="base_link", slice_names=["band"], slices__band__min_height=0.2,
@@ -595,7 +595,7 @@ def test_cloud_to_scan_node_latches_one_info(graph: Graph) -> None:
 
     info = small_info()
     cloud_pub = graph.publisher(PointCloud2, "points", "sensor_data")
-    scans = graph.collect(LidarScan, "scan")
+    scans = graph.collect(LidarScan, "lidar_scan")
     node = graph.add(CloudToScanNode(context=graph.context))
     k = [0]
 
