@@ -30,6 +30,7 @@ import argparse
 import collections
 import copy
 import dataclasses
+import functools
 import importlib
 import io
 import json
@@ -679,6 +680,7 @@ class LinkageEviction(Target):
         self.totals: collections.Counter[str] = collections.Counter()
 
     @staticmethod
+    @functools.lru_cache(maxsize=4096)
     def _info(stamp: int, g: int) -> Any:
         return ls.make_info(stamp_ns=stamp, frame_id="lidar",
                             vertical_angles=np.radians([15.0, 5.0, -5.0, -15.0]) + 0.03 * g,

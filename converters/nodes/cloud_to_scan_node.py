@@ -34,9 +34,9 @@ Parameters (defaults in brackets; ``config/cloud_to_scan.yaml``):
 tolerances may be changed while running (checked first, refused with the reason otherwise).
 ``/diagnostics`` (1 Hz): cloud rate, failures, LidarInfo versions.
 
-Behaviour: no work while nobody subscribes to ``lidar_scan`` (the info is still published on the first
-cloud so late joiners find it); a cloud that cannot be converted is dropped with one log line
-(rate-limited) and counted; Ctrl-C exits cleanly.
+Behaviour: no work while nobody subscribes to ``lidar_scan`` (the info is still published on the
+first cloud so late joiners find it); a cloud that cannot be converted is dropped with one log
+line (rate-limited) and counted; Ctrl-C exits cleanly.
 """
 
 from __future__ import annotations
