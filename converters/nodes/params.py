@@ -10,7 +10,6 @@ the functions that take a node).
 * :func:`declare_specs`, :func:`unknown_parameters`, :class:`ParameterGuard`: rclpy glue:
   declare with descriptors, refuse unknown parameters, validate and apply runtime changes;
 * :func:`help_text`: usage of a node without starting ROS;
-* :func:`declare`: declare one ROS parameter with its default and description, return its value;
 * :func:`qos_profile`: a QoS profile from a short name.
 """
 
@@ -33,7 +32,6 @@ __all__ = [
     "ParamSpec",
     "ParameterGuard",
     "SliceConfig",
-    "declare",
     "declare_specs",
     "help_text",
     "unknown_parameters",
@@ -222,35 +220,6 @@ def with_topic(spec: SliceConfig, namespace: str) -> SliceConfig:
 
 
 # ----------------------------------------------------------------------------- rclpy helpers
-
-def declare(node: Any, name: str, default: Any, description: str, *,
-            type_name: str | None = None) -> Any:
-    """Declare a parameter with a default and description; return its (possibly overridden)
-    value.
-
-    Args:
-        node: rclpy node.
-        name: parameter name (dots for nesting, as YAML maps them).
-        default: default value; an empty list needs ``type_name``.
-        description: shown by ``ros2 param describe``.
-        type_name: ``"string_array"``, ``"double_array"``, ``"integer_array"`` for empty lists.
-    """
-    from rcl_interfaces.msg import ParameterDescriptor
-    from rclpy.parameter import Parameter
-
-    descriptor = ParameterDescriptor(description=description)
-    if isinstance(default, (list, tuple)) and not default:
-        kinds = {"string_array": Parameter.Type.STRING_ARRAY,
-                 "double_array": Parameter.Type.DOUBLE_ARRAY,
-                 "integer_array": Parameter.Type.INTEGER_ARRAY}
-        if type_name not in kinds:
-            raise ConfigError(name, type_name, f"one of {sorted(kinds)} for an empty default")
-        node.declare_parameter(name, kinds[type_name], descriptor)
-        value = node.get_parameter_or(name, Parameter(name, value=[])).value
-        return list(value) if value is not None else []
-    value = node.declare_parameter(name, default, descriptor).value
-    return list(value) if isinstance(value, (list, tuple)) else value
-
 
 #: QoS names accepted by :func:`qos_profile`.
 QOS_NAMES = ("sensor_data", "best_effort", "reliable", "latched")
@@ -450,8 +419,9 @@ def help_text(script: str, summary: str, topics: Sequence[tuple[str, str, str]],
     """
     lines = [f"usage: {script} [-h] [--ros-args -p NAME:=VALUE ... --params-file FILE "
              "-r FROM:=TO ...]", "", summary, "", "topics (relative names; remap with -r):"]
-    width = max(len(t[0]) for t in topics) if topics else 0
-    lines += [f"  {t:<{width}}  {kind}{'  ' + note if note else ''}" for t, kind, note in topics]
+    width = max((len(t[0]) for t in topics), default=0)
+    kinds = max((len(t[1]) for t in topics), default=0)
+    lines += [f"  {t:<{width}}  {kind:<{kinds}}  {note}".rstrip() for t, kind, note in topics]
 
     def rows(items: Sequence[ParamSpec]) -> list[str]:
         out = []
