@@ -30,6 +30,7 @@ import argparse
 import collections
 import copy
 import dataclasses
+import functools
 import importlib
 import io
 import json
@@ -655,6 +656,117 @@ class MergerInputs(Target):
         return repr(scans)[:4000], run
 
 
+class WrongGeometry(Exception):
+    """A scan released with an info that is not the one true geometry of its stamp (a failure:
+    not a LidarScanError, so the runner counts it as a crash)."""
+
+
+class LinkageEviction(Target):
+    """Reconfiguring LidarInfo streams through InfoResolver with tiny bounds (1-3 infos kept,
+    0-3 digests remembered): new versions, identical and conflicting republishes (also under
+    evicted and forgotten stamps), stragglers naming old stamps, clock ticks. Each stamp has one
+    true geometry (its first publication); a release with any other info, or under a stamp that
+    carried two contents, raises WrongGeometry. Every scan must be released or dropped once."""
+    name = "linkage_eviction"
+
+    def setup(self) -> None:
+        from lidarscan.geometry import info_key
+        from lidarscan.linkage import InfoResolver
+
+        self.resolver_class = InfoResolver
+        self.key = info_key
+        self.geometries = [self._info(0, g) for g in range(4)]
+        self.digests = [info_key(g)[1] for g in self.geometries]
+        self.totals: collections.Counter[str] = collections.Counter()
+
+    @staticmethod
+    @functools.lru_cache(maxsize=4096)
+    def _info(stamp: int, g: int) -> Any:
+        return ls.make_info(stamp_ns=stamp, frame_id="lidar",
+                            vertical_angles=np.radians([15.0, 5.0, -5.0, -15.0]) + 0.03 * g,
+                            horizontal_angles=2 * np.pi * (1 - np.arange(W) / W),
+                            as_dataclass=True)
+
+    def case(self, rnd: random.Random) -> tuple[str, Callable[[], str]]:
+        bounds = {"max_infos": rnd.randint(1, 3), "max_digests": rnd.randint(0, 3),
+                  "max_pending": rnd.randint(0, 4),
+                  "max_wait_ns": rnd.choice([None, 5, 50])}
+        ops = []
+        newest = 0
+        for _ in range(rnd.randint(5, 60)):
+            r = rnd.random()
+            if r < 0.25:  # a new version, usually later than the newest
+                newest += rnd.randint(1, 3)
+                ops.append(("info", 100 * newest, rnd.randrange(4), False))
+            elif r < 0.4:  # republish any stamp: identical or not
+                ops.append(("info", 100 * rnd.randint(1, newest + 2), rnd.randrange(4),
+                            rnd.random() < 0.5))
+            elif r < 0.9:  # a scan naming a recent stamp or a straggler
+                back = 0 if rnd.random() < 0.6 else rnd.randint(1, 12)
+                ops.append(("scan", 100 * max(1, newest - back), rnd.randrange(4), False))
+            else:
+                ops.append(("tick", rnd.randint(0, 30), 0, False))
+
+        def run() -> str:
+            clock = [0]
+            resolver = self.resolver_class(clock=lambda: clock[0], **bounds)
+            true: dict[int, int] = {}
+            published: dict[int, set[int]] = {}
+            outcome: dict[int, str] = {}
+            scans = 0
+
+            def check(pairs: list[tuple[Any, Any]]) -> None:
+                for scan, info in pairs:
+                    stamp = ls.to_ns(scan.lidar_info_time)
+                    if (ls.to_ns(info.header.stamp) != stamp
+                            or self.key(info)[1] != self.digests[true[stamp]]
+                            or len(published.get(stamp, ())) != 1):
+                        raise WrongGeometry(f"scan naming {stamp} paired wrongly")
+                    sid = ls.to_ns(scan.header.stamp)
+                    if sid in outcome:
+                        raise WrongGeometry(f"scan {sid} released twice")
+                    outcome[sid] = "released"
+                for d in resolver.take_dropped():
+                    if d.stamp_ns in outcome:
+                        raise WrongGeometry(f"scan {d.stamp_ns} reported twice")
+                    outcome[d.stamp_ns] = "dropped"
+
+            for kind, a, g, same in ops:
+                if kind == "info":
+                    if a in true and (same or a not in published):
+                        g = true[a]
+                    true.setdefault(a, g)
+                    published.setdefault(a, set()).add(g)
+                    check(resolver.add_info(self._info(a, g)))
+                elif kind == "scan":
+                    g = true.setdefault(a, g)
+                    scans += 1
+                    check(resolver.add_scan(ls.make_scan(
+                        self._info(a, g), {"range": np.ones((H, W), np.float32)}, scans,
+                        as_dataclass=True)))
+                else:
+                    clock[0] += a
+                    resolver.expire()
+                    check([])
+            resolver.flush()
+            check([])
+            if len(outcome) != scans:
+                raise WrongGeometry(f"{scans - len(outcome)} scans lost silently")
+            counts = collections.Counter(outcome.values())
+            self.totals.update(counts)
+            self.totals["scans"] += scans
+            self.totals["conflicts"] += resolver.conflicts
+            self.totals["forgotten"] += resolver.forgotten_ns is not None
+            return "linked"
+        return repr((bounds, ops))[:4000], run
+
+    def summary(self) -> str:
+        t = self.totals
+        return (f"{t['scans']} scans: released {t['released']}, dropped {t['dropped']}, "
+                f"0 wrong-geometry pairs unless reported as failures above; conflicts "
+                f"{t['conflicts']}; cases past the digest bound {t['forgotten']}")
+
+
 # The merger's API is bound once known (see _bind_merger); kept as module functions so the
 # fault tests can reuse the same adapter.
 def make_merger(mod: Any) -> Any:
@@ -674,7 +786,7 @@ _MERGER_ADAPTER: dict[str, Callable[..., Any]] = {}
 
 TARGETS: dict[str, type[Target]] = {t.name: t for t in (
     ScanCdr, InfoCdr, ScanFields, InfoFields, McapFile, OusterJson, PointCloud2Input,
-    LaserScanSweep, MergerInputs)}
+    LaserScanSweep, MergerInputs, LinkageEviction)}
 
 
 # ----------------------------------------------------------------------------------- runner
@@ -863,6 +975,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{stats.max_alloc[0] / 1e6:.2f} MB (case {stats.max_alloc[1]})", flush=True)
         for key, count in stats.failure_kinds.items():
             print(f"    {count:6d} x {key}")
+        if hasattr(target, "summary"):
+            print(f"    {target.summary()}")
     maxrss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     total = sum(s.cases for s in all_stats.values())
     print(f"total {total} cases, {total_fail} failures, max RSS {maxrss:.0f} MiB")

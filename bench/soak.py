@@ -4,8 +4,8 @@ Processes (each its own python, all on a private ROS_DOMAIN_ID):
 
 * ``publisher``: LidarInfo once at start on a latched topic (reliable, transient local), then
   LidarScans of H x W (default 128 x 2048, range float32 + intensity uint16) at ``--rate`` Hz
-  (default 40 Hz: twice a 128 x 2048 sensor at 20 Hz) on ``/scan`` (sensor data QoS), and a 2D
-  LaserScan with the same stamp on ``/laser``. Stamps are the wall clock at publication.
+  (default 40 Hz: twice a 128 x 2048 sensor at 20 Hz) on ``/lidar_scan`` (sensor data QoS), and
+  a 2D LaserScan with the same stamp on ``/laser``. Stamps are the wall clock at publication.
 * ``converter``: ``python -m converters.nodes.converter_node`` -> ``/points`` (PointCloud2) and
   ``/slices/mid`` (LaserScan slice).
 * ``merger``: ``python -m converters.nodes.merger_node`` merging ``/slices/mid`` and ``/laser``
@@ -52,7 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 INFO_STAMP_NS = 1_700_000_000_000_000_000
 OUTPUTS = ("/points", "/slices/mid", "/scan_merged")
-INPUTS = ("/scan",)  # also received by the monitor: separates transport loss from node loss
+INPUTS = ("/lidar_scan",)  # also received by the monitor: separates transport loss from node loss
 
 
 # ------------------------------------------------------------------------------- publisher
@@ -118,7 +118,7 @@ def run_publisher(args: argparse.Namespace) -> int:
     rclpy.init()
     node = rclpy.create_node("soak_publisher")
     info_pub = node.create_publisher(LidarInfo, "lidar_info", qos_profile("latched"))
-    scan_pub = node.create_publisher(LidarScan, "scan", qos_profile(args.qos))
+    scan_pub = node.create_publisher(LidarScan, "lidar_scan", qos_profile(args.qos))
     laser_pub = node.create_publisher(LaserScan, "laser", qos_profile(args.qos))
     info_pub.publish(info)  # once: late joiners get it from the latched topic
     stamps: list[int] = []

@@ -30,11 +30,11 @@ def main() -> int:
         scan = lidarscan.make_scan(info, {"range": ranges}, 2_000_000_000)  # an rclpy message
 
         received = []
-        node.create_subscription(LidarScan, "scan",
+        node.create_subscription(LidarScan, "lidar_scan",
                                  lambda raw: received.append(lidarscan.decode_scan(raw)),
                                  qos_profile_sensor_data, raw=True)   # raw CDR bytes
         info_pub = node.create_publisher(LidarInfo, "lidar_info", LATCHED)
-        scan_pub = node.create_publisher(LidarScan, "scan", qos_profile_sensor_data)
+        scan_pub = node.create_publisher(LidarScan, "lidar_scan", qos_profile_sensor_data)
         info_pub.publish(info)
 
         executor = SingleThreadedExecutor()

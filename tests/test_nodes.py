@@ -458,7 +458,7 @@ def test_converter_node_end_to_end(graph: Graph) -> None:
     # the info is latched: published BEFORE the node exists, it still reaches it
     info_pub = graph.publisher(LidarInfo, "lidar_info", "latched")
     info_pub.publish(info)
-    scan_pub = graph.publisher(LidarScan, "scan")
+    scan_pub = graph.publisher(LidarScan, "lidar_scan")
     clouds = graph.collect(PointCloud2, "points")
     lows = graph.collect(LaserScan, "slices/low")
     node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
@@ -501,7 +501,7 @@ def test_converter_node_is_lazy_without_subscribers(graph: Graph) -> None:
 
     info = small_info()
     graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
-    scan_pub = graph.publisher(LidarScan, "scan")
+    scan_pub = graph.publisher(LidarScan, "lidar_scan")
     node = graph.add(ConverterNode(context=graph.context))
     assert graph.wait(lambda: node.stats.scans_idle >= 3,
                       tick=lambda: scan_pub.publish(small_scan(info, 10**9)))
@@ -530,7 +530,7 @@ def test_converter_node_takes_extrinsics_from_tf_static(graph: Graph) -> None:
     graph.publisher(tf2_msgs.TFMessage, "/tf_static", "latched").publish(
         tf2_msgs.TFMessage(transforms=[t]))
     graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
-    scan_pub = graph.publisher(LidarScan, "scan")
+    scan_pub = graph.publisher(LidarScan, "lidar_scan")
     out = graph.collect(LaserScan, "slices/band")
     node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
         target_frame="base_link", slice_names=["band"], slices__band__min_height=0.2,
@@ -595,7 +595,7 @@ def test_cloud_to_scan_node_latches_one_info(graph: Graph) -> None:
 
     info = small_info()
     cloud_pub = graph.publisher(PointCloud2, "points", "sensor_data")
-    scans = graph.collect(LidarScan, "scan")
+    scans = graph.collect(LidarScan, "lidar_scan")
     node = graph.add(CloudToScanNode(context=graph.context))
     k = [0]
 
@@ -693,3 +693,163 @@ def test_merger_core_restarts_after_a_clock_jump_back() -> None:
     # nor is one scan far in the past (stale / zero stamp): dropped, nothing reset
     assert core.push("b", laser_scan("base_link", 0, 2.0)) == [] and core.resets == 2
     assert len(pair(100 * 10**9 + 3 * 10**8)) == 1 and core.resets == 2
+
+
+# ------------------------------------------------------- runtime parameters, /diagnostics
+
+def _set(graph: Graph, node_name: str, **values: Any) -> list[Any]:
+    """Set parameters through the node's SetParametersAtomically service (one result for all;
+    ``ros2 param set`` uses SetParameters, the same callbacks)."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    client = AsyncParameterClient(graph.tester, node_name)
+    assert client.wait_for_services(timeout_sec=10.0)
+    params = [Parameter(k.replace("__", "."), value=v) for k, v in values.items()]
+    future = client.set_parameters_atomically(params) if len(params) > 1 else \
+        client.set_parameters(params)
+    assert graph.wait(future.done, timeout=10.0)
+    result = future.result()
+    return list(result.results) if hasattr(result, "results") else [result.result]
+
+
+@pytest.mark.ros
+def test_converter_parameters_are_checked_and_applied_live(graph: Graph) -> None:
+    from lidarscan_msgs.msg import LidarInfo, LidarScan
+    from sensor_msgs.msg import LaserScan
+
+    from converters.laserscan import SliceConverter
+    from converters.nodes.converter_node import ConverterNode
+
+    info = small_info()
+    graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
+    scan_pub = graph.publisher(LidarScan, "lidar_scan")
+    lows = graph.collect(LaserScan, "slices/low")
+    node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
+        slice_names=["low"], slices__low__min_height=-0.5, slices__low__max_height=0.5)))
+    scan = small_scan(info, 10**9)
+    assert graph.wait(lambda: bool(lows), tick=lambda: scan_pub.publish(scan))
+
+    def expect(lo: float, hi: float, **kw: Any) -> Any:
+        return SliceConverter(info, {"low": P.SliceConfig("low", lo, hi, **kw).spec()}
+                              ).convert(scan)["low"]
+
+    assert same_floats(lows[-1].ranges, expect(-0.5, 0.5).ranges)
+    # bad values: refused with a reason naming the parameter; nothing changes
+    bad = {"max_wait": (-5.0, "max_wait"), "scan_qos": ("bogus", "read-only"),
+           "slices__low__max_height": ("high", "slices.low.max_height"),
+           "slices__low__range_max": (-1.0, "range_max"),
+           "pointcloud2__preset": ("nope", "preset")}
+    for name, (value, reason) in bad.items():
+        (result,) = _set(graph, "lidarscan_converter", **{name: value})
+        assert not result.successful and reason in result.reason, (name, result.reason)
+    # a band the library refuses (range_min > range_max): the library's own reason
+    (result,) = _set(graph, "lidarscan_converter", slices__low__range_min=9.0,
+                     slices__low__range_max=2.0)
+    assert not result.successful and "range" in result.reason
+    assert node.core.resolver.max_wait_ns == 2 * 10**9 and node.guard.rejected >= 3
+    assert node.get_parameter("max_wait").value == 2.0
+    # good values take effect without a restart (an int is fine for a float)
+    (result,) = _set(graph, "lidarscan_converter", max_wait=3, slices__low__min_height=0.3,
+                     slices__low__max_height=5.0, slices__low__range_max=3.0)
+    assert result.successful, result.reason
+    assert node.core.resolver.max_wait_ns == 3 * 10**9
+    want = expect(0.3, 5.0, range_max=3.0)
+    assert not same_floats(want.ranges, expect(-0.5, 0.5).ranges)
+    count = len(lows)
+    assert graph.wait(lambda: any(same_floats(m.ranges, want.ranges) for m in lows[count:]),
+                      tick=lambda: scan_pub.publish(scan))
+
+
+@pytest.mark.ros
+def test_merger_parameters_are_checked_and_applied_live(graph: Graph) -> None:
+    from sensor_msgs.msg import LaserScan
+
+    from converters.nodes.merger_node import MergerNode
+
+    out = graph.collect(LaserScan, "scan_merged")
+    pub_a = graph.publisher(LaserScan, "a")
+    pub_b = graph.publisher(LaserScan, "b")
+    node = graph.add(MergerNode(context=graph.context, parameter_overrides=overrides(
+        input_names=["a", "b"], angle_increment=math.radians(1.0), range_max=20.0,
+        use_tf=False, inputs__a__qos="reliable", inputs__b__qos="reliable")))
+    stamp = [10**9]
+
+    def tick() -> None:
+        stamp[0] += 10**8
+        pub_a.publish(laser_scan("base_link", stamp[0], 2.0))
+        pub_b.publish(laser_scan("base_link", stamp[0] + 10**6, 3.0))
+
+    assert graph.wait(lambda: pub_a.get_subscription_count() > 0 and
+                      pub_b.get_subscription_count() > 0)
+    assert graph.wait(lambda: len(out) >= 2, timeout=20, tick=tick), node.stats
+    for name, value, reason in (("slop", -1.0, "slop"), ("policy", "sometimes", "policy"),
+                                ("angle_increment", 0.0, "angle_increment"),
+                                ("inputs__b__range_min", "far", "inputs.b.range_min"),
+                                ("input_names", ["a"], "read-only")):
+        (result,) = _set(graph, "lidarscan_merger", **{name: value})
+        assert not result.successful and reason in result.reason, (name, result.reason)
+    assert node.core.merger.slop_ns == 50_000_000
+    # a user range limit on input b, live: its 3 m ranges leave the output
+    (result,) = _set(graph, "lidarscan_merger", inputs__b__range_max=2.5, slop=0.02)
+    assert result.successful, result.reason
+    assert node.core.merger.slop_ns == 20_000_000 and node.core.inputs["b"]["range_max"] == 2.5
+    count = len(out)
+    assert graph.wait(lambda: any(np.all(np.isin(np.asarray(o.ranges)[np.isfinite(o.ranges)],
+                                                 [2.0])) and np.isfinite(o.ranges).any()
+                                  for o in out[count:]), tick=tick)
+
+
+@pytest.mark.ros
+def test_nodes_publish_diagnostics_with_linkage_state(graph: Graph) -> None:
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from lidarscan_msgs.msg import LidarInfo, LidarScan
+    from sensor_msgs.msg import PointCloud2
+
+    from converters.nodes.cloud_to_scan_node import CloudToScanNode
+    from converters.nodes.converter_node import ConverterNode
+
+    arrays = graph.collect(DiagnosticArray, "/diagnostics", "reliable")
+    scan_pub = graph.publisher(LidarScan, "lidar_scan")
+    graph.collect(PointCloud2, "points")
+    node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
+        max_wait=0.3)))
+    graph.add(CloudToScanNode(context=graph.context,
+                              parameter_overrides=overrides(cloud_topic="silent_points")))
+    info = small_info(stamp_ns=4_242)
+
+    def latest(name: str) -> Any:
+        for array in reversed(arrays):
+            for status in array.status:
+                if status.name.endswith(name):
+                    return status
+        return None
+
+    def level(status: Any) -> int:
+        return status.level[0] if isinstance(status.level, bytes) else int(status.level)
+
+    k = [0]
+
+    def tick() -> None:
+        k[0] += 1
+        scan_pub.publish(small_scan(info, 10**9 + k[0] * 10**8))
+
+    # scans whose LidarInfo never comes: ERROR with the reason, drops counted
+    assert graph.wait(lambda: (s := latest("lidarscan_converter: linkage")) is not None and
+                      level(s) == DiagnosticStatus.ERROR[0] and "no LidarInfo" in s.message,
+                      timeout=15, tick=tick)
+    values = {kv.key: kv.value for kv in latest("lidarscan_converter: linkage").values}
+    assert {"pending", "infos", "conflicting", "max_infos"} <= set(values)
+    # the info arrives: OK, rates and latency reported
+    graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
+    assert graph.wait(lambda: (s := latest("lidarscan_converter: linkage")) is not None and
+                      level(s) == DiagnosticStatus.OK[0] and
+                      (c := latest("lidarscan_converter: conversion")) is not None and
+                      level(c) == DiagnosticStatus.OK[0], timeout=15, tick=tick)
+    conv = {kv.key: kv.value for kv in latest("lidarscan_converter: conversion").values}
+    assert float(conv["scans_converted_per_s"]) > 0 and "latency_p50_ms" in conv
+    assert node.stats.scans_dropped >= 1
+    # the cloud-to-scan node reports too: no clouds yet is a warning with its reason
+    c2s = latest("lidarscan_cloud_to_scan: conversion")
+    assert c2s is not None and level(c2s) == DiagnosticStatus.WARN[0]
+    assert "no PointCloud2" in c2s.message

@@ -12,12 +12,13 @@ the tolerances is a new version: a new LidarInfo with a new stamp (the cloud's s
 strictly larger than the previous version's), and the following scans name it.
 
 Topics: ``points`` (in, sensor_msgs/PointCloud2, ``cloud_qos`` [sensor_data]) ->
-``scan`` (out, lidarscan_msgs/LidarScan, ``scan_qos`` [sensor_data]) and ``lidar_info``
+``lidar_scan`` (out, lidarscan_msgs/LidarScan, ``scan_qos`` [sensor_data]) and ``lidar_info``
 (out, lidarscan_msgs/LidarInfo, latched).
 
 Parameters (defaults in brackets; ``config/cloud_to_scan.yaml``):
 
-* ``cloud_topic`` [``points``], ``scan_topic`` [``scan``], ``info_topic`` [``lidar_info``];
+* ``cloud_topic`` [``points``], ``scan_topic`` [``lidar_scan``], ``info_topic``
+  [``lidar_info``];
 * ``cloud_qos`` [``sensor_data``], ``scan_qos`` [``sensor_data``];
 * ``layout`` [``auto``]: ``organized``, ``ring`` or ``auto`` (see ``from_pointcloud2``);
 * ``time_field`` [""]: per-point time field ("" = auto-detect);
@@ -29,9 +30,13 @@ Parameters (defaults in brackets; ``config/cloud_to_scan.yaml``):
   3e-4 rad (beams with few points); a scan linked to the kept info is then off by at most
   ``angle_tolerance * range`` (1 mm at 1 m with the default).
 
-Behaviour: no work while nobody subscribes to ``scan`` (the info is still published on the first
-cloud so late joiners find it); a cloud that cannot be converted is dropped with one log line
-(rate-limited) and counted; Ctrl-C exits cleanly.
+``--help`` prints every parameter. Topics and QoS are read-only; layout, fields, frame and the
+tolerances may be changed while running (checked first, refused with the reason otherwise).
+``/diagnostics`` (1 Hz): cloud rate, failures, LidarInfo versions.
+
+Behaviour: no work while nobody subscribes to ``lidar_scan`` (the info is still published on the
+first cloud so late joiners find it); a cloud that cannot be converted is dropped with one log
+line (rate-limited) and counted; Ctrl-C exits cleanly.
 """
 
 from __future__ import annotations
@@ -145,6 +150,59 @@ def _restamp(scan: Any, info: Any, stamp_ns: int) -> tuple[Any, Any]:
     return scan, info
 
 
+# ------------------------------------------------------------------------------ parameters
+
+def _specs() -> tuple[Any, ...]:
+    """The node's parameters (one table: declaration, checks, ``--help``)."""
+    from converters.nodes.params import QOS_NAMES, ParamSpec as S
+
+    return (
+        S("cloud_topic", "points", "input sensor_msgs/PointCloud2 topic", read_only=True),
+        S("scan_topic", "lidar_scan", "output lidarscan_msgs/LidarScan topic", read_only=True),
+        S("info_topic", "lidar_info", "output lidarscan_msgs/LidarInfo topic (latched)",
+          read_only=True),
+        S("cloud_qos", "sensor_data", "QoS of the input", choices=QOS_NAMES, read_only=True),
+        S("scan_qos", "sensor_data", "QoS of the scans", choices=QOS_NAMES, read_only=True),
+        S("layout", "auto", "cloud layout (see converters.pointcloud2.from_pointcloud2)",
+          choices=("auto", "organized", "ring")),
+        S("time_field", "", "per-point time field ('' = auto-detect)"),
+        S("range_field", "auto", "range field ('auto', or '' = ignore)"),
+        S("frame_id", "", "frame of scan and info ('' = the cloud's)"),
+        S("angle_tolerance", 1e-3, "radians the beams may differ before the LidarInfo counts "
+          "as changed", low=0.0, high=3.2),
+        S("offset_tolerance", 5e-3, "metres the beam origins may differ before the LidarInfo "
+          "counts as changed", low=0.0, high=100.0),
+        S("allow_unknown_parameters", False, "start even with parameters this node does not "
+          "know (a typo is otherwise an error)", read_only=True),
+    )
+
+
+TOPICS = (("points", "in  sensor_msgs/PointCloud2", "cloud_topic, cloud_qos"),
+          ("lidar_scan", "out lidarscan_msgs/LidarScan", "scan_topic, scan_qos"),
+          ("lidar_info", "out lidarscan_msgs/LidarInfo", "info_topic, latched"),
+          ("/diagnostics", "out diagnostic_msgs/DiagnosticArray", "1 Hz"))
+
+
+def usage() -> str:
+    """``lidarscan-cloud-to-scan --help``."""
+    from converters.nodes.params import help_text
+
+    return help_text("lidarscan-cloud-to-scan", __doc__.split("\n\n")[0], TOPICS, _specs(),
+                     example="config/cloud_to_scan.yaml")
+
+
+def settings(values: Any) -> dict[str, Any]:
+    """:class:`CloudToScanCore` keyword arguments from checked parameter values."""
+    options: dict[str, Any] = {"layout": values["layout"],
+                               "range_field": values["range_field"] or None}
+    if values["time_field"]:
+        options["time_field"] = values["time_field"]
+    if values["frame_id"]:
+        options["frame_id"] = values["frame_id"]
+    return {"angle_tolerance": values["angle_tolerance"],
+            "offset_tolerance": values["offset_tolerance"], **options}
+
+
 # ------------------------------------------------------------------------------------ node
 
 @functools.cache
@@ -152,7 +210,7 @@ def _node_class() -> type:
     from rclpy.node import Node
 
     from converters.nodes import params as P
-    from converters.nodes.common import LogLimiter
+    from converters.nodes.common import ERROR, WARN, Diagnostics, LogLimiter, RateMeter, Status
 
     class CloudToScanNode(Node):
         """The rclpy node around :class:`CloudToScanCore` (see the module docstring)."""
@@ -160,42 +218,57 @@ def _node_class() -> type:
         def __init__(self, name: str = "lidarscan_cloud_to_scan", **kwargs: Any) -> None:
             super().__init__(name, **kwargs)
             self._log = LogLimiter(self.get_logger().warning)
-            def d(n: str, v: Any, doc: str) -> Any:
-                return P.declare(self, n, v, doc)
-
-            cloud_topic = d("cloud_topic", "points", "input PointCloud2 topic")
-            scan_topic = d("scan_topic", "scan", "output LidarScan topic")
-            info_topic = d("info_topic", "lidar_info", "output LidarInfo topic (latched)")
-            cloud_qos = d("cloud_qos", "sensor_data", f"QoS of the input: {P.QOS_NAMES}")
-            scan_qos = d("scan_qos", "sensor_data", f"QoS of the scans: {P.QOS_NAMES}")
-            layout = d("layout", "auto", "organized, ring or auto")
-            time_field = d("time_field", "", "per-point time field ('' = auto)")
-            range_field = d("range_field", "auto", "range field ('auto', '' = ignore)")
-            frame_id = d("frame_id", "", "frame of scan and info ('' = the cloud's)")
-            angle_tol = d("angle_tolerance", 1e-3, "radians before the geometry changes")
-            offset_tol = d("offset_tolerance", 5e-3, "metres before the geometry changes")
-            options: dict[str, Any] = {"layout": layout,
-                                       "range_field": range_field or None}
-            if time_field:
-                options["time_field"] = time_field
-            if frame_id:
-                options["frame_id"] = frame_id
-            self.core = CloudToScanCore(angle_tolerance=float(angle_tol),
-                                        offset_tolerance=float(offset_tol), **options)
+            specs = _specs()
+            values = P.declare_specs(self, specs)
+            P.refuse_unknown(self, values["allow_unknown_parameters"])
+            self.core = CloudToScanCore(**settings(values))
+            self.guard = P.ParameterGuard(self, {s.name: s for s in specs}, values,
+                                          self._validate, self._apply)
             self.stats = {"clouds": 0, "scans": 0, "infos": 0, "bad": 0, "idle": 0}
 
             from lidarscan_msgs.msg import LidarInfo, LidarScan
             from sensor_msgs.msg import PointCloud2
 
+            cloud_topic, scan_topic = values["cloud_topic"], values["scan_topic"]
+            info_topic = values["info_topic"]
             self.scan_pub = self.create_publisher(LidarScan, scan_topic,
-                                                  P.qos_profile(scan_qos))
+                                                  P.qos_profile(values["scan_qos"]))
             self.info_pub = self.create_publisher(LidarInfo, info_topic, P.qos_profile("latched"))
             self.create_subscription(PointCloud2, cloud_topic, self._on_cloud,
-                                     P.qos_profile(cloud_qos), raw=True)
+                                     P.qos_profile(values["cloud_qos"]), raw=True)
+            self._rates = RateMeter()
+            self._status = (Status, WARN, ERROR)
+            self.diagnostics = Diagnostics(self, self._diagnose)
             self.get_logger().info(
                 f"'{self.resolve_topic_name(cloud_topic)}' -> LidarScan "
                 f"'{self.resolve_topic_name(scan_topic)}' + LidarInfo "
                 f"'{self.resolve_topic_name(info_topic)}' (latched)")
+
+        def _validate(self, values: dict[str, Any]) -> None:
+            CloudToScanCore(**settings(values))
+
+        def _apply(self, values: dict[str, Any], changed: set[str]) -> None:
+            fresh = CloudToScanCore(**settings(values))
+            self.core.options = fresh.options
+            self.core.angle_tolerance = fresh.angle_tolerance
+            self.core.offset_tolerance = fresh.offset_tolerance
+            self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
+
+        def _diagnose(self) -> list[Any]:
+            Status, WARN, ERROR = self._status
+            delta, dt = self._rates.update(self.stats)
+            st = Status("conversion", {**{f"{k}_per_s": round(v / dt, 2)
+                                          for k, v in delta.items()}, **self.stats,
+                                       "info_versions": self.core.versions})
+            if not delta["clouds"]:
+                st.worse(WARN, "no PointCloud2 received")
+            if delta["bad"]:
+                level = ERROR if delta["bad"] >= delta["clouds"] else WARN
+                st.worse(level, f"{delta['bad']} cloud(s) not converted in the last {dt:.1f} s")
+            if delta["infos"] > 1:
+                st.worse(WARN, f"the geometry changed {delta['infos']} times in {dt:.1f} s "
+                         "(raise angle_tolerance / offset_tolerance?)")
+            return [st]
 
         def _on_cloud(self, raw: bytes) -> None:
             from lidarscan import decode
@@ -229,7 +302,8 @@ def _node_class() -> type:
     return CloudToScanNode
 
 
-__getattr__, main = entry_points("CloudToScanNode", _node_class, "lidarscan-cloud-to-scan")
+__getattr__, main = entry_points("CloudToScanNode", _node_class, "lidarscan-cloud-to-scan",
+                                 usage)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,12 @@
-"""Pieces every node uses: bounded logging, counters, and the ``main`` runner with clean
-shutdown. Nothing here imports rclpy at module import time."""
+"""Pieces every node uses: bounded logging, rates and latency for ``/diagnostics``, and the
+``main`` runner (``--help`` without ROS, clean shutdown). Nothing here imports rclpy at module
+import time.
+
+Diagnostics: each node publishes ``diagnostic_msgs/DiagnosticArray`` on ``/diagnostics`` once a
+second (:class:`Diagnostics`); levels are OK (0), WARN (1), ERROR (2) with the reason in the
+message; values are per-second rates over the last period, totals, latency (receive time minus
+the message stamp, milliseconds) and the node's linkage state.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +16,116 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-__all__ = ["LogLimiter", "entry_points", "run_node"]
+__all__ = ["OK", "WARN", "ERROR", "Diagnostics", "LatencyWindow", "LogLimiter", "RateMeter",
+           "Status", "entry_points", "run_node"]
+
+OK, WARN, ERROR = 0, 1, 2
+
+
+class Status:
+    """One DiagnosticStatus before it becomes a message.
+
+    Attributes:
+        name: status name (the node name is prefixed when published).
+        level: OK, WARN or ERROR.
+        message: the reasons (one line, "; "-separated).
+        values: key -> value (published as text).
+    """
+
+    def __init__(self, name: str, values: dict[str, Any] | None = None) -> None:
+        self.name, self.level, self.message = name, OK, "ok"
+        self.values = dict(values or {})
+
+    def worse(self, level: int, reason: str) -> None:
+        """Raise the level to ``level`` (never lower it) and add the reason."""
+        if level <= OK:
+            return
+        self.level = max(self.level, level)
+        self.message = reason if self.message == "ok" else f"{self.message}; {reason}"
+
+
+class RateMeter:
+    """Increases of monotonically growing counters between two calls.
+
+    Args:
+        clock: monotonic seconds.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
+        self._last: dict[str, int] = {}
+        self._t = clock()
+
+    def update(self, counters: dict[str, int]) -> tuple[dict[str, int], float]:
+        """(counter -> increase since the last call, seconds elapsed)."""
+        now = self._clock()
+        dt = max(now - self._t, 1e-9)
+        delta = {k: int(v) - self._last.get(k, 0) for k, v in counters.items()}
+        self._last = {k: int(v) for k, v in counters.items()}
+        self._t = now
+        return delta, dt
+
+
+class LatencyWindow:
+    """Latencies (ns) of the current period, bounded (the last ``size`` kept)."""
+
+    def __init__(self, size: int = 512) -> None:
+        from collections import deque
+
+        self._samples: Any = deque(maxlen=size)
+
+    def add(self, latency_ns: int) -> None:
+        self._samples.append(int(latency_ns))
+
+    def take(self) -> dict[str, float]:
+        """``latency_p50_ms`` and ``latency_max_ms`` of the period, then forget it (empty: no
+        sample)."""
+        if not self._samples:
+            return {}
+        data = sorted(self._samples)
+        self._samples.clear()
+        return {"latency_p50_ms": round(data[len(data) // 2] / 1e6, 3),
+                "latency_max_ms": round(data[-1] / 1e6, 3)}
+
+
+class Diagnostics:
+    """Publishes ``collect()`` on ``/diagnostics`` every ``period`` seconds.
+
+    Args:
+        node: rclpy node.
+        collect: ``() -> list[Status]``.
+        period: seconds (1 Hz by default).
+    """
+
+    def __init__(self, node: Any, collect: Callable[[], list[Status]],
+                 period: float = 1.0) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self._node = node
+        self._collect = collect
+        self.publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.last: list[Status] = []
+        self.timer = node.create_timer(period, self.publish)
+
+    def publish(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        try:
+            statuses = self._collect()
+        except Exception as err:  # noqa: BLE001 - diagnostics must never stop the node
+            statuses = [Status("diagnostics")]
+            statuses[0].worse(ERROR, f"collecting failed: {type(err).__name__}: {err}")
+        self.last = statuses
+        msg = DiagnosticArray()
+        msg.header.stamp = self._node.get_clock().now().to_msg()
+        name = self._node.get_fully_qualified_name().lstrip("/")
+        for st in statuses:
+            msg.status.append(DiagnosticStatus(
+                level=bytes([st.level]), name=f"{name}: {st.name}", message=st.message,
+                hardware_id=name,
+                values=[KeyValue(key=str(k), value=str(v)) for k, v in st.values.items()]))
+        self.publisher.publish(msg)
+
 
 
 class LogLimiter:
@@ -83,13 +199,16 @@ def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) ->
     return status
 
 
-def entry_points(class_name: str, node_class: Callable[[], Any], script: str
+def entry_points(class_name: str, node_class: Callable[[], Any], script: str,
+                 usage: Callable[[], str] | None = None
                  ) -> tuple[Callable[[str], Any], Callable[..., int]]:
     """A node module's ``__getattr__`` and ``main``, assigned at its top level.
 
     ``__getattr__`` builds the rclpy node class (``node_class()``) on the first access of
     ``module.<class_name>``, so importing the module does not import rclpy; ``main`` is the
     console script ``script`` (ROS arguments after ``--ros-args``), run by :func:`run_node`.
+    ``-h`` / ``--help`` before ``--ros-args`` prints ``usage()`` and returns 0 without starting
+    ROS; any other argument there is refused (status 2) with the usage line.
     """
 
     def module_getattr(name: str) -> Any:
@@ -98,7 +217,17 @@ def entry_points(class_name: str, node_class: Callable[[], Any], script: str
         raise AttributeError(name)
 
     def main(args: Sequence[str] | None = None) -> int:
-        return run_node(lambda: node_class()(), args)
+        argv = list(sys.argv if args is None else args)
+        ours = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+        if usage is not None and any(a in ("-h", "--help") for a in ours):
+            print(usage())
+            return 0
+        if ours:
+            print(f"usage: {script} [-h] [--ros-args ...]\nerror: unknown argument(s) "
+                  f"{' '.join(ours)} (ROS arguments go after --ros-args; -h for help)",
+                  file=sys.stderr)
+            return 2
+        return run_node(lambda: node_class()(), argv)
 
     main.__doc__ = f"Console script ``{script}`` (ROS arguments after ``--ros-args``)."
     return module_getattr, main

@@ -1,21 +1,25 @@
 """``lidarscan-converter``: LidarScan + LidarInfo -> PointCloud2 and LaserScan height slices.
 
-Topics (relative names, remap with ``--ros-args -r scan:=/os/scan``):
+Topics (relative names, remap with ``--ros-args -r lidar_scan:=/os/lidar_scan``):
 
 ========================  =====================================  ==============================
 topic                     type                                   QoS
 ========================  =====================================  ==============================
-``scan`` (in)             lidarscan_msgs/LidarScan               ``scan_qos`` (sensor data)
+``lidar_scan`` (in)       lidarscan_msgs/LidarScan               ``scan_qos`` (sensor data)
 ``lidar_info`` (in)       lidarscan_msgs/LidarInfo               ``info_qos`` (reliable,
                                                                  transient local = latched)
 ``/tf``, ``/tf_static``   tf2_msgs/TFMessage                     when ``target_frame`` is set
 ``points`` (out)          sensor_msgs/PointCloud2                ``output_qos``
 ``<slice topic>`` (out)   sensor_msgs/LaserScan, one per slice   ``output_qos``
+``/diagnostics`` (out)    diagnostic_msgs/DiagnosticArray        1 Hz: rates, drops, latency,
+                                                                 linkage state
 ========================  =====================================  ==============================
+
+(``scan`` is left to sensor_msgs/LaserScan, as everywhere else in ROS.)
 
 Parameters (defaults in brackets; ``config/converter.yaml`` is a complete example):
 
-* ``scan_topic`` [``scan``], ``info_topic`` [``lidar_info``], ``cloud_topic`` [``points``];
+* ``scan_topic`` [``lidar_scan``], ``info_topic`` [``lidar_info``], ``cloud_topic`` [``points``];
 * ``scan_qos`` [``sensor_data``], ``info_qos`` [``latched``], ``output_qos`` [``sensor_data``]:
   one of sensor_data, best_effort, reliable, latched (see :func:`params.qos_profile`);
 * ``pointcloud2.enabled`` [true]; ``pointcloud2.preset`` [""] (a preset of
@@ -41,7 +45,18 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
 * ``extrinsics`` [[]]: ``target_frame <- sensor`` as 6 (x y z roll pitch yaw), 7
   (x y z qx qy qz qw) or 16 (row-major 4x4) numbers; [] = identity;
 * ``max_pending`` [16] scans held while their LidarInfo is missing, for at most
-  ``max_wait`` [2.0] seconds.
+  ``max_wait`` [2.0] seconds; ``max_infos`` [8] LidarInfo versions kept pairable (see
+  :mod:`lidarscan.linkage` for what happens to older ones: dropped, never mispaired);
+* ``allow_unknown_parameters`` [false]: a parameter this node does not declare (a typo such as
+  ``target_fram``) stops it at start-up with the list and a suggestion, unless true.
+
+``lidarscan-converter --help`` prints every parameter with its default, rule and description
+(from the one table in :func:`_specs`) without starting ROS. Topics, QoS, ``slice_names``,
+``slices.NAME.topic``, ``slices_file``, ``target_frame`` and ``pointcloud2.enabled`` are
+read-only (a restart is needed); the others may be changed while running (``ros2 param set``):
+each change is checked by the parameter's rule and then by building the converters with it
+(:meth:`ConverterCore.check`), and refused with the reason otherwise; an accepted change applies
+from the next scan.
 
 Behaviour: no conversion work while no output has a subscriber (``get_subscription_count``);
 a malformed, unlinked or inconsistent message is dropped with one log line (rate-limited) and
@@ -98,14 +113,15 @@ class ConverterCore:
             needs the extrinsics ``target_frame <- sensor frame``.
         slice_options: common keyword options of :class:`converters.laserscan.SliceConverter`
             (e.g. ``intensity_channel``).
-        max_pending, max_wait_ns: bounds of the linkage resolver.
+        max_pending, max_wait_ns, max_infos: bounds of the linkage resolver
+            (:class:`lidarscan.linkage.InfoResolver`).
         on_event: one line per notable event (drops, info changes).
     """
 
     def __init__(self, *, cloud_options: Mapping[str, Any] | None = None,
                  slices: Sequence[SliceConfig] = (), target_frame: str = "",
                  slice_options: Mapping[str, Any] | None = None, max_pending: int = 16,
-                 max_wait_ns: int | None = 2_000_000_000,
+                 max_wait_ns: int | None = 2_000_000_000, max_infos: int = 8,
                  on_event: Any = None) -> None:
         from lidarscan.linkage import InfoResolver
 
@@ -116,9 +132,40 @@ class ConverterCore:
         self.slice_options = dict(slice_options or {})
         self._on_event = on_event or (lambda line: None)
         self.resolver = InfoResolver(max_pending=max_pending, max_wait_ns=max_wait_ns,
-                                     on_event=self._resolver_event)
+                                     max_infos=max_infos, on_event=self._resolver_event)
         self._clouds: OrderedDict[Any, Any] = OrderedDict()
         self._slicers: OrderedDict[Any, Any] = OrderedDict()
+
+    def reconfigure(self, *, cloud_options: Mapping[str, Any], slices: Sequence[SliceConfig],
+                    slice_options: Mapping[str, Any], max_pending: int,
+                    max_wait_ns: int | None, max_infos: int) -> None:
+        """New options, effective from the next scan (converter caches dropped; the resolver
+        keeps its infos and held scans, only its bounds change; a smaller ``max_infos``
+        evicts on the next LidarInfo). The slice names must stay those of the start (their
+        publishers exist). Validate first with :meth:`check` on a fresh core."""
+        if [s.name for s in slices] != [s.name for s in self.slices]:
+            raise ConfigError("slice_names", [s.name for s in slices],
+                              f"the slices of the start {[s.name for s in self.slices]}")
+        self.cloud_options = dict(cloud_options)
+        self.slices = list(slices)
+        self.slice_options = dict(slice_options)
+        self.resolver.max_pending = max_pending
+        self.resolver.max_wait_ns = max_wait_ns
+        self.resolver.max_infos = max_infos
+        self._clouds.clear()
+        self._slicers.clear()
+
+    def check(self, info: Any, extrinsics: np.ndarray[Any, Any] | None = None) -> None:
+        """Build the PointCloud2 converter and the slice converter for ``info`` (a probe or the
+        sensor's): the library validates every option.
+
+        Raises:
+            LidarScanError: an option the converters refuse (the reason names it).
+        """
+        self._make_cloud(info)
+        if self.slices:
+            self._make_slicer(info, self.slices, extrinsics,
+                              self.slice_options.get("intensity_channel"))
 
     def _resolver_event(self, line: str) -> None:
         self._on_event(line)
@@ -248,6 +295,135 @@ class ConverterCore:
                               **{**self.slice_options, "intensity_channel": intensity})
 
 
+# ------------------------------------------------------------------------------ parameters
+
+def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+    """(node parameters, per-slice templates ``slices.NAME.*``), from one table."""
+    from converters.nodes.params import QOS_NAMES, ParamSpec as S
+
+    node = (
+        S("scan_topic", "lidar_scan", "input lidarscan_msgs/LidarScan topic", read_only=True),
+        S("info_topic", "lidar_info", "input lidarscan_msgs/LidarInfo topic (latched)",
+          read_only=True),
+        S("cloud_topic", "points", "output sensor_msgs/PointCloud2 topic", read_only=True),
+        S("scan_qos", "sensor_data", "QoS of the scan input", choices=QOS_NAMES, read_only=True),
+        S("info_qos", "latched", "QoS of the info input (the publisher must be latched too)",
+          choices=QOS_NAMES, read_only=True),
+        S("output_qos", "sensor_data", "QoS of the outputs", choices=QOS_NAMES, read_only=True),
+        S("pointcloud2.enabled", True, "publish the PointCloud2", read_only=True),
+        S("pointcloud2.preset", "", "PointCloud2 preset of converters.pointcloud2 ('' = use "
+          "pointcloud2.fields)"),
+        S("pointcloud2.fields", ("x", "y", "z", "intensity"),
+          "PointCloud2 fields (when no preset)", kind="str_list"),
+        S("pointcloud2.organized", True, "H x W cloud with NaN points for no return (no preset)"),
+        S("pointcloud2.destagger", True, "destagger the organized cloud (no preset)"),
+        S("slice_names", (), "names of the LaserScan slices (one slices.NAME block each)",
+          kind="str_list", read_only=True),
+        S("slices_file", "", "YAML file with more slices (config/slices.yaml)", read_only=True),
+        S("slice_intensity_channel", "intensity",
+          "channel copied into the slices' intensities ('' = none)"),
+        S("target_frame", "", "frame of the slices' heights and output ('' = the LidarInfo's "
+          "frame); z up, moving with the robot", read_only=True),
+        S("extrinsics", (), "target_frame <- sensor when TF has none: 6 (x y z roll pitch "
+          "yaw), 7 (x y z qx qy qz qw) or 16 numbers; [] = identity", kind="float_list"),
+        S("max_pending", 16, "scans held while their LidarInfo is missing", low=0,
+          high=100_000),
+        S("max_wait", 2.0, "seconds a scan may wait for its LidarInfo", low=0.0, high=3600.0),
+        S("max_infos", 8, "LidarInfo versions kept pairable (older ones: scans dropped)",
+          low=1, high=1024),
+        S("allow_unknown_parameters", False, "start even with parameters this node does not "
+          "know (a typo is otherwise an error)", read_only=True),
+    )
+    per_slice = (
+        S("slices.NAME.min_height", None, "slice NAME: lowest z in target_frame, metres "
+          "(required)", kind="float"),
+        S("slices.NAME.max_height", None, "slice NAME: highest z, metres (required)",
+          kind="float"),
+        S("slices.NAME.topic", "", "slice NAME: output topic ('' = slices/NAME)",
+          read_only=True),
+        S("slices.NAME.angle_min", None, "slice NAME: first bin, radians (default -pi)",
+          kind="float"),
+        S("slices.NAME.angle_max", None, "slice NAME: last bin, radians (default a full "
+          "circle)", kind="float"),
+        S("slices.NAME.angle_increment", None, "slice NAME: bin width, radians (default 2 pi "
+          "/ W)", kind="float", low=0.0),
+        S("slices.NAME.range_min", None, "slice NAME: planar range min, metres (default the "
+          "LidarInfo's)", kind="float", low=0.0),
+        S("slices.NAME.range_max", None, "slice NAME: planar range max, metres (default the "
+          "LidarInfo's)", kind="float", low=0.0),
+    )
+    return node, per_slice
+
+
+TOPICS = (("lidar_scan", "in  lidarscan_msgs/LidarScan", "scan_topic, scan_qos"),
+          ("lidar_info", "in  lidarscan_msgs/LidarInfo", "info_topic, latched"),
+          ("/tf, /tf_static", "in  tf2_msgs/TFMessage", "when target_frame is set"),
+          ("points", "out sensor_msgs/PointCloud2", "cloud_topic, output_qos"),
+          ("slices/NAME", "out sensor_msgs/LaserScan", "one per slice"),
+          ("/diagnostics", "out diagnostic_msgs/DiagnosticArray", "1 Hz"))
+
+
+def usage() -> str:
+    """``lidarscan-converter --help``."""
+    from converters.nodes.params import help_text
+
+    node, per_slice = _specs()
+    return help_text("lidarscan-converter", __doc__.split("\n\n")[0], TOPICS, node,
+                     {"per slice (for each NAME in slice_names):": per_slice},
+                     "config/converter.yaml")
+
+
+def settings(values: Mapping[str, Any], extra_slices: Sequence[SliceConfig] = ()
+             ) -> dict[str, Any]:
+    """Keyword arguments of :class:`ConverterCore` (+ ``extrinsics``) from checked parameter
+    values (name -> value, as :meth:`ParamSpec.check` returns them).
+
+    Raises:
+        ConfigError: a slice without heights, duplicate slice names, bad extrinsics.
+    """
+    from converters.nodes.params import with_topic
+
+    specs = []
+    for name in values["slice_names"]:
+        prefix = f"slices.{name}."
+        kw = {k: values.get(prefix + k) for k in ("min_height", "max_height", "angle_min",
+                                                  "angle_max", "angle_increment", "range_min",
+                                                  "range_max")}
+        for key in ("min_height", "max_height"):
+            if kw[key] is None:
+                raise ConfigError(prefix + key, None, "a height in metres (required)")
+        specs.append(SliceConfig(str(name), topic=values.get(prefix + "topic", ""), **kw))
+    specs.extend(extra_slices)
+    seen: set[str] = set()
+    for spec in specs:
+        if spec.name in seen:
+            raise ConfigError("slice_names", spec.name, "unique slice names")
+        seen.add(spec.name)
+    preset = values["pointcloud2.preset"]
+    cloud_options: dict[str, Any] = {"preset": preset} if preset else {
+        "organized": values["pointcloud2.organized"],
+        "destagger": values["pointcloud2.destagger"],
+        "fields": tuple(values["pointcloud2.fields"])}
+    return {"cloud_options": cloud_options, "slices": [with_topic(s, "slices") for s in specs],
+            "target_frame": values["target_frame"],
+            "slice_options": {"intensity_channel": values["slice_intensity_channel"] or None},
+            "max_pending": values["max_pending"], "max_infos": values["max_infos"],
+            "max_wait_ns": round(values["max_wait"] * 1e9),
+            "extrinsics": parse_extrinsics(values["extrinsics"])}
+
+
+def probe_info(info: Any = None) -> Any:
+    """The info a configuration is checked against: ``info`` (the sensor's, when known) or a
+    small synthetic one (2 x 8, frame 'probe')."""
+    if info is not None:
+        return info
+    import lidarscan
+
+    return lidarscan.make_info(stamp_ns=1, frame_id="probe", vertical_angles=[0.1, -0.1],
+                               horizontal_angles=2 * np.pi * (1 - np.arange(8) / 8),
+                               range_min=0.1, range_max=100.0, as_dataclass=True)
+
+
 # ------------------------------------------------------------------------------------ node
 
 @functools.cache
@@ -255,7 +431,15 @@ def _node_class() -> type:
     from rclpy.node import Node
 
     from converters.nodes import params as P
-    from converters.nodes.common import LogLimiter
+    from converters.nodes.common import (
+        ERROR,
+        WARN,
+        Diagnostics,
+        LatencyWindow,
+        LogLimiter,
+        RateMeter,
+        Status,
+    )
     from converters.nodes.tf import TfListener, TransformBuffer, TransformLookupError
 
     class ConverterNode(Node):
@@ -265,96 +449,110 @@ def _node_class() -> type:
             super().__init__(name, **kwargs)
             log = self.get_logger()
             self._log = LogLimiter(log.warning)
-            def d(n: str, v: Any, doc: str, **kw: Any) -> Any:
-                return P.declare(self, n, v, doc, **kw)
-
-            scan_topic = d("scan_topic", "scan", "input LidarScan topic")
-            info_topic = d("info_topic", "lidar_info", "input LidarInfo topic (latched)")
-            cloud_topic = d("cloud_topic", "points", "output PointCloud2 topic")
-            scan_qos = d("scan_qos", "sensor_data", f"QoS of the scan input: {P.QOS_NAMES}")
-            info_qos = d("info_qos", "latched", f"QoS of the info input: {P.QOS_NAMES}")
-            output_qos = d("output_qos", "sensor_data", f"QoS of the outputs: {P.QOS_NAMES}")
-            cloud_enabled = d("pointcloud2.enabled", True, "publish the PointCloud2")
-            preset = d("pointcloud2.preset", "", "PointCloud2 field preset ('' = fields)")
-            fields = d("pointcloud2.fields", ["x", "y", "z", "intensity"],
-                       "PointCloud2 fields (when no preset)")
-            organized = d("pointcloud2.organized", True, "H x W cloud with NaN for no return")
-            destagger = d("pointcloud2.destagger", True, "destagger the organized cloud")
-            names = d("slice_names", [], "LaserScan slice names", type_name="string_array")
-            slices_file = d("slices_file", "", "YAML file with more slices")
-            intensity = d("slice_intensity_channel", "intensity",
-                          "channel copied into the slices' intensities ('' = none)")
-            self.target_frame = d("target_frame", "", "frame of the slices ('' = sensor)")
-            extrinsics = d("extrinsics", [], "target_frame <- sensor when TF has none",
-                           type_name="double_array")
-            max_pending = d("max_pending", 16, "scans held while their LidarInfo is missing")
-            max_wait = d("max_wait", 2.0, "seconds a scan may wait for its LidarInfo")
-
-            specs = [self._declare_slice(str(n)) for n in names]
-            if slices_file:
-                specs.extend(P.load_slices_file(slices_file))
-            seen: set[str] = set()
-            for spec in specs:
-                if spec.name in seen:
-                    raise ConfigError("slice_names", spec.name, "unique slice names")
-                seen.add(spec.name)
-            specs = [P.with_topic(s, "slices") for s in specs]
-            self.fallback_extrinsics = parse_extrinsics(extrinsics)
-            self._have_fallback = bool(extrinsics)
-            cloud_options: dict[str, Any]
-            if preset:  # a preset brings its driver's own layout, organisation and order
-                cloud_options = {"preset": preset}
-            else:
-                cloud_options = {"organized": organized, "destagger": destagger,
-                                 "fields": tuple(fields)}
-            self.core = ConverterCore(cloud_options=cloud_options, slices=specs,
-                                      target_frame=self.target_frame,
-                                      slice_options={"intensity_channel": intensity or None},
-                                      max_pending=int(max_pending),
-                                      max_wait_ns=int(float(max_wait) * 1e9),
-                                      on_event=lambda line: self._log(line, "linkage"))
+            node_specs, per_slice = _specs()
+            values = P.declare_specs(self, node_specs)
+            slice_specs = [t.for_name(str(n)) for n in values["slice_names"] for t in per_slice]
+            values.update(P.declare_specs(self, slice_specs))
+            P.refuse_unknown(self, values["allow_unknown_parameters"])
+            self._file_slices = P.load_slices_file(values["slices_file"]) \
+                if values["slices_file"] else []
+            config = settings(values, self._file_slices)
+            self.target_frame = config["target_frame"]
+            self.fallback_extrinsics = config.pop("extrinsics")
+            self._have_fallback = bool(values["extrinsics"])
+            self.core = ConverterCore(**config, on_event=lambda line: self._log(line, "linkage"))
+            self.core.check(probe_info(), np.eye(4) if self.target_frame else None)
             self.stats = self.core.stats
+            self.guard = P.ParameterGuard(
+                self, {s.name: s for s in (*node_specs, *slice_specs)}, values,
+                self._validate, self._apply)
 
             from lidarscan_msgs.msg import LidarInfo, LidarScan
             from sensor_msgs.msg import LaserScan, PointCloud2
 
-            out_qos = P.qos_profile(output_qos)
+            specs = self.core.slices
+            out_qos = P.qos_profile(values["output_qos"])
+            cloud_topic = values["cloud_topic"]
             self.cloud_pub = self.create_publisher(PointCloud2, cloud_topic, out_qos) \
-                if cloud_enabled else None
+                if values["pointcloud2.enabled"] else None
             self.slice_pubs = {s.name: self.create_publisher(LaserScan, s.topic, out_qos)
                                for s in specs}
+            scan_topic = values["scan_topic"]
             self.create_subscription(LidarScan, scan_topic, self._on_scan,
-                                     P.qos_profile(scan_qos), raw=True)
-            self.create_subscription(LidarInfo, info_topic, self._on_info,
-                                     P.qos_profile(info_qos), raw=True)
+                                     P.qos_profile(values["scan_qos"]), raw=True)
+            self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
+                                     P.qos_profile(values["info_qos"]), raw=True)
             self.tf_buffer = TransformBuffer()
             self.tf_listener = TfListener(self, self.tf_buffer,
                                           on_error=lambda line: self._log(line, "tf")) \
                 if self.target_frame else None
             self._lookup_error = TransformLookupError
             self.create_timer(0.5, self.core.expire)
+            self._rates = RateMeter()
+            self._latency = LatencyWindow()
+            self._status = (Status, WARN, ERROR)
+            self.diagnostics = Diagnostics(self, self._diagnose)
             log.info(f"converting '{self.resolve_topic_name(scan_topic)}' -> "
-                     f"{'PointCloud2 ' + repr(cloud_topic) if cloud_enabled else 'no cloud'}"
+                     f"{'PointCloud2 ' + repr(cloud_topic) if self.cloud_pub else 'no cloud'}"
                      f"{', slices ' + ', '.join(s.name + '->' + s.topic for s in specs) if specs else ''}"
                      f"; target frame {self.target_frame or '(sensor frame)'}")
 
-        def _declare_slice(self, name: str) -> SliceConfig:
-            from rclpy.parameter import Parameter
+        # ------------------------------------------------------------------ parameters
+        def _validate(self, values: dict[str, Any]) -> None:
+            """Build the converters with the candidate values (raises LidarScanError)."""
+            config = settings(values, self._file_slices)
+            config.pop("extrinsics")
+            core = ConverterCore(**config)
+            latest = self.core.resolver.latest_stamp_ns
+            info = self.core.resolver.info(latest) if latest is not None else None
+            core.check(probe_info(info), np.eye(4) if self.target_frame else None)
 
-            prefix = f"slices.{name}."
-            values: dict[str, Any] = {}
-            for key in ("min_height", "max_height"):
-                self.declare_parameter(prefix + key, Parameter.Type.DOUBLE)
-                value = self.get_parameter_or(prefix + key, Parameter(prefix + key)).value
-                if value is None:
-                    raise ConfigError(prefix + key, None, "a height in metres (required)")
-                values[key] = float(value)
-            values["topic"] = P.declare(self, prefix + "topic", "", "output topic")
-            for key in ("angle_min", "angle_max", "angle_increment", "range_min", "range_max"):
-                self.declare_parameter(prefix + key, Parameter.Type.DOUBLE)
-                value = self.get_parameter_or(prefix + key, Parameter(prefix + key)).value
-                values[key] = None if value is None else float(value)
-            return SliceConfig(name, **values)
+        def _apply(self, values: dict[str, Any], changed: set[str]) -> None:
+            config = settings(values, self._file_slices)
+            self.fallback_extrinsics = config.pop("extrinsics")
+            self._have_fallback = bool(values["extrinsics"])
+            self.core.reconfigure(**{k: v for k, v in config.items() if k != "target_frame"})
+            self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
+
+        # ----------------------------------------------------------------- diagnostics
+        def _diagnose(self) -> list[Any]:
+            Status, WARN, ERROR = self._status
+            st = self.stats
+            counters = {"scans_received": st.scans_received, "scans_idle": st.scans_idle,
+                        "scans_converted": st.scans_converted,
+                        "scans_dropped": st.scans_dropped, "bad_messages": st.bad_messages,
+                        "conversion_errors": st.conversion_errors,
+                        "clouds_published": st.clouds_published,
+                        "slices_published": st.slices_published,
+                        "infos_received": st.infos_received}
+            delta, dt = self._rates.update(counters)
+            rates = {f"{k}_per_s": round(v / dt, 2) for k, v in delta.items()}
+            io = Status("conversion", {**rates, **counters, **self._latency.take()})
+            arrived = delta["scans_received"]
+            if delta["bad_messages"]:
+                io.worse(WARN, f"{delta['bad_messages']} malformed message(s) in the last "
+                         f"{dt:.1f} s")
+            if delta["conversion_errors"]:
+                level = ERROR if not delta["scans_converted"] else WARN
+                io.worse(level, f"{delta['conversion_errors']} scan(s) not converted "
+                         "(e.g. no transform)")
+            if not arrived and not delta["scans_idle"]:
+                io.worse(WARN, "no LidarScan received")
+            state = self.core.resolver.state()
+            linkage = Status("linkage", {**state, "max_infos": self.core.resolver.max_infos,
+                                         "max_pending": self.core.resolver.max_pending,
+                                         "dropped_last_period": delta["scans_dropped"]})
+            if state["latest_stamp_ns"] is None:
+                linkage.worse(WARN if not arrived else ERROR,
+                              "no LidarInfo received (is its publisher latched?)")
+            if delta["scans_dropped"]:
+                level = ERROR if delta["scans_dropped"] >= max(arrived, 1) else WARN
+                linkage.worse(level, f"{delta['scans_dropped']} scan(s) dropped by the "
+                              f"linkage in the last {dt:.1f} s (see the log for reasons)")
+            if state["conflicting"]:
+                linkage.worse(WARN, f"{state['conflicting']} LidarInfo stamp(s) re-published "
+                              "with different geometry (their scans are dropped)")
+            return [io, linkage]
 
         # ------------------------------------------------------------------- callbacks
         def _on_info(self, raw: bytes) -> None:
@@ -384,6 +582,8 @@ def _node_class() -> type:
                      want_slices: list[str] | None = None) -> None:
             if not pairs:
                 return
+            from lidarscan.stamps import to_ns
+
             if want_cloud is None:
                 want_cloud = self.cloud_pub is not None and \
                     self.cloud_pub.get_subscription_count() > 0
@@ -413,8 +613,10 @@ def _node_class() -> type:
                     self.cloud_pub.publish(cloud)
                     self.stats.clouds_published += 1
                 for name, msg in slices.items():
-                    self.slice_pubs[name].publish(msg)
-                    self.stats.slices_published += 1
+                    if name in self.slice_pubs:
+                        self.slice_pubs[name].publish(msg)
+                        self.stats.slices_published += 1
+                self._latency.add(self.get_clock().now().nanoseconds - to_ns(scan.header.stamp))
 
         def _extrinsics(self, scan: Any, info: Any) -> np.ndarray[Any, Any] | None:
             """target_from_sensor: TF at the scan stamp, else the parameter, else identity."""
@@ -437,7 +639,7 @@ def _node_class() -> type:
     return ConverterNode
 
 
-__getattr__, main = entry_points("ConverterNode", _node_class, "lidarscan-converter")
+__getattr__, main = entry_points("ConverterNode", _node_class, "lidarscan-converter", usage)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,17 @@ Parameters (defaults in brackets; ``config/merger.yaml`` is a complete example):
   others, is never taken as a jump (it is dropped as late or merged as usual). 0 = never. The
   policy is :class:`converters.merger.LaserScanMerger`'s (``jump_back_ns``).
 
+* ``allow_unknown_parameters`` [false]: an undeclared parameter (a typo) stops the node at
+  start-up unless true.
+
+``lidarscan-merger --help`` prints every parameter (one table, :func:`_specs`). Topics, QoS,
+``input_names``, ``frame_id``, ``use_tf``, ``odometry_topic`` and the inputs' extrinsics are
+read-only; the grid, limits, bands, windows and timing (slop, policy, timeouts, queue_size,
+jump_back, odometry options) may be changed while running: a change is checked by its rule and
+by building :class:`converters.merger.LaserScanMerger` with it (refused with the reason
+otherwise), then the merger is rebuilt (queues restart). ``/diagnostics`` (1 Hz): output and
+per-input rates, drops, silence and latency.
+
 Behaviour: nothing is merged while nobody subscribes to the output (incoming scans are counted and
 dropped); a malformed scan is dropped with one log line (rate-limited) and counted; Ctrl-C exits
 cleanly.
@@ -188,6 +199,31 @@ class MergerCore:
                 out.append(merged)
         return out
 
+    def reconfigure(self, inputs: Mapping[str, Mapping[str, Any]], *,
+                    jump_back_ns: int | None, **output_options: Any) -> None:
+        """New input and output options (same input names and output frame): the merger is
+        rebuilt (queues restart, recent odometry replayed), mounts are kept. Validate first by
+        building a throwaway :class:`MergerCore` with the same options.
+
+        Raises:
+            LidarScanError: options the merger refuses (nothing is changed then).
+        """
+        if list(inputs) != list(self.inputs):
+            raise ConfigError("input_names", list(inputs), f"the inputs of the start "
+                              f"{list(self.inputs)}")
+        old = (self.inputs, self.output_options, self.jump_back_ns)
+        self.inputs = {name: dict(opts) for name, opts in inputs.items()}
+        self.output_options = {**dict(output_options), "frame_id": self.frame_id}
+        self.jump_back_ns = jump_back_ns
+        try:
+            self._build()
+        except LidarScanError:
+            self.inputs, self.output_options, self.jump_back_ns = old
+            raise
+        depth = int(self.output_options.get("queue_size", 10))
+        self._recent = {n: deque(q, maxlen=depth) for n, q in self._recent.items()}
+        self.last_output_ns = None
+
     def _on_reset(self, name: str, old_ns: int, new_ns: int) -> None:
         """Input ``name`` jumped back to ``new_ns``: forget what the merger forgot."""
         from lidarscan.stamps import to_ns
@@ -213,15 +249,141 @@ class MergerCore:
         self._odometry.append(odom)
 
 
+# ------------------------------------------------------------------------------ parameters
+
+def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+    """(node parameters, per-input templates ``inputs.NAME.*``), from one table."""
+    from converters.nodes.params import QOS_NAMES, ParamSpec as S
+
+    node = (
+        S("input_names", (), "input names, in tie order (first wins equal ranges); required",
+          kind="str_list", read_only=True),
+        S("frame_id", "base_link", "output frame", read_only=True),
+        S("output_topic", "scan_merged", "merged sensor_msgs/LaserScan topic", read_only=True),
+        S("output_qos", "sensor_data", "QoS of the output", choices=QOS_NAMES, read_only=True),
+        S("angle_min", -math.pi, "first bin, radians"),
+        S("angle_max", math.pi, "last bin, radians"),
+        S("angle_increment", math.radians(0.25), "bin width, radians", low=0.0),
+        S("range_min", 0.0, "planar range min, metres", low=0.0),
+        S("range_max", math.inf, "planar range max, metres", low=0.0),
+        S("use_inf", True, "publish +Inf for no return (else range_max + inf_epsilon)"),
+        S("inf_epsilon", 1.0, "see use_inf, metres", low=0.0),
+        S("intensities", True, "publish intensities"),
+        S("slop", 0.05, "scans within this many seconds of each other are fused", low=0.0),
+        S("policy", "timeout", "timeout: inputs silent for longer than timeout are left out; "
+          "wait: every input needed", choices=("timeout", "wait")),
+        S("timeout", 1.0, "seconds of silence before an input counts as dead", low=0.0),
+        S("reference", "newest", "output stamp: the newest or oldest of the fused set",
+          choices=("newest", "oldest")),
+        S("queue_size", 10, "scans queued per input", low=1, high=10_000),
+        S("motion_compensation", True, "move scans to the output stamp by odometry"),
+        S("odom_max_gap", 0.25, "largest odometry gap bridged, seconds", low=0.0),
+        S("odometry_topic", "", "nav_msgs/Odometry topic ('' = none)", read_only=True),
+        S("odometry_qos", "reliable", "QoS of the odometry", choices=QOS_NAMES,
+          read_only=True),
+        S("use_tf", True, "read /tf and /tf_static for the mounts", read_only=True),
+        S("jump_back", 1.0, "an input whose stamps go back by more than this (s), 2 scans in "
+          "a row, starts a new timeline (0 = never)", low=0.0),
+        S("allow_unknown_parameters", False, "start even with parameters this node does not "
+          "know (a typo is otherwise an error)", read_only=True),
+    )
+    per_input = (
+        S("inputs.NAME.topic", "", "input NAME: LaserScan topic ('' = NAME)", read_only=True),
+        S("inputs.NAME.qos", "sensor_data", "input NAME: QoS", choices=QOS_NAMES,
+          read_only=True),
+        S("inputs.NAME.extrinsics", (), "input NAME: frame_id <- input frame when TF has none "
+          "(6, 7 or 16 numbers)", kind="float_list", read_only=True),
+        S("inputs.NAME.range_min", 0.0, "input NAME: user range filter min, metres", low=0.0),
+        S("inputs.NAME.range_max", math.inf, "input NAME: user range filter max, metres",
+          low=0.0),
+        S("inputs.NAME.min_height", -math.inf, "input NAME: band min in the output frame, "
+          "metres"),
+        S("inputs.NAME.max_height", math.inf, "input NAME: band max, metres"),
+        S("inputs.NAME.angle_min", None, "input NAME: window start, input frame, radians "
+          "(optional)", kind="float"),
+        S("inputs.NAME.angle_max", None, "input NAME: window end, radians (optional)",
+          kind="float"),
+        S("inputs.NAME.timeout", None, "input NAME: seconds (optional; default timeout)",
+          kind="float", low=0.0),
+    )
+    return node, per_input
+
+
+TOPICS = (("inputs.NAME.topic", "in  sensor_msgs/LaserScan", "one per input"),
+          ("odometry_topic", "in  nav_msgs/Odometry", "optional"),
+          ("/tf, /tf_static", "in  tf2_msgs/TFMessage", "when use_tf"),
+          ("scan_merged", "out sensor_msgs/LaserScan", "output_topic, output_qos"),
+          ("/diagnostics", "out diagnostic_msgs/DiagnosticArray", "1 Hz"))
+
+
+def usage() -> str:
+    """``lidarscan-merger --help``."""
+    from converters.nodes.params import help_text
+
+    node, per_input = _specs()
+    return help_text("lidarscan-merger", __doc__.split("\n\n")[0], TOPICS, node,
+                     {"per input (for each NAME in input_names):": per_input},
+                     "config/merger.yaml")
+
+
+def settings(values: Mapping[str, Any]) -> dict[str, Any]:
+    """:class:`MergerCore` arguments from checked parameter values: ``inputs``,
+    ``fallback_extrinsics``, ``jump_back_ns``, ``options`` (LaserScanMerger's) and ``topics``
+    (name -> (topic, qos)).
+
+    Raises:
+        ConfigError: no or duplicate input names, bad extrinsics.
+    """
+    from converters.nodes.params import parse_extrinsics
+
+    names = [str(n) for n in values["input_names"]]
+    if not names:
+        raise ConfigError("input_names", [], "at least one input name")
+    if len(set(names)) != len(names):
+        raise ConfigError("input_names", names, "unique names")
+    inputs: dict[str, dict[str, Any]] = {}
+    fallback: dict[str, Any] = {}
+    topics: dict[str, tuple[str, str]] = {}
+    for n in names:
+        p = f"inputs.{n}."
+        cfg = {k: values[p + k] for k in ("range_min", "range_max", "min_height", "max_height")}
+        for key in ("angle_min", "angle_max"):
+            if values.get(p + key) is not None:
+                cfg[key] = values[p + key]
+        if values.get(p + "timeout") is not None:
+            cfg["timeout_ns"] = round(values[p + "timeout"] * 1e9)
+        inputs[n] = cfg
+        extr = values[p + "extrinsics"]
+        fallback[n] = parse_extrinsics(extr, p + "extrinsics") if extr else None
+        topics[n] = (values[p + "topic"] or n, values[p + "qos"])
+    options = {k: values[k] for k in ("frame_id", "angle_min", "angle_max", "angle_increment",
+                                      "range_min", "range_max", "use_inf", "inf_epsilon",
+                                      "intensities", "policy", "reference", "queue_size",
+                                      "motion_compensation")}
+    options.update(slop_ns=round(values["slop"] * 1e9),
+                   timeout_ns=round(values["timeout"] * 1e9),
+                   odom_max_gap_ns=round(values["odom_max_gap"] * 1e9))
+    jump = values["jump_back"]
+    return {"inputs": inputs, "fallback_extrinsics": fallback, "options": options,
+            "jump_back_ns": round(jump * 1e9) if jump > 0 else None, "topics": topics}
+
+
 # ------------------------------------------------------------------------------------ node
 
 @functools.cache
 def _node_class() -> type:
     from rclpy.node import Node
-    from rclpy.parameter import Parameter
 
     from converters.nodes import params as P
-    from converters.nodes.common import LogLimiter
+    from converters.nodes.common import (
+        ERROR,
+        WARN,
+        Diagnostics,
+        LatencyWindow,
+        LogLimiter,
+        RateMeter,
+        Status,
+    )
     from converters.nodes.tf import TfListener, TransformBuffer, TransformLookupError
 
     class MergerNode(Node):
@@ -230,77 +392,19 @@ def _node_class() -> type:
         def __init__(self, name: str = "lidarscan_merger", **kwargs: Any) -> None:
             super().__init__(name, **kwargs)
             self._log = LogLimiter(self.get_logger().warning)
-            def d(n: str, v: Any, doc: str, **kw: Any) -> Any:
-                return P.declare(self, n, v, doc, **kw)
-
-            names = [str(n) for n in d("input_names", [], "input names (tie order)",
-                                       type_name="string_array")]
-            if not names:
-                raise ConfigError("input_names", [], "at least one input name")
-            if len(set(names)) != len(names):
-                raise ConfigError("input_names", names, "unique names")
-            frame_id = d("frame_id", "base_link", "output frame")
-            output_topic = d("output_topic", "scan_merged", "merged LaserScan topic")
-            output_qos = d("output_qos", "sensor_data", f"QoS of the output: {P.QOS_NAMES}")
-            options: dict[str, Any] = {
-                "frame_id": frame_id,
-                "angle_min": float(d("angle_min", -math.pi, "first bin, radians")),
-                "angle_max": float(d("angle_max", math.pi, "last bin, radians")),
-                "angle_increment": float(d("angle_increment", math.radians(0.25),
-                                           "bin width, radians")),
-                "range_min": float(d("range_min", 0.0, "planar range min, metres")),
-                "range_max": float(d("range_max", math.inf, "planar range max, metres")),
-                "use_inf": bool(d("use_inf", True, "publish +Inf (else range_max + eps)")),
-                "inf_epsilon": float(d("inf_epsilon", 1.0, "see use_inf, metres")),
-                "intensities": bool(d("intensities", True, "publish intensities")),
-                "slop_ns": round(float(d("slop", 0.05, "sync tolerance, s")) * 1e9),
-                "policy": d("policy", "timeout", "'wait' or 'timeout'"),
-                "timeout_ns": round(float(d("timeout", 1.0, "dead input after, s")) * 1e9),
-                "reference": d("reference", "newest", "output stamp: 'newest' or 'oldest'"),
-                "queue_size": int(d("queue_size", 10, "scans queued per input")),
-                "motion_compensation": bool(d("motion_compensation", True,
-                                              "move scans to the output stamp by odometry")),
-                "odom_max_gap_ns": round(float(d("odom_max_gap", 0.25,
-                                                 "largest odometry gap bridged, s")) * 1e9),
-            }
-            odom_topic = d("odometry_topic", "", "nav_msgs/Odometry topic ('' = none)")
-            odom_qos = d("odometry_qos", "reliable", f"QoS of the odometry: {P.QOS_NAMES}")
-            use_tf = bool(d("use_tf", True, "read /tf and /tf_static for the mounts"))
-
-            inputs: dict[str, dict[str, Any]] = {}
-            fallback: dict[str, Any] = {}
-            topics: dict[str, tuple[str, str]] = {}
-            for n in names:
-                prefix = f"inputs.{n}."
-                topic = d(prefix + "topic", n, f"input {n}: LaserScan topic")
-                qos = d(prefix + "qos", "sensor_data", f"input {n}: QoS {P.QOS_NAMES}")
-                extr = d(prefix + "extrinsics", [], f"input {n}: {frame_id} <- input frame",
-                         type_name="double_array")
-                cfg: dict[str, Any] = {
-                    "range_min": float(d(prefix + "range_min", 0.0, f"input {n}: metres")),
-                    "range_max": float(d(prefix + "range_max", math.inf, f"input {n}: metres")),
-                    "min_height": float(d(prefix + "min_height", -math.inf,
-                                          f"input {n}: band min, metres")),
-                    "max_height": float(d(prefix + "max_height", math.inf,
-                                          f"input {n}: band max, metres")),
-                }
-                for key in ("angle_min", "angle_max", "timeout"):
-                    self.declare_parameter(prefix + key, Parameter.Type.DOUBLE)
-                    value = self.get_parameter_or(prefix + key, Parameter(prefix + key)).value
-                    if value is not None:
-                        if key == "timeout":
-                            cfg["timeout_ns"] = round(float(value) * 1e9)
-                        else:
-                            cfg[key] = float(value)
-                inputs[n] = cfg
-                fallback[n] = P.parse_extrinsics(extr, f"inputs.{n}.extrinsics") \
-                    if extr else None
-                topics[n] = (topic, qos)
+            node_specs, per_input = _specs()
+            values = P.declare_specs(self, node_specs)
+            input_specs = [t.for_name(str(n)) for n in values["input_names"] for t in per_input]
+            values.update(P.declare_specs(self, input_specs))
+            P.refuse_unknown(self, values["allow_unknown_parameters"])
+            config = settings(values)
+            topics = config["topics"]
+            frame_id = values["frame_id"]
 
             self.tf_buffer = TransformBuffer()
             self.tf_listener = TfListener(self, self.tf_buffer,
                                           on_error=lambda line: self._log(line, "tf")) \
-                if use_tf else None
+                if values["use_tf"] else None
 
             def resolve(target: str, source: str) -> Any:
                 try:
@@ -308,38 +412,105 @@ def _node_class() -> type:
                 except TransformLookupError:
                     return None
 
-            jump = float(d("jump_back", 1.0, "an input's stamps going back by more than this "
-                           "(s), 2 scans in a row, start its new timeline (0 = never)"))
-            self.core = MergerCore(inputs, fallback_extrinsics=fallback,
-                                   resolve=resolve if use_tf else None,
+            self.core = MergerCore(config["inputs"],
+                                   fallback_extrinsics=config["fallback_extrinsics"],
+                                   resolve=resolve if values["use_tf"] else None,
                                    tf_version=lambda: self.tf_buffer.version,
-                                   jump_back_ns=round(jump * 1e9) if jump > 0 else None,
-                                   on_event=lambda line: self._log(line, "reset"), **options)
+                                   jump_back_ns=config["jump_back_ns"],
+                                   on_event=lambda line: self._log(line, "reset"),
+                                   **config["options"])
+            self.guard = P.ParameterGuard(
+                self, {s.name: s for s in (*node_specs, *input_specs)}, values,
+                self._validate, self._apply)
             self.stats = {"received": 0, "bad": 0, "idle": 0, "published": 0, "odometry": 0,
                           "bad_odometry": 0}
+            self.input_stats = {n: {"received": 0, "bad": 0} for n in topics}
+            self._last_seen: dict[str, float] = {}
 
             from sensor_msgs.msg import LaserScan
 
+            output_topic = values["output_topic"]
             self.pub = self.create_publisher(LaserScan, output_topic,
-                                             P.qos_profile(output_qos))
+                                             P.qos_profile(values["output_qos"]))
             for n, (topic, qos) in topics.items():
                 self.create_subscription(LaserScan, topic,
                                          functools.partial(self._on_scan, n),
                                          P.qos_profile(qos), raw=True)
+            odom_topic = values["odometry_topic"]
             if odom_topic:
                 from nav_msgs.msg import Odometry
 
                 self.create_subscription(Odometry, odom_topic, self._on_odom,
-                                         P.qos_profile(odom_qos), raw=True)
+                                         P.qos_profile(values["odometry_qos"]), raw=True)
+            self._rates = RateMeter()
+            self._latency = LatencyWindow()
+            self._status = (Status, WARN, ERROR)
+            self.diagnostics = Diagnostics(self, self._diagnose)
             self.get_logger().info(
                 f"merging {', '.join(f'{n} ({self.resolve_topic_name(t)})' for n, (t, _) in topics.items())}"
                 f" -> '{self.resolve_topic_name(output_topic)}' in '{frame_id}', policy "
-                f"{options['policy']}" + (f", odometry '{odom_topic}'" if odom_topic else ""))
+                f"{values['policy']}" + (f", odometry '{odom_topic}'" if odom_topic else ""))
+
+        # ------------------------------------------------------------------ parameters
+        def _validate(self, values: dict[str, Any]) -> None:
+            """Build LaserScanMerger and its MergerInputs with the candidate values."""
+            config = settings(values)
+            MergerCore(config["inputs"], jump_back_ns=config["jump_back_ns"],
+                       **config["options"])
+
+        def _apply(self, values: dict[str, Any], changed: set[str]) -> None:
+            config = settings(values)
+            self.core.reconfigure(config["inputs"], jump_back_ns=config["jump_back_ns"],
+                                  **config["options"])
+            self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))} "
+                                   "(merger rebuilt, its queues restart)")
+
+        # ----------------------------------------------------------------- diagnostics
+        def _diagnose(self) -> list[Any]:
+            import time
+
+            Status, WARN, ERROR = self._status
+            counters = dict(self.stats)
+            for n, st in self.input_stats.items():
+                counters[f"{n}.received"] = st["received"]
+                counters[f"{n}.bad"] = st["bad"]
+            delta, dt = self._rates.update(counters)
+            out = Status("output", {**{f"{k}_per_s": round(v / dt, 2) for k, v in delta.items()},
+                                    **self.stats, "rebuilds": self.core.rebuilds,
+                                    "resets": self.core.resets, **self._latency.take()})
+            if delta["bad"]:
+                out.worse(WARN, f"{delta['bad']} input scan(s) dropped in the last {dt:.1f} s")
+            if delta["received"] and not delta["idle"] and not delta["published"]:
+                out.worse(ERROR, "inputs arrive but nothing is merged (policy wait with a dead "
+                          "input, or no pose for an input frame?)")
+            now = time.monotonic()
+            silent_after = max(self.core.output_options.get("timeout_ns", 10**9) / 1e9, 1.0)
+            statuses = [out]
+            for n in self.input_stats:
+                seen = self._last_seen.get(n)
+                st = Status(f"input {n}", {
+                    "received_per_s": round(delta[f"{n}.received"] / dt, 2),
+                    "dropped_last_period": delta[f"{n}.bad"],
+                    "silent_s": round(now - seen, 2) if seen is not None else "never seen",
+                    "mount_known": self.core.extrinsics[n] is not None})
+                if seen is None:
+                    st.worse(WARN, "no scan received yet")
+                elif now - seen > silent_after:
+                    st.worse(WARN, f"silent for {now - seen:.1f} s (left out of the fusion)")
+                if delta[f"{n}.bad"]:
+                    st.worse(WARN, f"{delta[f'{n}.bad']} scan(s) dropped (see the log)")
+                statuses.append(st)
+            return statuses
 
         def _on_scan(self, name: str, raw: bytes) -> None:
+            import time
+
             from lidarscan import decode
+            from lidarscan.stamps import to_ns
 
             self.stats["received"] += 1
+            self.input_stats[name]["received"] += 1
+            self._last_seen[name] = time.monotonic()
             if self.pub.get_subscription_count() == 0:
                 self.stats["idle"] += 1
                 return
@@ -348,16 +519,20 @@ def _node_class() -> type:
                 ready = self.core.push(name, scan)
             except LidarScanError as err:
                 self.stats["bad"] += 1
+                self.input_stats[name]["bad"] += 1
                 self._log(f"input {name}: scan dropped: {err}", f"bad {name}")
                 return
             except Exception as err:  # noqa: BLE001 - a node must survive any input
                 self.stats["bad"] += 1
+                self.input_stats[name]["bad"] += 1
                 self._log(f"input {name}: scan dropped (internal error {type(err).__name__}: "
                           f"{err})", "internal")
                 return
             for merged in ready:
                 self.pub.publish(merged)
                 self.stats["published"] += 1
+                self._latency.add(self.get_clock().now().nanoseconds -
+                                  to_ns(merged.header.stamp))
 
         def _on_odom(self, raw: bytes) -> None:
             from lidarscan import decode
@@ -372,7 +547,7 @@ def _node_class() -> type:
     return MergerNode
 
 
-__getattr__, main = entry_points("MergerNode", _node_class, "lidarscan-merger")
+__getattr__, main = entry_points("MergerNode", _node_class, "lidarscan-merger", usage)
 
 
 if __name__ == "__main__":

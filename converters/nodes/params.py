@@ -4,15 +4,21 @@ the functions that take a node).
 * :func:`parse_extrinsics`: a parameter list -> 4x4 ``target_from_sensor``;
 * :class:`SliceConfig`, :func:`parse_slice_arg`, :func:`slices_from_mapping`,
   :func:`load_slices_file`: LaserScan height slices from ``NAME:ZMIN:ZMAX``, a dict or YAML;
-* :func:`declare`: declare one ROS parameter with its default and description, return its value;
+* :class:`ParamSpec`: one parameter's default, description, type, range, choices and whether a
+  change needs a restart (``read_only``); the single table each node declares from, checks
+  values with (start-up and runtime) and prints ``--help`` from;
+* :func:`declare_specs`, :func:`unknown_parameters`, :class:`ParameterGuard`: rclpy glue:
+  declare with descriptors, refuse unknown parameters, validate and apply runtime changes;
+* :func:`help_text`: usage of a node without starting ROS;
 * :func:`qos_profile`: a QoS profile from a short name.
 """
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -23,8 +29,12 @@ from lidarscan.errors import ConfigError
 
 __all__ = [
     "QOS_NAMES",
+    "ParamSpec",
+    "ParameterGuard",
     "SliceConfig",
-    "declare",
+    "declare_specs",
+    "help_text",
+    "unknown_parameters",
     "load_slices_file",
     "parse_extrinsics",
     "parse_slice_arg",
@@ -211,35 +221,6 @@ def with_topic(spec: SliceConfig, namespace: str) -> SliceConfig:
 
 # ----------------------------------------------------------------------------- rclpy helpers
 
-def declare(node: Any, name: str, default: Any, description: str, *,
-            type_name: str | None = None) -> Any:
-    """Declare a parameter with a default and description; return its (possibly overridden)
-    value.
-
-    Args:
-        node: rclpy node.
-        name: parameter name (dots for nesting, as YAML maps them).
-        default: default value; an empty list needs ``type_name``.
-        description: shown by ``ros2 param describe``.
-        type_name: ``"string_array"``, ``"double_array"``, ``"integer_array"`` for empty lists.
-    """
-    from rcl_interfaces.msg import ParameterDescriptor
-    from rclpy.parameter import Parameter
-
-    descriptor = ParameterDescriptor(description=description)
-    if isinstance(default, (list, tuple)) and not default:
-        kinds = {"string_array": Parameter.Type.STRING_ARRAY,
-                 "double_array": Parameter.Type.DOUBLE_ARRAY,
-                 "integer_array": Parameter.Type.INTEGER_ARRAY}
-        if type_name not in kinds:
-            raise ConfigError(name, type_name, f"one of {sorted(kinds)} for an empty default")
-        node.declare_parameter(name, kinds[type_name], descriptor)
-        value = node.get_parameter_or(name, Parameter(name, value=[])).value
-        return list(value) if value is not None else []
-    value = node.declare_parameter(name, default, descriptor).value
-    return list(value) if isinstance(value, (list, tuple)) else value
-
-
 #: QoS names accepted by :func:`qos_profile`.
 QOS_NAMES = ("sensor_data", "best_effort", "reliable", "latched")
 
@@ -273,3 +254,330 @@ def qos_profile(name: str, depth: int | None = None) -> Any:
     return QoSProfile(depth=int(depth or 1), history=HistoryPolicy.KEEP_LAST,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+
+# ------------------------------------------------------------------------- parameter specs
+
+_KINDS = ("bool", "int", "float", "str", "str_list", "float_list")
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One node parameter: the single source of its default, description and rules.
+
+    Attributes:
+        name: full parameter name (dots for nesting; ``NAME`` in a family template).
+        default: default value; None = optional (no value unless given).
+        description: one line for ``ros2 param describe`` and ``--help``.
+        kind: one of bool, int, float, str, str_list, float_list ("" = from the default).
+        low, high: inclusive range of an int/float (None = open side).
+        choices: allowed values of a str.
+        read_only: a change needs a restart (topics, QoS, structure): refused at runtime.
+    """
+
+    name: str
+    default: Any
+    description: str
+    kind: str = ""
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.kind:
+            d = self.default
+            kind = ("bool" if isinstance(d, bool) else "int" if isinstance(d, int) else
+                    "float" if isinstance(d, float) else "str" if isinstance(d, str) else "")
+            if not kind:
+                raise ConfigError(f"ParamSpec {self.name}.kind", self.kind, f"one of {_KINDS}")
+            object.__setattr__(self, "kind", kind)
+        if self.kind not in _KINDS:
+            raise ConfigError(f"ParamSpec {self.name}.kind", self.kind, f"one of {_KINDS}")
+
+    def expected(self) -> str:
+        """What a value must be, in words."""
+        text = {"bool": "true or false", "int": "an integer", "float": "a number",
+                "str": "a string", "str_list": "a list of strings",
+                "float_list": "a list of numbers"}[self.kind]
+        if self.choices:
+            text = f"one of {', '.join(self.choices)}"
+        if self.low is not None and self.high is not None:
+            text += f" in [{self.low:g}, {self.high:g}]"
+        elif self.low is not None:
+            text += f" >= {self.low:g}"
+        elif self.high is not None:
+            text += f" <= {self.high:g}"
+        return text
+
+    def check(self, value: Any) -> Any:
+        """The value as the node uses it (an int accepted for a float).
+
+        Raises:
+            ConfigError: naming the parameter, the value and what was expected (None/unset,
+                text where a number belongs, out of range, not a choice).
+        """
+        bad = ConfigError(self.name, value, self.expected())
+        if value is None:
+            if self.default is None and self.kind != "bool":
+                return None
+            raise bad
+        if self.kind == "bool":
+            if not isinstance(value, bool):
+                raise bad
+            return value
+        if self.kind in ("int", "float"):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise bad
+            if self.kind == "int" and not isinstance(value, int):
+                raise bad
+            if self.kind == "float":
+                value = float(value)
+                if math.isnan(value):
+                    raise bad
+            if (self.low is not None and value < self.low) or \
+                    (self.high is not None and value > self.high):
+                raise bad
+            return value
+        if self.kind == "str":
+            if not isinstance(value, str) or (self.choices and value not in self.choices):
+                raise bad
+            return value
+        if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
+            raise bad
+        items = list(value)
+        if self.kind == "str_list":
+            if not all(isinstance(v, str) for v in items):
+                raise bad
+            return items
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in items):
+            raise bad
+        return [float(v) for v in items]
+
+    def for_name(self, name: str) -> ParamSpec:
+        """This family template (``slices.NAME.x``) for one member name."""
+        return replace(self, name=self.name.replace("NAME", name),
+                       description=self.description.replace("NAME", name))
+
+    def descriptor(self) -> Any:
+        """The rclpy ``ParameterDescriptor`` (description, read_only, range, choices).
+
+        Scalars are declared with dynamic typing so that the node's own check (:meth:`check`)
+        decides, with a reason naming the parameter, and an integer is accepted for a float;
+        lists are statically typed.
+        """
+        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+        desc = ParameterDescriptor(description=self.description, read_only=self.read_only,
+                                   dynamic_typing=self.kind not in ("str_list", "float_list"))
+        constraints = []
+        if self.choices:
+            constraints.append(f"one of {', '.join(self.choices)}")
+        if self.low is not None or self.high is not None:
+            if self.kind == "int":
+                desc.integer_range = [IntegerRange(
+                    from_value=int(self.low if self.low is not None else -2**63),
+                    to_value=int(self.high if self.high is not None else 2**63 - 1), step=0)]
+            else:
+                desc.floating_point_range = [FloatingPointRange(
+                    from_value=float(self.low if self.low is not None else -math.inf),
+                    to_value=float(self.high if self.high is not None else math.inf), step=0.0)]
+            constraints.append(self.expected())
+        if self.read_only:
+            constraints.append("read-only: a change needs a restart")
+        desc.additional_constraints = "; ".join(constraints)
+        return desc
+
+
+def _shown(value: Any) -> str:
+    if value is None:
+        return "(unset)"
+    if isinstance(value, str):
+        return repr(value) if value == "" else value
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float) and math.isinf(value):
+        return ".inf" if value > 0 else "-.inf"
+    return str(list(value)) if isinstance(value, (list, tuple)) else f"{value:g}" \
+        if isinstance(value, float) else str(value)
+
+
+def help_text(script: str, summary: str, topics: Sequence[tuple[str, str, str]],
+              specs: Sequence[ParamSpec], families: Mapping[str, Sequence[ParamSpec]] = {},
+              example: str = "") -> str:
+    """``--help`` of a node (no ROS needed): usage, topics, every parameter with default,
+    rule and description, the per-NAME families.
+
+    Args:
+        script: console script name.
+        summary: one paragraph.
+        topics: (topic, direction and type, note) rows.
+        specs: the node's parameters.
+        families: heading -> template specs (names with ``NAME``).
+        example: the config file of the node.
+    """
+    lines = [f"usage: {script} [-h] [--ros-args -p NAME:=VALUE ... --params-file FILE "
+             "-r FROM:=TO ...]", "", summary, "", "topics (relative names; remap with -r):"]
+    width = max((len(t[0]) for t in topics), default=0)
+    kinds = max((len(t[1]) for t in topics), default=0)
+    lines += [f"  {t:<{width}}  {kind:<{kinds}}  {note}".rstrip() for t, kind, note in topics]
+
+    def rows(items: Sequence[ParamSpec]) -> list[str]:
+        out = []
+        for spec in items:
+            rule = spec.expected() + ("; read-only" if spec.read_only else "; live")
+            out.append(f"  {spec.name} [{_shown(spec.default)}]  ({rule})")
+            out.append(f"      {spec.description}")
+        return out
+
+    lines += ["", "parameters [default] (rule; 'live' = may be changed while running, "
+              "'read-only' = needs a restart):"]
+    lines += rows(specs)
+    for heading, items in families.items():
+        lines += ["", heading]
+        lines += rows(items)
+    lines += ["", "An unknown parameter (e.g. a typo) stops the node at start-up unless "
+              "allow_unknown_parameters:=true.", "Diagnostics: /diagnostics "
+              "(diagnostic_msgs/DiagnosticArray, 1 Hz)."]
+    if example:
+        lines.append(f"Example: {script} --ros-args --params-file {example}")
+    return "\n".join(lines)
+
+
+def declare_specs(node: Any, specs: Iterable[ParamSpec]) -> dict[str, Any]:
+    """Declare every spec with its descriptor; return name -> checked value.
+
+    Raises:
+        ConfigError: a value given at start-up (``-p``, ``--params-file``) that breaks a rule,
+            naming the parameter.
+    """
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    from rclpy.parameter import Parameter
+
+    kinds = {"str_list": Parameter.Type.STRING_ARRAY, "float_list": Parameter.Type.DOUBLE_ARRAY}
+    values: dict[str, Any] = {}
+    given = getattr(node, "_parameter_overrides", {}) or {}  # noqa: SLF001 - no public view
+    for spec in specs:
+        if spec.name in given:  # our rule and message first, rclpy's descriptor checks after
+            spec.check(given[spec.name].value)
+        desc = spec.descriptor()
+        try:
+            if spec.kind in kinds and not spec.default:
+                node.declare_parameter(spec.name, kinds[spec.kind], desc)
+                raw = node.get_parameter_or(spec.name, Parameter(spec.name, value=[])).value
+                raw = [] if raw is None else raw
+            else:
+                default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
+                raw = node.declare_parameter(spec.name, default, desc).value
+        except (InvalidParameterTypeException, InvalidParameterValueException) as err:
+            raise ConfigError(spec.name, "the value given", f"{spec.expected()} ({err})") from err
+        values[spec.name] = spec.check(raw)
+    return values
+
+
+#: parameters rclpy declares itself (or that the ROS tools set) and that are not unknown.
+_ROS_OWN_PREFIXES = ("qos_overrides.",)
+
+
+def unknown_parameters(node: Any) -> list[str]:
+    """Names given to the node (``-p``, ``--params-file``, overrides) that it never declared,
+    each with a suggestion ("target_fram (did you mean target_frame?)")."""
+    given = getattr(node, "_parameter_overrides", {}) or {}
+    declared = [n for n in node._parameters]  # noqa: SLF001 - rclpy keeps no public list
+    out = []
+    for name in sorted(given):
+        if node.has_parameter(name) or name.startswith(_ROS_OWN_PREFIXES):
+            continue
+        close = difflib.get_close_matches(name, declared, n=1, cutoff=0.6)
+        out.append(f"{name} (did you mean {close[0]}?)" if close else name)
+    return out
+
+
+def refuse_unknown(node: Any, allow: bool) -> list[str]:
+    """Log each unknown parameter; raise unless ``allow``.
+
+    Raises:
+        ConfigError: unknown parameters and ``allow`` false.
+    """
+    unknown = unknown_parameters(node)
+    if unknown:
+        line = f"unknown parameter(s): {'; '.join(unknown)}"
+        if not allow:
+            raise ConfigError("parameters", unknown, "parameters of this node (see --help), "
+                              "or allow_unknown_parameters:=true to run anyway")
+        node.get_logger().warning(line + " (ignored: allow_unknown_parameters is true)")
+    return unknown
+
+
+class ParameterGuard:
+    """Runtime parameter changes: check, validate with the library, apply.
+
+    ``SetParameters`` (``ros2 param set``, a client) runs :meth:`on_set` first: each value is
+    checked by its :class:`ParamSpec` (type, None, range, choices; read-only ones are refused by
+    rclpy from the descriptor), then ``validate(candidate)`` builds the library objects with
+    the candidate values (a :class:`~lidarscan.errors.LidarScanError` becomes the rejection
+    reason). Only an accepted change reaches ``apply(values, changed)`` (after rclpy stored it).
+
+    Args:
+        node: rclpy node (the callbacks are registered on it).
+        specs: name -> spec of every declared parameter.
+        values: the current values (updated on apply).
+        validate: raises LidarScanError when the candidate values do not make a working node.
+        apply: takes effect (rebuild converters, reconfigure the merger).
+    """
+
+    def __init__(self, node: Any, specs: Mapping[str, ParamSpec], values: dict[str, Any],
+                 validate: Callable[[dict[str, Any]], None],
+                 apply: Callable[[dict[str, Any], set[str]], None]) -> None:
+        self.specs = dict(specs)
+        self.values = values
+        self._validate = validate
+        self._apply = apply
+        self._accepted: tuple[dict[str, Any], set[str]] | None = None
+        self.rejected = 0
+        node.add_on_set_parameters_callback(self.on_set)
+        node.add_post_set_parameters_callback(self.on_applied)
+
+    def candidate(self, changes: Iterable[tuple[str, Any]]) -> tuple[dict[str, Any], set[str]]:
+        """(values with the changes, changed names).
+
+        Raises:
+            ConfigError: an unknown name or a value that breaks its spec.
+        """
+        values = dict(self.values)
+        changed = set()
+        for name, raw in changes:
+            spec = self.specs.get(name)
+            if spec is None:
+                raise ConfigError(name, raw, "a parameter of this node")
+            if raw is None and spec.default is None:
+                raise ConfigError(name, None, f"{spec.expected()} (an optional parameter cannot "
+                                  "be unset while running)")
+            values[name] = spec.check(raw)
+            changed.add(name)
+        return values, changed
+
+    def on_set(self, parameters: list[Any]) -> Any:
+        from rcl_interfaces.msg import SetParametersResult
+
+        from lidarscan.errors import LidarScanError
+
+        try:
+            values, changed = self.candidate((p.name, p.value) for p in parameters)
+            self._validate(values)
+        except LidarScanError as err:
+            self.rejected += 1
+            self._accepted = None
+            return SetParametersResult(successful=False, reason=str(err))
+        self._accepted = (values, changed)
+        return SetParametersResult(successful=True)
+
+    def on_applied(self, parameters: list[Any]) -> None:
+        if self._accepted is None:
+            return
+        values, changed = self._accepted
+        self._accepted = None
+        self.values.clear()
+        self.values.update(values)
+        self._apply(values, changed)
