@@ -246,7 +246,7 @@ def describe_bytes(head: bytes) -> str:
     """What the first bytes of a file look like, for error messages ("an SQLite database")."""
     if not head:
         return "an empty file"
-    if head.startswith(_MAGIC[:5]):
+    if head.startswith(_MAGIC[:4]) or _MAGIC.startswith(head[:8]):
         return "an MCAP file"
     if head.startswith(_SQLITE_MAGIC):
         return "an SQLite database (a rosbag2 .db3 file?)"
@@ -358,6 +358,7 @@ class _Reader:
         self.summary_problem: BadMessage | None = None
         self.pending: _Damage | None = None
         self.reported = False  # some damage was reported already
+        self.has_footer = False
         try:
             if stream.seekable():
                 self.pos = stream.tell()
@@ -428,7 +429,8 @@ class _Reader:
             tail = self.stream.read(_FOOTER_SIZE + 8)
             if len(tail) != _FOOTER_SIZE + 8 or tail[-8:] != _MAGIC or tail[0] != _OP_FOOTER \
                     or struct.unpack_from("<Q", tail, 1)[0] != 20:
-                return  # no footer: the data-section pass reports the truncation
+                return  # no footer: reported after the data section
+            self.has_footer = True
             start, _offsets, crc = struct.unpack_from("<QQI", tail, 9)
             if start == 0:
                 return  # a file written without a summary: nothing to check
@@ -617,12 +619,14 @@ class _Reader:
             if kind == "an empty file":
                 why = "the file is empty"
             elif kind == "an MCAP file":
-                why = "the file is cut inside the MCAP magic or the magic is damaged"
+                why = "an MCAP file cut inside its magic, or its magic is damaged"
             elif kind.startswith("not "):
                 why = kind
             else:
-                why = f"this is {kind}, not an MCAP file"
-            yield self.damage(start, why)
+                why = f"not an MCAP file: {kind}"
+            self.reported = True
+            yield BadMessage(-1, "", 0, why, McapFormatError("file", kind, "an MCAP file"),
+                             offset=0)
             return
         self.load_summary()
         while True:
@@ -682,6 +686,10 @@ class _Reader:
                             and not self.reported:
                         yield self.damage(record_at, "data-section CRC mismatch (bytes outside "
                                           "the chunks were altered)")
+                    if self.size is not None and not self.has_footer:
+                        yield self.damage(self.size, "the file ends without its footer after "
+                                          "the data section (summary and footer missing: "
+                                          "truncated?)")
                     break
                 elif op == _OP_FOOTER:
                     break
