@@ -735,17 +735,20 @@ def read_messages(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
             stream.close()
 
 
-def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
+def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes | None, *,
                scan_topics: Iterable[str] | None = None, info_topics: Iterable[str] | None = None,
                on_error: Callable[[BadMessage], None] | None = None,
-               max_pending: int = 64) -> Iterator[tuple[Any, Any]]:
+               max_pending: int = 64,
+               items: Iterable[McapMessage | BadMessage] | None = None
+               ) -> Iterator[tuple[Any, Any]]:
     """Iterate ``(scan, info)`` pairs: each LidarScan with the LidarInfo its
     ``lidar_info_time`` names (decoded dataclasses; the scan's data views the file's bytes).
 
     Scans recorded before their info are held (at most ``max_pending``) until it appears;
     scans whose info never appears, undecodable messages and inconsistent scans are passed to
     ``on_error`` (as :class:`BadMessage`) and skipped; the rest are yielded. In a file the info
-    wait is bounded by the file, not by time.
+    wait is bounded by the file, not by time. ``items`` (then ``source`` is ignored) reads
+    messages from another reader (e.g. a rosbag2 reader of the same items).
     """
     from lidarscan.linkage import InfoResolver
 
@@ -766,7 +769,7 @@ def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
                               McapFormatError("lidar_info_time", drop.info_stamp_ns,
                                               "a LidarInfo with this stamp")))
 
-    for item in read_messages(source):
+    for item in (items if items is not None else read_messages(source)):  # type: ignore[arg-type]
         if isinstance(item, BadMessage):
             report(item)
             continue
