@@ -31,6 +31,7 @@ import os
 import sqlite3
 import struct
 from collections.abc import Iterable, Iterator
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,6 +57,8 @@ __all__ = [
 VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
 PANDAR_SCAN = "pandar_msgs/msg/PandarScan"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
+# sqlite3 raises UnicodeDecodeError when a damaged file's error message is not UTF-8
+_SQL_ERRORS = (sqlite3.Error, UnicodeDecodeError)
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
@@ -306,7 +309,7 @@ def _topics_from_files(bag: Bag) -> None:
         with open(path, "rb") as stream:
             head = stream.read(16)
         if head.startswith(_SQLITE_MAGIC):
-            with _connect(path) as con:
+            with closing(_connect(path)) as con:
                 for t in _db3_topics(con, path).values():
                     known = bag.topics.setdefault(t.name, TopicInfo(
                         t.name, t.msgtype, 0, t.serialization_format, t.offered_qos_profiles))
@@ -350,8 +353,10 @@ def _connect(path: Path) -> sqlite3.Connection:
     """Read-only, immutable (no journal or lock files next to a bag on a read-only disk)."""
     try:
         con = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1", uri=True)
+        # damaged text must not raise UnicodeDecodeError; names stay readable, BLOBs are bytes
+        con.text_factory = lambda raw: raw.decode("utf-8", "replace")
         con.execute("SELECT count(*) FROM sqlite_master").fetchone()
-    except sqlite3.Error as err:
+    except _SQL_ERRORS as err:
         raise McapFormatError(str(path), str(err), "a readable sqlite3 database") from err
     return con
 
@@ -371,7 +376,7 @@ def _db3_topics(con: sqlite3.Connection, path: Path) -> dict[int, TopicInfo]:
                       .fetchall())
         if "message_definitions" in tables:
             _register_definitions(con)
-    except sqlite3.Error as err:
+    except _SQL_ERRORS as err:
         raise McapFormatError(str(path), str(err), "a readable rosbag2 database") from err
     return {int(tid): TopicInfo(str(name), str(msgtype), int(counts.get(tid, 0)),
                                 str(sfmt or "cdr"), _qos_text(qp))
@@ -403,8 +408,13 @@ def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | No
     """The rows of one .db3 file in (timestamp, id) order."""
     try:
         con = _connect(path)
+    except McapFormatError as err:
+        yield BadMessage(-1, "", 0, f"{path.name}: {err}", err)
+        return
+    try:
         topics = _db3_topics(con, path)
     except McapFormatError as err:
+        con.close()
         yield BadMessage(-1, "", 0, f"{path.name}: {err}", err)
         return
     decompress = None
@@ -451,7 +461,7 @@ def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | No
                 continue
             meta = (known.get(name) or topic).metadata
             yield McapMessage(0, name, topic.msgtype, stamp, stamp, 0, data, meta)
-    except sqlite3.Error as err:
+    except _SQL_ERRORS as err:
         bad = McapFormatError(str(path), str(err), "a readable rosbag2 database")
         yield BadMessage(-1, "", 0, f"{path.name}: database damaged after {done} rows "
                          f"({err}); the rest of this file could not be read", bad)
