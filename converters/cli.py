@@ -382,26 +382,18 @@ def _cloud_options(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _option_error(err: Exception, topic: str, args: argparse.Namespace) -> Exception:
-    """The first scan of a topic failed for a reason its options decide: one usage error
-    (marked ``usage``: the run stops, exit 2, nothing written)."""
+    """No scan of a topic could be converted, for a reason its options decide: one usage error
+    (the run stops, exit 2, nothing written)."""
     from converters.nodes.tf import TransformLookupError
     from lidarscan.errors import ConfigError
 
     if isinstance(err, TransformLookupError):
-        out = ConfigError("--frame", args.frame, f"a frame the scans of {topic} can be "
-                          f"transformed to ({err})")
-    else:
-        given = [f"--preset {args.preset}" if args.preset else "",
-                 f"--fields {','.join(args.fields)}" if args.fields else "",
-                 *[f"--slice {s}" for s in args.slice]]
-        out = ConfigError(" ".join(g for g in given if g) or "options", "",
-                          f"options that fit the scans of {topic} ({err})")
-    out.usage = True  # type: ignore[attr-defined]
-    return out
-
-
-def _is_usage(err: Exception) -> bool:
-    return bool(getattr(err, "usage", False))
+        return err  # it names --frame / --merge-topic and the transform it needs
+    given = [f"--preset {args.preset}" if args.preset else "",
+             f"--fields {','.join(args.fields)}" if args.fields else "",
+             *[f"--slice {s}" for s in args.slice]]
+    return ConfigError(" ".join(g for g in given if g) or "options", "",
+                       f"options that fit the scans of {topic} ({err})")
 
 
 def _is_option_error(err: Exception) -> bool:
@@ -574,6 +566,7 @@ class _ScanPipeline:
         self.fallback = fallback
         self.tf = tf_buffer
         self.done: set[str] = set()  # input topics with one scan converted
+        self.held: dict[str, list[tuple[int, int, Exception]]] = {}
 
     def extrinsics(self, scan: Any, info: Any) -> Any:
         import numpy as np
@@ -594,26 +587,38 @@ class _ScanPipeline:
                 f"/tf or /tf_static, or --extrinsics ({err})") from err
 
     def outputs(self, scan: Any, info: Any, topic: str, prefix: str, log_time_ns: int,
-                writer: Any, report: ConvertReport, merge: Callable[[str, Any, int], None]
-                ) -> None:
-        """Write the cloud and slices of one scan under ``prefix``; the first failure of a
-        topic for a reason the options decide is a usage error (raised), later ones are bad
-        messages (raised as they are, for the caller to report)."""
-        try:
-            extrinsics = self.extrinsics(scan, info) if self.slices else None
-            cloud, out_slices = self.core.convert(scan, info, cloud=bool(self.args.pointcloud2),
-                                                  extrinsics=extrinsics)
-        except Exception as err:
-            if topic not in self.done and _is_option_error(err):
-                raise _option_error(err, topic, self.args) from err
-            raise
-        self.done.add(topic)
+                writer: Any, report: ConvertReport, merge: Callable[[str, Any, int], None],
+                emit: Callable[[str], None]) -> None:
+        """Write the cloud and slices of one scan under ``prefix`` (raises what the conversion
+        raises; the caller passes it to :meth:`failed`)."""
+        extrinsics = self.extrinsics(scan, info) if self.slices else None
+        cloud, out_slices = self.core.convert(scan, info, cloud=bool(self.args.pointcloud2),
+                                              extrinsics=extrinsics)
         if cloud is not None:
             writer.write(f"{prefix}/points", cloud, log_time_ns=log_time_ns)
         for name, msg in out_slices.items():
             writer.write(f"{prefix}/slices/{name}", msg, log_time_ns=log_time_ns)
             merge(f"{prefix}/slices/{name}", msg, log_time_ns)
         report.converted += 1
+        if topic not in self.done:  # the options fit this topic: earlier failures were the data
+            self.done.add(topic)
+            for index, stamp_ns, err in self.held.pop(topic, []):
+                report.report_bad(index, topic, stamp_ns, f"not converted: {err}", emit)
+
+    def failed(self, err: Exception, index: int, topic: str, stamp_ns: int,
+               report: ConvertReport, emit: Callable[[str], None]) -> None:
+        """A scan that could not be converted: a bad message, unless no scan of its topic has
+        converted yet and the error is one the options decide (``--frame``, ``--fields``, ...):
+        then it is held until one does (then reported) or the run ends (see :meth:`finish`)."""
+        if topic not in self.done and _is_option_error(err):
+            self.held.setdefault(topic, []).append((index, stamp_ns, err))
+        else:
+            report.report_bad(index, topic, stamp_ns, f"not converted: {err}", emit)
+
+    def finish(self) -> None:
+        """Raise the usage error of a topic none of whose scans the options could convert."""
+        for topic, failures in self.held.items():
+            raise _option_error(failures[0][2], topic, self.args)
 
 
 def _merger(args: argparse.Namespace, names: Sequence[str], extrinsics: dict[str, Any],
@@ -702,14 +707,13 @@ def _convert_scans(source: _Input, writer: Any, args: argparse.Namespace, plan: 
             try:
                 pipeline.outputs(scan, info, src_item.topic, plan.prefix.get(
                     src_item.topic, _namespace(src_item.topic)), src_item.log_time_ns,
-                    writer, report, merge)
+                    writer, report, merge, emit)
             except LidarScanError as err:
-                if _is_usage(err):
-                    raise  # a usage error: the whole run stops
-                report.report_bad(src_item.index, src_item.topic,
-                                  to_ns(scan.header.stamp), f"not converted: {err}", emit)
+                pipeline.failed(err, src_item.index, src_item.topic, to_ns(scan.header.stamp),
+                                report, emit)
     pipeline.core.resolver.flush()
     _drain_drops(pipeline, origin, report, emit)
+    pipeline.finish()
 
 
 def _drain_drops(pipeline: _ScanPipeline, origin: dict[int, Any], report: ConvertReport,
@@ -853,12 +857,9 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
             if args.pointcloud2 or slices:
                 try:
                     pipeline.outputs(scan, info, topic, prefix, log_time_ns, writer, report,
-                                     merge)
+                                     merge, emit)
                 except LidarScanError as err:
-                    if _is_usage(err):
-                        raise
-                    report.report_bad(index, topic, to_ns(scan.header.stamp),
-                                      f"not converted: {err}", emit)
+                    pipeline.failed(err, index, topic, to_ns(scan.header.stamp), report, emit)
             else:
                 report.converted += 1
 
@@ -902,6 +903,7 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
     for topic, decoder in active.items():
         log_time, index = last.get(topic, (0, -1))
         emit_scans(topic, decoder.flush(), log_time, index)
+    pipeline.finish()
 
 
 def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
@@ -923,11 +925,10 @@ def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Se
         writer.write("/lidar/scan", scan, log_time_ns=stamp)
         try:
             pipeline.outputs(scan, info, "/lidar/scan", "/lidar", stamp, writer, report,
-                             lambda name, msg, log: None)
+                             lambda name, msg, log: None, emit)
         except LidarScanError as err:
-            if _is_usage(err):
-                raise
-            report.report_bad(index, "/lidar/scan", stamp, f"not converted: {err}", emit)
+            pipeline.failed(err, index, "/lidar/scan", stamp, report, emit)
+    pipeline.finish()
 
 
 # ------------------------------------------------------------------------------------ view

@@ -361,3 +361,20 @@ def test_scan_topics_sharing_a_namespace_get_distinct_outputs(
     for topic in ("/lidar/scan", "/lidar/scan_copy"):
         assert len(got[f"{topic}/points"]) == len(got[f"{topic}/slices/s"]) == 3
     assert len(got["/scan_merged"]) == 3
+
+
+def test_a_frame_known_only_later_reports_the_early_scans_not_a_usage_error(
+        tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    items = messages(demo_mcap)
+    src, out = tmp_path / "late_tf.mcap", tmp_path / "out.mcap"
+    with McapWriter(src) as writer:  # the first scan is recorded before /tf_static
+        order = [items["/lidar/info"][0], items["/lidar/scan"][0], items["/tf_static"][0],
+                 *items["/lidar/scan"][1:]]
+        for m in order:
+            writer.write(m.topic, m.payload, msgtype=m.msgtype, log_time_ns=m.log_time_ns)
+    status = cli.main(["convert", str(src), str(out), "--slice", "s:0:1", "--frame",
+                       "base_link", "-q"])
+    err = capsys.readouterr().err
+    assert status == 1, err
+    assert err.count("bad message #1 topic '/lidar/scan'") == 1 and "base_link" in err
+    assert len(messages(out)["/lidar/slices/s"]) == 2
