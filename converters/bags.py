@@ -371,7 +371,8 @@ def _db3_topics(con: sqlite3.Connection, path: Path) -> dict[int, TopicInfo]:
         columns = {r[1] for r in con.execute("PRAGMA table_info(topics)")}
         qos = "offered_qos_profiles" if "offered_qos_profiles" in columns else "''"
         fmt = "serialization_format" if "serialization_format" in columns else "''"
-        rows = con.execute(f"SELECT id, name, type, {fmt}, {qos} FROM topics").fetchall()  # noqa: S608
+        query = f"SELECT id, name, type, {fmt}, {qos} FROM topics"  # noqa: S608 - fixed names
+        rows = con.execute(query).fetchall()
         counts = dict(con.execute("SELECT topic_id, count(*) FROM messages GROUP BY topic_id")
                       .fetchall())
         if "message_definitions" in tables:

@@ -345,10 +345,18 @@ class ConvertReport:
         self.bad.append((index, topic, stamp_ns, reason))
         emit(f"bad message #{index} topic '{topic}' stamp {_fmt_stamp(stamp_ns)}: {reason}")
 
-    def report_item(self, item: Any, emit: Callable[[str], None]) -> None:
-        """A BadMessage of the reader: a message, or a damaged part of the input."""
-        self.bad.append((item.index, item.topic, item.log_time_ns, item.reason))
-        emit(_describe_bad(item))
+    def good(self, items: Iterable[Any], emit: Callable[[str], None]) -> Iterator[Any]:
+        """The readable messages of ``items`` (counted in ``read``); each BadMessage of the
+        reader (a message, or a damaged part of the input) is reported."""
+        from lidarscan.mcap import BadMessage
+
+        for item in items:
+            if not isinstance(item, BadMessage):
+                self.read += 1
+                yield item
+            else:
+                self.bad.append((item.index, item.topic, item.log_time_ns, item.reason))
+                emit(_describe_bad(item))
 
 
 def _file_topics(path: Path) -> dict[str, str]:
@@ -486,8 +494,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
     if args.merge_topic and not slices and not args.frame:
         raise ConfigError("--frame", "", "the output frame of the merged scan when only "
                           "--merge-topic inputs are merged")
-    if args.calibration is not None and not Path(args.calibration).is_file():
-        raise FileNotFoundError(f"--calibration {args.calibration}: no such file")
+    for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
+        if value is not None and not Path(value).is_file():
+            raise FileNotFoundError(f"{option} {value}: no such file")
     topics: dict[str, str] = {}
     mode = "ouster"
     if source.kind.kind != "ouster":
@@ -656,6 +665,16 @@ def _merge_sink(args: argparse.Namespace, plan: _Plan, tf: Any, writer: Any
     return push
 
 
+def _side_input(item: Any, tf: Any, args: argparse.Namespace,
+                merge: Callable[[str, Any, int], None]) -> None:
+    """A TF message into the buffer, a ``--merge-topic`` LaserScan into the merger (raises
+    LidarScanError for one that does not decode)."""
+    if item.msgtype == "tf2_msgs/msg/TFMessage":
+        tf.add_message(item.decode(), static=item.topic.endswith("_static"))
+    elif item.topic in args.merge_topic and item.msgtype == "sensor_msgs/msg/LaserScan":
+        merge(item.topic, item.decode(), item.log_time_ns)
+
+
 def _copy(writer: Any, item: Any, plan: _Plan, report: ConvertReport) -> None:
     """Copy one input message as it is (payload, times, channel metadata such as QoS)."""
     if item.topic in plan.excluded:
@@ -671,7 +690,7 @@ def _convert_scans(source: _Input, writer: Any, args: argparse.Namespace, plan: 
     """LidarScan recording: copy every good message, add the requested outputs."""
     from converters.nodes.tf import TransformBuffer
     from lidarscan.errors import LidarScanError
-    from lidarscan.mcap import INFO_TYPE, SCAN_TYPE, BadMessage, McapMessage
+    from lidarscan.mcap import INFO_TYPE, SCAN_TYPE, McapMessage
     from lidarscan.stamps import to_ns
 
     tf = TransformBuffer(cache_ns=3600 * 10**9, max_per_edge=100_000)
@@ -679,11 +698,7 @@ def _convert_scans(source: _Input, writer: Any, args: argparse.Namespace, plan: 
     merge = _merge_sink(args, plan, tf, writer)
     origin: dict[int, McapMessage] = {}
 
-    for item in source.items(progress):
-        if isinstance(item, BadMessage):
-            report.report_item(item, emit)
-            continue
-        report.read += 1
+    for item in report.good(source.items(progress), emit):
         try:
             ready: list[Any] = []
             if item.msgtype in (INFO_TYPE, SCAN_TYPE):
@@ -693,10 +708,8 @@ def _convert_scans(source: _Input, writer: Any, args: argparse.Namespace, plan: 
                 else:
                     ready = pipeline.core.resolver.add_scan(msg)
                     origin[id(msg)] = item
-            elif item.msgtype == "tf2_msgs/msg/TFMessage":
-                tf.add_message(item.decode(), static=item.topic.endswith("_static"))
-            elif item.topic in args.merge_topic and item.msgtype == "sensor_msgs/msg/LaserScan":
-                merge(item.topic, item.decode(), item.log_time_ns)
+            else:
+                _side_input(item, tf, args, merge)
         except LidarScanError as err:
             report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
             continue
@@ -773,14 +786,9 @@ def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan:
     """Driver PointCloud2 recording -> LidarScan + LidarInfo (a new info only on change)."""
     from converters.nodes.cloud_to_scan_node import CloudToScanCore
     from lidarscan.errors import LidarScanError
-    from lidarscan.mcap import BadMessage
 
     cores = {t: CloudToScanCore() for t in plan.prefix}
-    for item in source.items(progress):
-        if isinstance(item, BadMessage):
-            report.report_item(item, emit)
-            continue
-        report.read += 1
+    for item in report.good(source.items(progress), emit):
         core = cores.get(item.topic)
         if core is not None:
             try:
@@ -836,7 +844,6 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
     from converters.bags import PACKET_TYPES, register_packet_types
     from converters.nodes.tf import TransformBuffer
     from lidarscan.errors import LidarScanError
-    from lidarscan.mcap import BadMessage
     from lidarscan.stamps import to_ns
 
     register_packet_types()
@@ -864,16 +871,9 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
                 report.converted += 1
 
     last: dict[str, tuple[int, int]] = {}
-    for item in source.items(progress):
-        if isinstance(item, BadMessage):
-            report.report_item(item, emit)
-            continue
-        report.read += 1
+    for item in report.good(source.items(progress), emit):
         try:
-            if item.msgtype == "tf2_msgs/msg/TFMessage":
-                tf.add_message(item.decode(), static=item.topic.endswith("_static"))
-            elif item.topic in args.merge_topic and item.msgtype == "sensor_msgs/msg/LaserScan":
-                merge(item.topic, item.decode(), item.log_time_ns)
+            _side_input(item, tf, args, merge)
         except LidarScanError as err:
             report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
             continue

@@ -526,6 +526,16 @@ class _Reader:
                                   bytes(data[22:]), metadata)
         self.index += 1
 
+    def definitions_and_messages(self, op: int, body: bytes | memoryview
+                                 ) -> Iterator[McapMessage | BadMessage]:
+        """Schema, Channel and Message records, in a chunk or outside one."""
+        if op == _OP_MESSAGE:
+            yield from self.message(body)
+        elif op == _OP_SCHEMA:
+            self.schema(_Cursor(body, "schema record"))
+        elif op == _OP_CHANNEL:
+            self.channel(_Cursor(body, "channel record"))
+
     def chunk(self, content: bytes, offset: int) -> Iterator[McapMessage | BadMessage]:
         body = _Cursor(content, f"chunk at offset {offset}")
         start_ns, end_ns = body.u64(), body.u64()
@@ -553,13 +563,7 @@ class _Reader:
                 if length > len(view) - pos - 9:
                     raise McapFormatError("record length", length,
                                           f"at most {len(view) - pos - 9} (the chunk's end)")
-                inner = view[pos + 9:pos + 9 + length]
-                if op == _OP_MESSAGE:
-                    yield from self.message(inner)
-                elif op == _OP_SCHEMA:
-                    self.schema(_Cursor(inner, "schema record"))
-                elif op == _OP_CHANNEL:
-                    self.channel(_Cursor(inner, "channel record"))
+                yield from self.definitions_and_messages(op, view[pos + 9:pos + 9 + length])
             except LidarScanError as err:  # intact chunk (or no CRC) but a broken record
                 self.pending = _Damage(offset, start_ns, end_ns,
                                        f"record at chunk byte {pos}: {err}; rest of the chunk")
@@ -675,12 +679,8 @@ class _Reader:
             try:
                 if op == _OP_CHUNK:
                     yield from self.chunk(content, record_at)
-                elif op == _OP_MESSAGE:
-                    yield from self.message(content)
-                elif op == _OP_SCHEMA:
-                    self.schema(_Cursor(content, "schema record"))
-                elif op == _OP_CHANNEL:
-                    self.channel(_Cursor(content, "channel record"))
+                elif op in (_OP_MESSAGE, _OP_SCHEMA, _OP_CHANNEL):
+                    yield from self.definitions_and_messages(op, content)
                 elif op == _OP_MESSAGE_INDEX and self.pending is not None:
                     body = _Cursor(content, "message index")
                     cid = body.u16()
