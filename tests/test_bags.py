@@ -319,6 +319,10 @@ def test_convert_lidarscan_bag_like_mcap(tmp_path: Path) -> None:
     for topic in a:
         assert [m.payload for m in a[topic]] == [m.payload for m in b[topic]]
     assert dict(a["/lidar/info"][0].metadata) == {"offered_qos_profiles": QOS}  # issue 19
+    views = tmp_path / "views"
+    assert cli.main(["view", str(tmp_path / "scans.db3"), "--out", str(views)]) == 0
+    assert (views / "range_image_lidar.png").read_bytes()[:4] == b"\x89PNG"
+    assert cli.main(["info", str(tmp_path / "scans.db3")]) == 0
 
 
 def test_convert_pointcloud2_bag_like_mcap(tmp_path: Path) -> None:

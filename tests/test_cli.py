@@ -378,3 +378,24 @@ def test_a_frame_known_only_later_reports_the_early_scans_not_a_usage_error(
     assert status == 1, err
     assert err.count("bad message #1 topic '/lidar/scan'") == 1 and "base_link" in err
     assert len(messages(out)["/lidar/slices/s"]) == 2
+
+
+def test_convert_keeps_channel_metadata_and_reports_progress(
+        tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    qos = "- history: 1\n  depth: 1\n  reliability: 1\n  durability: 1\n"
+    src, out = tmp_path / "in.mcap", tmp_path / "out.mcap"
+    items = messages(demo_mcap)
+    with McapWriter(src) as writer:
+        for topic in ("/tf_static", "/lidar/info", "/lidar/scan", "/laser/scan"):
+            for m in items[topic]:
+                writer.write(topic, m.payload, msgtype=m.msgtype, log_time_ns=m.log_time_ns,
+                             metadata={"offered_qos_profiles": qos} if topic != "/laser/scan"
+                             else None)
+    assert cli.main(["convert", str(src), str(out), "--progress"]) == 0
+    err = capsys.readouterr().err
+    assert "converting in.mcap: 100%" in err  # stderr is not a terminal: lines
+    got = messages(out)
+    for topic in ("/tf_static", "/lidar/info", "/lidar/scan"):
+        assert dict(got[topic][0].metadata).get("offered_qos_profiles") == qos, topic
+    assert "offered_qos_profiles" not in dict(got["/laser/scan"][0].metadata) or \
+        dict(got["/laser/scan"][0].metadata)["offered_qos_profiles"] != qos
