@@ -311,10 +311,24 @@ def _decompress(compression: str, data: bytes | memoryview, size: int) -> bytes:
     errors: tuple[type[BaseException], ...]
     if compression == "zstd":
         import zstandard
+        try:  # the frame header states the size too (when the writer stored it): compare
+            stated = zstandard.frame_content_size(stream.getbuffer())
+        except zstandard.ZstdError as err:
+            raise McapFormatError("chunk", "zstd", f"a valid zstd frame header ({err})") from err
+        if stated >= 0 and stated != size:
+            raise McapFormatError("chunk.uncompressed_size", size,
+                                  f"the size the zstd frame header states ({stated})")
         reader: Any = zstandard.ZstdDecompressor().stream_reader(stream)
         errors = (zstandard.ZstdError,)
     elif compression == "lz4":
         import lz4.frame
+        try:
+            stated = int(lz4.frame.get_frame_info(stream.getvalue())["content_size"])
+        except (RuntimeError, KeyError, TypeError, ValueError) as err:
+            raise McapFormatError("chunk", "lz4", f"a valid lz4 frame header ({err})") from err
+        if stated > 0 and stated != size:  # 0: not stated
+            raise McapFormatError("chunk.uncompressed_size", size,
+                                  f"the size the lz4 frame header states ({stated})")
         reader = lz4.frame.LZ4FrameFile(stream)
         errors = (RuntimeError, EOFError, ValueError, OSError)
     else:
@@ -323,7 +337,7 @@ def _decompress(compression: str, data: bytes | memoryview, size: int) -> bytes:
     total = 0
     try:
         while total <= size:
-            piece = reader.read(min(_PIECE, size + 1 - total))
+            piece = reader.read(min(_PIECE // 4, size + 1 - total))
             if not piece:
                 break
             parts.append(piece)

@@ -255,8 +255,8 @@ def _fuzz_module() -> Any:
 
 
 @pytest.mark.parametrize("target,cases", [
-    # 1594, 4586: a damaged uncompressed_size once made zstd allocate what it declared
-    ("mcap_chunks", [1594, 4586, *range(150)]),
+    # 1594, 4586, 17116: a damaged uncompressed_size made zstd / lz4 allocate what it declared
+    ("mcap_chunks", [1594, 4586, 17116, *range(150)]),
     ("packet_cdr", range(300)),
     # .db3 files whose sqlite error messages are not UTF-8 (raised UnicodeDecodeError once)
     ("bag_db3", [152, 288, 2028, *range(40)]),
