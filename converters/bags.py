@@ -379,9 +379,12 @@ def _db3_topics(con: sqlite3.Connection, path: Path) -> dict[int, TopicInfo]:
             _register_definitions(con)
     except _SQL_ERRORS as err:
         raise McapFormatError(str(path), str(err), "a readable rosbag2 database") from err
-    return {int(tid): TopicInfo(str(name), str(msgtype), int(counts.get(tid, 0)),
-                                str(sfmt or "cdr"), _qos_text(qp))
-            for tid, name, msgtype, sfmt, qp in rows}
+    # a damaged topic row (no integer id, no name or type) is left out: its messages are then
+    # reported as rows of an unknown topic
+    return {tid: TopicInfo(str(name), str(msgtype), int(counts.get(tid) or 0),
+                           str(sfmt or "cdr"), _qos_text(qp))
+            for tid, name, msgtype, sfmt, qp in rows
+            if isinstance(tid, int) and name is not None and msgtype is not None}
 
 
 def _register_definitions(con: sqlite3.Connection) -> None:
