@@ -307,7 +307,7 @@ def _decompress(compression: str, data: bytes | memoryview, size: int) -> bytes:
     a longer stream), so a damaged size field costs no more memory than the real output."""
     if compression == "":
         return bytes(data)
-    stream = io.BytesIO(bytes(data))
+    stream = io.BytesIO(data)
     errors: tuple[type[BaseException], ...]
     if compression == "zstd":
         import zstandard
@@ -551,7 +551,7 @@ class _Reader:
             self.channel(_Cursor(body, "channel record"))
 
     def chunk(self, content: bytes, offset: int) -> Iterator[McapMessage | BadMessage]:
-        body = _Cursor(content, f"chunk at offset {offset}")
+        body = _Cursor(memoryview(content), f"chunk at offset {offset}")  # slices: no copies
         start_ns, end_ns = body.u64(), body.u64()
         try:
             size, crc = body.u64(), body.u32()
