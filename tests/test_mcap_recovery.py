@@ -275,3 +275,25 @@ def test_fuzz_families_hold_their_promises(target: str, cases: Any, tmp_path: Pa
             call()
         except LidarScanError:
             pass
+
+
+def test_schema_name_with_a_nul_byte_and_valid_crcs_is_a_bad_message() -> None:
+    """The type-name check behind fuzz case mcap 4198, in a file whose CRCs are intact (so the
+    chunk is read and the schema itself is refused)."""
+    from mcap.writer import Writer
+
+    buf = io.BytesIO()
+    writer = Writer(buf)
+    writer.start(profile="ros2", library="test")
+    bad = writer.register_schema("std_msgs/msg/Strin\x00", "ros2msg", b"string data")
+    good = writer.register_schema("std_msgs/msg/String", "ros2msg", b"string data")
+    c_bad = writer.register_channel("/bad", "cdr", bad)
+    c_good = writer.register_channel("/good", "cdr", good)
+    for k, cid in enumerate((c_bad, c_good)):
+        writer.add_message(cid, log_time=k, publish_time=k,
+                           data=b"\x00\x01\x00\x00\x02\x00\x00\x00x\x00")
+    writer.finish()
+    good_items, bad_items = _read(buf.getvalue())
+    assert [m.topic for m in good_items] == ["/good"]
+    (report,) = bad_items
+    assert report.topic == "/bad" and report.index == 0 and "type name" in report.reason
