@@ -447,3 +447,19 @@ def test_convert_packets_through_the_decoder_contract(
     # without --keep-packets the packets are not copied
     assert cli.main(["convert", str(src), str(tmp_path / "o2.mcap"), "-q"]) == 1
     assert "/pandar_packets" not in _mcap_items(tmp_path / "o2.mcap")
+
+
+def test_truncated_db3_reads_what_is_there_and_reports_the_rest(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag_dir = _copy_bag(QT64, tmp_path / "bag")
+    db3 = next(bag_dir.glob("*.db3"))
+    full = [m.payload for m in bags.open_bag(QT64).messages()]
+    db3.write_bytes(db3.read_bytes()[:db3.stat().st_size * 3 // 5])
+    items = list(bags.open_bag(bag_dir).messages())  # topics from metadata.yaml
+    good = [m for m in items if isinstance(m, McapMessage)]
+    bad = [m for m in items if isinstance(m, BadMessage)]
+    assert len(good) < len(full) and all(m.payload in full for m in good)
+    assert bad and all(isinstance(b.error, LidarScanError) for b in bad)
+    assert cli.main(["info", str(bag_dir)]) == 1
+    out = capsys.readouterr().out
+    assert "problem:" in out and ("damaged" in out or "malformed" in out)
