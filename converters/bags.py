@@ -13,7 +13,8 @@ given as ``""``, as a YAML string or as a list; no ``metadata.yaml`` (every ``.d
 ``.mcap`` of the directory is read); the sqlite3 schema of every rosbag2 version (the ``schema``,
 ``metadata`` and ``message_definitions`` tables of newer ones are optional); per-message zstd
 compression (``compression_mode: MESSAGE``). A damaged or undecodable row is reported and reading
-goes on. The ``.db3`` files are opened read-only and immutable (nothing is written next to
+goes on; a file whose time index is damaged is read in row (recording) order; a file sqlite
+cannot open at all (e.g. truncated) is one report. The ``.db3`` files are opened read-only and immutable (nothing is written next to
 them) with the standard library's :mod:`sqlite3`.
 
 Packet messages (CDR, alignment relative to the payload after the 4-byte encapsulation header,
@@ -373,8 +374,11 @@ def _db3_topics(con: sqlite3.Connection, path: Path) -> dict[int, TopicInfo]:
         fmt = "serialization_format" if "serialization_format" in columns else "''"
         query = f"SELECT id, name, type, {fmt}, {qos} FROM topics"  # noqa: S608 - fixed names
         rows = con.execute(query).fetchall()
-        counts = dict(con.execute("SELECT topic_id, count(*) FROM messages GROUP BY topic_id")
-                      .fetchall())
+        try:
+            counts = dict(con.execute("SELECT topic_id, count(*) FROM messages "
+                                      "GROUP BY topic_id").fetchall())
+        except _SQL_ERRORS:
+            counts = {}  # damaged rows: counted while they are read (and reported there)
         if "message_definitions" in tables:
             _register_definitions(con)
     except _SQL_ERRORS as err:
@@ -407,6 +411,22 @@ def _register_definitions(con: sqlite3.Connection) -> None:
             continue  # a type we cannot parse is reported when a message needs it
 
 
+def _rows(con: sqlite3.Connection) -> Iterator[Any]:
+    """(id, topic_id, timestamp, data) in time order; when the time order cannot be read (a
+    damaged or truncated file), in row order, i.e. as recorded, as far as the rows can be read
+    (an error after the first row is raised to the caller)."""
+    query = "SELECT id, topic_id, timestamp, data FROM messages ORDER BY "
+    try:
+        cursor = con.execute(query + "timestamp, id")
+        first = cursor.fetchone()
+    except _SQL_ERRORS:
+        cursor = con.execute(query + "id")
+        first = cursor.fetchone()
+    if first is not None:
+        yield first
+        yield from cursor
+
+
 def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | None,
                   compression: str) -> Iterator[McapMessage | BadMessage]:
     """The rows of one .db3 file in (timestamp, id) order."""
@@ -429,9 +449,7 @@ def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | No
     ids = {tid for tid, t in topics.items() if wanted is None or t.name in wanted}
     done = 0
     try:
-        rows = con.execute("SELECT id, topic_id, timestamp, data FROM messages "
-                           "ORDER BY timestamp, id")
-        for row_id, topic_id, stamp, data in rows:
+        for row_id, topic_id, stamp, data in _rows(con):
             done += 1
             topic = topics.get(topic_id)
             if topic is not None and topic_id not in ids:
