@@ -8,6 +8,7 @@ Commands::
     lidarscan convert REC OUT.mcap [--pointcloud2] [--preset P | --fields x,y,z,...]
                                    [--slice NAME:ZMIN:ZMAX]... [--frame F] [--extrinsics ...]
                                    [--merge] [--merge-topic TOPIC]... [--calibration FILE]
+                                   [--replace] [--keep-packets] [--progress] [-q]
     lidarscan view REC --out DIR [--index K]
 
 REC is an MCAP file, a rosbag2 directory (``metadata.yaml`` + ``.db3`` or ``.mcap`` storage) or a
@@ -511,7 +512,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         else:
             mode = "scans"
     plan = _plan(topics, args, slices, mode)
-    decoders = _packet_decoders(topics, args) if mode == "packets" else {}
+    decoders = _packet_decoders(topics) if mode == "packets" else {}
     report = ConvertReport()
     emit = _err  # bad messages are always reported, also with --quiet
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
@@ -806,7 +807,7 @@ def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan:
         _copy(writer, item, plan, report)
 
 
-def _packet_decoders(topics: dict[str, str], args: argparse.Namespace) -> dict[str, Any]:
+def _packet_decoders(topics: dict[str, str]) -> dict[str, Any]:
     """topic -> PacketDecoder class for every packet topic; a clear error when this
     installation has no decoder for one of them (before anything is written)."""
     import importlib
