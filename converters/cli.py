@@ -2,17 +2,29 @@
 
 Commands::
 
+    lidarscan --version
     lidarscan demo [--out DIR] [--frames N] [--no-images]
-    lidarscan info FILE.mcap
-    lidarscan convert IN OUT [--pointcloud2] [--preset P | --fields x,y,z,...]
-                             [--slice NAME:ZMIN:ZMAX]... [--frame F] [--extrinsics ...]
-                             [--merge] [--merge-topic TOPIC]...
-    lidarscan view FILE.mcap --out DIR [--index K]
+    lidarscan info REC
+    lidarscan convert REC OUT.mcap [--pointcloud2] [--preset P | --fields x,y,z,...]
+                                   [--slice NAME:ZMIN:ZMAX]... [--frame F] [--extrinsics ...]
+                                   [--merge] [--merge-topic TOPIC]... [--calibration FILE]
+                                   [--replace] [--keep-packets] [--progress] [-q]
+    lidarscan view REC --out DIR [--index K]
 
-Exit status: 0 success; 1 the run finished but some messages were bad (each one reported on
-stderr with its index, topic, stamp and reason) or, for ``info``, problems were found;
-2 usage error or fatal error (unreadable input, invalid option); 130 interrupted by Ctrl-C
-(``convert`` still closes its output, which is a valid MCAP of everything written so far).
+REC is an MCAP file, a rosbag2 directory (``metadata.yaml`` + ``.db3`` or ``.mcap`` storage) or a
+single rosbag2 ``.db3`` file; ``convert`` also takes an Ouster ``.pcap``/``.osf``. What a path is
+is told from its contents and said in every error about it.
+
+Exit status: 0 success; 1 the run finished but some messages or parts of the input were bad
+(each one reported on stderr: index, topic, stamp and reason, or for a damaged part of the file
+its offset and time range) or, for ``info``, problems were found; 2 usage error or fatal error
+(missing, empty or unreadable input, input of the wrong kind, an invalid option value, an option
+that does not fit the recording, an output topic that clashes with an input topic): nothing is
+written; 130 interrupted by Ctrl-C (``convert`` still closes its output, which is a valid MCAP of
+everything written so far).
+
+``convert`` writes OUT under a temporary name next to it and renames it only when the run ends
+(also with bad messages, exit 1): a failed run never leaves a partial or empty OUT.
 
 Only this module prints and exits; everything it calls raises.
 """
@@ -23,7 +35,7 @@ import argparse
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -36,25 +48,36 @@ EXIT_OK, EXIT_BAD, EXIT_FATAL, EXIT_INTERRUPTED = 0, 1, 2, 130
 # ------------------------------------------------------------------------------- utilities
 
 class Progress:
-    """A one-line progress bar on stderr (only when stderr is a terminal, at most 10 Hz)."""
+    """Progress on stderr: a one-line bar at most 10 Hz on a terminal; when enabled on a
+    stream that is not a terminal (``--progress``), one line per 10 %."""
 
     def __init__(self, total: int, label: str, *, stream: IO[str] | None = None,
                  enabled: bool | None = None) -> None:
         self.total = max(int(total), 1)
         self.label = label
         self.stream = stream or sys.stderr
-        self.enabled = self.stream.isatty() if enabled is None else enabled
+        tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.enabled = tty if enabled is None else enabled
+        self.lines = self.enabled and not tty
         self._last = 0.0
+        self._step = -1
         self._shown = False
 
     def update(self, done: int, extra: str = "", *, force: bool = False) -> None:
         if not self.enabled:
             return
+        fraction = min(max(done / self.total, 0.0), 1.0)
+        if self.lines:
+            step = int(fraction * 10)
+            if step != self._step:
+                self._step = step
+                self.stream.write(f"{self.label}: {100 * fraction:3.0f}% {extra}\n")
+                self.stream.flush()
+            return
         now = time.monotonic()
         if not force and now - self._last < 0.1:
             return
         self._last = now
-        fraction = min(max(done / self.total, 0.0), 1.0)
         bar = "#" * int(fraction * 30)
         self.stream.write(f"\r{self.label} [{bar:<30}] {100 * fraction:5.1f}% {extra}\x1b[K")
         self.stream.flush()
@@ -81,6 +104,80 @@ def _namespace(topic: str) -> str:
     return head
 
 
+# ---------------------------------------------------------------------------------- inputs
+
+@dataclass
+class _Input:
+    """A recording named on the command line: an MCAP file, a rosbag2 bag or an Ouster file.
+
+    Attributes:
+        path: as given.
+        kind: :class:`converters.bags.InputKind` (``kind.kind`` is ``"ouster"`` for .pcap/.osf).
+        bag: the :class:`converters.bags.Bag` of a rosbag2 directory or .db3 file.
+    """
+
+    path: Path
+    kind: Any
+    bag: Any = None
+
+    def topics(self) -> dict[str, str]:
+        """topic -> message type."""
+        if self.bag is not None:
+            return {t.name: t.msgtype for t in self.bag.topics.values()}
+        return _file_topics(self.path)
+
+    def items(self, progress: Progress | None = None) -> Iterator[Any]:
+        """Every message (McapMessage) and damaged part (BadMessage), updating ``progress``."""
+        from lidarscan.mcap import read_messages
+
+        if self.bag is not None:
+            if progress is not None:
+                progress.total = max(self.bag.message_count, 1)
+            count = 0
+            for item in self.bag.messages():
+                count += 1
+                if progress is not None:
+                    progress.update(count, f"{count} msgs")
+                yield item
+        else:
+            with open(self.path, "rb") as stream:
+                for item in read_messages(stream):
+                    count = item.index + 1
+                    if progress is not None:
+                        progress.update(stream.tell(), f"{count} msgs")
+                    yield item
+        if progress is not None:
+            progress.update(progress.total, "done", force=True)
+
+
+def _open_input(name: str, role: str, *, ouster: bool = False) -> _Input:
+    """Check what ``name`` is before anything is written (exit 2 with the reason otherwise)."""
+    from converters.bags import InputKind, detect_input, open_bag
+    from lidarscan.errors import McapFormatError
+
+    path = Path(name)
+    if ouster and path.suffix.lower() in (".pcap", ".osf") and path.is_file():
+        return _Input(path, InputKind("ouster", "an Ouster recording"))
+    kind = detect_input(path)
+    if kind.kind == "missing":
+        raise FileNotFoundError(f"{role} {path}: no such file or directory")
+    if kind.kind == "mcap":
+        return _Input(path, kind)
+    if kind.is_bag:
+        return _Input(path, kind, open_bag(path))
+    raise McapFormatError(f"{role} {path}", kind.description,
+                          "an MCAP file, a rosbag2 directory or a rosbag2 .db3 file"
+                          + (" (or an Ouster .pcap/.osf)" if ouster else ""))
+
+
+def _describe_bad(item: Any) -> str:
+    """One line for a BadMessage: a message, or a damaged part of the input."""
+    if item.index < 0:
+        return f"damaged input: {item.reason}"
+    return (f"bad message #{item.index} topic '{item.topic}' stamp "
+            f"{_fmt_stamp(item.log_time_ns)}: {item.reason}")
+
+
 # ------------------------------------------------------------------------------------ demo
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -104,49 +201,103 @@ class _TopicStats:
     count: int = 0
     first_ns: int | None = None
     last_ns: int | None = None
+    types: set[str] = field(default_factory=set)
+    layout: tuple[str, str, int] | None = None  # (frame_id, shape, message index) of the first
+    changes: list[str] = field(default_factory=list)
+
+
+def _layout(msgtype: str, msg: Any) -> tuple[str, str] | None:
+    """(frame_id, shape) of the messages whose layout must stay constant on a topic."""
+    import numpy as np
+
+    if msgtype == "lidarscan_msgs/msg/LidarScan":
+        names = ",".join(c.name for c in msg.channels)
+        return msg.header.frame_id, f"{msg.height}x{msg.width} [{names}]"
+    if msgtype == "sensor_msgs/msg/LaserScan":
+        return msg.header.frame_id, f"{len(np.asarray(msg.ranges))} rays"
+    if msgtype == "sensor_msgs/msg/PointCloud2":
+        names = ",".join(f.name for f in msg.fields)
+        return msg.header.frame_id, f"{msg.height}x{msg.width} [{names}]"
+    if msgtype == "lidarscan_msgs/msg/LidarInfo":
+        return msg.header.frame_id, ""  # a new version may change the grid, not the frame
+    return None
+
+
+def _check_layout(stats: _TopicStats, topic: str, index: int, layout: tuple[str, str]) -> None:
+    """Note (once per kind) a frame or shape that differs from the topic's first message."""
+    if stats.layout is None:
+        stats.layout = (layout[0], layout[1], index)
+        return
+    frame, shape, first = stats.layout
+    for what, old, now in (("frame_id", frame, layout[0]), ("shape", shape, layout[1])):
+        if old != now and not any(c.startswith(what) for c in stats.changes):
+            stats.changes.append(f"{what} changes mid-recording: '{old}' (message #{first}) "
+                                 f"then '{now}' (message #{index}): one topic must carry one "
+                                 f"{'frame' if what == 'frame_id' else 'layout'}")
 
 
 def cmd_info(args: argparse.Namespace) -> int:
     import lidarscan
+    from converters.bags import PACKET_TYPES
     from lidarscan.geometry import info_key
-    from lidarscan.mcap import INFO_TYPE, BadMessage, read_messages, read_scans
+    from lidarscan.mcap import INFO_TYPE, SCAN_TYPE, BadMessage, read_scans
 
-    path = Path(args.file)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such file: {path}")
+    source = _open_input(args.file, "FILE")
+    path = source.path
     topics: dict[str, _TopicStats] = {}
     bad: list[BadMessage] = []
     versions: dict[tuple[str, int], dict[str, Any]] = {}
+    packets: dict[str, int] = {}
     total = 0
-    for item in read_messages(path):
+    for item in source.items():
         if isinstance(item, BadMessage):
             bad.append(item)
             continue
         total += 1
         stats = topics.setdefault(item.topic, _TopicStats(item.msgtype))
         stats.count += 1
+        stats.types.add(item.msgtype)
         stats.first_ns = item.log_time_ns if stats.first_ns is None else stats.first_ns
         stats.last_ns = item.log_time_ns
-        if item.msgtype == INFO_TYPE:
-            try:
-                info = item.decode()
-                lidarscan.validate_info(info)
-            except lidarscan.errors.LidarScanError as err:
-                bad.append(BadMessage(item.index, item.topic, item.log_time_ns, str(err), err))
-                continue
-            stamp, digest = info_key(info)
-            entry = versions.setdefault((item.topic, stamp), {
-                "info": info, "digests": set(), "count": 0})
-            entry["digests"].add(digest)
-            entry["count"] += 1
-    print(f"{path}: {total} messages on {len(topics)} topics")
+        try:
+            layout = None
+            if item.msgtype in PACKET_TYPES:
+                scan = PACKET_TYPES[item.msgtype][1](item.payload)
+                packets[item.topic] = packets.get(item.topic, 0) + len(scan.packets)
+                layout = (scan.frame_id, "")
+            elif item.msgtype in (INFO_TYPE, SCAN_TYPE, "sensor_msgs/msg/LaserScan",
+                                  "sensor_msgs/msg/PointCloud2"):
+                msg = item.decode()
+                layout = _layout(item.msgtype, msg)
+                if item.msgtype == INFO_TYPE:
+                    lidarscan.validate_info(msg)
+                    stamp, digest = info_key(msg)
+                    entry = versions.setdefault((item.topic, stamp), {
+                        "info": msg, "digests": set(), "count": 0})
+                    entry["digests"].add(digest)
+                    entry["count"] += 1
+            if layout is not None:
+                _check_layout(stats, item.topic, item.index, layout)
+        except lidarscan.errors.LidarScanError as err:
+            bad.append(BadMessage(item.index, item.topic, item.log_time_ns, str(err), err))
+    print(f"{path} ({source.kind.description}): {total} messages on {len(topics)} topics")
+    for note in getattr(source.bag, "notes", []):
+        print(f"  note: {note}")
     width = max([len(t) for t in topics] + [5])
     print(f"  {'topic':<{width}}  {'type':<32} {'count':>7}  first .. last log time (s)")
     for topic, stats in sorted(topics.items()):
         span = (f"{_fmt_stamp(stats.first_ns or 0)} .. {_fmt_stamp(stats.last_ns or 0)}"
                 if stats.count else "")
-        print(f"  {topic:<{width}}  {stats.msgtype:<32} {stats.count:>7}  {span}")
+        extra = f"  ({packets[topic]} packets)" if topic in packets else ""
+        print(f"  {topic:<{width}}  {stats.msgtype:<32} {stats.count:>7}  {span}{extra}")
     problems = len(bad)
+    topic_problems = []
+    for topic, stats in sorted(topics.items()):
+        if len(stats.types) > 1:
+            topic_problems.append(f"topic '{topic}' carries several types: "
+                                  f"{', '.join(sorted(stats.types))}")
+        topic_problems += [f"topic '{topic}': {change}" for change in stats.changes]
+    problems += len(topic_problems)
     if versions:
         print("LidarInfo versions:")
         for (topic, stamp), entry in sorted(versions.items()):
@@ -158,18 +309,23 @@ def cmd_info(args: argparse.Namespace) -> int:
                   f"published {entry['count']}x"
                   + ("  CONFLICT: same stamp, different geometry" if conflict else ""))
     linkage: list[BadMessage] = []
-    paired = sum(1 for _ in read_scans(path, on_error=linkage.append))
-    scans = sum(s.count for s in topics.values()
-                if s.msgtype == "lidarscan_msgs/msg/LidarScan")
+    scans = sum(s.count for s in topics.values() if s.msgtype == SCAN_TYPE)
     if scans:
+        paired = sum(1 for _ in read_scans(None, on_error=linkage.append,
+                                           items=source.items()))
         print(f"LidarScans linked to their LidarInfo: {paired} of {scans}")
-    # read_scans also reports undecodable records that read_messages reported: keep them once
+    # read_scans also reports undecodable records that were reported above: keep them once
     seen = {(b.index, b.reason) for b in bad}
     extra = [b for b in linkage if (b.index, b.reason) not in seen]
     problems += len(extra)
+    for line in topic_problems:
+        print(f"  problem: {line}")
     for item in bad + extra:
-        print(f"  problem: message #{item.index} topic '{item.topic}' "
-              f"log time {_fmt_stamp(item.log_time_ns)}: {item.reason}")
+        if item.index < 0:
+            print(f"  problem: {item.reason}")
+        else:
+            print(f"  problem: message #{item.index} topic '{item.topic}' "
+                  f"log time {_fmt_stamp(item.log_time_ns)}: {item.reason}")
     print("no problems found" if not problems else f"{problems} problem(s) found")
     return EXIT_OK if not problems else EXIT_BAD
 
@@ -189,6 +345,19 @@ class ConvertReport:
                    emit: Callable[[str], None]) -> None:
         self.bad.append((index, topic, stamp_ns, reason))
         emit(f"bad message #{index} topic '{topic}' stamp {_fmt_stamp(stamp_ns)}: {reason}")
+
+    def good(self, items: Iterable[Any], emit: Callable[[str], None]) -> Iterator[Any]:
+        """The readable messages of ``items`` (counted in ``read``); each BadMessage of the
+        reader (a message, or a damaged part of the input) is reported."""
+        from lidarscan.mcap import BadMessage
+
+        for item in items:
+            if not isinstance(item, BadMessage):
+                self.read += 1
+                yield item
+            else:
+                self.bad.append((item.index, item.topic, item.log_time_ns, item.reason))
+                emit(_describe_bad(item))
 
 
 def _file_topics(path: Path) -> dict[str, str]:
@@ -217,19 +386,104 @@ def _cloud_options(args: argparse.Namespace) -> dict[str, Any]:
     if args.preset:
         options["preset"] = args.preset
     elif args.fields:
-        options["fields"] = tuple(f.strip() for f in args.fields.split(",") if f.strip())
+        options["fields"] = args.fields
     return options
 
 
-def cmd_convert(args: argparse.Namespace) -> int:
+def _option_error(err: Exception, topic: str, args: argparse.Namespace) -> Exception:
+    """No scan of a topic could be converted, for a reason its options decide: one usage error
+    (the run stops, exit 2, nothing written)."""
+    from converters.nodes.tf import TransformLookupError
     from lidarscan.errors import ConfigError
-    from lidarscan.mcap import McapWriter
 
-    src, dst = Path(args.input), Path(args.output)
-    if not src.is_file():
-        raise FileNotFoundError(f"no such file: {src}")
+    if isinstance(err, TransformLookupError):
+        return err  # it names --frame / --merge-topic and the transform it needs
+    given = [f"--preset {args.preset}" if args.preset else "",
+             f"--fields {','.join(args.fields)}" if args.fields else "",
+             *[f"--slice {s}" for s in args.slice]]
+    return ConfigError(" ".join(g for g in given if g) or "options", "",
+                       f"options that fit the scans of {topic} ({err})")
+
+
+def _is_option_error(err: Exception) -> bool:
+    from converters.nodes.tf import TransformLookupError
+    from lidarscan.errors import ConfigError, UnknownChannelError
+
+    return isinstance(err, (ConfigError, UnknownChannelError, TransformLookupError))
+
+
+@dataclass
+class _Plan:
+    """Output topics of one run: where the outputs of each input topic go."""
+
+    prefix: dict[str, str] = field(default_factory=dict)  # input topic -> output namespace
+    outputs: dict[str, str] = field(default_factory=dict)  # output topic -> the input it is from
+    excluded: set[str] = field(default_factory=set)
+
+
+def _prefixes(inputs: Sequence[str]) -> dict[str, str]:
+    """Each input's output namespace: its own namespace when no other input shares it, else the
+    input topic itself (so outputs of different inputs never share a topic)."""
+    shared: dict[str, int] = {}
+    for topic in inputs:
+        shared[_namespace(topic)] = shared.get(_namespace(topic), 0) + 1
+    return {t: _namespace(t) if shared[_namespace(t)] == 1 else t for t in inputs}
+
+
+def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any],
+          mode: str) -> _Plan:
+    """The output topics; refuses (exit 2) an output topic the input already has unless it is
+    excluded (``--exclude TOPIC`` or ``--replace``)."""
+    from converters.bags import PACKET_TYPES
+    from lidarscan.errors import ConfigError
+    from lidarscan.mcap import SCAN_TYPE
+
+    plan = _Plan(excluded=set(args.exclude))
+    if mode == "packets":
+        sources = [t for t, k in topics.items() if k in PACKET_TYPES]
+        plan.prefix = {t: t for t in sources}
+        per = ["lidar_info", "lidar_scan"]
+    elif mode == "clouds":
+        sources = [t for t, k in topics.items() if k == "sensor_msgs/msg/PointCloud2"
+                   and (not args.cloud_topic or t in args.cloud_topic)]
+        plan.prefix = _prefixes(sources)
+        per = ["lidar_info", "lidar_scan"]
+    else:
+        sources = [t for t, k in topics.items() if k == SCAN_TYPE]
+        plan.prefix = _prefixes(sources)
+        per = []
+    if mode != "clouds":
+        per += (["points"] if args.pointcloud2 else []) + [f"slices/{s.name}" for s in slices]
+    for topic in sources:
+        for name in per:
+            plan.outputs[f"{plan.prefix[topic]}/{name}"] = topic
+    if args.merge or args.merge_topic:
+        plan.outputs[args.merge_out] = "the merged scan"
+    clashes = sorted(t for t in plan.outputs if t in topics and t not in plan.excluded)
+    if clashes and args.replace:
+        plan.excluded.update(clashes)
+        clashes = []
+    if clashes:
+        raise ConfigError("output topics", clashes, "topics the input does not already have "
+                          f"(the input's {clashes[0]} would be mixed with the new messages "
+                          f"made from {plan.outputs[clashes[0]]}); drop the input's with "
+                          "--exclude TOPIC or --replace, or choose other slice names / "
+                          "--merge-out")
+    return plan
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from lidarscan.errors import ConfigError, McapFormatError
+    from lidarscan.mcap import SCAN_TYPE, McapWriter
+
+    source = _open_input(args.input, "IN", ouster=True)
+    src, dst = source.path, Path(args.output)
+    if dst.is_dir():
+        raise ConfigError("OUT", str(dst), "a file name (it is a directory)")
     if src.resolve() == dst.resolve():
         raise ConfigError("OUT", str(dst), "a file other than IN")
+    if not dst.parent.is_dir():
+        raise FileNotFoundError(f"OUT {dst}: no such directory {dst.parent}")
     from converters.nodes.params import parse_extrinsics, parse_slice_arg
 
     slices = [parse_slice_arg(s) for s in args.slice]
@@ -241,30 +495,57 @@ def cmd_convert(args: argparse.Namespace) -> int:
     if args.merge_topic and not slices and not args.frame:
         raise ConfigError("--frame", "", "the output frame of the merged scan when only "
                           "--merge-topic inputs are merged")
+    for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
+        if value is not None and not Path(value).is_file():
+            raise FileNotFoundError(f"{option} {value}: no such file")
+    topics: dict[str, str] = {}
+    mode = "ouster"
+    if source.kind.kind != "ouster":
+        from converters.bags import PACKET_TYPES
+
+        topics = source.topics()
+        kinds = set(topics.values())
+        if kinds & set(PACKET_TYPES):
+            mode = "packets"
+        elif SCAN_TYPE not in kinds and "sensor_msgs/msg/PointCloud2" in kinds:
+            mode = "clouds"
+        else:
+            mode = "scans"
+    plan = _plan(topics, args, slices, mode)
+    decoders = _packet_decoders(topics) if mode == "packets" else {}
     report = ConvertReport()
     emit = _err  # bad messages are always reported, also with --quiet
-    note = _err if not args.quiet else (lambda line: None)
-    writer = McapWriter(dst, compression=args.compression, chunk_size=1 << 20)
-    progress = Progress(os.path.getsize(src), f"converting {src.name}",
-                        enabled=None if not args.quiet else False)
-    interrupted = False
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
+    writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20)
+    size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
+    progress = Progress(size, f"converting {src.name}",
+                        enabled=True if args.progress else (None if not args.quiet else False))
+    interrupted = finished = False
     try:
-        if src.suffix.lower() in (".pcap", ".osf"):
-            _convert_ouster(src, writer, args, slices, fallback, report, emit)
-        else:
-            topics = _file_topics(src)
-            kinds = set(topics.values())
-            if "lidarscan_msgs/msg/LidarScan" not in kinds and \
-                    "sensor_msgs/msg/PointCloud2" in kinds:
-                _convert_clouds(src, writer, args, topics, report, emit, progress)
+        try:
+            if mode == "ouster":
+                _convert_ouster(src, writer, args, slices, fallback, report, emit)
+            elif mode == "packets":
+                _convert_packets(source, writer, args, plan, decoders, slices, fallback,
+                                 report, emit, progress)
+            elif mode == "clouds":
+                _convert_clouds(source, writer, args, plan, report, emit, progress)
             else:
-                _warn_collisions(topics, args, slices, note)
-                _convert_scans(src, writer, args, slices, fallback, report, emit, progress)
-    except KeyboardInterrupt:
-        interrupted = True
+                _convert_scans(source, writer, args, plan, slices, fallback, report, emit,
+                               progress)
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            progress.close()
+            writer.close()
+        if not interrupted and report.read == 0 and report.bad:
+            raise McapFormatError(f"IN {src}", f"{len(report.bad)} damaged part(s), listed above",
+                                  "at least one readable message; nothing written")
+        os.replace(tmp, dst)
+        finished = True
     finally:
-        progress.close()
-        writer.close()
+        if not finished:
+            tmp.unlink(missing_ok=True)
     if interrupted:
         _err(f"interrupted: {dst} is a valid MCAP file with the {writer.count} messages "
              f"written so far ({report.read} read)")
@@ -272,28 +553,12 @@ def cmd_convert(args: argparse.Namespace) -> int:
     summary = (f"{src} -> {dst}: {report.read} messages read, {report.converted} converted, "
                f"{writer.count} written")
     if report.bad:
-        _err(f"{summary}; {len(report.bad)} BAD message(s) skipped (listed above)")
+        _err(f"{summary}; {len(report.bad)} BAD message(s) or damaged part(s) skipped "
+             "(listed above)")
         return EXIT_BAD
     if not args.quiet:
         _err(summary)
     return EXIT_OK
-
-
-def _warn_collisions(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any],
-                     emit: Callable[[str], None]) -> None:
-    """A note when an output topic already exists in the input (both end up in OUT)."""
-    outputs = set()
-    for topic, kind in topics.items():
-        if kind == "lidarscan_msgs/msg/LidarScan":
-            ns = _namespace(topic)
-            if args.pointcloud2:
-                outputs.add(f"{ns}/points")
-            outputs.update(f"{ns}/slices/{s.name}" for s in slices)
-    if args.merge or args.merge_topic:
-        outputs.add(args.merge_out)
-    for topic in sorted(outputs & set(topics) - set(args.exclude)):
-        emit(f"note: the input already has {topic}; the new messages are added to it "
-             f"(--exclude {topic} drops the old ones)")
 
 
 class _ScanPipeline:
@@ -310,8 +575,8 @@ class _ScanPipeline:
         self.slices = list(slices)
         self.fallback = fallback
         self.tf = tf_buffer
-        self.merger: Any = None
-        self.merge_inputs: list[str] = []
+        self.done: set[str] = set()  # input topics with one scan converted
+        self.held: dict[str, list[tuple[int, int, Exception]]] = {}
 
     def extrinsics(self, scan: Any, info: Any) -> Any:
         import numpy as np
@@ -331,6 +596,40 @@ class _ScanPipeline:
                 "--frame", frame, f"a transform {frame} <- {info.header.frame_id} in the file's "
                 f"/tf or /tf_static, or --extrinsics ({err})") from err
 
+    def outputs(self, scan: Any, info: Any, topic: str, prefix: str, log_time_ns: int,
+                writer: Any, report: ConvertReport, merge: Callable[[str, Any, int], None],
+                emit: Callable[[str], None]) -> None:
+        """Write the cloud and slices of one scan under ``prefix`` (raises what the conversion
+        raises; the caller passes it to :meth:`failed`)."""
+        extrinsics = self.extrinsics(scan, info) if self.slices else None
+        cloud, out_slices = self.core.convert(scan, info, cloud=bool(self.args.pointcloud2),
+                                              extrinsics=extrinsics)
+        if cloud is not None:
+            writer.write(f"{prefix}/points", cloud, log_time_ns=log_time_ns)
+        for name, msg in out_slices.items():
+            writer.write(f"{prefix}/slices/{name}", msg, log_time_ns=log_time_ns)
+            merge(f"{prefix}/slices/{name}", msg, log_time_ns)
+        report.converted += 1
+        if topic not in self.done:  # the options fit this topic: earlier failures were the data
+            self.done.add(topic)
+            for index, stamp_ns, err in self.held.pop(topic, []):
+                report.report_bad(index, topic, stamp_ns, f"not converted: {err}", emit)
+
+    def failed(self, err: Exception, index: int, topic: str, stamp_ns: int,
+               report: ConvertReport, emit: Callable[[str], None]) -> None:
+        """A scan that could not be converted: a bad message, unless no scan of its topic has
+        converted yet and the error is one the options decide (``--frame``, ``--fields``, ...):
+        then it is held until one does (then reported) or the run ends (see :meth:`finish`)."""
+        if topic not in self.done and _is_option_error(err):
+            self.held.setdefault(topic, []).append((index, stamp_ns, err))
+        else:
+            report.report_bad(index, topic, stamp_ns, f"not converted: {err}", emit)
+
+    def finish(self) -> None:
+        """Raise the usage error of a topic none of whose scans the options could convert."""
+        for topic, failures in self.held.items():
+            raise _option_error(failures[0][2], topic, self.args)
+
 
 def _merger(args: argparse.Namespace, names: Sequence[str], extrinsics: dict[str, Any],
             frame: str) -> Any:
@@ -344,58 +643,65 @@ def _merger(args: argparse.Namespace, names: Sequence[str], extrinsics: dict[str
                            range_min=0.0, range_max=args.merge_range_max)
 
 
-def _convert_scans(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
-                   fallback: Any, report: ConvertReport, emit: Callable[[str], None],
-                   progress: Progress) -> None:
-    """LidarScan recording: copy every good message, add the requested outputs."""
-    import numpy as np
+def _merge_sink(args: argparse.Namespace, plan: _Plan, tf: Any, writer: Any
+                ) -> Callable[[str, Any, int], None]:
+    """push(input name, LaserScan, log time) for ``--merge``: inputs are the slice topics of
+    every scan topic and the ``--merge-topic`` topics; a no-op without ``--merge``."""
+    merge_topics = list(args.merge_topic)
+    if not (args.merge or merge_topics):
+        return lambda name, msg, log: None
+    names = [t for t in plan.outputs if t != args.merge_out and "/slices/" in t] + merge_topics
+    state: dict[str, Any] = {"merger": None}
 
+    def push(name: str, msg: Any, log_time_ns: int) -> None:
+        if name not in names:
+            return
+        if state["merger"] is None and not args.frame and name in merge_topics:
+            return  # the merged frame is the first slice's: nothing to merge into yet
+        if state["merger"] is None:
+            state["merger"] = _LazyMerger(args, names, {n: None for n in names},
+                                          args.frame or msg.header.frame_id, tf)
+        for merged in state["merger"].push(name, msg):
+            writer.write(args.merge_out, merged, log_time_ns=log_time_ns)
+    return push
+
+
+def _side_input(item: Any, tf: Any, args: argparse.Namespace,
+                merge: Callable[[str, Any, int], None]) -> None:
+    """A TF message into the buffer, a ``--merge-topic`` LaserScan into the merger (raises
+    LidarScanError for one that does not decode)."""
+    if item.msgtype == "tf2_msgs/msg/TFMessage":
+        tf.add_message(item.decode(), static=item.topic.endswith("_static"))
+    elif item.topic in args.merge_topic and item.msgtype == "sensor_msgs/msg/LaserScan":
+        merge(item.topic, item.decode(), item.log_time_ns)
+
+
+def _copy(writer: Any, item: Any, plan: _Plan, report: ConvertReport) -> None:
+    """Copy one input message as it is (payload, times, channel metadata such as QoS)."""
+    if item.topic in plan.excluded:
+        return
+    writer.write(item.topic, item.payload, msgtype=item.msgtype, log_time_ns=item.log_time_ns,
+                 publish_time_ns=item.publish_time_ns, metadata=dict(item.metadata) or None)
+    report.written += 1
+
+
+def _convert_scans(source: _Input, writer: Any, args: argparse.Namespace, plan: _Plan,
+                   slices: Sequence[Any], fallback: Any, report: ConvertReport,
+                   emit: Callable[[str], None], progress: Progress) -> None:
+    """LidarScan recording: copy every good message, add the requested outputs."""
     from converters.nodes.tf import TransformBuffer
     from lidarscan.errors import LidarScanError
-    from lidarscan.mcap import INFO_TYPE, SCAN_TYPE, BadMessage, McapMessage
+    from lidarscan.mcap import INFO_TYPE, SCAN_TYPE, McapMessage
     from lidarscan.stamps import to_ns
 
     tf = TransformBuffer(cache_ns=3600 * 10**9, max_per_edge=100_000)
     pipeline = _ScanPipeline(args, slices, fallback, tf)
-    merge_topics = list(args.merge_topic)
-    merging = bool(args.merge or merge_topics)
-    merger: _LazyMerger | None = None
-    if merging and args.frame:  # the output frame is known: inputs may come in any order
-        merger = _LazyMerger(args, [sl.name for sl in slices] + merge_topics,
-                             {**{sl.name: np.eye(4) for sl in slices},
-                              **{t: None for t in merge_topics}}, args.frame, tf)
+    merge = _merge_sink(args, plan, tf, writer)
     origin: dict[int, McapMessage] = {}
-    want_cloud = bool(args.pointcloud2)
-    excluded = set(args.exclude)
 
-    def outputs_for(scan: Any, info: Any, item: McapMessage) -> None:
-        nonlocal merger
-        ns = _namespace(item.topic)
-        extrinsics = pipeline.extrinsics(scan, info) if slices else None
-        cloud, out_slices = pipeline.core.convert(scan, info, cloud=want_cloud,
-                                                  extrinsics=extrinsics)
-        log = item.log_time_ns
-        if cloud is not None:
-            writer.write(f"{ns}/points", cloud, log_time_ns=log)
-        for name, msg in out_slices.items():
-            writer.write(f"{ns}/slices/{name}", msg, log_time_ns=log)
-        report.converted += 1
-        if merging and out_slices:
-            if merger is None:
-                frame = args.frame or next(iter(out_slices.values())).header.frame_id
-                extr: dict[str, Any] = {name: np.eye(4) for name in out_slices}
-                extr.update({topic: None for topic in merge_topics})
-                merger = _LazyMerger(args, list(out_slices) + merge_topics, extr, frame, tf)
-            for name, msg in out_slices.items():
-                for merged in merger.push(name, msg):
-                    writer.write(args.merge_out, merged, log_time_ns=log)
-
-    for item in _stream(src, progress, report):
-        if isinstance(item, BadMessage):
-            report.report_bad(item.index, item.topic, item.log_time_ns, item.reason, emit)
-            continue
-        report.read += 1
+    for item in report.good(source.items(progress), emit):
         try:
+            ready: list[Any] = []
             if item.msgtype in (INFO_TYPE, SCAN_TYPE):
                 msg = item.decode()
                 if item.msgtype == INFO_TYPE:
@@ -403,35 +709,25 @@ def _convert_scans(src: Path, writer: Any, args: argparse.Namespace, slices: Seq
                 else:
                     ready = pipeline.core.resolver.add_scan(msg)
                     origin[id(msg)] = item
-            elif item.msgtype == "tf2_msgs/msg/TFMessage":
-                tf.add_message(item.decode(), static=item.topic.endswith("_static"))
-                ready = []
-            elif merging and item.topic in merge_topics and \
-                    item.msgtype == "sensor_msgs/msg/LaserScan":
-                scan2d = item.decode()
-                ready = []
-                if merger is not None:
-                    for merged in merger.push(item.topic, scan2d):
-                        writer.write(args.merge_out, merged, log_time_ns=item.log_time_ns)
             else:
-                ready = []
+                _side_input(item, tf, args, merge)
         except LidarScanError as err:
             report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
             continue
-        if item.topic not in excluded:
-            writer.write(item.topic, item.payload, msgtype=item.msgtype,
-                         log_time_ns=item.log_time_ns, publish_time_ns=item.publish_time_ns)
-            report.written += 1
+        _copy(writer, item, plan, report)
         _drain_drops(pipeline, origin, report, emit)
         for scan, info in ready:
             src_item = origin.pop(id(scan), item)
             try:
-                outputs_for(scan, info, src_item)
+                pipeline.outputs(scan, info, src_item.topic, plan.prefix.get(
+                    src_item.topic, _namespace(src_item.topic)), src_item.log_time_ns,
+                    writer, report, merge, emit)
             except LidarScanError as err:
-                report.report_bad(src_item.index, src_item.topic,
-                                  to_ns(scan.header.stamp), f"not converted: {err}", emit)
+                pipeline.failed(err, src_item.index, src_item.topic, to_ns(scan.header.stamp),
+                                report, emit)
     pipeline.core.resolver.flush()
     _drain_drops(pipeline, origin, report, emit)
+    pipeline.finish()
 
 
 def _drain_drops(pipeline: _ScanPipeline, origin: dict[int, Any], report: ConvertReport,
@@ -443,7 +739,8 @@ def _drain_drops(pipeline: _ScanPipeline, origin: dict[int, Any], report: Conver
 
 
 class _LazyMerger:
-    """The merger of ``convert --merge``: inputs' extrinsics resolved from the file's TF.
+    """The merger of ``convert --merge``: inputs' extrinsics resolved from the file's TF (an
+    input already in the merged frame needs none).
 
     Scans pushed before every input's mount is known are held (at most ``hold`` of them) and
     replayed once the merger can be built.
@@ -458,12 +755,15 @@ class _LazyMerger:
 
     def push(self, name: str, scan: Any) -> list[Any]:
         """Queue one scan; returns the merged scans that became ready (usually 0 or 1)."""
+        import numpy as np
+
         from converters.nodes.tf import TransformLookupError
 
         if self.extrinsics.get(name) is None:
             source = scan.header.frame_id
             try:
-                self.extrinsics[name] = self.tf.lookup(self.frame, source)
+                self.extrinsics[name] = np.eye(4) if source == self.frame else \
+                    self.tf.lookup(self.frame, source)
             except TransformLookupError as err:
                 raise TransformLookupError(
                     "--merge-topic", name, f"a transform {self.frame} <- {source} in the file's "
@@ -481,34 +781,15 @@ class _LazyMerger:
         return [] if merged is None else [merged]
 
 
-def _stream(src: Path, progress: Progress, report: ConvertReport) -> Iterable[Any]:
-    """read_messages over an open file, updating the progress bar from the file position."""
-    from lidarscan.mcap import read_messages
-
-    with open(src, "rb") as stream:
-        for item in read_messages(stream):
-            progress.update(stream.tell(), f"{report.read} msgs")
-            yield item
-        progress.update(progress.total, f"{report.read} msgs", force=True)
-
-
-def _convert_clouds(src: Path, writer: Any, args: argparse.Namespace, topics: dict[str, str],
+def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan: _Plan,
                     report: ConvertReport, emit: Callable[[str], None],
                     progress: Progress) -> None:
     """Driver PointCloud2 recording -> LidarScan + LidarInfo (a new info only on change)."""
     from converters.nodes.cloud_to_scan_node import CloudToScanCore
     from lidarscan.errors import LidarScanError
-    from lidarscan.mcap import BadMessage
 
-    cloud_topics = [t for t, k in topics.items() if k == "sensor_msgs/msg/PointCloud2"]
-    if args.cloud_topic:
-        cloud_topics = [t for t in cloud_topics if t in args.cloud_topic]
-    cores = {t: CloudToScanCore() for t in cloud_topics}
-    for item in _stream(src, progress, report):
-        if isinstance(item, BadMessage):
-            report.report_bad(item.index, item.topic, item.log_time_ns, item.reason, emit)
-            continue
-        report.read += 1
+    cores = {t: CloudToScanCore() for t in plan.prefix}
+    for item in report.good(source.items(progress), emit):
         core = cores.get(item.topic)
         if core is not None:
             try:
@@ -516,18 +797,114 @@ def _convert_clouds(src: Path, writer: Any, args: argparse.Namespace, topics: di
             except LidarScanError as err:
                 report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
                 continue
-            ns = _namespace(item.topic)
+            ns = plan.prefix[item.topic]
             if changed:
                 writer.write(f"{ns}/lidar_info", info, log_time_ns=item.log_time_ns)
             writer.write(f"{ns}/lidar_scan", scan, log_time_ns=item.log_time_ns)
             report.converted += 1
             if not args.keep_clouds:
                 continue
-        if item.topic in args.exclude:
+        _copy(writer, item, plan, report)
+
+
+def _packet_decoders(topics: dict[str, str]) -> dict[str, Any]:
+    """topic -> PacketDecoder class for every packet topic; a clear error when this
+    installation has no decoder for one of them (before anything is written)."""
+    import importlib
+
+    from converters.bags import PACKET_TYPES
+    from lidarscan.errors import ConversionError
+
+    out: dict[str, Any] = {}
+    for topic, msgtype in sorted(topics.items()):
+        if msgtype not in PACKET_TYPES:
             continue
-        writer.write(item.topic, item.payload, msgtype=item.msgtype,
-                     log_time_ns=item.log_time_ns, publish_time_ns=item.publish_time_ns)
-        report.written += 1
+        module_name = PACKET_TYPES[msgtype][0]
+        try:
+            module: Any = importlib.import_module(module_name)
+            why = f"{module_name} has no PacketDecoder"
+        except ImportError as err:
+            module, why = None, f"{module_name} cannot be imported: {err}"
+        decoder = getattr(module, "PacketDecoder", None)
+        if decoder is None:
+            raise ConversionError(f"topic {topic}", msgtype, "a message type this installation "
+                                  "can decode", hint=f"no decoder for {msgtype} in this "
+                                  f"installation: {why}")
+        out[topic] = decoder
+    return out
+
+
+def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan: _Plan,
+                     decoders: dict[str, Any], slices: Sequence[Any], fallback: Any,
+                     report: ConvertReport, emit: Callable[[str], None],
+                     progress: Progress) -> None:
+    """Raw sensor packets (VelodyneScan / PandarScan) -> per packet topic a latched
+    ``<topic>/lidar_info`` (each version written once, before its first scan) and
+    ``<topic>/lidar_scan`` (+ the requested outputs); other messages are copied, the packets
+    only with ``--keep-packets``."""
+    from converters.bags import PACKET_TYPES, register_packet_types
+    from converters.nodes.tf import TransformBuffer
+    from lidarscan.errors import LidarScanError
+    from lidarscan.stamps import to_ns
+
+    register_packet_types()
+    tf = TransformBuffer(cache_ns=3600 * 10**9, max_per_edge=100_000)
+    pipeline = _ScanPipeline(args, slices, fallback, tf)
+    merge = _merge_sink(args, plan, tf, writer)
+    active: dict[str, Any] = {}
+    info_written: dict[str, int] = {}
+
+    def emit_scans(topic: str, pairs: list[Any], log_time_ns: int, index: int) -> None:
+        prefix = plan.prefix[topic]
+        for scan, info in pairs:
+            stamp = to_ns(info.header.stamp)
+            if info_written.get(topic) != stamp:
+                writer.write(f"{prefix}/lidar_info", info, log_time_ns=log_time_ns)
+                info_written[topic] = stamp
+            writer.write(f"{prefix}/lidar_scan", scan, log_time_ns=log_time_ns)
+            if args.pointcloud2 or slices:
+                try:
+                    pipeline.outputs(scan, info, topic, prefix, log_time_ns, writer, report,
+                                     merge, emit)
+                except LidarScanError as err:
+                    pipeline.failed(err, index, topic, to_ns(scan.header.stamp), report, emit)
+            else:
+                report.converted += 1
+
+    last: dict[str, tuple[int, int]] = {}
+    for item in report.good(source.items(progress), emit):
+        try:
+            _side_input(item, tf, args, merge)
+        except LidarScanError as err:
+            report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
+            continue
+        if item.topic in decoders:
+            try:
+                packets = PACKET_TYPES[item.msgtype][1](item.payload)
+            except LidarScanError as err:
+                report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
+                continue
+            decoder = active.get(item.topic)
+            if decoder is None:  # built on first use: the frame comes from the messages
+                decoder = decoders[item.topic](args.calibration,
+                                               frame_id=packets.frame_id or "lidar")
+                active[item.topic] = decoder
+            for k, (stamp, payload) in enumerate(packets.packets):
+                try:
+                    done = decoder.push(stamp, payload)
+                except LidarScanError as err:
+                    report.report_bad(item.index, item.topic, item.log_time_ns,
+                                      f"packet {k} of {len(packets.packets)}: {err}", emit)
+                    continue
+                emit_scans(item.topic, done, item.log_time_ns, item.index)
+            last[item.topic] = (item.log_time_ns, item.index)
+            if not args.keep_packets:
+                continue
+        _copy(writer, item, plan, report)
+    for topic, decoder in active.items():
+        log_time, index = last.get(topic, (0, -1))
+        emit_scans(topic, decoder.flush(), log_time, index)
+    pipeline.finish()
 
 
 def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
@@ -548,17 +925,11 @@ def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Se
             info_written = info
         writer.write("/lidar/scan", scan, log_time_ns=stamp)
         try:
-            cloud, out_slices = pipeline.core.convert(
-                scan, info, cloud=bool(args.pointcloud2),
-                extrinsics=pipeline.extrinsics(scan, info) if slices else None)
+            pipeline.outputs(scan, info, "/lidar/scan", "/lidar", stamp, writer, report,
+                             lambda name, msg, log: None, emit)
         except LidarScanError as err:
-            report.report_bad(index, "/lidar/scan", stamp, f"not converted: {err}", emit)
-            continue
-        if cloud is not None:
-            writer.write("/lidar/points", cloud, log_time_ns=stamp)
-        for name, msg in out_slices.items():
-            writer.write(f"/lidar/slices/{name}", msg, log_time_ns=stamp)
-        report.converted += 1
+            pipeline.failed(err, index, "/lidar/scan", stamp, report, emit)
+    pipeline.finish()
 
 
 # ------------------------------------------------------------------------------------ view
@@ -569,17 +940,23 @@ def cmd_view(args: argparse.Namespace) -> int:
     from converters import viz
     from converters.nodes.tf import TransformBuffer, TransformLookupError
     from lidarscan.errors import LidarScanError
-    from lidarscan.mcap import BadMessage, read_messages, read_scans
+    from lidarscan.mcap import BadMessage, read_scans
     from lidarscan.stamps import to_ns
 
-    path, out = Path(args.file), Path(args.out)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such file: {path}")
+    source = _open_input(args.file, "FILE")
+    path, out = source.path, Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--out {out}: exists and is not a directory")
     written: list[Path] = []
+    damage: dict[str, BadMessage] = {}  # damaged parts of the input, once each
+
+    def note_damage(item: BadMessage) -> None:
+        if item.index < 0:
+            damage.setdefault(item.reason, item)
     # 1. range images: the index-th linked scan of each LidarScan topic
     seen: dict[str, int] = {}
     chosen_stamp: int | None = None
-    for scan, info in read_scans(path):
+    for scan, info in read_scans(None, on_error=note_damage, items=source.items()):
         topic = scan.header.frame_id
         k = seen.get(topic, 0)
         seen[topic] = k + 1
@@ -593,8 +970,9 @@ def cmd_view(args: argparse.Namespace) -> int:
     lasers: dict[str, Any] = {}
     clouds: dict[str, Any] = {}
     counts: dict[str, int] = {}
-    for item in read_messages(path):
+    for item in source.items():
         if isinstance(item, BadMessage):
+            note_damage(item)
             continue
         try:
             if item.msgtype == "tf2_msgs/msg/TFMessage":
@@ -640,12 +1018,19 @@ def cmd_view(args: argparse.Namespace) -> int:
     for topic, msg in sorted(clouds.items()):
         written.append(viz.cloud_topview(msg, out / f"cloud_{_safe(topic)}.png",
                                          title=f"{topic} ('{msg.header.frame_id}')"))
+    for item in damage.values():
+        _err(_describe_bad(item))
     if not written:
-        _err(f"{path}: nothing to draw (no LidarScan with its LidarInfo, LaserScan or "
-             f"PointCloud2 at index {args.index})")
+        _err(f"{path} ({source.kind.description}): nothing to draw (no LidarScan with its "
+             f"LidarInfo, LaserScan or PointCloud2 at index {args.index}"
+             + (", and the input is damaged" if damage else "") + ")")
         return EXIT_BAD
     for p in written:
         print(p)
+    if damage:
+        _err(f"{path}: {len(damage)} damaged part(s) of the input (listed above); the views "
+             "show what could be read")
+        return EXIT_BAD
     return EXIT_OK
 
 
@@ -661,6 +1046,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="lidarscan",
         description="Structured lidar scans (LidarScan + LidarInfo) for ROS 2: demo, inspect, "
                     "convert and draw MCAP recordings.")
+    parser.add_argument("--version", action="version", version=f"lidarscan {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("demo", help="simulate a robot in a room, convert, record and draw",
@@ -675,26 +1061,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("info", help="topics, types, counts, LidarInfo versions, linkage",
-                       description="Summarise an MCAP recording; exit status 1 if it has "
-                                   "problems (bad messages, unlinked scans, conflicting infos).")
-    p.add_argument("file", help="an MCAP file")
+                       description="Summarise a recording (MCAP, rosbag2 directory or .db3); "
+                                   "exit status 1 if it has problems (bad messages, damaged "
+                                   "parts, unlinked scans, conflicting infos, a topic whose "
+                                   "frame, shape or type changes).")
+    p.add_argument("file", help="an MCAP file, a rosbag2 directory or a .db3 file")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser(
         "convert", help="offline conversion of a recording",
-        description="LidarScan MCAP: copy every message and add PointCloud2 (<ns>/points), "
-                    "slices (<ns>/slices/NAME) and a merged scan. A recording of driver "
+        description="IN is an MCAP file, a rosbag2 directory or .db3 file, or an Ouster "
+                    ".pcap/.osf. LidarScan recording: copy every message and add PointCloud2 "
+                    "(<ns>/points), slices (<ns>/slices/NAME) and a merged scan. Driver "
                     "PointCloud2 (no LidarScan in it): convert the organized clouds to "
-                    "<ns>/lidar_scan + <ns>/lidar_info. An Ouster .pcap/.osf (needs "
-                    "ouster-sdk): /lidar/info + /lidar/scan (+ outputs). Bad messages are "
-                    "reported on stderr with index, topic, stamp and reason; every good one "
-                    "is written. Exit status 0 all good, 1 some bad, 2 fatal, 130 Ctrl-C "
-                    "(OUT stays readable).")
-    p.add_argument("input", help="input recording (.mcap, or .pcap/.osf with --metadata)")
+                    "<ns>/lidar_scan + <ns>/lidar_info. Raw packets (velodyne_msgs/"
+                    "VelodyneScan, pandar_msgs/PandarScan): <topic>/lidar_info + "
+                    "<topic>/lidar_scan (+ outputs). An Ouster .pcap/.osf (needs ouster-sdk): "
+                    "/lidar/info + /lidar/scan (+ outputs). Copied topics keep their channel "
+                    "metadata (QoS). Bad messages and damaged parts of IN are reported on "
+                    "stderr; every good message is written. OUT is written under a temporary "
+                    "name and renamed at the end. Exit status 0 all good, 1 some bad, 2 fatal "
+                    "(nothing written), 130 Ctrl-C (OUT stays readable).")
+    p.add_argument("input", help="input recording (.mcap, rosbag2 directory or .db3, "
+                                 ".pcap/.osf with --metadata)")
     p.add_argument("output", help="output MCAP file")
     p.add_argument("--pointcloud2", action="store_true", help="add PointCloud2 per scan")
-    p.add_argument("--preset", default="", help="PointCloud2 field preset")
-    p.add_argument("--fields", default="", help="PointCloud2 fields, e.g. x,y,z,intensity")
+    p.add_argument("--preset", default="", type=_preset, help="PointCloud2 field preset")
+    p.add_argument("--fields", default=(), type=_fields,
+                   help="PointCloud2 fields, e.g. x,y,z,intensity")
     p.add_argument("--slice", action="append", default=[], metavar="NAME:ZMIN:ZMAX",
                    help="add a LaserScan height slice (repeatable), heights in --frame")
     p.add_argument("--frame", default="",
@@ -715,6 +1109,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also copy the input PointCloud2 messages")
     p.add_argument("--exclude", action="append", default=[], metavar="TOPIC",
                    help="do not copy this input topic (repeatable), e.g. to replace it")
+    p.add_argument("--replace", action="store_true",
+                   help="drop the input topics an output is written to (default: refuse)")
+    p.add_argument("--calibration", default=None, metavar="FILE",
+                   help="sensor calibration for raw packets (Velodyne YAML, Hesai CSV); "
+                        "default: the model's nominal one where it exists")
+    p.add_argument("--keep-packets", action="store_true",
+                   help="also copy the input packet messages")
+    p.add_argument("--progress", action="store_true",
+                   help="report progress also when stderr is not a terminal")
     p.add_argument("--metadata", default=None, help="Ouster metadata JSON for a .pcap")
     p.add_argument("--max-pending", type=_positive_int, default=64,
                    help="scans held while waiting for their LidarInfo (64)")
@@ -723,16 +1126,42 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar, notes or summary (bad messages are still listed)")
     p.set_defaults(func=cmd_convert)
 
-    p = sub.add_parser("view", help="PNG views of a recording",
+    p = sub.add_parser("view", help="PNG views of a recording (MCAP or rosbag2)",
                        description="Range images of a LidarScan, a top view of the LaserScans "
                                    "(in --frame via the file's TF) and of each PointCloud2.")
-    p.add_argument("file", help="an MCAP file")
+    p.add_argument("file", help="an MCAP file, a rosbag2 directory or a .db3 file")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--index", type=_non_negative_int, default=0,
                    help="which scan of each topic (0 = first)")
     p.add_argument("--frame", default="", help="frame of the LaserScan top view")
     p.set_defaults(func=cmd_view)
     return parser
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("lidarscan")
+    except Exception:  # noqa: BLE001 - not installed as a distribution (source tree)
+        return "unknown (not installed)"
+
+
+def _preset(text: str) -> str:
+    from converters.pointcloud2 import PRESETS
+
+    if text and text not in PRESETS:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected one of {', '.join(sorted(PRESETS))}")
+    return text
+
+
+def _fields(text: str) -> tuple[str, ...]:
+    names = tuple(f.strip() for f in text.split(",") if f.strip())
+    if len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected unique field names")
+    if not {"x", "y", "z"} <= set(names):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected x, y and z among the fields")
+    return names
 
 
 def _positive_int(text: str) -> int:
@@ -762,6 +1191,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    if getattr(args, "preset", "") and getattr(args, "fields", ()):
+        parser.error("--preset and --fields: give one of them (a preset fixes the fields)")
     try:
         return int(args.func(args))
     except KeyboardInterrupt:

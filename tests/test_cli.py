@@ -203,3 +203,199 @@ def test_console_script_help() -> None:
     assert done.returncode == 0
     for command in ("demo", "info", "convert", "view"):
         assert command in done.stdout
+
+
+# ------------------------------------------------------- inputs checked before anything is written
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.startswith("lidarscan ")
+
+
+def _bad_inputs(tmp: Path, demo: Path) -> dict[str, tuple[Path, str]]:
+    """name -> (path, words the error must contain)."""
+    (tmp / "notes.txt").write_text("not a recording\n")
+    (tmp / "empty.mcap").write_bytes(b"")
+    (tmp / "stub.mcap").write_bytes(demo.read_bytes()[:20])  # cut inside the first record
+    (tmp / "folder").mkdir(exist_ok=True)
+    return {"text": (tmp / "notes.txt", "not an MCAP file"),
+            "empty": (tmp / "empty.mcap", "empty"),
+            "stub": (tmp / "stub.mcap", "truncated"),
+            "folder": (tmp / "folder", "directory without metadata.yaml"),
+            "missing": (tmp / "missing.mcap", "no such file")}
+
+
+@pytest.mark.parametrize("command", ["info", "convert", "view"])
+@pytest.mark.parametrize("case", ["text", "empty", "stub", "folder", "missing"])
+def test_every_command_rejects_bad_inputs_with_a_reason(
+        command: str, case: str, tmp_path: Path, demo_mcap: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    path, words = _bad_inputs(tmp_path, demo_mcap)[case]
+    out = tmp_path / "out"
+    argv = {"info": ["info", str(path)],
+            "convert": ["convert", str(path), str(out / "o.mcap")],
+            "view": ["view", str(path), "--out", str(out)]}[command]
+    out.mkdir() if command == "convert" else None
+    before = sorted(tmp_path.rglob("*"))
+    status = cli.main(argv)
+    captured = capsys.readouterr()
+    text = captured.err + captured.out
+    assert status in (1, 2), text
+    assert words in text, text
+    assert sorted(tmp_path.rglob("*")) == before  # nothing written, no partial file left
+
+
+def test_db3_is_recognised_not_called_damaged(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    import sqlite3
+
+    db3 = tmp_path / "rec.db3"
+    con = sqlite3.connect(db3)
+    con.execute("CREATE TABLE unrelated(x)")
+    con.commit()
+    con.close()
+    assert cli.main(["convert", str(db3), str(tmp_path / "o.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert "'topics' and 'messages'" in err and "invalid magic" not in err
+    assert not (tmp_path / "o.mcap").exists()
+
+
+def test_truncated_recording_reports_the_cut_everywhere(
+        tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    data = demo_mcap.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:len(data) * 2 // 3])
+    assert cli.main(["info", str(cut)]) == 1
+    assert "truncated" in capsys.readouterr().out
+    assert cli.main(["view", str(cut), "--out", str(tmp_path / "v")]) == 1  # drew, but damaged
+    assert "truncated" in capsys.readouterr().err
+    out = tmp_path / "o.mcap"
+    assert cli.main(["convert", str(cut), str(out), "-q"]) == 1  # readable output: kept
+    err = capsys.readouterr().err
+    assert "damaged input" in err and "truncated" in err
+    assert messages(out)["/lidar/scan"]
+
+
+@pytest.mark.parametrize("options,words", [
+    (["--preset", "foo"], "--preset: 'foo': expected one of"),
+    (["--fields", "x,y,q"], "x, y and z"),
+    (["--preset", "ouster", "--fields", "x,y,z"], "give one of them"),
+])
+def test_bad_option_values_are_usage_errors(options: list[str], words: str, tmp_path: Path,
+                                            demo_mcap: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["convert", str(demo_mcap), str(tmp_path / "o.mcap")] + options)
+    assert exc.value.code == 2
+    assert words in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("options,words", [
+    (["--slice", "s:0:1", "--frame", "nosuch"], "--frame='nosuch'"),
+    (["--pointcloud2", "--fields", "x,y,z,nosuch"], "--fields x,y,z,nosuch"),
+])
+def test_options_that_do_not_fit_the_recording_fail_once(
+        options: list[str], words: str, tmp_path: Path, demo_mcap: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "in.mcap"
+    copy_topics(demo_mcap, src, SCAN_TOPICS)
+    out = tmp_path / "o.mcap"
+    assert cli.main(["convert", str(src), str(out)] + options) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and words in err and "bad message" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.mcap"]
+
+
+# ----------------------------------------------------------- one topic, one frame, one layout
+
+def test_readme_example_on_the_demo_refuses_the_clash_then_replaces(
+        tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out.mcap"
+    argv = ["convert", str(demo_mcap), str(out), "--pointcloud2", "--slice", "table:0.5:1.0",
+            "--merge", "-q"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    for topic in ("/lidar/points", "/lidar/slices/table", "/scan_merged"):
+        assert topic in err
+    assert not out.exists()
+    assert cli.main(argv + ["--replace"]) == 0
+    got = messages(out)
+    frames = {m.decode().header.frame_id for m in got["/lidar/slices/table"]}
+    rays = {len(m.decode().ranges) for m in got["/lidar/slices/table"]}
+    assert frames == {"os_sensor"} and len(rays) == 1
+    assert len(got["/lidar/slices/table"]) == len(got["/lidar/scan"]) == 3
+    assert cli.main(["info", str(out)]) == 0
+
+
+def test_info_flags_a_topic_whose_frame_or_shape_changes(
+        tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    mixed = tmp_path / "mixed.mcap"
+    src = messages(demo_mcap)
+    with McapWriter(mixed) as writer:
+        for a, b in zip(src["/lidar/slices/table"], src["/laser/scan"]):
+            writer.write("/mixed", a.payload, msgtype=a.msgtype, log_time_ns=a.log_time_ns)
+            writer.write("/mixed", b.payload, msgtype=b.msgtype, log_time_ns=b.log_time_ns)
+    assert cli.main(["info", str(mixed)]) == 1
+    out = capsys.readouterr().out
+    assert "topic '/mixed': frame_id changes mid-recording" in out
+    assert "topic '/mixed': shape changes mid-recording" in out
+
+
+def test_scan_topics_sharing_a_namespace_get_distinct_outputs(
+        tmp_path: Path, demo_mcap: Path) -> None:
+    src, out = tmp_path / "two.mcap", tmp_path / "out.mcap"
+    items = messages(demo_mcap)
+    with McapWriter(src) as writer:
+        for topic in ("/tf_static", "/lidar/info"):
+            for m in items[topic]:
+                writer.write(topic, m.payload, msgtype=m.msgtype, log_time_ns=m.log_time_ns)
+        for m in items["/lidar/scan"]:
+            for topic in ("/lidar/scan", "/lidar/scan_copy"):
+                writer.write(topic, m.payload, msgtype=m.msgtype, log_time_ns=m.log_time_ns)
+    assert cli.main(["convert", str(src), str(out), "--pointcloud2", "--slice", "s:0:1",
+                     "--merge", "-q"]) == 0
+    got = messages(out)
+    for topic in ("/lidar/scan", "/lidar/scan_copy"):
+        assert len(got[f"{topic}/points"]) == len(got[f"{topic}/slices/s"]) == 3
+    assert len(got["/scan_merged"]) == 3
+
+
+def test_a_frame_known_only_later_reports_the_early_scans_not_a_usage_error(
+        tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    items = messages(demo_mcap)
+    src, out = tmp_path / "late_tf.mcap", tmp_path / "out.mcap"
+    with McapWriter(src) as writer:  # the first scan is recorded before /tf_static
+        order = [items["/lidar/info"][0], items["/lidar/scan"][0], items["/tf_static"][0],
+                 *items["/lidar/scan"][1:]]
+        for m in order:
+            writer.write(m.topic, m.payload, msgtype=m.msgtype, log_time_ns=m.log_time_ns)
+    status = cli.main(["convert", str(src), str(out), "--slice", "s:0:1", "--frame",
+                       "base_link", "-q"])
+    err = capsys.readouterr().err
+    assert status == 1, err
+    assert err.count("bad message #1 topic '/lidar/scan'") == 1 and "base_link" in err
+    assert len(messages(out)["/lidar/slices/s"]) == 2
+
+
+def test_convert_keeps_channel_metadata_and_reports_progress(
+        tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    qos = "- history: 1\n  depth: 1\n  reliability: 1\n  durability: 1\n"
+    src, out = tmp_path / "in.mcap", tmp_path / "out.mcap"
+    items = messages(demo_mcap)
+    with McapWriter(src) as writer:
+        for topic in ("/tf_static", "/lidar/info", "/lidar/scan", "/laser/scan"):
+            for m in items[topic]:
+                writer.write(topic, m.payload, msgtype=m.msgtype, log_time_ns=m.log_time_ns,
+                             metadata={"offered_qos_profiles": qos} if topic != "/laser/scan"
+                             else None)
+    assert cli.main(["convert", str(src), str(out), "--progress"]) == 0
+    err = capsys.readouterr().err
+    assert "converting in.mcap: 100%" in err  # stderr is not a terminal: lines
+    got = messages(out)
+    for topic in ("/tf_static", "/lidar/info", "/lidar/scan"):
+        assert dict(got[topic][0].metadata).get("offered_qos_profiles") == qos, topic
+    assert "offered_qos_profiles" not in dict(got["/laser/scan"][0].metadata) or \
+        dict(got["/laser/scan"][0].metadata)["offered_qos_profiles"] != qos

@@ -182,6 +182,11 @@ def _big_recording(path: Path, scans: int) -> None:
 _MAIN = "import sys; from converters.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
+def _partial_size(folder: Path) -> int:
+    """Size of the output being written (``convert`` writes ``.OUT.<pid>.partial``)."""
+    return sum(p.stat().st_size for p in folder.glob(".out.mcap.*.partial") if p.exists())
+
+
 def _env() -> dict[str, str]:
     env = dict(os.environ)
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # let the venv's python set up its libs
@@ -201,10 +206,11 @@ def test_interrupted_convert_leaves_a_readable_prefix(tmp_path: Path, sig: int) 
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and proc.poll() is None:
-            if dst.exists() and dst.stat().st_size > 64 << 10:  # several chunks written
+            if _partial_size(tmp_path) > 64 << 10:  # several chunks written
                 break
             time.sleep(0.02)
         assert proc.poll() is None, "conversion finished before it could be interrupted"
+        assert not dst.exists()  # written under a temporary name until the run ends
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -231,8 +237,9 @@ def test_interrupted_convert_leaves_a_readable_prefix(tmp_path: Path, sig: int) 
 
 
 def test_killed_convert_output_still_yields_its_complete_chunks(tmp_path: Path) -> None:
-    """SIGKILL (no chance to finish the file): the reader returns every message of the chunks
-    on disk, in order, then one BadMessage for the cut; it never raises."""
+    """SIGKILL (no chance to finish the file): OUT does not appear; the partial file left
+    under its temporary name yields every message of the chunks on disk, in order, then one
+    BadMessage for the cut; the reader never raises."""
     src, dst = tmp_path / "in.mcap", tmp_path / "out.mcap"
     _big_recording(src, 6000)
     proc = subprocess.Popen(
@@ -241,7 +248,7 @@ def test_killed_convert_output_still_yields_its_complete_chunks(tmp_path: Path) 
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and proc.poll() is None:
-            if dst.exists() and dst.stat().st_size > 64 << 10:
+            if _partial_size(tmp_path) > 64 << 10:
                 break
             time.sleep(0.02)
         assert proc.poll() is None, "conversion finished before it could be killed"
@@ -251,7 +258,9 @@ def test_killed_convert_output_still_yields_its_complete_chunks(tmp_path: Path) 
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    items = list(read_messages(dst))
+    assert not dst.exists()  # a killed run never leaves a partial file where OUT is expected
+    (partial,) = tmp_path.glob(".out.mcap.*.partial")
+    items = list(read_messages(partial))
     good = [m for m in items if isinstance(m, McapMessage)]
     assert isinstance(items[-1], BadMessage) and "damaged" in items[-1].reason
     assert not [m for m in items[:-1] if isinstance(m, BadMessage)]
