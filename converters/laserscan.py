@@ -69,11 +69,13 @@ from typing import Any
 
 import numpy as np
 
-from converters import _grid, _slicec
+from converters import _grid, _slicec, options
 from converters._grid import AngleGrid, OutputOptions
+from converters.frames import check_extrinsics, transform_rays
+from converters.options import IfPresent, resolve_channel
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
 from lidarscan.geometry import info_key, make_projector
-from lidarscan.scan import _as_array, channel, range_m
+from lidarscan.scan import as_array, channel, channel_names, range_m
 from lidarscan.stamps import to_ns
 
 __all__ = ["SliceConverter", "SliceSpec", "check_extrinsics", "to_laserscan"]
@@ -110,47 +112,6 @@ class SliceSpec:
 
 _OVERRIDES = ("angle_min", "angle_max", "angle_increment", "range_min", "range_max", "use_inf",
               "inf_epsilon", "fill")
-
-
-def check_extrinsics(extrinsics: Any, field: str = "extrinsics") -> np.ndarray[Any, Any]:
-    """A 4x4 float64 rigid transform (None -> identity).
-
-    Raises:
-        ConfigError: wrong shape, non-finite values, a rotation that is not orthonormal with
-            determinant +1, or a last row other than 0 0 0 1.
-    """
-    if extrinsics is None:
-        return np.eye(4)
-    try:
-        matrix = np.array(extrinsics, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ConfigError(field, extrinsics, "a 4x4 homogeneous transform") from err
-    if matrix.size != 16:
-        raise ConfigError(field, matrix.shape, "a 4x4 matrix (or 16 values, row-major)")
-    matrix = matrix.reshape(4, 4)
-    rot = matrix[:3, :3]
-    if not (np.all(np.isfinite(matrix)) and np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9)
-            and np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0):
-        raise ConfigError(field, matrix.round(6).tolist(),
-                          "a rigid transform (orthonormal rotation with det +1, last row 0 0 0 1)")
-    return matrix
-
-
-def _transform_rays(d: np.ndarray[Any, Any], o: np.ndarray[Any, Any],
-                    matrix: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any],
-                                                          np.ndarray[Any, Any]]:
-    """Directions and origins (n, 3) moved into the target frame and rounded to float32 (like
-    the projector's own tables). Written out per component, left to right, in float64 from the
-    float32 projector tables, so that a plain loop reproduces them bit for bit."""
-    m = matrix
-    dx, dy, dz = (d[:, k].astype(np.float64) for k in range(3))
-    ox, oy, oz = (o[:, k].astype(np.float64) for k in range(3))
-    dt = np.empty(d.shape, np.float32)
-    ot = np.empty(o.shape, np.float32)
-    for i in range(3):
-        dt[:, i] = m[i, 0] * dx + m[i, 1] * dy + m[i, 2] * dz
-        ot[:, i] = m[i, 0] * ox + m[i, 1] * oy + m[i, 2] * oz + m[i, 3]
-    return dt, ot
 
 
 @dataclass(frozen=True)
@@ -365,7 +326,9 @@ class SliceConverter:
         range_min, range_max: inclusive planar limits, metres; default the info's (0 / inf when
             unknown).
         intensity_channel: channel whose value at the winning pixel becomes the intensity (any
-            dtype, cast to float32), or None for an empty ``intensities``.
+            dtype, cast to float32), or None for an empty ``intensities``. The default,
+            ``IfPresent("intensity")``, uses the scan's ``intensity`` channel when it has one
+            (empty ``intensities`` for a range-only scan); a plain name is required.
         use_inf, inf_epsilon, fill: output values (see :class:`converters._grid.OutputOptions`).
         range_channel: the range channel (float metres or integer with the info's multiplier).
         backend: ``"auto"`` (the C kernel of :mod:`converters._slicec` where it applies and is
@@ -381,32 +344,32 @@ class SliceConverter:
                  extrinsics: Any = None, frame_id: str | None = None,
                  angle_min: float | None = None, angle_max: float | None = None,
                  angle_increment: float | None = None, range_min: float | None = None,
-                 range_max: float | None = None, intensity_channel: str | None = "intensity",
+                 range_max: float | None = None,
+                 intensity_channel: str | None = IfPresent("intensity"),
                  use_inf: bool = True, inf_epsilon: float = 1.0, fill: float | None = None,
                  range_channel: str = "range", backend: str = "auto") -> None:
-        if backend not in ("auto", "numba", "numpy"):
-            raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
+        if not isinstance(slices, Mapping):
+            raise ConfigError("slices", slices, "a non-empty dict of name -> SliceSpec")
+        specs = {name: _as_spec(name, spec) for name, spec in slices.items()}
+        options.slice_options(specs, {
+            "extrinsics": extrinsics, "frame_id": frame_id, "angle_min": angle_min,
+            "angle_max": angle_max, "angle_increment": angle_increment,
+            "range_min": range_min, "range_max": range_max,
+            "intensity_channel": intensity_channel, "use_inf": use_inf,
+            "inf_epsilon": inf_epsilon, "fill": fill, "range_channel": range_channel,
+            "backend": backend})
         self._kernel = None if backend == "numpy" else _grid.numba_kernel()
         # the C kernel's scalar path (no AVX-512) is slower than numba's kernel
         self._c_kernel = backend == "auto" and _slicec.available() and (
             _slicec.vectorised() or self._kernel is None)
         if backend == "numba" and self._kernel is None:
             raise ConfigError("backend", backend, "numba installed (pip install numba)")
-        if not slices:
-            raise ConfigError("slices", dict(slices), "at least one named SliceSpec")
         self._common = {"angle_min": angle_min, "angle_max": angle_max,
                         "angle_increment": angle_increment, "range_min": range_min,
                         "range_max": range_max, "use_inf": use_inf, "inf_epsilon": inf_epsilon,
                         "fill": fill}
-        self._specs: dict[str, SliceSpec] = {}
-        for name, spec in slices.items():
-            if not isinstance(name, str) or not name:
-                raise ConfigError("slices", name, "non-empty str slice names")
-            self._specs[name] = _as_spec(name, spec)
+        self._specs: dict[str, SliceSpec] = specs
         self.extrinsics = check_extrinsics(extrinsics)
-        if extrinsics is not None and not frame_id:
-            raise ConfigError("frame_id", frame_id,
-                              "the target frame's name when extrinsics are given")
         self._frame_id = frame_id
         self.intensity_channel = intensity_channel
         self.range_channel = range_channel
@@ -473,7 +436,7 @@ class SliceConverter:
 
     @staticmethod
     def _sweep_sign(info: Any) -> float:
-        alpha = _as_array(info.horizontal_angles, np.float64).astype(np.float64)
+        alpha = as_array(info.horizontal_angles, np.float64).astype(np.float64)
         if alpha.size < 2:
             return 0.0
         step = (np.diff(alpha) + math.pi) % (2.0 * math.pi) - math.pi
@@ -485,14 +448,14 @@ class SliceConverter:
         if int(info.column_time_increment) > 0:
             return float(width * int(info.column_time_increment))
         if scan is not None and width >= 2:
-            times = _as_array(scan.column_time_offsets, np.int64)
+            times = as_array(scan.column_time_offsets, np.int64)
             if times.size == width:
                 return float(times[-1] - times[0]) * width / (width - 1)
         return 0.0
 
     # ------------------------------------------------------------------------------ tables
     def _tables_for(self, scan: Any) -> _Tables:
-        measured = _as_array(scan.column_azimuth_angles, np.float64)
+        measured = as_array(scan.column_azimuth_angles, np.float64)
         destaggered = bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
         if measured.size:
             key: Any = ("measured", destaggered,
@@ -506,7 +469,7 @@ class SliceConverter:
                 for k in [k for k in self._tables if k[0] == "measured"]:
                     del self._tables[k]
             d32, o32 = self.projector.tables_for(scan)
-            d, o = _transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), self.extrinsics)
+            d, o = transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), self.extrinsics)
             keys = None
             if destaggered:                  # tie key = measurement-order index u*W + c
                 height, width = self.projector.height, self.projector.width
@@ -539,8 +502,9 @@ class SliceConverter:
         tables = self._tables_for(scan)
         r = np.ascontiguousarray(range_m(scan, self.info, self.range_channel)).reshape(-1)
         intensity = None
-        if self.intensity_channel is not None:
-            values = channel(scan, self.intensity_channel)
+        wanted = resolve_channel(self.intensity_channel, channel_names(scan))
+        if wanted is not None:
+            values = channel(scan, wanted, native=True)
             intensity = (values[..., 0] if values.ndim == 3 else values).reshape(-1)
         decoded = self._row_convert(r, tables, intensity)
         if decoded is None:
@@ -801,18 +765,6 @@ def _as_spec(name: str, spec: SliceSpec | Mapping[str, Any]) -> SliceSpec:
         out = SliceSpec(**spec)
     else:
         raise ConfigError(f"slices[{name!r}]", spec, "a SliceSpec or a dict of its fields")
-    for field in ("min_height", "max_height"):
-        value = getattr(out, field)
-        try:
-            bad = math.isnan(float(value))
-        except (TypeError, ValueError):
-            bad = True
-        if bad:
-            raise ConfigError(f"slices[{name!r}].{field}", value, "a number (inf allowed)")
-    if float(out.min_height) > float(out.max_height):
-        raise ConfigError(f"slices[{name!r}].max_height", out.max_height,
-                          f">= min_height ({out.min_height}): the band is inclusive "
-                          "[min_height, max_height]")
     return out
 
 
@@ -823,7 +775,8 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
                  extrinsics: Any = None, frame_id: str | None = None,
                  angle_min: float | None = None, angle_max: float | None = None,
                  angle_increment: float | None = None, range_min: float | None = None,
-                 range_max: float | None = None, intensity_channel: str | None = "intensity",
+                 range_max: float | None = None,
+                 intensity_channel: str | None = IfPresent("intensity"),
                  use_inf: bool = True, inf_epsilon: float = 1.0, fill: float | None = None,
                  range_channel: str = "range", backend: str = "auto") -> Any:
     """One height slice of a LidarScan as a ``sensor_msgs.msg.LaserScan``.
@@ -837,18 +790,21 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
         rclpy ``sensor_msgs.msg.LaserScan`` stamped with the scan's stamp, ``ranges`` and
         ``intensities`` as ``array.array('f')``.
     """
-    options = {"extrinsics": extrinsics, "frame_id": frame_id, "angle_min": angle_min,
-               "angle_max": angle_max, "angle_increment": angle_increment,
-               "range_min": range_min, "range_max": range_max,
-               "intensity_channel": intensity_channel, "use_inf": use_inf,
-               "inf_epsilon": inf_epsilon, "fill": fill, "range_channel": range_channel,
-               "backend": backend}
-    ext = None if extrinsics is None else np.asarray(extrinsics, np.float64).tobytes()
+    kwargs = {"extrinsics": extrinsics, "frame_id": frame_id, "angle_min": angle_min,
+              "angle_max": angle_max, "angle_increment": angle_increment,
+              "range_min": range_min, "range_max": range_max,
+              "intensity_channel": intensity_channel, "use_inf": use_inf,
+              "inf_epsilon": inf_epsilon, "fill": fill, "range_channel": range_channel,
+              "backend": backend}
+    spec = SliceSpec(min_height, max_height)
+    options.slice_options({"slice": spec}, kwargs)      # before any use of the values
+    ext = None if extrinsics is None else check_extrinsics(extrinsics).tobytes()
+    # the type tells IfPresent("intensity") (the default) from a required "intensity"
     key = (info_key(info), float(min_height), float(max_height), ext,
-           tuple((k, v) for k, v in options.items() if k != "extrinsics"))
+           tuple((k, type(v), v) for k, v in kwargs.items() if k != "extrinsics"))
     converter = _CONVERTERS.get(key)
     if converter is None:
-        converter = SliceConverter(info, {"slice": SliceSpec(min_height, max_height)}, **options)
+        converter = SliceConverter(info, {"slice": spec}, **kwargs)
         _CONVERTERS[key] = converter
         while len(_CONVERTERS) > 8:
             _CONVERTERS.popitem(last=False)

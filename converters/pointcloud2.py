@@ -871,7 +871,7 @@ class PointCloud2Converter:
             raise LinkageError("LidarScan.lidar_info_time", link,
                                f"{self._info_stamp} (the LidarInfo's header.stamp, in ns)")
         specs, step, dtype = self._layout(scan)
-        raw = channel(scan, self.range_channel)
+        raw = channel(scan, self.range_channel, native=True)
         if raw.ndim == 3:
             raw = raw[..., 0]
         if raw.dtype.kind != "f" and (not self._mult > 0 or not math.isfinite(self._mult)):
@@ -1074,7 +1074,7 @@ class PointCloud2Converter:
                                               f"a channel named one of {spec.channels}")
                 images[spec.name] = None
                 continue
-            image = channel(scan, desc.name)
+            image = channel(scan, desc.name, native=True)
             if image.ndim == 3 and spec.count == 1:
                 image = image[..., 0]
             images[spec.name] = image

@@ -1539,3 +1539,77 @@ def test_cloud_messages_equal_normally_built_ones(tiny: tuple[Any, Any]) -> None
     assert cloud._check_fields == normal._check_fields     # honours ROS_PYTHON_CHECK_FIELDS
     with pytest.raises(ConversionError, match="height"):
         bare_message(PointCloud2, width=3)                  # every field or nothing
+
+
+# ------------------------------------------- optional channels and byte order (issue 17)
+
+def convert(scan: Any, info: Any, **options: Any) -> Any:
+    return pc.PointCloud2Converter(info, **options).convert(scan)
+
+
+@pytest.mark.parametrize("kernel", [False, pytest.param(True, marks=needs_kernel)])
+def test_range_only_scan_with_the_defaults_and_every_preset(tiny: tuple[Any, Any],
+                                                            kernel: bool) -> None:
+    """A valid scan with only a range channel converts with the defaults (x, y, z) and with
+    every preset: the preset's channel fields it cannot fill are zero (documented)."""
+    info, scan = tiny
+    only = lidarscan.make_scan(info, {"range": lidarscan.channel(scan, "range")},
+                               lidarscan.to_ns(scan.header.stamp),
+                               column_time_offsets=scan.column_time_offsets)
+    cloud = convert(only, info, kernel=kernel)
+    assert [f.name for f in cloud.fields] == ["x", "y", "z"]
+    plain = convert(scan, info, fields=("x", "y", "z"), kernel=kernel)
+    np.testing.assert_array_equal(xyz_of(cloud), xyz_of(plain))
+    for name, preset in pc.PRESETS.items():
+        cloud = convert(only, info, preset=name, kernel=kernel)
+        pts = pc.read_points(cloud)
+        for spec in preset.fields:
+            if spec.source == "channel":
+                assert not np.any(pts[spec.name]), (name, spec.name)
+    with pytest.raises(UnknownChannelError):                   # named explicitly: required
+        convert(only, info, fields=("x", "y", "z", "intensity"), kernel=kernel)
+
+
+@pytest.mark.parametrize("range_dtype", ["f4", "f8", "u2", "u4"])
+@pytest.mark.parametrize("kernel", [False, pytest.param(True, marks=needs_kernel)])
+def test_big_endian_scans_give_identical_clouds(tiny: tuple[Any, Any], range_dtype: str,
+                                                kernel: bool) -> None:
+    """Byte order is a property of the message: big- and little-endian scans with every channel
+    datatype give byte-identical clouds on each path (the kernel runs for both), and the
+    caller's buffer is left alone."""
+    info, scan = tiny
+    rng = np.random.default_rng(11)
+    shape = (int(info.height), int(info.width))
+    r = np.asarray(lidarscan.channel(scan, "range"))
+    info2 = lidarscan.make_info(**{**_fields(info), "range_multiplier": 0.001})
+    if np.dtype(range_dtype).kind == "f":
+        ranges = r.astype(range_dtype)
+    else:
+        ranges = np.where(np.isfinite(r) & (r > 0), np.round(r * 1000), 0).astype(range_dtype)
+    channels: dict[str, Any] = {"range": ranges}
+    for dtype in ("u1", "u2", "u4", "i1", "i2", "i4", "f4", "f8"):
+        kind = np.dtype(dtype)
+        channels["c_" + dtype] = (rng.uniform(-1e3, 1e3, shape).astype(kind) if kind.kind == "f"
+                                  else rng.integers(np.iinfo(kind).min, np.iinfo(kind).max,
+                                                    shape, endpoint=True).astype(kind))
+    fields = ("x", "y", "z", "range", "t", *[n for n in channels if n != "range"])
+    clouds = {}
+    for intensity in ("c_u2", "c_f8", "c_i1"):                 # the kernel's one channel field
+        chans = {**channels, "intensity": channels[intensity]}
+        for big in (False, True):
+            one = lidarscan.make_scan(info2, chans, 10**9, is_bigendian=big,
+                                      column_time_offsets=scan.column_time_offsets)
+            before = bytes(one.data)
+            conv = pc.PointCloud2Converter(info2, kernel=kernel, fields=("intensity", *fields))
+            if kernel:
+                spies = _Spy(conv._kfn.project), _Spy(conv._kfn.project_rc)
+                conv._kfn = pc._Kernels(*spies)
+            clouds[big] = conv.convert(one)
+            if kernel:
+                assert spies[0].calls + spies[1].calls == 1
+            assert bytes(one.data) == before
+            for preset in ("ouster", "hesai"):
+                clouds[big, preset] = convert(one, info2, preset=preset, kernel=kernel)
+        assert_identical(clouds[False], clouds[True])
+        for preset in ("ouster", "hesai"):
+            assert_identical(clouds[False, preset], clouds[True, preset])
