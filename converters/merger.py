@@ -77,8 +77,9 @@ from typing import Any
 
 import numpy as np
 
-from converters import _grid, options
+from converters import _grid, _kernels, options
 from converters._grid import AngleGrid, OutputOptions
+from converters._kernels.slices_numba import Bands, Rays
 from converters.frames import check_extrinsics, check_frame
 from lidarscan.errors import ConfigError, ValidationError
 from lidarscan.scan import as_array
@@ -86,8 +87,7 @@ from lidarscan.stamps import to_ns
 
 __all__ = ["LaserScanMerger", "MergerInput", "Pose", "interpolate_pose"]
 
-_NO_KEYS = np.zeros(0, np.int64)
-_ZERO = np.zeros(1, np.int64)
+_NO_KEYS = np.zeros(0, np.int32)    # tie key = ray index + the input's base
 
 
 @dataclass(frozen=True)
@@ -234,7 +234,7 @@ class _InputState:
         self._geom: dict[tuple[float, float, int], tuple[Any, Any, Any]] = {}
         self._rays_key: Any = None
         self._rays: Any = None
-        self.kernel_consts: Any = None
+        self.kernel_bands: Bands | None = None
         self.queue: list[tuple[int, Any]] = []
         self.consumed = -(1 << 63)
         self.last_seen: int | None = None
@@ -297,13 +297,15 @@ class _Rays:
                  q_near: np.ndarray[Any, Any]) -> None:
         self.d, self.o, self.keep = d, o, keep
         self.bin_far, self.r_thr, self.q_far, self.q_near = bin_far, r_thr, q_far, q_near
-        self.columns = tuple(np.ascontiguousarray(a[:, k]) for a in (d, o) for k in range(3))
         self.k_keep = np.zeros(0, np.uint8) if keep is None else keep.astype(np.uint8)
-        self.k_bin_far = bin_far.astype(np.int32)[None, :]
-        self.k_r_thr = _grid.round_up_f32(r_thr)[None, :]
         ok = bin_far >= 0
-        self.k_qual = ((q_far & ok).astype(np.uint8) | ((q_near & ok).astype(np.uint8) << 1)
-                       )[None, :]
+        columns = (np.ascontiguousarray(a[:, k]) for a in (d, o) for k in range(3))
+        #: the rays as the compiled kernels take them (tie keys: ray index + the input's base)
+        self.kernel_rays = Rays(
+            *columns, keys=_NO_KEYS,
+            qual=((q_far & ok).astype(np.uint8) | ((q_near & ok).astype(np.uint8) << 1)
+                  )[None, :],
+            bin_far=bin_far.astype(np.int32)[None, :], r_thr=_grid.round_up_f32(r_thr)[None, :])
 
 
 class LaserScanMerger:
@@ -350,9 +352,7 @@ class LaserScanMerger:
             "motion_compensation": motion_compensation, "odom_queue_size": odom_queue_size,
             "odom_max_gap_ns": odom_max_gap_ns, "jump_back_ns": jump_back_ns,
             "backend": backend})
-        self._kernel = None if backend == "numpy" else _grid.numba_kernel()
-        if backend == "numba" and self._kernel is None:
-            raise ConfigError("backend", backend, "numba installed (pip install numba)")
+        self._kernel = _kernels.select("merger", backend=backend).numba
         if not isinstance(inputs, Mapping) or not inputs:
             raise ConfigError("inputs", inputs, "a non-empty dict of name -> MergerInput")
         self.frame_id = frame_id
@@ -534,17 +534,13 @@ class LaserScanMerger:
 
     def _input_kernel(self, kernel: Any, s: _InputState, sc: _ScanIn, rays: _Rays, base: int,
                       best: np.ndarray[Any, Any]) -> None:
-        consts = s.kernel_consts
-        if consts is None:
-            g, o = self.grid, self.options
-            consts = s.kernel_consts = (
-                (np.array([float(s.cfg.min_height)]), np.array([float(s.cfg.max_height)]),
-                 np.array([o.range_min]), np.array([o.range_max]), _ZERO, _ZERO),
-                (np.array([g.angle_min]), np.array([g.increment]), np.array([g.size], np.int64),
-                 np.array([g.full_circle])))
-        kernel(sc.ranges, rays.k_keep, np.array(self._limits(s, sc)), *rays.columns,
-                     _NO_KEYS, base, *consts[0], rays.k_qual, *consts[1], rays.k_bin_far,
-                     rays.k_r_thr, best)
+        bands = s.kernel_bands
+        if bands is None:      # the input as one slice: its height band, the output's limits
+            bands = s.kernel_bands = Bands.create(
+                [(float(s.cfg.min_height), float(s.cfg.max_height), self.options, 0)],
+                [self.grid])
+        kernel.fuse(sc.ranges, rays.kernel_rays, bands, best, keep=rays.k_keep,
+                    limits=np.array(self._limits(s, sc)), key_base=base)
 
     def _input_codes(self, s: _InputState, sc: _ScanIn, rays: _Rays
                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any]]:

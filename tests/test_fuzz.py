@@ -966,7 +966,7 @@ def test_byte_order_fuzz(seed: int, height: int, width: int, range_dtype: str,
     per-pixel angles: slices (every backend) and clouds (both paths) are byte-identical."""
     import importlib.util
 
-    from converters import _slicec
+    from converters._kernels import slices as _slicec
     from converters.laserscan import SliceConverter
     from converters.pointcloud2 import PointCloud2Converter, kernel_available
     rng = np.random.default_rng(seed)

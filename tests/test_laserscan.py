@@ -219,7 +219,7 @@ def test_compiled_paths_agree(sensor: Any, mount: str, monkeypatch: pytest.Monke
     """The compiled kernels have four drivers: the bin-ordered kernel (one grid, shared range
     limits), and without it one call for small inputs, three passes for large ones, and the
     row-wise path for sensor-aligned full circles; all match the oracle."""
-    from converters import _grid
+    from converters._kernels import slices_numba as _grid
     ext = MOUNTS[mount]
     scan = room_scan(sensor, ext)
     grids = {"default": {}, "sector": {"angle_min": -2.0, "angle_max": 1.5, "angle_increment": 0.03}}
@@ -765,10 +765,10 @@ def test_numba_is_optional() -> None:
     import subprocess
     import sys
     code = ("import numpy as np, math, lidarscan\n"
-            "from converters import _grid\n"
+            "from converters._kernels import slices_numba\n"
             "from converters.laserscan import to_laserscan\n"
-            "from converters import _slicec\n"
-            "assert _grid.numba_kernel() is None and not _slicec.available()\n"
+            "from converters._kernels import slices as _slicec\n"
+            "assert slices_numba.kernels() is None and not _slicec.available()\n"
             "info = lidarscan.make_info(stamp_ns=1, frame_id='l', vertical_angles=[0.0],\n"
             "    horizontal_angles=[0.0, math.pi], as_dataclass=True)\n"
             "scan = lidarscan.make_scan(info, {'range': np.ones((1, 2), np.float32)}, 0,\n"
@@ -972,7 +972,7 @@ CHANNEL_DTYPES = [np.int8, np.uint8, np.int16, np.uint16, np.int32, np.uint32, n
 
 def slice_backends() -> list[str]:
     """numpy, numba (when installed) and the C kernel (when built, forced on)."""
-    from converters import _slicec
+    from converters._kernels import slices as _slicec
     return backends() + (["c"] if _slicec.available() else [])
 
 
