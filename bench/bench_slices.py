@@ -147,13 +147,9 @@ def variants(info: Any, specs: Any, common: Any, scan: Any, have_numba: bool
         def bin_ordered(conv: Any, t: Any) -> None:
             t.sorted.rows = None
 
-        def row_wise(conv: Any, t: Any) -> None:
-            t.sorted = None
-
         def general(conv: Any, t: Any) -> None:
-            t.sorted, t.aligned = None, None
+            t.sorted = None
         out["variant: numba bin-ordered"] = forced(bin_ordered, backend="numba")
-        out["variant: numba row-wise"] = forced(row_wise, backend="numba")
         out["variant: numba general 3-pass"] = forced(general, backend="numba")
     if cslices.available():
         def scalar_c(conv: Any, t: Any) -> None:
@@ -178,7 +174,7 @@ def main() -> None:
                              "points then need atan2)")
     parser.add_argument("--variants", action="store_true",
                         help="also time every compiled variant on this scene, each forced: "
-                             "numba bin-ordered, row-wise and general kernels, the C "
+                             "numba bin-ordered and general kernels, the C "
                              "kernel's scalar path")
     args = parser.parse_args()
 

@@ -532,7 +532,7 @@ def _header_of(grid: AngleGrid) -> tuple[float, float, float]:
 # ------------------------------------------- exact band intervals (row-ordered kernels)
 #
 # For the usual configuration (a full circle at the sensor's column resolution, an upright
-# sensor) the bin-ordered layout of the bin-ordered kernel has more structure: every bin holds
+# sensor) the layout of the bin-ordered kernel has more structure: every bin holds
 # exactly one pixel of every row, in row order, so position ``k`` inside any bin *is* row ``k``.
 # If moreover ``dz`` and ``oz`` are bitwise constant along every row, the height test of a
 # point depends only on its float32 range and its row: ``z(r) = float64(r) * dz + oz`` is a
@@ -540,7 +540,8 @@ def _header_of(grid: AngleGrid) -> tuple[float, float, float]:
 # is an *interval of float32 values*. :func:`band_intervals_f32` finds its ends exactly (by
 # bisection over float32 bit patterns, evaluating the very same float64 formula), and the kernel
 # replaces z and eight float64 comparisons per pixel by two float32 comparisons against per-row
-# constants (an L1-resident (slices, H) table). Everything else is :func:`converters._kernels.slices_numba._sorted_fuse`'s rules.
+# constants (an L1-resident (slices, H) table). Everything else follows the bin-ordered
+# kernel's rules (:mod:`converters._kernels.slices_numba`).
 
 _F32_MAX_BITS = 0x7F7FFFFF      # largest finite float32
 _F32_INF_BITS = 0x7F800000

@@ -145,11 +145,6 @@ class _Tables:
             ok = self.bin_far[g] >= 0
             self.q_far.append(q_far & ok)
             self.q_near.append(q_near & ok)
-        # one grid for all slices, at the sensor's resolution, and the far field reached within
-        # 1 m for 95 % of the pixels: the row-wise fast path (else near points dominate)
-        self.aligned = None
-        if len(grids) == 1 and np.mean(self.r_thr[0] > 1.0) < 0.05:
-            self.aligned = _grid.aligned_rows(self.bin_far[0], width, grids[0].size)
         self.k_r_thr = np.ascontiguousarray(np.stack([_grid.round_up_f32(t) for t in self.r_thr]))
         #: the tables as the general compiled kernels take them
         self.kernel_rays = Rays(
@@ -215,7 +210,8 @@ class _Sorted:
 
 
 class _RowLayout:
-    """Extra tables of the row-ordered kernel :func:`converters._kernels.slices_numba._row_fuse`, when it
+    """Extra tables of the row-ordered kernels (numba's
+    :func:`converters._kernels.slices_numba._row_convert` and the C kernel's plan), when it
     applies: every bin holds exactly one pixel of every row, in row order (a full circle at
     the sensor's column resolution), and ``dz``, ``oz`` are bitwise constant along every row
     (an upright sensor), so each band is an exact float32 range interval per row."""
@@ -504,7 +500,7 @@ class SliceConverter:
     def _row_convert(self, r: np.ndarray[Any, Any], tables: _Tables,
                      intensity: np.ndarray[Any, Any] | None
                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
-        """Fusion and decoding in one compiled call (:func:`converters._kernels.slices_numba._row_convert`)
+        """Fusion and decoding in one compiled call (the row-ordered kernels)
         when the row-ordered kernel applies, else None."""
         t = tables.sorted
         if t is None or t.rows is None:
@@ -562,9 +558,6 @@ class SliceConverter:
             r32 = np.ascontiguousarray(r, np.float32)
             if tables.sorted is not None:
                 kernel.fuse_sorted(r32, tables.sorted, self._bands, best)
-            elif tables.aligned is not None:
-                kernel.fuse_rows(r32, tables.kernel_rays, self._bands, self.projector.width,
-                                 tables.aligned[0], tables.aligned[1], best)
             else:
                 kernel.fuse(r32, tables.kernel_rays, self._bands, best)
             return best

@@ -327,7 +327,8 @@ class LaserScanMerger:
         odom_queue_size, odom_max_gap_ns: odometry samples kept; largest gap bridged.
         jump_back_ns: an input (or the odometry) whose stamps go back by more than this, two
             scans in a row, had its clock reset (see the module docstring); None = never.
-        backend: ``"auto"`` (compiled kernel when numba is installed), ``"numba"``, ``"numpy"``.
+        backend: ``"auto"`` (the numba kernels when installed), ``"numba"``, ``"numpy"``
+            (:func:`converters._kernels.select`).
 
     Raises:
         ConfigError: bad options.

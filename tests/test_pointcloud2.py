@@ -879,8 +879,8 @@ def test_round_trip_random_ranges_on_ouster_geometry(os2: Any, seed: int, missin
 # ------------------------------------------------------------------------- compiled kernel
 
 KERNEL = pc.kernel_available()
-needs_kernel = pytest.mark.skipif(not KERNEL, reason="compiled kernel converters/_kernels/_cloudkernel.c "
-                                                    "not built (pip install -e . builds it)")
+needs_kernel = pytest.mark.skipif(not KERNEL, reason="compiled kernel "
+                                  "converters/_kernels/_cloudkernel.c not built (pip install -e .)")
 
 
 class _Spy:

@@ -3,8 +3,8 @@
 The kernel computes all height slices of one scan in the *row-ordered* configuration of
 :mod:`converters._grid` (one full-circle grid at the sensor's column resolution, an upright
 sensor, every row mapping its columns onto the bins as ``start + step*c mod W``), bit-identical
-to the numba kernel :func:`converters._kernels.slices_numba._row_convert`, but streaming the scan in pixel order
-instead of gathering it bin by bin. :class:`SlicePlan` holds the per-table-version arguments
+to the numba kernel :func:`converters._kernels.slices_numba._row_convert`, but streaming the
+scan in pixel order instead of gathering it bin by bin. :class:`SlicePlan` holds the per-table-version arguments
 (a ``ctypes`` structure, built once); :meth:`SlicePlan.run` converts one scan.
 """
 
@@ -74,8 +74,8 @@ def available() -> bool:
 
 
 def vectorised() -> bool:
-    """Whether the kernel runs its AVX-512 path on this CPU. Its scalar path is about 3x faster
-    than the numpy backend but 3x slower than the numba kernel."""
+    """Whether the kernel runs its AVX-512 path on this CPU (its scalar path elsewhere; which
+    one pays against numba: bench/README.md)."""
     fn = library()
     return fn is not None and bool(fn.vectorised)
 

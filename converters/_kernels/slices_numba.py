@@ -12,7 +12,6 @@ Kernels (drivers in :class:`Compiled`):
 * general: pass 1 (band bits per ray), then points and specials (:func:`_pass_bands`,
   :func:`_pass_points`, :func:`_pass_others`; one call below ``_SMALL`` rays); any grids, any
   mount, the merger's inputs;
-* row-wise (:func:`_pass_rows`): all slices share a full circle at the column resolution;
 * bin-ordered (:func:`_sorted_fuse`): one grid and shared range limits;
 * row-ordered (:func:`_row_convert`): the bin-ordered layout of an upright sensor, with exact
   per-row float32 band intervals, fusion and decoding in one call.
@@ -61,11 +60,13 @@ def kernels() -> Compiled | None:
     except ImportError:
         return None
     global _J_BANDS, _J_POINTS, _J_OTHERS, _J_ROW, _J_DECODE_SLICES, _J_NEAR, _J_VALUE
+    global _J_CODE_VALUE
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     # called by the kernels below, so compiled first; inlined into them (a call per point
     # measured ~15 % slower where most points are near, e.g. an offset mount)
     _J_NEAR = numba.njit(nogil=True, error_model="numpy", inline="always")(_near_point)
     _J_VALUE = numba.njit(nogil=True, error_model="numpy", inline="always")(_value)
+    _J_CODE_VALUE = numba.njit(nogil=True, error_model="numpy", inline="always")(_code_value)
     _J_BANDS, _J_POINTS, _J_OTHERS = jit(_pass_bands), jit(_pass_points), jit(_pass_others)
     _J_ROW, _J_DECODE_SLICES = jit(_row_fuse), jit(_decode_slices)
     _KERNELS = Compiled(jit)
@@ -77,6 +78,7 @@ _J_ROW: Any = None
 _J_DECODE_SLICES: Any = None
 _J_NEAR: Any = None
 _J_VALUE: Any = None
+_J_CODE_VALUE: Any = None
 _J_POINTS: Any = None
 _J_OTHERS: Any = None
 
@@ -203,7 +205,6 @@ class Compiled:
     def __init__(self, jit: Any) -> None:
         self._bands, self._points, self._others = _J_BANDS, _J_POINTS, _J_OTHERS
         self._small = jit(_fuse_small)
-        self._rows = jit(_pass_rows)
         self._sorted = jit(_sorted_fuse)
         self._row_convert = jit(_row_convert)
         self.decode = jit(_decode_kernel)
@@ -233,34 +234,6 @@ class Compiled:
         others = np.flatnonzero(~good)
         if others.size:
             self._others(others, r, keep, limits, t.keys, key_base, b.grid, b.offset, t.qual,
-                         t.bin_far, best)
-
-    def fuse_rows(self, r: Any, rays: Rays, bands: Bands, width: int, row_start: Any,
-                  row_step: Any, best: Any) -> None:
-        """The row-wise kernel (:func:`_pass_rows`: one full circle at the column resolution,
-        far-field bins ``row_start[u] + row_step[u]*c``) plus the general passes for near
-        points and specials."""
-        t, b = rays, bands
-        n = r.shape[0]
-        ok = np.empty(n, np.bool_)
-        self._rows(r, t.dx, t.dy, t.dz, t.ox, t.oy, t.oz, t.keys, width, row_start, row_step,
-                   int(b.g_size[0]), b.zmin, b.zmax, b.rmin, b.rmax, b.offset, t.r_thr[0], ok,
-                   best)
-        point = (r > 0) & (r < np.inf)
-        near = np.flatnonzero(point & ~ok)
-        if near.size:
-            masks = np.zeros(n, np.uint64)
-            zn = r[near].astype(np.float64) * t.dz[near] + t.oz[near]
-            for s in range(b.zmin.shape[0]):
-                masks[near] |= (((zn >= b.zmin[s]) & (zn <= b.zmax[s])).astype(np.uint64)
-                                << np.uint64(s))
-            near = near[masks[near] != 0]
-            self._points(near, masks, r, t.dx, t.dy, t.ox, t.oy, t.keys, 0, b.rmin, b.rmax,
-                         b.grid, b.offset, b.g_min, b.g_inc, b.g_size, b.g_full, t.bin_far,
-                         t.r_thr, best)
-        others = np.flatnonzero(~point)
-        if others.size:
-            self._others(others, r, _NO_KEEP, _NO_LIMITS, t.keys, 0, b.grid, b.offset, t.qual,
                          t.bin_far, best)
 
     def fuse_sorted(self, r: Any, plan: Any, bands: Bands, best: Any) -> None:
@@ -301,25 +274,27 @@ def _decode_kernel(best: Any, inf_value: Any, fill_value: Any, ranges: Any,
                    winners: Any) -> None:  # pragma: no cover - compiled
     """Compiled :func:`decode` into preallocated (N,) float32 ranges and int64 winners."""
     values = best.view(np.int64)
-    bits = np.empty(1, np.int32)
-    as_float = bits.view(np.float32)
     for k in range(values.shape[0]):
         v = values[k]
         if v == EMPTY:
             ranges[k] = fill_value
             winners[k] = -1
             continue
-        code = v >> 32
         winners[k] = v & 0xFFFFFFFF
-        if code < CODE_NEG_INF:
-            bits[0] = np.int32(code)
-            ranges[k] = as_float[0]
-        elif code == CODE_NEG_INF:
-            ranges[k] = -np.inf
-        elif code == CODE_POS_INF:
-            ranges[k] = inf_value
-        else:
-            ranges[k] = np.nan
+        ranges[k] = _J_CODE_VALUE(v, inf_value)
+
+
+def _code_value(v: Any, inf_value: Any) -> Any:  # pragma: no cover - compiled
+    """The published float32 value of a non-empty reduction element (``code << 32 | key``):
+    the finite range, -Inf, ``inf_value`` for the +Inf class, NaN."""
+    code = v >> 32
+    if code < CODE_NEG_INF:
+        return np.int32(code).view(np.float32)
+    if code == CODE_NEG_INF:
+        return np.float32(-np.inf)
+    if code == CODE_POS_INF:
+        return np.float32(inf_value)
+    return np.float32(np.nan)
 
 
 def _decode_slices(best: Any, offset: Any, size: Any, inf_value: Any, fill_value: Any,
@@ -342,15 +317,7 @@ def _decode_slices(best: Any, offset: Any, size: Any, inf_value: Any, fill_value
                 if use_int:
                     ints[j] = 0.0
                 continue
-            code = v >> 32
-            if code < CODE_NEG_INF:
-                ranges[j] = np.int32(code).view(np.float32)
-            elif code == CODE_NEG_INF:
-                ranges[j] = -np.inf
-            elif code == CODE_POS_INF:
-                ranges[j] = inf_v
-            else:
-                ranges[j] = np.nan
+            ranges[j] = _J_CODE_VALUE(v, inf_v)
             if use_int:
                 key = v & 0xFFFFFFFF
                 ints[j] = np.float32(intensity[key_to_pos[key] if use_map else key])
@@ -465,67 +432,6 @@ def _pass_others(others: Any, r: Any, keep: Any, limits: Any, keys: Any, key_bas
             if b >= 0 and (qual[s, i] & need):
                 j = offset[s] + b
                 best[j] = min(best[j], comb)
-
-
-def _pass_rows(r: Any, dx: Any, dy: Any, dz: Any, ox: Any, oy: Any, oz: Any, keys: Any,
-               width: Any, row_start: Any, row_step: Any, n_bins: Any, zmin: Any, zmax: Any,
-               rmin: Any, rmax: Any, offset: Any, r_thr: Any, ok: Any,
-               best: Any) -> None:  # pragma: no cover - compiled
-    """Sensor-aligned fast path: every row's far-field bins run ``row_start[u] + step*c``
-    (mod ``n_bins``, step +-1) on one grid shared by all slices, so a row's far points fuse
-    into consecutive bins without scattered lookups. Sets ``ok[i]`` for the far points it
-    handled; near points and non-points are left to passes 2 and 3."""
-    n = r.shape[0]
-    height = n // width
-    n_slices = zmin.shape[0]
-    use_keys = keys.shape[0] == n
-    zz = np.empty(width)
-    rho = np.empty(width)
-    rho32 = np.empty(width, np.float32)
-    rho_bits = rho32.view(np.int32)
-    comb = np.empty(width, np.int64)
-    empty = np.int64(EMPTY)
-    for u in range(height):
-        base = u * width
-        for c in range(width):
-            i = base + c
-            rv = r[i]
-            rd = np.float64(rv)
-            x = rd * dx[i] + ox[i]
-            y = rd * dy[i] + oy[i]
-            zz[c] = rd * dz[i] + oz[i]
-            rho[c] = math.sqrt(x * x + y * y)
-            rho32[c] = rho[c]
-            ok[i] = (rv > 0.0) & (rv < np.inf) & (rv >= r_thr[i])
-        start = row_start[u]
-        step = row_step[u]
-        for s in range(n_slices):
-            lo_z, hi_z, lo_r, hi_r = zmin[s], zmax[s], rmin[s], rmax[s]
-            for c in range(width):
-                code = np.int64(rho_bits[c])
-                code = np.int64(CODE_NEG_INF) if rho[c] < lo_r else code
-                code = np.int64(CODE_POS_INF) if rho[c] > hi_r else code
-                key = np.int64(keys[base + c]) if use_keys else np.int64(base + c)
-                inside = ok[base + c] & (zz[c] >= lo_z) & (zz[c] <= hi_z)
-                comb[c] = ((code << 32) | key) if inside else empty
-            # bins run start, start + step, ... (mod n_bins): two contiguous runs
-            off = offset[s]
-            if step == 1:
-                split = min(n_bins - start, width)
-                j0 = off + start
-                for c in range(split):
-                    best[j0 + c] = min(best[j0 + c], comb[c])
-                j0 = off - split
-                for c in range(split, width):
-                    best[j0 + c] = min(best[j0 + c], comb[c])
-            else:
-                split = min(start + 1, width)
-                j0 = off + start
-                for c in range(split):
-                    best[j0 - c] = min(best[j0 - c], comb[c])
-                j0 = off + start + n_bins
-                for c in range(split, width):
-                    best[j0 - c] = min(best[j0 - c], comb[c])
 
 
 # ------------------------------------------------- bin-ordered kernel (slices, one shared grid)
