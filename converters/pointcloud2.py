@@ -207,7 +207,7 @@ class _Job:
     ref: int
     stamp_ns: int
     scan_dest: bool
-    kernel: _KernelJob | None = None
+    kernel: _ck.Job | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,51 +221,6 @@ class _Plan:
     image: np.ndarray[Any, Any] | None        # its channel image
     extra_type: int
     covers_all: bool                          # x, y, z (+ extra) are all the fields
-
-
-@dataclasses.dataclass
-class _KernelJob:
-    """Arguments of one ``lsk_project`` call over the whole grid (addresses as ints)."""
-
-    fn: Any
-    out: int
-    step: int
-    xyz_offset: int
-    range: int
-    range_type: int
-    roll: int | None
-    width: int
-    scale: int
-    mult: float
-    offset: float
-    geometry: tuple[int | None, ...]          # (D, O) tables or (colshift, rows, cols, g)
-    extra: int | None
-    extra_type: int
-    extra_offset: int
-    r_out: int | None
-    done: frozenset[str]                      # field names the kernel writes
-    keep: tuple[Any, ...]                     # arrays the addresses point into
-    factored: bool = False                    # fn is lsk_project_rc
-
-    def run(self, start: int, count: int, dense: bool = False) -> int:
-        if self.factored:
-            colshift, rows, cols, const = self.geometry
-            valid = int(self.fn(self.out, self.step, self.xyz_offset, start, count, self.range,
-                                self.range_type, self.roll, colshift, self.width, self.scale,
-                                self.mult, self.offset, rows, cols, const,
-                                self.extra, self.extra_type, self.extra_offset,
-                                self.r_out, int(dense)))
-        else:
-            d, o = self.geometry
-            valid = int(self.fn(self.out, self.step, self.xyz_offset, start, count, self.range,
-                                self.range_type, None, self.roll, self.width, self.scale,
-                                self.mult, self.offset, d, o,
-                                self.extra, self.extra_type, self.extra_offset,
-                                self.r_out, int(dense)))
-        if valid < 0:                                          # unreachable: types checked
-            raise ConversionError("kernel source type", (self.range_type, self.extra_type),
-                                  f"one of {sorted(_loader.TYPE_CODES.values())}")
-        return valid
 
 
 class _Planes:
@@ -738,7 +693,7 @@ class PointCloud2Converter:
 
     def _kernel_job(self, plan: _Plan, out: int, step: int, tables: _Planes | None,
                     factors: tuple[np.ndarray[Any, Any], ...] | None, scan_dest: bool,
-                    r_out: bool) -> _KernelJob:
+                    r_out: bool) -> _ck.Job:
         """One kernel call's arguments: the factored form when ``factors`` is given, else the
         per-pixel ``tables``."""
         raw, spec, image = plan.raw, plan.extra, plan.image
@@ -753,7 +708,7 @@ class PointCloud2Converter:
                       *self._static_kernel_args(source, factors is not None, scan_dest))
             self._static_args = static
         fn, geometry, roll_addr, keep = static[2:]
-        return _KernelJob(
+        return _ck.Job(
             fn=fn, out=out, step=int(step), xyz_offset=int(plan.xyz_offset),
             range=_ck.addr(raw), range_type=plan.raw_type,
             roll=roll_addr, width=self.width,

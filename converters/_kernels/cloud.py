@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 
 from converters._kernels import _loader
+from lidarscan.errors import ConversionError
 
-__all__ = ["ABI", "Kernels", "available", "kernel", "load"]
+__all__ = ["ABI", "Job", "Kernels", "available", "kernel", "load"]
 
 #: ABI of _cloudkernel.c (its LSK_ABI): a stale build is ignored, not called.
 ABI = 3
@@ -69,6 +70,54 @@ def load() -> Kernels | None:
 
 
 _once = _loader.LoadOnce(load)
+
+
+@dataclasses.dataclass
+class Job:
+    """One kernel call over the whole grid, as named fields (addresses as ints); built per
+    layout by the converter, :meth:`run` over row blocks."""
+
+    fn: Any
+    out: int
+    step: int
+    xyz_offset: int
+    range: int
+    range_type: int
+    roll: int | None
+    width: int
+    scale: int
+    mult: float
+    offset: float
+    geometry: tuple[int | None, ...]          # (D, O) tables or (colshift, rows, cols, g)
+    extra: int | None
+    extra_type: int
+    extra_offset: int
+    r_out: int | None
+    done: frozenset[str]                      # field names the kernel writes
+    keep: tuple[Any, ...]                     # arrays the addresses point into
+    factored: bool = False                    # fn is lsk_project_rc
+
+    def run(self, start: int, count: int, dense: bool = False) -> int:
+        """Points ``start .. start+count`` (pixel order); returns how many are valid
+        (``dense``: the valid ones are packed at the front)."""
+        if self.factored:
+            colshift, rows, cols, const = self.geometry
+            valid = int(self.fn(self.out, self.step, self.xyz_offset, start, count, self.range,
+                                self.range_type, self.roll, colshift, self.width, self.scale,
+                                self.mult, self.offset, rows, cols, const,
+                                self.extra, self.extra_type, self.extra_offset,
+                                self.r_out, int(dense)))
+        else:
+            d, o = self.geometry
+            valid = int(self.fn(self.out, self.step, self.xyz_offset, start, count, self.range,
+                                self.range_type, None, self.roll, self.width, self.scale,
+                                self.mult, self.offset, d, o,
+                                self.extra, self.extra_type, self.extra_offset,
+                                self.r_out, int(dense)))
+        if valid < 0:                                          # unreachable: types checked
+            raise ConversionError("kernel source type", (self.range_type, self.extra_type),
+                                  f"one of {sorted(_loader.TYPE_CODES.values())}")
+        return valid
 
 
 def available() -> bool:
