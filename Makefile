@@ -13,7 +13,7 @@ unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml msgs/CMakeLists.txt msgs/package.xml $(wildcard msgs/msg/*.msg)
+$(STAMP): pyproject.toml setup.py $(wildcard converters/_kernels/*.c) msgs/CMakeLists.txt msgs/package.xml $(wildcard msgs/msg/*.msg)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test,viz,fast,msgs-build]'
