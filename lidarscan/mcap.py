@@ -112,9 +112,10 @@ class McapWriter:
                 self._schemas[msgtype] = self._writer.register_schema(
                     name=msgtype, encoding="ros2msg", data=schema_text(msgtype).encode())
             given = dict(metadata or {})
-            offered = tuple(parse_qos(given.get("offered_qos_profiles", ""))) \
-                or self._qos.get(topic) or (default_qos(topic, msgtype),)
-            given["offered_qos_profiles"] = dump_qos(offered)
+            offered = tuple(parse_qos(given.get("offered_qos_profiles", "")))
+            if not offered:   # a caller's own profiles are kept verbatim, else ours are written
+                offered = self._qos.get(topic) or (default_qos(topic, msgtype),)
+                given["offered_qos_profiles"] = dump_qos(offered)
             self._channels[key] = self._writer.register_channel(
                 topic=topic, message_encoding="cdr", schema_id=self._schemas[msgtype],
                 metadata=given)
