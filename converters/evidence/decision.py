@@ -121,13 +121,11 @@ def _size_facts() -> dict[str, Any]:
 
 
 def _answers() -> list[str]:
-    from converters.evidence import geometry, range_error, summary
+    from converters.evidence import geometry, summary
     img, key, ven = summary.image_facts(), summary.key_facts(), summary.vendor_facts()
     size = _size_facts()
     single, dual = size["single"], size["dual"]
-    rng = [r for r in range_error.measure() if r["unit"] is not None]
-    worst = max(rng, key=lambda r: r["max_err_um"])
-    exact = all(r["exact"] for r in rng)
+    worst, exact = summary.range_facts()
     cpp = cpp_facts()
     others = ", ".join(f"{n} × `{t}` ({_KNOWN_TYPES[t]})" for t, n in sorted(cpp["other"].items()))
     h, w, pixel_bytes = _per_pixel_bytes()
@@ -142,7 +140,7 @@ def _answers() -> list[str]:
         f"of §1 the driver's own cloud is {size['min']:.1f}–{size['max']:.1f}× the LidarScan. "
         "Compressed: below.",
         f"**Why not N `sensor_msgs/Image` + `CameraInfo`?** The images save almost nothing "
-        f"({size_pct(img['size_max'])}–{size_pct(img['size_min'])} % of the bytes), cannot carry "
+        f"({_pct(img['size_max'])}–{_pct(img['size_min'])} % of the bytes), cannot carry "
         "the per-column times or the info link, and `CameraInfo` has no per-beam angles, beam "
         "origins or stagger (omitting the per-beam azimuth alone costs up to "
         f"{azim / 1000:.1f} m at 100 m, §4). A receiver must re-synchronise the topics: with "
@@ -194,7 +192,7 @@ def _answers() -> list[str]:
     ]
 
 
-def size_pct(ratio: float) -> str:
+def _pct(ratio: float) -> str:
     """Images ÷ LidarScan -> per cent saved, e.g. 0.987 -> '1.3'."""
     return f"{(1 - ratio) * 100:.1f}"
 
@@ -261,7 +259,7 @@ def _rejected() -> str:
          f"driver's cloud {size['min']:.1f}–{size['max']:.1f}× the bytes (uncompressed); no grid, "
          "no free space vs no data", "§1, §6"),
         ("one `sensor_msgs/Image` per channel + `CameraInfo`",
-         f"saves {size_pct(img['size_max'])}–{size_pct(img['size_min'])} % of the bytes; "
+         f"saves {_pct(img['size_max'])}–{_pct(img['size_min'])} % of the bytes; "
          f"{fmt_int(img['exact_lost'])} vs {fmt_int(img['one_lost'])} frames lost of "
          f"{fmt_int(img['frames'])} ({img['n']} topics, {img['p'] * 100:g} % loss, ExactTime) "
          f"or {fmt_int(img['mixed'])} mixed sets (ApproximateTime, {img['slop']:g} s)", "§2"),

@@ -13,7 +13,8 @@ from typing import Any
 
 from converters.evidence._common import Block, fmt_int, have
 
-__all__ = ["blocks", "codec_facts", "image_facts", "key_facts", "vendor_facts", "versions"]
+__all__ = ["blocks", "codec_facts", "image_facts", "key_facts", "range_facts",
+           "vendor_facts", "versions"]
 
 
 def _n(text: str) -> int:
@@ -72,11 +73,16 @@ def _compression() -> list[str]:
     return out
 
 
-def _range() -> list[str]:
+def range_facts() -> tuple[dict[str, Any], bool]:
+    """float32 metres (§3): the worst round-trip record over the surveyed sensors' native units,
+    and whether every native integer value is recovered exactly."""
     from converters.evidence import range_error
     recs = [r for r in range_error.measure() if r["unit"] is not None]
-    worst = max(recs, key=lambda r: r["max_err_um"])
-    exact = all(r["exact"] for r in recs)
+    return max(recs, key=lambda r: r["max_err_um"]), all(r["exact"] for r in recs)
+
+
+def _range() -> list[str]:
+    worst, exact = range_facts()
     return [f"**float32 metres (§3).** Worst round-trip error over every native range value of "
             f"the surveyed sensors: {worst['max_err_um']:.1f} µm ({worst['label']}, up to "
             f"{worst['max']:g} m); every native integer value is recovered exactly: "
