@@ -139,7 +139,8 @@ def _answers() -> list[str]:
         f"{fmt_int(single['ouster-ros original'])} B as ouster-ros' cloud; over every grid layout "
         f"of §1 the driver's own cloud is {size['min']:.1f}–{size['max']:.1f}× the LidarScan. "
         "Compressed: below.",
-        f"**Why not N `sensor_msgs/Image` + `CameraInfo`?** The images save almost nothing "
+        f"**Why not N `sensor_msgs/Image` + `CameraInfo`?** The images save "
+        f"{'almost nothing' if img['size_min'] >= 0.95 else 'some bytes'} "
         f"({_pct(img['size_max'])}–{_pct(img['size_min'])} % of the bytes), cannot carry "
         "the per-column times or the info link, and `CameraInfo` has no per-beam angles, beam "
         "origins or stagger (omitting the per-beam azimuth alone costs up to "
@@ -221,12 +222,14 @@ def _compression() -> list[str]:
               for f in facts if not f["all_met"]] + \
         [f"range ≤ {goals['range']}× Draco on {f['label']}" for f in facts
          if f["range_met"] is False]
+    beaten = [f["label"] for f in facts if f["raw_ratio"] <= 1 or f["zstd_ratio"] >= 1]
+    wins = ("already wins every like-for-like comparison (raw, same codec)" if not beaten else
+            f"loses a like-for-like comparison on {', '.join(beaten)}")
     verdict = ("Every size goal is met." if not missed else
                f"**Goals not met:** {'; '.join(missed)}. The recommendation stands anyway: the "
                "goals compare a lossless coding of every channel with the best a cloud can do, "
-               "and the LidarScan already wins every like-for-like comparison (raw, same "
-               "codec); Draco is lossy and drops the grid, the point order and the pixels "
-               "without a return; the remaining bytes are sensor noise (§1). Compression stays "
+               f"and the LidarScan {wins}; Draco is lossy and drops the grid, the point order "
+               "and the pixels without a return; the remaining bytes are sensor noise (§1). Compression stays "
                "a transport/storage option (`lidarscan.codec`, versioned), not part of the "
                "message.")
     out.append(verdict)
@@ -241,7 +244,9 @@ def _compression() -> list[str]:
             f"(integers {mm['shuffle+zstd-3'] / f32['shuffle+zstd-3']:.2f}×); `lidarscan.codec`: "
             f"{fmt_int(f32['codec'])} vs {fmt_int(mm['codec'])} B "
             f"({mm['codec'] / f32['codec']:.2f}×). The integer advantage is a general-purpose-"
-            "codec effect that the structure-aware codec all but removes; metres stay canonical.")
+            "codec effect that the structure-aware codec "
+            + ("all but removes" if abs(mm["codec"] / f32["codec"] - 1) <= 0.1 else "reduces")
+            + "; metres stay canonical.")
     return out
 
 
