@@ -74,7 +74,9 @@ def cpp_facts() -> dict[str, Any]:
         rosidl primitive types (arrays included), "other": {type: count} of the rest,
         "unknown": types that are neither}.
     """
-    fields, primitive, other, unknown = 0, 0, {}, []
+    fields, primitive = 0, 0
+    other: dict[str, int] = {}
+    unknown: list[str] = []
     for name in _MSGS:
         for line in _fields(name):
             if "=" in line:
@@ -233,7 +235,7 @@ def _compression() -> list[str]:
                "a transport/storage option (`lidarscan.codec`, versioned), not part of the "
                "message.")
     out.append(verdict)
-    per = {}
+    per: dict[str, dict[str, dict[str, Any]]] = {}
     for r in units.measure():
         per.setdefault(r["label"], {})[r["form"]] = r
     for label, forms in per.items():
