@@ -23,6 +23,7 @@ module                 answers
 ``linkage``            5: the info link, scenario counts, resolver vs "latest info wins"
 ``slicing``            6: slices from the scan vs from a point cloud; merger vs per-point
 ``summary``            the headline numbers, from the modules above
+``decision``           the decision record: each open question's answer and its number
 =====================  =====================================================================
 """
 
@@ -46,6 +47,7 @@ def _deterministic_sections() -> list[tuple[str, Callable[[], list[Block]]]]:
     from converters.evidence import (
         codec_study,
         compression,
+        decision,
         geometry,
         images,
         linkage,
@@ -66,6 +68,7 @@ def _deterministic_sections() -> list[tuple[str, Callable[[], list[Block]]]]:
         ("linkage", linkage.blocks),
         ("slicing", lambda: slicing.blocks(timing=False)),
         ("summary", summary.blocks),
+        ("decision", decision.blocks),
     ]
 
 
@@ -74,6 +77,7 @@ _SECTION_BLOCKS = {
     "sizes": ("sizes", "rates"), "compression": ("compression", "range-encoding"),
     "range_error": ("range-error",), "geometry": ("geometry",), "linkage": ("linkage",),
     "slicing": ("slicing", "merger"), "summary": ("headline", "headline-compression"),
+    "decision": ("decision-msgs", "decision-answers", "decision-compression", "decision-rejected"),
     "compression timing": ("timing-compression",),
     "codec study": ("codec-study", "codec-goals"), "codec timing": ("timing-codec",),
     "images": ("images-sizes", "images-sync"), "images timing": ("timing-images",),
