@@ -99,6 +99,7 @@ model, vendor_metadata (a JSON line with the detected format, return mode and rp
 from __future__ import annotations
 
 import calendar
+import dataclasses
 import functools
 import io
 import json
@@ -112,8 +113,10 @@ from typing import Any
 
 import numpy as np
 
+from lidarscan import types
 from lidarscan.errors import ConfigError, DecodeError
 from lidarscan.scan import make_info, make_scan
+from lidarscan.stamps import split_ns
 
 __all__ = [
     "FORMATS",
@@ -420,6 +423,7 @@ class PacketDecoder:
         self._info: Any = None
         self._info_key: tuple[Any, ...] | None = None
         self._last_info_stamp: int | None = None
+        self._template: tuple[Any, ...] | None = None   # (key, scan, channel views) of _layout
 
     # -------------------------------------------------------------------------- packet intake
     def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
@@ -526,6 +530,10 @@ class PacketDecoder:
                 whose arrays are themselves wrong (shape, dtype) raises with ``index`` -1
                 before consuming anything.
         """
+        return self._push_rows(stamps_ns, payloads, owned=False)
+
+    def _push_rows(self, stamps_ns: Any, payloads: Any, owned: bool) -> list[tuple[Any, Any]]:
+        """push_many(); ``owned``: the caller hands ``payloads`` over (never used again)."""
         rows = payloads
         if not isinstance(rows, np.ndarray) or rows.dtype != np.uint8 or rows.ndim != 2:
             raise _batch_error(DecodeError(
@@ -546,7 +554,7 @@ class PacketDecoder:
                 plain, first, last = self._plain_rows(rows[i:])
                 if plain:
                     out += self._append_rows(stamps[i:i + plain], rows[i:i + plain],
-                                             first[:plain], last[:plain])
+                                             first[:plain], last[:plain], owned)
                     i += plain
                 if i < n:                     # a first, new-stream, new-date or bad packet
                     try:
@@ -575,15 +583,16 @@ class PacketDecoder:
         return (int(bad[0]) if bad.size else rows.shape[0]), az, az2
 
     def _append_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any],
-                     first: np.ndarray[Any, Any], last: np.ndarray[Any, Any]
+                     first: np.ndarray[Any, Any], last: np.ndarray[Any, Any], owned: bool
                      ) -> list[tuple[Any, Any]]:
-        """Buffer plain rows (a view, not owned); emit what their wraps complete."""
+        """Buffer plain rows (views; ``owned``: no copy needed); emit what their wraps
+        complete."""
         self._join_packets()
         prev = np.empty_like(last)
         prev[0] = self._last_az
         prev[1:] = last[:-1]
         wraps = np.flatnonzero((first < prev - 18000) | (last < first - 18000))
-        self._segs.append((stamps, rows, False))
+        self._segs.append((stamps, rows, owned))
         self._last_az = int(last[-1])
         if not wraps.size:
             return []
@@ -620,12 +629,11 @@ class PacketDecoder:
         firings = fmt.blocks // stream.returns
         azimuth = np.concatenate([rec["b"]["az"][:, ::stream.returns] for rec in recs])
         us = np.concatenate([rec["us"] for rec in recs]).astype(np.int64)
-        dates = np.concatenate([rec["date"] for rec in recs]).astype(np.int64)
-        keys = dates @ (np.int64(256) ** np.arange(6, dtype=np.int64))
-        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-        secs = np.array([_date_seconds(bytes(dates[i].astype(np.uint8))) for i in first],
-                        np.int64)
-        t0 = secs[inverse.reshape(-1)] * 1_000_000_000 + us * 1000
+        dates = np.concatenate([rec["date"] for rec in recs])            # (P, 6) uint8
+        starts = np.flatnonzero(np.r_[True, (dates[1:] != dates[:-1]).any(1)])
+        secs = np.array([_date_seconds(bytes(dates[i])) for i in starts], np.int64)
+        secs = np.repeat(secs, np.diff(np.r_[starts, len(dates)]))
+        t0 = secs * 1_000_000_000 + us * 1000
         times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
         return {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
                 "t0": t0, "stamp": np.concatenate([seg[0] for seg in self._segs])}
@@ -690,15 +698,44 @@ class PacketDecoder:
             if a < b:
                 pieces.append((seg[1], a - at, b - a, a - lo))
             at += n
-        dist, refl = _units(pieces, stream, self._rows, width)
-        channels: dict[str, np.ndarray[Any, Any]] = {}
-        for r, (rname, iname) in enumerate(_channel_names(_block_kinds(fmt, stream.mode))):
-            channels[rname], channels[iname] = dist[r], refl[r]
-        channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
-        scan = make_scan(info, channels, stamp, column_time_offsets=times - stamp,
-                         column_azimuth_angles=np.pi / 2 - np.deg2rad(az * 0.01),
-                         as_dataclass=self.as_dataclass)
+        names = _channel_names(_block_kinds(fmt, stream.mode))
+        template, views = self._layout(info, names, width)
+        data = np.zeros(template.data.size, np.uint8)
+        grids = [tuple(_channel_view(data, view) for view in pair) for pair in views]
+        _units(pieces, stream, self._rows, grids)
+        angles = np.pi / 2 - np.deg2rad(az * 0.01)
+        if not self.as_dataclass:
+            channels = {name: _channel_view(data, views[r][k]) for r, pair in enumerate(names)
+                        for k, name in enumerate(pair)}
+            channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
+            return make_scan(info, channels, stamp, column_time_offsets=times - stamp,
+                             column_azimuth_angles=angles, as_dataclass=False), info
+        # the dataclass: make_scan's layout (from the template), this rotation's buffer as data
+        sec, nanosec = split_ns(stamp)
+        scan = dataclasses.replace(
+            template, header=types.Header(types.Time(sec, nanosec), template.header.frame_id),
+            column_time_offsets=_readonly(times - stamp), column_azimuth_angles=_readonly(angles),
+            data=_readonly(data))
         return scan, info
+
+    def _layout(self, info: Any, names: list[tuple[str, str]], width: int
+                ) -> tuple[Any, list[tuple[tuple[int, int, int, int], ...]]]:
+        """A make_scan dataclass of this info version (its channel layout) and, per block of
+        a firing, the (offset, height, width, itemsize) of its range and intensity blocks."""
+        key = (info.header.stamp, info.width, tuple(names))
+        if self._template is not None and self._template[0] == key:
+            return self._template[1], self._template[2]
+        height = int(info.height)
+        zeros = {name: np.zeros((height, width), np.uint16 if k == 0 else np.uint8)
+                 for pair in names for k, name in enumerate(pair)}
+        zeros = {k: zeros[k] for k in sorted(zeros, key=_channel_rank)}
+        template = make_scan(info, zeros, 0, column_time_offsets=np.zeros(width, np.int64),
+                             column_azimuth_angles=np.zeros(width), as_dataclass=True)
+        offsets = {c.name: c.offset for c in template.channels}
+        views = [tuple((offsets[name], height, width, 2 if k == 0 else 1)
+                       for k, name in enumerate(pair)) for pair in names]
+        self._template = (key, template, views)
+        return template, views
 
     def _info_for(self, stream: _Stream, width: int, stamp: int) -> Any:
         key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
@@ -776,33 +813,31 @@ def _unit_offsets(fmt: HesaiFormat, returns: int) -> np.ndarray[Any, Any]:
 
 
 def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
-           rows: np.ndarray[Any, Any], width: int
-           ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+           rows: np.ndarray[Any, Any],
+           grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
     """Distances and reflectivities of one rotation, read from blocks of payload rows.
 
     ``pieces``: (payload rows (P, size) uint8, first firing in them, firing count, first
-    column). Returns (returns, L, width) uint16 raw distances and uint8 reflectivities, laser
-    index l in row ``rows[l]``, columns not covered zero (no return). The compiled kernel of
-    :mod:`converters._kernels.hesai` when available, else :func:`_units_numpy`.
+    column). ``grids[r]``: the (L, W) uint16 distance and uint8 reflectivity grids of block r of
+    a firing, zero-filled; laser index l goes to row ``rows[l]``, the columns of the pieces are
+    written. The compiled kernel of :mod:`converters._kernels.hesai` when available, else
+    :func:`_units_numpy` (the reference).
     """
-    fmt = stream.fmt
-    shape = (stream.returns, fmt.lasers, width)
-    dist, refl = np.zeros(shape, np.uint16), np.zeros(shape, np.uint8)
     fill = _kernel()
     if fill is None:
-        _units_numpy(pieces, stream, rows, dist, refl)
-        return dist, refl
-    offsets = _unit_offsets(fmt, stream.returns)
+        _units_numpy(pieces, stream, rows, grids)
+        return
+    offsets = _unit_offsets(stream.fmt, stream.returns)
     for payloads, first, count, col in pieces:
-        fill(payloads, first, count, col, offsets, rows, dist, refl)
-    return dist, refl
+        for r, (dist, refl) in enumerate(grids):
+            fill(payloads, first, count, col, offsets, r, rows, dist, refl)
 
 
 def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
-                 rows: np.ndarray[Any, Any], dist: np.ndarray[Any, Any],
-                 refl: np.ndarray[Any, Any]) -> None:
+                 rows: np.ndarray[Any, Any],
+                 grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
     """The numpy reference of :func:`_units`: strided structured views of the rows, copied
-    firing-major, transposed and put in row order (writes ``dist`` and ``refl``)."""
+    firing-major, transposed and put in row order."""
     fmt = stream.fmt
     returns = stream.returns
     firings = fmt.blocks // returns
@@ -811,12 +846,25 @@ def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], strea
         k0, k1 = first // firings, -(-(first + count) // firings)
         skip = first - k0 * firings
         units = _records(payloads[k0:k1], fmt)["b"]["u"]            # (k, blocks, L)
-        for out, name in ((dist, "d"), (refl, "r")):
+        for k, name in enumerate(("d", "r")):
             values = units[name].reshape(k1 - k0, firings, returns, fmt.lasers)
             for r in range(returns):
                 part = np.ascontiguousarray(values[:, :, r].transpose(2, 0, 1))
                 part = part.reshape(fmt.lasers, -1)[order, skip:skip + count]
-                out[r, :, col:col + count] = part
+                grids[r][k][:, col:col + count] = part
+
+
+def _channel_view(data: np.ndarray[Any, Any], view: tuple[int, int, int, int]
+                  ) -> np.ndarray[Any, Any]:
+    """(height, width) little-endian uint view of a channel block of the scan buffer."""
+    offset, height, width, itemsize = view
+    block = data[offset:offset + height * width * itemsize]
+    return block.view("<u2" if itemsize == 2 else np.uint8).reshape(height, width)
+
+
+def _readonly(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    arr.flags.writeable = False
+    return arr
 
 
 _KERNEL: Any = False
@@ -886,14 +934,14 @@ def _as_bytes(packet: Any) -> bytes:
 
 
 #: packets pushed at once by decode_packets (a run of equal-size payloads is cut there)
-_RUN = 1024
+_RUN = 4096
 
 
 def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None, **kw: Any
                    ) -> Iterator[tuple[Any, Any]]:
     """Decode an iterable of (stamp_ns, payload), then flush(): the results of push() one by one.
 
-    Runs of up to 1024 consecutive payloads of one size go through
+    Runs of up to 4096 consecutive payloads of one size go through
     :meth:`PacketDecoder.push_many`. A malformed packet raises the DecodeError of push_many()
     after the rotations completed before it have been yielded; its message starts with
     ``packets[i]``, i counting from the iterable's first packet (``index`` = i).
@@ -902,11 +950,12 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None, 
     run: list[bytes] = []
     stamps: list[int] = []
     done = 0                                  # packets of the iterable before ``run``
+    size = -1                                 # payload size of the run
 
     def push_run() -> Iterator[tuple[Any, Any]]:
         rows = np.frombuffer(b"".join(run), np.uint8).reshape(len(run), -1)
         try:
-            yield from decoder.push_many(np.array(stamps, np.int64), rows)
+            yield from decoder._push_rows(np.array(stamps, np.int64), rows, owned=True)
         except DecodeError as err:
             yield from err.results            # type: ignore[attr-defined]
             raise _batch_error(err.__cause__, done + err.index, []) from err.__cause__  # type: ignore
@@ -921,10 +970,12 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None, 
             if run:
                 yield from push_run()
             raise _batch_error(err, index, []) from err
-        if run and (len(data) != len(run[0]) or len(run) >= _RUN):
-            n = len(run)
-            yield from push_run()
-            done += n
+        if len(data) != size or len(run) >= _RUN:
+            if run:
+                n = len(run)
+                yield from push_run()
+                done += n
+            size = len(data)
         run.append(data)
         stamps.append(stamp)
     if run:

@@ -735,3 +735,22 @@ def test_decode_packets_names_the_index_of_a_bad_packet() -> None:
                 got.append(result)
         _same(got, ref[:len(got)])
         assert len(got) == (1 if at == 150 else 0)   # the wrap at ~ packet 41
+
+
+def test_messages_and_dataclasses_carry_the_same_scans() -> None:
+    """The dataclass path builds the scan around its own buffer, the message one by make_scan."""
+    pytest.importorskip("lidarscan_msgs.msg")
+    csv = _calibration_csv(64)
+    packets = _stream("Pandar64", 0x39, rotations=1.2, start=30000)
+    msgs = list(hesai.decode_packets(packets, csv))
+    dcs = list(hesai.decode_packets(packets, csv, as_dataclass=True))
+    assert len(msgs) == len(dcs) == 3
+    for (m, _), (d, _) in zip(msgs, dcs):
+        lidarscan.scan.validate(d)
+        assert bytes(m.data) == d.data.tobytes() and not d.data.flags.writeable
+        assert [(c.name, c.offset, c.datatype, c.count) for c in m.channels] == \
+            [(c.name, c.offset, c.datatype, c.count) for c in d.channels]
+        assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == \
+            (d.header.stamp.sec, d.header.stamp.nanosec, d.header.frame_id)
+        assert np.array_equal(np.asarray(m.column_time_offsets), d.column_time_offsets)
+        assert np.array_equal(np.asarray(m.column_azimuth_angles), d.column_azimuth_angles)
