@@ -89,6 +89,13 @@ Conventions
   or per-pixel angles needed): measured agreement with the reference decoder is 4 um at most,
   float32 rounding (tests/test_hesai.py).
 
+* Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
+  (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
+  one by one; a bad packet inside a batch raises a DecodeError naming its index, after the
+  packets before it (see push_many). The per-rotation copy of the units into the grids has a
+  compiled path (:mod:`converters._kernels.hesai`, numba) with this module's numpy code as the
+  reference; both copy integers, so their scans are bit-identical.
+
 What each LidarInfo field carries: vertical_angles, beam_azimuth_offsets (calibration CSV),
 beam_time_offsets (firing table), column_time_increment (firing period), beam_ids (laser ids),
 range_multiplier (dis unit), range_min/range_max (the model's limits or the options),
@@ -958,7 +965,8 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None, 
             yield from decoder._push_rows(np.array(stamps, np.int64), rows, owned=True)
         except DecodeError as err:
             yield from err.results            # type: ignore[attr-defined]
-            raise _batch_error(err.__cause__, done + err.index, []) from err.__cause__  # type: ignore
+            cause: Any = err.__cause__
+            raise _batch_error(cause, done + err.index, []) from cause  # type: ignore
         finally:
             del run[:], stamps[:]
 
