@@ -89,6 +89,13 @@ Conventions
   or per-pixel angles needed): measured agreement with the reference decoder is 4 um at most,
   float32 rounding (tests/test_hesai.py).
 
+* Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
+  (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
+  one by one; a bad packet inside a batch raises a DecodeError naming its index, after the
+  packets before it (see push_many). The per-rotation copy of the units into the grids has a
+  compiled path (:mod:`converters._kernels.hesai`, numba) with this module's numpy code as the
+  reference; both copy integers, so their scans are bit-identical.
+
 What each LidarInfo field carries: vertical_angles, beam_azimuth_offsets (calibration CSV),
 beam_time_offsets (firing table), column_time_increment (firing period), beam_ids (laser ids),
 range_multiplier (dis unit), range_min/range_max (the model's limits or the options),
@@ -99,6 +106,8 @@ model, vendor_metadata (a JSON line with the detected format, return mode and rp
 from __future__ import annotations
 
 import calendar
+import dataclasses
+import functools
 import io
 import json
 import math
@@ -111,8 +120,10 @@ from typing import Any
 
 import numpy as np
 
+from lidarscan import types
 from lidarscan.errors import ConfigError, DecodeError
 from lidarscan.scan import make_info, make_scan
+from lidarscan.stamps import split_ns
 
 __all__ = [
     "FORMATS",
@@ -406,7 +417,11 @@ class PacketDecoder:
         self.as_dataclass = as_dataclass
         self._stream: _Stream | None = None
         self._key = b""
-        self._packets: list[bytes] = []     # packets of the rotation being collected
+        # packets of the rotation being collected, in arrival order: first the 2-D blocks of
+        # rows (stamps (n,) int64, payload rows (n, size) uint8, owned) that push_many() and
+        # earlier emissions left, then the single payloads push() appended since
+        self._segs: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], bool]] = []
+        self._packets: list[bytes] = []
         self._stamps: list[int] = []
         self._skip = 0                      # leading firings of _packets[0] already emitted
         self._last_az = -1
@@ -415,6 +430,7 @@ class PacketDecoder:
         self._info: Any = None
         self._info_key: tuple[Any, ...] | None = None
         self._last_info_stamp: int | None = None
+        self._template: tuple[Any, ...] | None = None   # (key, scan, channel views) of _layout
 
     # -------------------------------------------------------------------------- packet intake
     def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
@@ -475,8 +491,8 @@ class PacketDecoder:
 
     def flush(self) -> list[tuple[Any, Any]]:
         """The last, partial rotation (if it has any firing); the decoder is then empty."""
-        out = self._emit(final=True) if self._packets else []
-        self._packets, self._stamps, self._skip, self._last_az = [], [], 0, -1
+        out = self._emit(final=True) if self._packets or self._segs else []
+        self._segs, self._packets, self._stamps, self._skip, self._last_az = [], [], [], 0, -1
         return out
 
     def _stream_of(self, data: bytes) -> _Stream:
@@ -495,69 +511,183 @@ class PacketDecoder:
         return _Stream(fmt, mode, returns, dis * 1e-3, rpm, len(data),
                        (fmt.blocks - returns) * fmt.block_size)
 
-    # ------------------------------------------------------------------------------ decoding
-    def _decode(self) -> dict[str, np.ndarray[Any, Any]]:
-        """Firings of the buffered packets: azimuth (0.01 deg), time (ns), per-return units.
+    # ------------------------------------------------------------------------------ batches
+    def push_many(self, stamps_ns: Any, payloads: Any) -> list[tuple[Any, Any]]:
+        """Add N UDP payloads of one size at once; returns the rotations they completed.
 
-        Returns arrays over all firings of all buffered packets: ``azimuth`` (F,) int32,
-        ``time`` (F,) int64 ns of the firing's start, and ``raw``, the packets' bytes (uint8).
+        The same as ``push(stamps_ns[i], payloads[i])`` for i = 0..N-1 with the results
+        concatenated (bit-identical scans and infos), but the header checks and rotation
+        boundaries are found vectorised over the whole batch and each rotation is decoded
+        straight from the rows of ``payloads``.
+
+        Args:
+            stamps_ns: (N,) int64 recorded stamps (ns).
+            payloads: (N, size) uint8, one payload per row (e.g. ``data[:, :size]`` of a
+                PandarScan message's packets); rows may have any stride, each row must be
+                contiguous (else it is copied once). Never modified; the decoder keeps no
+                reference to it after the call (the rows of an unfinished rotation are copied).
+
+        Raises:
+            DecodeError: packet ``i`` of the batch is malformed or unsupported. The message
+                starts with ``packets[i]`` and the error carries ``index`` (= i) and
+                ``results``: the rotations completed by packets 0..i-1, which are consumed
+                exactly as push() would have consumed them (their unfinished rotation stays
+                in the decoder). Packet i is dropped and packets i+1.. are not consumed:
+                call ``push_many(stamps_ns[i + 1:], payloads[i + 1:])`` to go on. A batch
+                whose arrays are themselves wrong (shape, dtype) raises with ``index`` -1
+                before consuming anything.
+        """
+        return self._push_rows(stamps_ns, payloads, owned=False)
+
+    def _push_rows(self, stamps_ns: Any, payloads: Any, owned: bool) -> list[tuple[Any, Any]]:
+        """push_many(); ``owned``: the caller hands ``payloads`` over (never used again)."""
+        rows = payloads
+        if not isinstance(rows, np.ndarray) or rows.dtype != np.uint8 or rows.ndim != 2:
+            raise _batch_error(DecodeError(
+                "payloads", f"{getattr(rows, 'dtype', type(rows).__name__)} "
+                f"{getattr(rows, 'shape', '')}", "an (N, size) uint8 ndarray"), -1, [])
+        stamps = np.asarray(stamps_ns)
+        if stamps.shape != (rows.shape[0],) or stamps.dtype.kind not in "iu":
+            raise _batch_error(DecodeError("stamps_ns", f"{stamps.dtype} {stamps.shape}",
+                                           f"({rows.shape[0]},) integer ns"), -1, [])
+        stamps = stamps.astype(np.int64, copy=False)
+        if rows.shape[0] and rows.strides[1] != 1:
+            rows = np.ascontiguousarray(rows)
+        out: list[tuple[Any, Any]] = []
+        n = rows.shape[0]
+        i = 0
+        try:
+            while i < n:
+                plain, first, last = self._plain_rows(rows[i:])
+                if plain:
+                    out += self._append_rows(stamps[i:i + plain], rows[i:i + plain],
+                                             first[:plain], last[:plain], owned)
+                    i += plain
+                if i < n:                     # a first, new-stream, new-date or bad packet
+                    try:
+                        out += self._push_checked(int(stamps[i]), rows[i].tobytes())
+                    except DecodeError as err:
+                        raise _batch_error(err, i, out) from err
+                    i += 1
+        finally:
+            self._own_rows()
+        return out
+
+    def _plain_rows(self, rows: np.ndarray[Any, Any]
+                    ) -> tuple[int, np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """How many leading rows push()'s fast path would take; their first/last azimuths."""
+        fast, stream = self._fast, self._stream
+        if fast is None or stream is None or rows.shape[1] != fast[0]:
+            return 0, np.empty(0, np.int32), np.empty(0, np.int32)
+        size, key, mode_at, mode, _, at, date_at = fast
+        az = rows[:, at:at + 2].view("<u2")[:, 0].astype(np.int32)
+        at2 = at + stream.last_firing_at
+        az2 = rows[:, at2:at2 + 2].view("<u2")[:, 0].astype(np.int32)
+        ok = ((rows[:, :len(key)] == np.frombuffer(key, np.uint8)).all(1)
+              & (rows[:, mode_at] == mode) & (az < 36000) & (az2 < 36000)
+              & (rows[:, date_at:date_at + 6] == np.frombuffer(self._date, np.uint8)).all(1))
+        bad = np.flatnonzero(~ok)
+        return (int(bad[0]) if bad.size else rows.shape[0]), az, az2
+
+    def _append_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any],
+                     first: np.ndarray[Any, Any], last: np.ndarray[Any, Any], owned: bool
+                     ) -> list[tuple[Any, Any]]:
+        """Buffer plain rows (views; ``owned``: no copy needed); emit what their wraps
+        complete."""
+        self._join_packets()
+        prev = np.empty_like(last)
+        prev[0] = self._last_az
+        prev[1:] = last[:-1]
+        wraps = np.flatnonzero((first < prev - 18000) | (last < first - 18000))
+        self._segs.append((stamps, rows, owned))
+        self._last_az = int(last[-1])
+        if not wraps.size:
+            return []
+        # push() would emit at each wrapping packet: everything complete up to the last one
+        buffered = sum(seg[1].shape[0] for seg in self._segs)
+        return self._emit(final=False, limit=buffered - (rows.shape[0] - 1 - int(wraps[-1])))
+
+    def _join_packets(self) -> None:
+        """Move the payloads push() appended into one owned block of rows."""
+        if self._packets:
+            rows = np.frombuffer(b"".join(self._packets), np.uint8).reshape(
+                len(self._packets), -1)
+            self._segs.append((np.array(self._stamps, np.int64), rows, True))
+            self._packets, self._stamps = [], []
+
+    def _own_rows(self) -> None:
+        """Copy the buffered rows that are still views of a caller's arrays."""
+        self._segs = [seg if seg[2] else (seg[0].copy(), seg[1].copy(), True)
+                      for seg in self._segs]
+
+    # ------------------------------------------------------------------------------ decoding
+    def _columns(self) -> dict[str, np.ndarray[Any, Any]]:
+        """Firings of the buffered packets: azimuth (0.01 deg), time (ns), per-packet t0.
+
+        Returns ``azimuth`` (F,) int32 and ``time`` (F,) int64 ns of each firing's start over
+        all firings of all buffered packets, ``t0`` (P,) int64 each packet's absolute time and
+        ``stamp`` (P,) int64 its recorded stamp.
         """
         stream = self._stream
         assert stream is not None
         fmt = stream.fmt
-        n = len(self._packets)
-        size = stream.packet_size
-        joined = b"".join(self._packets)
-        raw = np.frombuffer(joined, np.uint8).reshape(n, size)
+        self._join_packets()
+        recs = [_records(seg[1], fmt) for seg in self._segs]
         firings = fmt.blocks // stream.returns
-        # zero-copy strided views of the little-endian fields (numpy reads them unaligned)
-        at = fmt.body + fmt.azimuth_at
-        azimuth = np.ndarray((n, firings), "<u2", joined, at,
-                             (size, fmt.block_size * stream.returns))
-        us = raw[:, fmt.timestamp_at:fmt.timestamp_at + 4].astype(np.int64)
-        us = us[:, 0] | (us[:, 1] << 8) | (us[:, 2] << 16) | (us[:, 3] << 24)
-        dates = raw[:, fmt.datetime_at:fmt.datetime_at + 6].astype(np.int64)
-        keys = dates @ (np.int64(256) ** np.arange(6, dtype=np.int64))
-        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-        secs = np.array([_date_seconds(bytes(dates[i].astype(np.uint8))) for i in first],
-                        np.int64)
-        t0 = secs[inverse.reshape(-1)] * 1_000_000_000 + us * 1000
-        if self.time_source == "receive":         # the host's clock at the first packet
-            t0 += self._stamps[0] - t0[0]
+        azimuth = np.concatenate([rec["b"]["az"][:, ::stream.returns] for rec in recs])
+        us = np.concatenate([rec["us"] for rec in recs]).astype(np.int64)
+        dates = np.concatenate([rec["date"] for rec in recs])            # (P, 6) uint8
+        starts = np.flatnonzero(np.r_[True, (dates[1:] != dates[:-1]).any(1)])
+        secs = np.array([_date_seconds(bytes(dates[i])) for i in starts], np.int64)
+        secs = np.repeat(secs, np.diff(np.r_[starts, len(dates)]))
+        t0 = secs * 1_000_000_000 + us * 1000
         times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
-        cols = n * firings
-        return {"azimuth": azimuth.reshape(cols).astype(np.int32), "time": times.reshape(cols),
-                "raw": raw.reshape(-1)}
+        return {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
+                "t0": t0, "stamp": np.concatenate([seg[0] for seg in self._segs])}
 
-    def _emit(self, final: bool) -> list[tuple[Any, Any]]:
-        """Scans of every rotation completed in the buffer (all that is left when ``final``)."""
+    def _emit(self, final: bool, limit: int | None = None) -> list[tuple[Any, Any]]:
+        """Scans of every rotation completed in the buffer (all that is left when ``final``).
+
+        ``limit``: look for rotation ends in the first ``limit`` buffered packets only (what
+        push() would have seen when the last wrapping packet of a batch arrived).
+        """
         stream = self._stream
         assert stream is not None
-        cols = self._decode()
+        cols = self._columns()
         firings = stream.fmt.blocks // stream.returns
         total = cols["azimuth"].size
+        end = total if limit is None else limit * firings
         start = self._skip
-        wraps = np.flatnonzero(np.diff(cols["azimuth"][start:]) < -18000) + 1 + start
+        wraps = np.flatnonzero(np.diff(cols["azimuth"][start:end]) < -18000) + 1 + start
         bounds = [start, *wraps.tolist()] + ([total] if final else [])
         out = [self._scan(cols, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
         if not final:
             keep = bounds[-1] // firings
-            self._packets, self._stamps = self._packets[keep:], self._stamps[keep:]
             self._skip = bounds[-1] - keep * firings
+            segs = []
+            for seg in self._segs:
+                if keep < seg[1].shape[0]:
+                    segs.append((seg[0][keep:], seg[1][keep:], seg[2]))
+                keep = max(0, keep - seg[1].shape[0])
+            self._segs = segs
         return out
 
     def _scan(self, cols: dict[str, np.ndarray[Any, Any]], lo: int, hi: int
               ) -> tuple[Any, Any]:
-        """(scan, info) of firings lo..hi-1 of the decoded buffer ``cols``."""
+        """(scan, info) of firings lo..hi-1 of the buffer (columns ``cols``)."""
         stream = self._stream
         assert stream is not None
         fmt = stream.fmt
+        firings = fmt.blocks // stream.returns
         count = hi - lo
         nominal = 60e9 / (stream.rpm * fmt.firing_period_ns)
         width = int(math.ceil(1.02 * nominal))
         if count > width:
             width = int(math.ceil(1.02 * count))          # a long rotation: new version
         times = cols["time"][lo:hi] + stream.first_channel_ns
+        if self.time_source == "receive":     # the host's clock at the rotation's first packet
+            p = lo // firings
+            times = times + (cols["stamp"][p] - cols["t0"][p])
         stamp = int(times[0])
         info = self._info_for(stream, width, stamp)
         az = cols["azimuth"][lo:hi].astype(np.float64)
@@ -567,16 +697,52 @@ class PacketDecoder:
             az = np.concatenate([az, az[-1] + (36000.0 / nominal) * steps])
             times = np.concatenate([times, times[-1]
                                     + np.rint(fmt.firing_period_ns * steps).astype(np.int64)])
-        dist, refl = _units(cols["raw"], stream, self._rows, lo, count, width)
-        channels: dict[str, np.ndarray[Any, Any]] = {}
-        for r, (rname, iname) in enumerate(_channel_names(_block_kinds(fmt, stream.mode))):
-            channels[rname], channels[iname] = dist[r], refl[r]
-        channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
-        scan = make_scan(info, channels, stamp, column_time_offsets=times - stamp,
-                         column_azimuth_angles=np.pi / 2 - np.deg2rad(az * 0.01),
-                         as_dataclass=self.as_dataclass)
+        pieces = []                          # (rows, first firing, firings, column)
+        at = 0
+        for seg in self._segs:
+            n = seg[1].shape[0] * firings
+            a, b = max(lo, at), min(hi, at + n)
+            if a < b:
+                pieces.append((seg[1], a - at, b - a, a - lo))
+            at += n
+        names = _channel_names(_block_kinds(fmt, stream.mode))
+        template, views = self._layout(info, names, width)
+        data = np.zeros(template.data.size, np.uint8)
+        grids = [tuple(_channel_view(data, view) for view in pair) for pair in views]
+        _units(pieces, stream, self._rows, grids)
+        angles = np.pi / 2 - np.deg2rad(az * 0.01)
+        if not self.as_dataclass:
+            channels = {name: _channel_view(data, views[r][k]) for r, pair in enumerate(names)
+                        for k, name in enumerate(pair)}
+            channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
+            return make_scan(info, channels, stamp, column_time_offsets=times - stamp,
+                             column_azimuth_angles=angles, as_dataclass=False), info
+        # the dataclass: make_scan's layout (from the template), this rotation's buffer as data
+        sec, nanosec = split_ns(stamp)
+        scan = dataclasses.replace(
+            template, header=types.Header(types.Time(sec, nanosec), template.header.frame_id),
+            column_time_offsets=_readonly(times - stamp), column_azimuth_angles=_readonly(angles),
+            data=_readonly(data))
         return scan, info
 
+    def _layout(self, info: Any, names: list[tuple[str, str]], width: int
+                ) -> tuple[Any, list[tuple[tuple[int, int, int, int], ...]]]:
+        """A make_scan dataclass of this info version (its channel layout) and, per block of
+        a firing, the (offset, height, width, itemsize) of its range and intensity blocks."""
+        key = (info.header.stamp, info.width, tuple(names))
+        if self._template is not None and self._template[0] == key:
+            return self._template[1], self._template[2]
+        height = int(info.height)
+        zeros = {name: np.zeros((height, width), np.uint16 if k == 0 else np.uint8)
+                 for pair in names for k, name in enumerate(pair)}
+        zeros = {k: zeros[k] for k in sorted(zeros, key=_channel_rank)}
+        template = make_scan(info, zeros, 0, column_time_offsets=np.zeros(width, np.int64),
+                             column_azimuth_angles=np.zeros(width), as_dataclass=True)
+        offsets = {c.name: c.offset for c in template.channels}
+        views = [tuple((offsets[name], height, width, 2 if k == 0 else 1)
+                       for k, name in enumerate(pair)) for pair in names]
+        self._template = (key, template, views)
+        return template, views
 
     def _info_for(self, stream: _Stream, width: int, stamp: int) -> Any:
         key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
@@ -625,31 +791,109 @@ def _date_seconds(date: bytes) -> int:
     return calendar.timegm((1900 + y, mo, d, h, mi, s, 0, 0, 0))
 
 
-def _units(raw: np.ndarray[Any, Any], stream: _Stream, rows: np.ndarray[Any, Any], first: int,
-           count: int, width: int) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """Distances and reflectivities of firings first..first+count-1 of the packet bytes ``raw``.
+@functools.lru_cache(maxsize=None)
+def _packet_dtype(fmt: HesaiFormat, size: int) -> np.dtype[Any]:
+    """Structured dtype of one payload row of ``size`` bytes: blocks (azimuth, units), tail."""
+    unit = np.dtype({"names": ["d", "r"], "formats": ["<u2", "u1"], "offsets": [0, 2],
+                     "itemsize": fmt.unit_size})
+    block = np.dtype({"names": ["az", "u"], "formats": ["<u2", (unit, (fmt.lasers,))],
+                      "offsets": [fmt.azimuth_at, fmt.azimuth_at + 2],
+                      "itemsize": fmt.block_size})
+    return np.dtype({"names": ["b", "us", "date"],
+                     "formats": [(block, (fmt.blocks,)), "<u4", ("u1", (6,))],
+                     "offsets": [fmt.body, fmt.timestamp_at, fmt.datetime_at],
+                     "itemsize": size})
 
-    Returns (returns, L, width) uint16 raw distances and uint8 reflectivities, row ``rows[l]``
-    for laser index l, columns count.. zero (no return). The fields are read through strided
-    views of the bytes, copied firing-major and transposed (a numba loop writing the rows
-    directly measured no faster, so there is no compiled path).
-    """
-    fmt = stream.fmt
-    shape = (stream.returns, fmt.lasers, width)
-    dist, refl = np.zeros(shape, np.uint16), np.zeros(shape, np.uint8)
-    size, at, block, returns = (stream.packet_size, fmt.body + fmt.azimuth_at + 2,
-                                fmt.block_size, stream.returns)
+
+def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, Any]:
+    """(P,) structured zero-copy view of payload rows (P, size) uint8 (contiguous rows)."""
+    return rows.view(_packet_dtype(fmt, rows.shape[1]))[:, 0]
+
+
+@functools.lru_cache(maxsize=None)
+def _unit_offsets(fmt: HesaiFormat, returns: int) -> np.ndarray[Any, Any]:
+    """(firings, returns, lasers) int64 byte offset of each unit (distance) in a payload."""
     firings = fmt.blocks // returns
-    n = raw.size // size
-    strides = (size, block * returns, block, fmt.unit_size)
-    view = np.ndarray((n, firings, returns, fmt.lasers), "<u2", raw, at, strides)
-    order = np.argsort(rows)
-    for r in range(returns):
-        for out, values in ((dist, view),
-                            (refl, np.ndarray(view.shape, np.uint8, raw, at + 2, strides))):
-            part = values[:, :, r].reshape(n * firings, fmt.lasers)[first:first + count]
-            out[r, :, :count] = np.ascontiguousarray(part.T)[order]
-    return dist, refl
+    block = np.arange(firings * returns).reshape(firings, returns, 1)
+    return (fmt.body + block * fmt.block_size + fmt.azimuth_at + 2
+            + np.arange(fmt.lasers) * fmt.unit_size).astype(np.int64)
+
+
+def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
+           rows: np.ndarray[Any, Any],
+           grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
+    """Distances and reflectivities of one rotation, read from blocks of payload rows.
+
+    ``pieces``: (payload rows (P, size) uint8, first firing in them, firing count, first
+    column). ``grids[r]``: the (L, W) uint16 distance and uint8 reflectivity grids of block r of
+    a firing, zero-filled; laser index l goes to row ``rows[l]``, the columns of the pieces are
+    written. The compiled kernel of :mod:`converters._kernels.hesai` when available, else
+    :func:`_units_numpy` (the reference).
+    """
+    fill = _kernel()
+    if fill is None:
+        _units_numpy(pieces, stream, rows, grids)
+        return
+    offsets = _unit_offsets(stream.fmt, stream.returns)
+    for payloads, first, count, col in pieces:
+        for r, (dist, refl) in enumerate(grids):
+            fill(payloads, first, count, col, offsets, r, rows, dist, refl)
+
+
+def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
+                 rows: np.ndarray[Any, Any],
+                 grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
+    """The numpy reference of :func:`_units`: strided structured views of the rows, copied
+    firing-major, transposed and put in row order."""
+    fmt = stream.fmt
+    returns = stream.returns
+    firings = fmt.blocks // returns
+    order = np.argsort(rows)                  # laser index of each row
+    for payloads, first, count, col in pieces:
+        k0, k1 = first // firings, -(-(first + count) // firings)
+        skip = first - k0 * firings
+        units = _records(payloads[k0:k1], fmt)["b"]["u"]            # (k, blocks, L)
+        for k, name in enumerate(("d", "r")):
+            values = units[name].reshape(k1 - k0, firings, returns, fmt.lasers)
+            for r in range(returns):
+                part = np.ascontiguousarray(values[:, :, r].transpose(2, 0, 1))
+                part = part.reshape(fmt.lasers, -1)[order, skip:skip + count]
+                grids[r][k][:, col:col + count] = part
+
+
+def _channel_view(data: np.ndarray[Any, Any], view: tuple[int, int, int, int]
+                  ) -> np.ndarray[Any, Any]:
+    """(height, width) little-endian uint view of a channel block of the scan buffer."""
+    offset, height, width, itemsize = view
+    block = data[offset:offset + height * width * itemsize]
+    return block.view("<u2" if itemsize == 2 else np.uint8).reshape(height, width)
+
+
+def _readonly(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    arr.flags.writeable = False
+    return arr
+
+
+_KERNEL: Any = False
+
+
+def _kernel() -> Any:
+    """The compiled units kernel, or None (no numba, or LIDARSCAN_NUMBA=0)."""
+    global _KERNEL
+    if _KERNEL is False:
+        from converters._kernels import hesai as kernels
+        _KERNEL = kernels.kernel()
+    return _KERNEL
+
+
+def _batch_error(err: DecodeError, index: int, results: list[tuple[Any, Any]]) -> DecodeError:
+    """``err`` re-raised for packet ``index`` of a push_many() batch (-1: the batch's arrays),
+    with the results of the packets before it."""
+    field = f"packets[{index}]: {err.field}" if index >= 0 else err.field
+    new = DecodeError(field, err.value, err.expected, hint=err.hint)
+    new.index = index                         # type: ignore[attr-defined]
+    new.results = results                     # type: ignore[attr-defined]
+    return new
 
 
 def _block_kinds(fmt: HesaiFormat, mode: int) -> tuple[str, ...]:
@@ -696,10 +940,52 @@ def _as_bytes(packet: Any) -> bytes:
                       "1-D uint8 ndarray")
 
 
+#: packets pushed at once by decode_packets (a run of equal-size payloads is cut there)
+_RUN = 4096
+
+
 def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None, **kw: Any
                    ) -> Iterator[tuple[Any, Any]]:
-    """Decode an iterable of (stamp_ns, payload): push() each, then flush()."""
+    """Decode an iterable of (stamp_ns, payload), then flush(): the results of push() one by one.
+
+    Runs of up to 4096 consecutive payloads of one size go through
+    :meth:`PacketDecoder.push_many`. A malformed packet raises the DecodeError of push_many()
+    after the rotations completed before it have been yielded; its message starts with
+    ``packets[i]``, i counting from the iterable's first packet (``index`` = i).
+    """
     decoder = PacketDecoder(calibration, **kw)
+    run: list[bytes] = []
+    stamps: list[int] = []
+    done = 0                                  # packets of the iterable before ``run``
+    size = -1                                 # payload size of the run
+
+    def push_run() -> Iterator[tuple[Any, Any]]:
+        rows = np.frombuffer(b"".join(run), np.uint8).reshape(len(run), -1)
+        try:
+            yield from decoder._push_rows(np.array(stamps, np.int64), rows, owned=True)
+        except DecodeError as err:
+            yield from err.results            # type: ignore[attr-defined]
+            cause: Any = err.__cause__
+            raise _batch_error(cause, done + err.index, []) from cause  # type: ignore
+        finally:
+            del run[:], stamps[:]
+
     for stamp, packet in packets:
-        yield from decoder.push(stamp, packet)
+        try:
+            data = packet if type(packet) is bytes else _as_bytes(packet)
+        except DecodeError as err:
+            index = done + len(run)
+            if run:
+                yield from push_run()
+            raise _batch_error(err, index, []) from err
+        if len(data) != size or len(run) >= _RUN:
+            if run:
+                n = len(run)
+                yield from push_run()
+                done += n
+            size = len(data)
+        run.append(data)
+        stamps.append(stamp)
+    if run:
+        yield from push_run()
     yield from decoder.flush()

@@ -577,3 +577,180 @@ def test_random_payloads_only_raise_decode_errors(payload: bytes, prefix: str) -
             lidarscan.scan.validate(scan, info)
     for scan, info in dec.flush():
         lidarscan.scan.validate(scan, info)
+
+
+# ---------------------------------------------------------------------------- push_many batches
+def _same(a: list[tuple[Any, Any]], b: list[tuple[Any, Any]]) -> None:
+    """Two decoders' results are bit-identical (scans and the info versions they name)."""
+    assert len(a) == len(b)
+    for (sa, ia), (sb, ib) in zip(a, b):
+        assert (sa.header, sa.lidar_info_time, sa.width, sa.channels) == \
+            (sb.header, sb.lidar_info_time, sb.width, sb.channels)
+        assert bytes(sa.data) == bytes(sb.data)
+        assert np.asarray(sa.column_time_offsets).tobytes() == \
+            np.asarray(sb.column_time_offsets).tobytes()
+        assert np.asarray(sa.column_azimuth_angles).tobytes() == \
+            np.asarray(sb.column_azimuth_angles).tobytes()
+        assert ia.header == ib.header and ia.width == ib.width
+        assert np.asarray(ia.beam_time_offsets).tolist() == np.asarray(ib.beam_time_offsets
+                                                                        ).tolist()
+
+
+def _one_by_one(packets: list[tuple[int, bytes]], csv: Any, **kw: Any) -> list[tuple[Any, Any]]:
+    dec = hesai.PacketDecoder(csv, as_dataclass=True, **kw)
+    return [r for t, p in packets for r in dec.push(t, p)] + dec.flush()
+
+
+def _rows(packets: list[tuple[int, bytes]], stride: int | None = None
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) stamps and (N, size) payload rows; with ``stride``, a [:, :size] slice of wider
+    rows padded with 0xAB (as a bag reader's uint8[1500] arrays)."""
+    size = len(packets[0][1])
+    wide = np.full((len(packets), stride or size), 0xAB, np.uint8)
+    for i, (_, p) in enumerate(packets):
+        wide[i, :size] = np.frombuffer(p, np.uint8)
+    return np.array([t for t, _ in packets], np.int64), wide[:, :size]
+
+
+@pytest.fixture(params=["compiled", "numpy"])
+def units_path(request: Any, monkeypatch: Any) -> str:
+    """Run a test with the compiled units kernel (skipped without numba) and with numpy."""
+    if request.param == "numpy":
+        monkeypatch.setattr(hesai, "_KERNEL", None)
+    elif hesai._kernel() is None:
+        pytest.skip("numba not installed (or LIDARSCAN_NUMBA=0)")
+    return request.param
+
+
+@pytest.mark.parametrize("name", sorted(RECORDINGS))
+def test_push_many_per_bag_message_equals_push(name: str, units_path: str) -> None:
+    """Whole PandarScan messages as (N, size) views of uint8[1500] rows, as a bag gives them."""
+    csv = DATA / name / RECORDINGS[name][0]
+    for kw in ({}, {"time_source": "receive"}):
+        dec = hesai.PacketDecoder(csv, as_dataclass=True, **kw)
+        batched = []
+        for _, msg in _bag(name):
+            stamps, rows = _rows(list(msg), stride=1500)
+            before = rows.copy()
+            batched += dec.push_many(stamps, rows)
+            assert np.array_equal(rows, before)               # never modified
+            rows[:] = 0                                       # and not referenced afterwards
+        batched += dec.flush()
+        _same(batched, _one_by_one(_packets(name), csv, **kw))
+    if units_path == "numpy":                                 # also the oracle, near a wrap
+        packets = _packets(name)[len(_packets(name)) // 4 - 60:len(_packets(name)) // 4 + 60]
+        dec = hesai.PacketDecoder(csv, as_dataclass=True)
+        results = dec.push_many(*_rows(packets)) + dec.flush()
+        assert len(results) == 2
+        _compare(_oracle([p for _, p in packets], csv), _decoded(results))
+
+
+@pytest.mark.parametrize(("model", "mode"), MODEL_MODES)
+def test_push_many_in_chunks_spanning_wraps(model: str, mode: int, units_path: str) -> None:
+    csv = _calibration_csv(LAYOUT[model]["lasers"])
+    packets = _stream(model, mode, rotations=2.3, start=20000)
+    ref = _one_by_one(packets, csv)
+    assert len(ref) == 3
+    stamps, rows = _rows(packets)
+    for cuts in ([len(packets)], [1, 2, 3, 250, 251, 700], [len(packets) // 2 + 1]):
+        dec = hesai.PacketDecoder(csv, as_dataclass=True)
+        out, lo = [], 0
+        for hi in [*(c for c in cuts if c < len(packets)), len(packets)]:
+            out += dec.push_many(stamps[lo:hi], rows[lo:hi])
+            lo = hi
+        _same(out + dec.flush(), ref)
+    _compare(_oracle([p for _, p in packets], csv),
+             _decoded(list(hesai.decode_packets(packets, csv, as_dataclass=True))))
+
+
+def test_push_many_mixed_with_push_and_stream_changes() -> None:
+    csv = _calibration_csv(64)
+    single = _stream("Pandar64", 0x37, rotations=0.5, start=0)
+    dual = _stream("Pandar64", 0x39, rotations=1.7, start=18000, us0=160_000)
+    packets = single + dual
+    ref = _one_by_one(packets, csv)
+    stamps, _ = _rows(packets)
+    dec = hesai.PacketDecoder(csv, as_dataclass=True)
+    out = dec.push_many(stamps[:100], _rows(single[:100])[1])
+    for t, p in packets[100:110]:
+        out += dec.push(t, p)
+    out += dec.push_many(stamps[110:len(single)], _rows(single[110:])[1])
+    out += dec.push_many(stamps[len(single):], _rows(dual)[1])     # a new stream (mode)
+    _same(out + dec.flush(), ref)
+    # a new second on the sensor clock inside a batch: its date bytes change mid-batch
+    dated = [(t, p[:1188] + bytes([123, 1, 10, 2, 24, 40 + (i >= 500)]) + p[1194:])
+             for i, (t, p) in enumerate(dual)]
+    dec = hesai.PacketDecoder(csv, as_dataclass=True)
+    _same(dec.push_many(*_rows(dated)) + dec.flush(), _one_by_one(dated, csv))
+
+
+def test_push_many_bad_packet_names_its_index_and_keeps_the_good_ones() -> None:
+    csv = _calibration_csv(32)
+    packets = _stream("PandarXT32", 0x39, rotations=1.6, start=30000)
+    good = packets[5][1]
+    bads = [good[:12] + struct.pack("<H", 36000) + good[14:],            # azimuth 360.00
+            good[:1062] + b"\x3d" + good[1063:],                           # unknown mode
+            good[:1065] + bytes([119, 13, 1, 0, 0, 0]) + good[1071:],      # month 13
+            bytes([0xEE, 0xFF, 6, 1, 0, 0, 40, 8]) + good[8:]]             # laser num 40
+    ref = _one_by_one(packets, csv)
+    at = 300                                  # between the wraps (~ packets 83, 583)
+    for bad in bads:
+        stream = packets[:at] + [(0, bad)] + packets[at:]
+        stamps, rows = _rows(stream)
+        dec = hesai.PacketDecoder(csv, as_dataclass=True)
+        with pytest.raises(DecodeError, match=rf"^packets\[{at}\]: ") as info:
+            dec.push_many(stamps, rows)
+        assert info.value.index == at
+        kept = _one_by_one(packets[:at], csv)[:-1]            # what push() had emitted
+        assert len(info.value.results) == 1
+        _same(info.value.results, kept)
+        rest = dec.push_many(stamps[at + 1:], rows[at + 1:]) + dec.flush()
+        _same(info.value.results + rest, ref)                 # nothing lost, nothing twice
+        with pytest.raises(DecodeError, match=rf"packets\[{at}\]: ") as info:
+            list(hesai.decode_packets(stream, csv, as_dataclass=True))
+    # the arrays themselves
+    dec = hesai.PacketDecoder(csv, as_dataclass=True)
+    for stamps, rows in ((np.zeros(2, np.int64), np.zeros((2, 1080), np.float32)),
+                         (np.zeros(3, np.int64), np.zeros((2, 1080), np.uint8)),
+                         (np.zeros(2), np.zeros((2, 1080), np.uint8)),
+                         (np.zeros(2, np.int64), b"\x00" * 2160)):
+        with pytest.raises(DecodeError, match=r"^(payloads|stamps_ns)=") as info:
+            dec.push_many(stamps, rows)
+        assert info.value.index == -1
+    stamps, rows = _rows(packets[:10], stride=1500)
+    with pytest.raises(DecodeError, match=r"^packets\[0\]: hesai packet size"):
+        dec.push_many(stamps, rows.base)                      # 1500-byte rows: not a payload
+    assert dec.push_many(stamps[:0], rows[:0]) == []
+
+
+def test_decode_packets_names_the_index_of_a_bad_packet() -> None:
+    csv = _calibration_csv(32)
+    packets = _stream("PandarXT32", 0x37, rotations=1.2, start=30000)
+    ref = _one_by_one(packets, csv)
+    for at, bad in ((150, "not bytes"), (150, b"\xee\xff" + bytes(1000)), (3, b"")):
+        got = []
+        with pytest.raises(DecodeError, match=rf"^packets\[{at}\]: "):
+            for result in hesai.decode_packets(packets[:at] + [(0, bad)] + packets[at:], csv,
+                                               as_dataclass=True):
+                got.append(result)
+        _same(got, ref[:len(got)])
+        assert len(got) == (1 if at == 150 else 0)   # the wrap at ~ packet 41
+
+
+def test_messages_and_dataclasses_carry_the_same_scans() -> None:
+    """The dataclass path builds the scan around its own buffer, the message one by make_scan."""
+    pytest.importorskip("lidarscan_msgs.msg")
+    csv = _calibration_csv(64)
+    packets = _stream("Pandar64", 0x39, rotations=1.2, start=30000)
+    msgs = list(hesai.decode_packets(packets, csv))
+    dcs = list(hesai.decode_packets(packets, csv, as_dataclass=True))
+    assert len(msgs) == len(dcs) == 3
+    for (m, _), (d, _) in zip(msgs, dcs):
+        lidarscan.scan.validate(d)
+        assert bytes(m.data) == d.data.tobytes() and not d.data.flags.writeable
+        assert [(c.name, c.offset, c.datatype, c.count) for c in m.channels] == \
+            [(c.name, c.offset, c.datatype, c.count) for c in d.channels]
+        assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == \
+            (d.header.stamp.sec, d.header.stamp.nanosec, d.header.frame_id)
+        assert np.array_equal(np.asarray(m.column_time_offsets), d.column_time_offsets)
+        assert np.array_equal(np.asarray(m.column_azimuth_angles), d.column_azimuth_angles)
