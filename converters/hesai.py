@@ -881,8 +881,8 @@ def _kernel() -> Any:
     """The compiled units kernel, or None (no numba, or LIDARSCAN_NUMBA=0)."""
     global _KERNEL
     if _KERNEL is False:
-        from converters._kernels import hesai as kernels
-        _KERNEL = kernels.kernel()
+        from converters._kernels import select
+        _KERNEL = select("hesai").numba
     return _KERNEL
 
 

@@ -19,6 +19,8 @@ C slices    ``_slicekernel.c`` via          a C compiler at          slices, row
 numba       :mod:`.slices_numba`            ``pip install numba``    slices (row-ordered,
                                             (extra ``fast``)         bin-ordered and general
                                                                      kernels) and the merger
+numba       :mod:`.hesai`                   ``pip install numba``    Hesai packets -> grids
+                                            (extra ``fast``)         (converters.hesai)
 numpy       the converters themselves       --                       everything (the reference)
 ==========  ==============================  =======================  ============================
 
@@ -72,7 +74,7 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
 
     Args:
         task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"`` or ``"merger"``
-            (chosen by ``backend``).
+            (chosen by ``backend``), ``"hesai"`` (packet decoding: numba when enabled).
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy); ``"numba"``: numba only (an
             error when it is missing); ``"numpy"``: the reference.
@@ -91,8 +93,11 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
             raise ConfigError("kernel", kernel, "None or False: the compiled kernel is not "
                               "available (not built, or LIDARSCAN_NO_KERNEL is set)")
         return Backends(c=fns)
+    if task == "hesai":
+        from converters._kernels import hesai
+        return Backends(numba=hesai.kernel() if numba_enabled() else None)
     if task not in ("slices", "merger"):
-        raise ConfigError("task", task, "'cloud', 'slices' or 'merger'")
+        raise ConfigError("task", task, "'cloud', 'slices', 'merger' or 'hesai'")
     if backend not in ("auto", "numba", "numpy"):
         raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
     numba = None

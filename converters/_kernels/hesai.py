@@ -4,12 +4,11 @@ One kernel, ``fill_units``, doing exactly what ``converters.hesai._units_numpy``
 reference): copy the raw distance (uint16 little-endian) and reflectivity (uint8) of each laser
 in block ``r`` of firings ``first .. first + count - 1`` of a block of packet rows into columns
 ``col ..`` of the (lasers, width) grids, laser ``l`` to row ``row_of[l]``. Integer copies only, so
-the results are bit-identical. Used when numba is importable; ``LIDARSCAN_NUMBA=0`` disables it.
+the results are bit-identical. Chosen by :func:`converters._kernels.select` (``"hesai"``), which reads the switches.
 """
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import numpy as np
@@ -38,14 +37,12 @@ def _fill_units(rows: Any, first: int, count: int, col: int, offsets: Any, r: in
 
 
 def kernel() -> Any:
-    """The compiled ``fill_units`` (same arguments as ``_fill_units``), or None without numba
-    or with ``LIDARSCAN_NUMBA=0``."""
+    """The compiled ``fill_units`` (same arguments as ``_fill_units``), or None without numba.
+    Callers go through :func:`converters._kernels.select`, which honours ``LIDARSCAN_NUMBA``."""
     global _KERNEL, _TRIED
     if _TRIED:
         return _KERNEL
     _TRIED = True
-    if os.environ.get("LIDARSCAN_NUMBA", "1") == "0":
-        return None
     try:
         import numba
     except ImportError:
