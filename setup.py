@@ -1,8 +1,9 @@
-"""Build of the optional compiled kernel; all other metadata lives in pyproject.toml.
+"""Build of the optional compiled kernels; all other metadata lives in pyproject.toml.
 
-``converters/_cloudkernel.c`` speeds up LidarScan -> PointCloud2 (converters/pointcloud2.py),
-``converters/_slicekernel.c`` LidarScan -> LaserScan slices (converters/laserscan.py). Both are
-optional: without a C compiler the install still succeeds and the numba / numpy paths are used.
+``converters/_kernels/_cloudkernel.c`` speeds up LidarScan -> PointCloud2,
+``converters/_kernels/_slicekernel.c`` LidarScan -> LaserScan slices (the table of backends is
+the header of converters/_kernels/__init__.py). Both are optional: without a C compiler the
+install still succeeds and the numba / numpy paths are used.
 (A setup.py because ``[tool.setuptools] ext-modules`` needs setuptools >= 74.1.)
 """
 
@@ -26,9 +27,9 @@ class BuildExt(build_ext):  # type: ignore[misc]
 
 
 setup(
-    ext_modules=[Extension("converters._cloudkernel", ["converters/_cloudkernel.c"],
-                           optional=True),
-                 Extension("converters._slicekernel", ["converters/_slicekernel.c"],
-                           optional=True)],
+    ext_modules=[Extension("converters._kernels._cloudkernel",
+                           ["converters/_kernels/_cloudkernel.c"], optional=True),
+                 Extension("converters._kernels._slicekernel",
+                           ["converters/_kernels/_slicekernel.c"], optional=True)],
     cmdclass={"build_ext": BuildExt},
 )

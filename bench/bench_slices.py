@@ -129,12 +129,53 @@ def _p2l_loop(x: Any, y: Any, z: Any, zmin: float, zmax: float, amin: float, ama
         ranges[index] = min(ranges[index], rng)
 
 
+def variants(info: Any, specs: Any, common: Any, scan: Any, have_numba: bool
+             ) -> dict[str, Any]:
+    """Every compiled variant forced on the same scene (the converter's tables are edited
+    after they are built so that the dispatch takes the variant)."""
+    from converters._kernels import slices as cslices
+    out: dict[str, Any] = {}
+
+    def forced(edit: Any, **kw: Any) -> Any:
+        conv = SliceConverter(info, specs, **common, **kw)
+        conv.convert(scan)
+        edit(conv, next(iter(conv._tables.values())))
+        conv.convert(scan)                                # JIT of the variant
+        return lambda: conv.convert(scan)
+
+    if have_numba:
+        def bin_ordered(conv: Any, t: Any) -> None:
+            t.sorted.rows = None
+
+        def general(conv: Any, t: Any) -> None:
+            t.sorted = None
+        out["variant: numba bin-ordered"] = forced(bin_ordered, backend="numba")
+        out["variant: numba general 3-pass"] = forced(general, backend="numba")
+    if cslices.available():
+        def scalar_c(conv: Any, t: Any) -> None:
+            conv._c_kernel = True
+        run = forced(scalar_c)
+
+        def scalar() -> None:
+            simd, cslices.SIMD = cslices.SIMD, 0
+            try:
+                run()
+            finally:
+                cslices.SIMD = simd
+        out["variant: C kernel, scalar path"] = scalar
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeat", type=int, default=40)
     parser.add_argument("--offset", action="store_true",
                         help="mount the sensor 0.3 m in front of base_link (most in-band "
                              "points then need atan2)")
+    parser.add_argument("--variants", action="store_true",
+                        help="also time every compiled variant on this scene, each forced: "
+                             "numba bin-ordered and general kernels, the C "
+                             "kernel's scalar path")
     args = parser.parse_args()
 
     info = make_info()
@@ -185,6 +226,8 @@ def main() -> None:
     ours["ours, one pass (numpy backend)"] = lambda: conv_np.convert(scan)
     for fn in ours.values():
         fn()                                              # tables + JIT outside the timing
+    if args.variants:
+        ours.update(variants(info, specs, common, scan, have_numba))
     candidates.update(ours)
 
     times = interleaved_times(candidates, args.repeat)

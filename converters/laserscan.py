@@ -15,39 +15,25 @@ and fusion rules are those of :mod:`converters._grid` (read its docstring); in s
 * a pixel with no return (+Inf) whose ray crosses the band within the range limits keeps ``+Inf``
   in its bin, so costmaps can clear; an invalid pixel (NaN, or a float range <= 0) gives ``NaN``.
 
-How it is fast: with a fixed mount every pixel is a ray ``p = r*D + O`` whose direction ``D`` and
+Tables: with a fixed mount every pixel is a ray ``p = r*D + O`` whose direction ``D`` and
 origin ``O`` in the target frame (float32 components, like the projector's tables; arithmetic in
 float64) are computed once per LidarInfo version and column order (:func:`lidarscan.make_projector`,
-then the extrinsics). Per distinct grid and pixel the far-field bin and the range ``r_thr`` above
-which the point's bin *is* the far-field bin are precomputed (:func:`converters._grid.far_field`);
-per slice, which pixels may report +Inf/NaN/-Inf. When all slices share one grid and their range
-limits (the usual case) the tables are also permuted once into far-field bin order, so a scan
-costs one gather of the range image (shared by all slices), one branch-free pass the compiler
-vectorises (height, planar range and code per pixel, band bits for all slices) and a running
-minimum per bin over contiguous positions: no scatter, no atan2
-(:func:`converters._grid._sorted_fuse`; the numpy backend does the same with
-``minimum.reduceat``). ``atan2`` runs only for in-band points closer than their ``r_thr``.
-The usual case, a full circle at the sensor's column resolution seen by an upright (or
-upside-down) sensor, has one pixel of every row per bin and ``dz``, ``oz`` constant along each
-row: then the height test is an exact per-row float32 range interval and fusion and decoding run
-in one compiled call (:func:`converters._grid._row_fuse`, :func:`converters._grid._row_convert`).
-When moreover every row maps its columns onto the bins as ``start + step*c mod W`` (always, for
-a real spinning sensor) the optional C kernel ``converters/_slicekernel.c``
-(:mod:`converters._slicec`) does the same without any gather: it streams the scan row by row in
-pixel order, updates eight consecutive bins per vector step, and skips the slices a row cannot
-reach (beams pointing up never see a band below the sensor); bit-identical results.
-Measured on the benchmark's OS-1-128-like sensor on the target's z axis: 0.000 of the pixels (the
-sensor's own 15.8 mm beam offsets only matter within a few cm). With the sensor far off the
-target's z axis (e.g. 0.3 m in front of ``base_link``) most in-band points need atan2 (about 5x
-slower): prefer a target frame below the sensor. Scans carrying ``column_azimuth_angles``
-rebuild the tables for every scan (correct, not fast).
+then the extrinsics, :func:`converters.frames.transform_rays`). Per distinct grid and pixel the
+far-field bin and the range ``r_thr`` above which the point's bin *is* the far-field bin are
+precomputed (:func:`converters._grid.far_field`), so ``atan2`` runs only for in-band points
+closer than their ``r_thr`` (a sensor far off the target's z axis makes most points need it:
+prefer a target frame below the sensor); per slice, which pixels may report +Inf/NaN/-Inf.
+Scans carrying ``column_azimuth_angles`` rebuild the tables for every scan (correct, not fast).
 
-Backends: the C kernel where it applies (built by ``pip install`` when a C compiler is
-available; ``LIDARSCAN_NO_KERNEL=1`` disables it), else compiled numba kernels when numba is
-installed (the bin-ordered kernel above; else one pass over the pixels for all slices, with a
-row-wise path when all slices share a full circle at the sensor's column resolution), else
-numpy. All give identical slices (up to points within an ulp of a bin edge, where numpy's SIMD
-``atan2`` may differ from libm's in the last bit).
+Backends (:func:`converters._kernels.select`, table in :mod:`converters._kernels`): the numpy
+reference here (:meth:`SliceConverter._fuse`, then :func:`converters._grid.decode`); the numba
+kernels of :mod:`converters._kernels.slices_numba` (bin-ordered when all slices share one grid
+and their range limits; row-ordered, with exact per-row float32 band intervals, when that grid
+is a full circle at the sensor's column resolution seen by an upright or upside-down sensor;
+else the per-pixel passes); the C kernel of :mod:`converters._kernels.slices` for the
+row-ordered case (streams the scan in pixel order). All give identical slices (up to points
+within an ulp of a bin edge, where numpy's SIMD ``atan2`` may differ from libm's in the last
+bit). Inputs reach the kernels in native byte order (:func:`lidarscan.channel`, ``native=True``).
 
 Time fields: ``header.stamp`` is the scan's stamp (measurement column 0), identical for all slices
 of a scan; ``scan_time`` is ``W * column_time_increment`` (or from ``column_time_offsets``);
@@ -69,19 +55,21 @@ from typing import Any
 
 import numpy as np
 
-from converters import _grid, _slicec
+from converters import _grid, _kernels, options
+from converters._kernels import slices as _cslices
+from converters._kernels.slices_numba import Bands, Rays
 from converters._grid import AngleGrid, OutputOptions
+from converters.frames import check_extrinsics, transform_rays
+from converters.options import IfPresent, resolve_channel
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
 from lidarscan.geometry import info_key, make_projector
-from lidarscan.scan import _as_array, channel, range_m
+from lidarscan.scan import as_array, channel, channel_names, range_m
 from lidarscan.stamps import to_ns
 
 __all__ = ["SliceConverter", "SliceSpec", "check_extrinsics", "to_laserscan"]
 
-_NO_KEEP = np.zeros(0, np.uint8)
 _NO_VALUES = np.zeros(0, np.float32)
 _NO_KEYS = np.zeros(0, np.int64)
-_SLICE_LIMITS = np.array([0.0, np.inf, 0.0])
 
 
 @dataclass(frozen=True)
@@ -110,47 +98,6 @@ class SliceSpec:
 
 _OVERRIDES = ("angle_min", "angle_max", "angle_increment", "range_min", "range_max", "use_inf",
               "inf_epsilon", "fill")
-
-
-def check_extrinsics(extrinsics: Any, field: str = "extrinsics") -> np.ndarray[Any, Any]:
-    """A 4x4 float64 rigid transform (None -> identity).
-
-    Raises:
-        ConfigError: wrong shape, non-finite values, a rotation that is not orthonormal with
-            determinant +1, or a last row other than 0 0 0 1.
-    """
-    if extrinsics is None:
-        return np.eye(4)
-    try:
-        matrix = np.array(extrinsics, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ConfigError(field, extrinsics, "a 4x4 homogeneous transform") from err
-    if matrix.size != 16:
-        raise ConfigError(field, matrix.shape, "a 4x4 matrix (or 16 values, row-major)")
-    matrix = matrix.reshape(4, 4)
-    rot = matrix[:3, :3]
-    if not (np.all(np.isfinite(matrix)) and np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9)
-            and np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0):
-        raise ConfigError(field, matrix.round(6).tolist(),
-                          "a rigid transform (orthonormal rotation with det +1, last row 0 0 0 1)")
-    return matrix
-
-
-def _transform_rays(d: np.ndarray[Any, Any], o: np.ndarray[Any, Any],
-                    matrix: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any],
-                                                          np.ndarray[Any, Any]]:
-    """Directions and origins (n, 3) moved into the target frame and rounded to float32 (like
-    the projector's own tables). Written out per component, left to right, in float64 from the
-    float32 projector tables, so that a plain loop reproduces them bit for bit."""
-    m = matrix
-    dx, dy, dz = (d[:, k].astype(np.float64) for k in range(3))
-    ox, oy, oz = (o[:, k].astype(np.float64) for k in range(3))
-    dt = np.empty(d.shape, np.float32)
-    ot = np.empty(o.shape, np.float32)
-    for i in range(3):
-        dt[:, i] = m[i, 0] * dx + m[i, 1] * dy + m[i, 2] * dz
-        ot[:, i] = m[i, 0] * ox + m[i, 1] * oy + m[i, 2] * oz + m[i, 3]
-    return dt, ot
 
 
 @dataclass(frozen=True)
@@ -198,18 +145,16 @@ class _Tables:
             ok = self.bin_far[g] >= 0
             self.q_far.append(q_far & ok)
             self.q_near.append(q_near & ok)
-        # stacked copies for the compiled kernel
-        self.k_keys = np.zeros(0, np.int32) if keys is None else keys.astype(np.int32)
-        # one grid for all slices, at the sensor's resolution, and the far field reached within
-        # 1 m for 95 % of the pixels: the row-wise fast path (else near points dominate)
-        self.aligned = None
-        if len(grids) == 1 and np.mean(self.r_thr[0] > 1.0) < 0.05:
-            self.aligned = _grid.aligned_rows(self.bin_far[0], width, grids[0].size)
-        self.k_bin_far = np.ascontiguousarray(np.stack(self.bin_far).astype(np.int32))
         self.k_r_thr = np.ascontiguousarray(np.stack([_grid.round_up_f32(t) for t in self.r_thr]))
-        self.k_qual = np.ascontiguousarray(np.stack(
-            [qf.astype(np.uint8) | (qn.astype(np.uint8) << 1)
-             for qf, qn in zip(self.q_far, self.q_near)]))
+        #: the tables as the general compiled kernels take them
+        self.kernel_rays = Rays(
+            self.dx, self.dy, self.dz, self.ox, self.oy, self.oz,
+            keys=np.zeros(0, np.int32) if keys is None else keys.astype(np.int32),
+            qual=np.ascontiguousarray(np.stack(
+                [qf.astype(np.uint8) | (qn.astype(np.uint8) << 1)
+                 for qf, qn in zip(self.q_far, self.q_near)])),
+            bin_far=np.ascontiguousarray(np.stack(self.bin_far).astype(np.int32)),
+            r_thr=self.k_r_thr)
         self.sorted: _Sorted | None = None
         if len(grids) == 1 and len(slices) <= 60 and len(
                 {(s.options.range_min, s.options.range_max) for s in slices}) == 1:
@@ -232,7 +177,7 @@ class _Tables:
 class _Sorted:
     """The tables of :class:`_Tables` permuted into the order of the (single) grid's far-field
     bins, then pixel index, for the bin-ordered compiled kernel
-    :func:`converters._grid._sorted_fuse`."""
+    :func:`converters._kernels.slices_numba._sorted_fuse`."""
 
     def __init__(self, t: _Tables, size: int, slices: list[_Slice], width: int) -> None:
         n_slices = len(slices)
@@ -261,12 +206,12 @@ class _Sorted:
         filled = np.flatnonzero(np.diff(self.bin_start[:size + 2]) > 0)
         if filled.size:
             self.bin_thr[filled] = np.maximum.reduceat(thr, self.bin_start[filled])
-        self.cols64: tuple[np.ndarray[Any, Any], ...] | None = None   # numpy backend
         self.rows = _RowLayout.create(t, self, size, slices, width)
 
 
 class _RowLayout:
-    """Extra tables of the row-ordered kernel :func:`converters._grid._row_fuse`, when it
+    """Extra tables of the row-ordered kernels (numba's
+    :func:`converters._kernels.slices_numba._row_convert` and the C kernel's plan), when it
     applies: every bin holds exactly one pixel of every row, in row order (a full circle at
     the sensor's column resolution), and ``dz``, ``oz`` are bitwise constant along every row
     (an upright sensor), so each band is an exact float32 range interval per row."""
@@ -279,10 +224,10 @@ class _RowLayout:
         self.lo, self.hi = lo, hi
         #: qualifiers per row ((H,), the same in every bin) or per position ((n,), bin order)
         self.q_rows, self.qf, self.qn = q_rows, qf, qn
-        self._c_plan: _slicec.SlicePlan | None = None
+        self._c_plan: _cslices.SlicePlan | None = None
         self._c_plan_tried = False
 
-    def c_plan(self, t: _Tables, slices: list[_Slice]) -> _slicec.SlicePlan | None:
+    def c_plan(self, t: _Tables, slices: list[_Slice]) -> _cslices.SlicePlan | None:
         """Arguments of the compiled kernel (converters/_slicekernel.c), built at the first
         call; None when its extra condition fails: bins and tie keys of every row affine in
         the column (``start + step*c mod W``), at most 32 slices."""
@@ -296,7 +241,7 @@ class _RowLayout:
                 else t.keys.reshape(height, width) - np.arange(height)[:, None] * width)
         bin_rows = _grid.aligned_rows(t.bin_far[0], width, width)
         key_rows = _grid.aligned_rows(keys, width, width)
-        if bin_rows is None or key_rows is None or len(slices) > _slicec.MAX_SLICES:
+        if bin_rows is None or key_rows is None or len(slices) > _cslices.MAX_SLICES:
             return None
         if self.q_rows:
             qf, qn = self.qf, self.qn
@@ -307,7 +252,7 @@ class _RowLayout:
                 qf |= far_ok.astype(np.uint32) << np.uint32(s)
                 qn |= near_ok.astype(np.uint32) << np.uint32(s)
         grid, options = slices[0].grid, slices[0].options
-        self._c_plan = _slicec.SlicePlan(
+        self._c_plan = _cslices.SlicePlan(
             height=height, width=width, n_slices=len(slices), dx=t.dx, dy=t.dy, ox=t.ox,
             oy=t.oy, r_thr=t.k_r_thr[0], bins=bin_rows, keys=key_rows, qf=qf, qn=qn,
             lo=self.lo, hi=self.hi, lim_lo=float(options.range_min),
@@ -365,13 +310,14 @@ class SliceConverter:
         range_min, range_max: inclusive planar limits, metres; default the info's (0 / inf when
             unknown).
         intensity_channel: channel whose value at the winning pixel becomes the intensity (any
-            dtype, cast to float32), or None for an empty ``intensities``.
+            dtype, cast to float32), or None for an empty ``intensities``. The default,
+            ``IfPresent("intensity")``, uses the scan's ``intensity`` channel when it has one
+            (empty ``intensities`` for a range-only scan); a plain name is required.
         use_inf, inf_epsilon, fill: output values (see :class:`converters._grid.OutputOptions`).
         range_channel: the range channel (float metres or integer with the info's multiplier).
-        backend: ``"auto"`` (the C kernel of :mod:`converters._slicec` where it applies and is
-            built, on CPUs with AVX-512 or without numba; else the compiled kernels of :func:`converters._grid.numba_kernel` when numba
-            is installed, else numpy), ``"numba"`` (numba kernels only) or ``"numpy"``. All give
-            the same slices (up to points within an ulp of a bin edge).
+        backend: ``"auto"``, ``"numba"`` or ``"numpy"``, as :func:`converters._kernels.select`
+            chooses them (the C kernel where it applies, numba, numpy). All give the same
+            slices (up to points within an ulp of a bin edge).
 
     Raises:
         ConfigError: a bad option (empty band set, inverted band, increment <= 0, ...).
@@ -381,32 +327,29 @@ class SliceConverter:
                  extrinsics: Any = None, frame_id: str | None = None,
                  angle_min: float | None = None, angle_max: float | None = None,
                  angle_increment: float | None = None, range_min: float | None = None,
-                 range_max: float | None = None, intensity_channel: str | None = "intensity",
+                 range_max: float | None = None,
+                 intensity_channel: str | None = IfPresent("intensity"),
                  use_inf: bool = True, inf_epsilon: float = 1.0, fill: float | None = None,
                  range_channel: str = "range", backend: str = "auto") -> None:
-        if backend not in ("auto", "numba", "numpy"):
-            raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
-        self._kernel = None if backend == "numpy" else _grid.numba_kernel()
-        # the C kernel's scalar path (no AVX-512) is slower than numba's kernel
-        self._c_kernel = backend == "auto" and _slicec.available() and (
-            _slicec.vectorised() or self._kernel is None)
-        if backend == "numba" and self._kernel is None:
-            raise ConfigError("backend", backend, "numba installed (pip install numba)")
-        if not slices:
-            raise ConfigError("slices", dict(slices), "at least one named SliceSpec")
+        if not isinstance(slices, Mapping):
+            raise ConfigError("slices", slices, "a non-empty dict of name -> SliceSpec")
+        specs = {name: _as_spec(name, spec) for name, spec in slices.items()}
+        options.slice_options(specs, {
+            "extrinsics": extrinsics, "frame_id": frame_id, "angle_min": angle_min,
+            "angle_max": angle_max, "angle_increment": angle_increment,
+            "range_min": range_min, "range_max": range_max,
+            "intensity_channel": intensity_channel, "use_inf": use_inf,
+            "inf_epsilon": inf_epsilon, "fill": fill, "range_channel": range_channel,
+            "backend": backend})
+        chosen = _kernels.select("slices", backend=backend)
+        self._kernel = chosen.numba
+        self._c_kernel = bool(chosen.c)
         self._common = {"angle_min": angle_min, "angle_max": angle_max,
                         "angle_increment": angle_increment, "range_min": range_min,
                         "range_max": range_max, "use_inf": use_inf, "inf_epsilon": inf_epsilon,
                         "fill": fill}
-        self._specs: dict[str, SliceSpec] = {}
-        for name, spec in slices.items():
-            if not isinstance(name, str) or not name:
-                raise ConfigError("slices", name, "non-empty str slice names")
-            self._specs[name] = _as_spec(name, spec)
+        self._specs: dict[str, SliceSpec] = specs
         self.extrinsics = check_extrinsics(extrinsics)
-        if extrinsics is not None and not frame_id:
-            raise ConfigError("frame_id", frame_id,
-                              "the target frame's name when extrinsics are given")
         self._frame_id = frame_id
         self.intensity_channel = intensity_channel
         self.range_channel = range_channel
@@ -434,23 +377,9 @@ class SliceConverter:
             self._slice_grid.append(self._grids.index(spec_slice.grid))
         self._near = max(float(info.range_min), 0.0)
         self._sweep = self._sweep_sign(info)
-        sl = self.slices
-        self._kslices = (
-            np.array([s.min_z for s in sl]), np.array([s.max_z for s in sl]),
-            np.array([s.options.range_min for s in sl]),
-            np.array([s.options.range_max for s in sl]),
-            np.array(self._slice_grid, np.int64), self._offsets.astype(np.int64))
-        self._kdecode = (self._offsets.astype(np.int64),
-                         np.array([s.grid.size for s in sl], np.int64),
-                         np.array([s.options.inf_value for s in sl], np.float32),
-                         np.array([s.options.fill_value for s in sl], np.float32))
-        pad = -len(sl) % 4              # empty bands up to a multiple of four slices
-        self._kbands = (np.r_[self._kslices[0], np.full(pad, np.inf)],
-                        np.r_[self._kslices[1], np.full(pad, -np.inf)])
-        gr = self._grids
-        self._kgrids = (np.array([g.angle_min for g in gr]), np.array([g.increment for g in gr]),
-                        np.array([g.size for g in gr], np.int64),
-                        np.array([g.full_circle for g in gr], np.bool_))
+        self._bands = Bands.create([(s.min_z, s.max_z, s.options, g)
+                                    for s, g in zip(self.slices, self._slice_grid)],
+                                   self._grids)
 
     def _build_slice(self, name: str, spec: SliceSpec, info: Any, width: int) -> _Slice:
         opts = {k: getattr(spec, k) if getattr(spec, k) is not None else self._common[k]
@@ -473,7 +402,7 @@ class SliceConverter:
 
     @staticmethod
     def _sweep_sign(info: Any) -> float:
-        alpha = _as_array(info.horizontal_angles, np.float64).astype(np.float64)
+        alpha = as_array(info.horizontal_angles, np.float64).astype(np.float64)
         if alpha.size < 2:
             return 0.0
         step = (np.diff(alpha) + math.pi) % (2.0 * math.pi) - math.pi
@@ -485,14 +414,14 @@ class SliceConverter:
         if int(info.column_time_increment) > 0:
             return float(width * int(info.column_time_increment))
         if scan is not None and width >= 2:
-            times = _as_array(scan.column_time_offsets, np.int64)
+            times = as_array(scan.column_time_offsets, np.int64)
             if times.size == width:
                 return float(times[-1] - times[0]) * width / (width - 1)
         return 0.0
 
     # ------------------------------------------------------------------------------ tables
     def _tables_for(self, scan: Any) -> _Tables:
-        measured = _as_array(scan.column_azimuth_angles, np.float64)
+        measured = as_array(scan.column_azimuth_angles, np.float64)
         destaggered = bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
         if measured.size:
             key: Any = ("measured", destaggered,
@@ -506,7 +435,7 @@ class SliceConverter:
                 for k in [k for k in self._tables if k[0] == "measured"]:
                     del self._tables[k]
             d32, o32 = self.projector.tables_for(scan)
-            d, o = _transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), self.extrinsics)
+            d, o = transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), self.extrinsics)
             keys = None
             if destaggered:                  # tie key = measurement-order index u*W + c
                 height, width = self.projector.height, self.projector.width
@@ -539,8 +468,9 @@ class SliceConverter:
         tables = self._tables_for(scan)
         r = np.ascontiguousarray(range_m(scan, self.info, self.range_channel)).reshape(-1)
         intensity = None
-        if self.intensity_channel is not None:
-            values = channel(scan, self.intensity_channel)
+        wanted = resolve_channel(self.intensity_channel, channel_names(scan))
+        if wanted is not None:
+            values = channel(scan, wanted, native=True)
             intensity = (values[..., 0] if values.ndim == 3 else values).reshape(-1)
         decoded = self._row_convert(r, tables, intensity)
         if decoded is None:
@@ -570,7 +500,7 @@ class SliceConverter:
     def _row_convert(self, r: np.ndarray[Any, Any], tables: _Tables,
                      intensity: np.ndarray[Any, Any] | None
                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
-        """Fusion and decoding in one compiled call (:func:`converters._grid._row_convert`)
+        """Fusion and decoding in one compiled call (the row-ordered kernels)
         when the row-ordered kernel applies, else None."""
         t = tables.sorted
         if t is None or t.rows is None:
@@ -582,21 +512,9 @@ class SliceConverter:
                 return ranges, ints
         if self._kernel is None:
             return None
-        ranges, ints = self._kernel.row_convert(
-            *self._row_args(r, t), self._size, *self._kdecode[1:],
-            *self._decode_inputs(tables, intensity), intensity is not None)
-        return ranges, ints
-
-    def _row_args(self, r: np.ndarray[Any, Any], t: _Sorted) -> tuple[Any, ...]:
-        """Arguments of :func:`converters._grid._row_fuse` before ``best`` (``t.rows`` set)."""
-        rows: Any = t.rows
-        cols = t.cols
-        rmin, rmax, offset = self._kslices[2], self._kslices[3], self._kslices[5]
-        g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
-        return (np.ascontiguousarray(r, np.float32), rows.src, rows.keys, cols[2], cols[3],
-                cols[4], cols[5], cols[6], rows.qf, rows.qn, rows.q_rows, rows.lo, rows.hi,
-                len(self.slices), float(rmin[0]), float(rmax[0]), rows.lo.shape[1], t.bin_thr,
-                offset, float(g_min), float(g_inc), int(g_size), bool(g_full))
+        return self._kernel.convert_rows(  # type: ignore[no-any-return]
+            np.ascontiguousarray(r, np.float32), t, t.rows, self._bands,
+            *self._decode_inputs(tables, intensity))
 
     @staticmethod
     def _decode_inputs(tables: _Tables, intensity: np.ndarray[Any, Any] | None
@@ -615,8 +533,9 @@ class SliceConverter:
             return None
         ranges = np.empty(self._size, np.float32)
         ints = np.empty(self._size if intensity is not None else 0, np.float32)
-        self._kernel.decode_slices(best, *self._kdecode, *self._decode_inputs(tables, intensity),
-                                   ranges, ints)
+        b = self._bands
+        self._kernel.decode_slices(best, b.offset, b.size, b.inf_value, b.fill_value,
+                                   *self._decode_inputs(tables, intensity), ranges, ints)
         return ranges, ints
 
     def _check(self, scan: Any) -> None:
@@ -631,130 +550,35 @@ class SliceConverter:
                                f"{self._info_stamp} (the converter's LidarInfo; pass the new "
                                "info to convert(scan, info))")
 
-    def _fuse_sorted(self, r: np.ndarray[Any, Any], t: _Sorted, best: np.ndarray[Any, Any]
-                     ) -> None:
-        """The bin-ordered compiled path (one grid, shared range limits)."""
-        kernel: Any = self._kernel
-        if t.rows is not None:        # (convert() runs it with the decoding: _row_convert)
-            kernel.row_fuse(*self._row_args(r, t), best)
-            return
-        rmin, rmax, offset = self._kslices[2], self._kslices[3], self._kslices[5]
-        g_min, g_inc, g_size, g_full = (a[0] for a in self._kgrids)
-        kernel.sorted_fuse(np.ascontiguousarray(r, np.float32), t.src, t.keys, *t.cols, t.qf,
-                           t.qn, *self._kbands, len(self.slices), float(rmin[0]), float(rmax[0]),
-                           t.bin_start, t.bin_thr, max(t.max_width, _grid.SORTED_CHUNK), offset,
-                           float(g_min), float(g_inc), int(g_size), bool(g_full), best)
-
-    def _fuse_sorted_numpy(self, r: np.ndarray[Any, Any], t: _Sorted,
-                           best: np.ndarray[Any, Any]) -> None:
-        """numpy twin of :func:`converters._grid._sorted_fuse`: ranges gathered once in bin
-        order, per slice a ``minimum.reduceat`` over each bin's contiguous positions; points
-        closer than their far-field threshold get their bin from ``arctan2``."""
-        grid = self._grids[0]
-        size = grid.size
-        if t.cols64 is None:                  # float64 copies: no casts per scan
-            t.cols64 = tuple(c.astype(np.float64) for c in t.cols[:6])
-        dz, oz, dx, dy, ox, oy = t.cols64
-        rp = np.asarray(r, np.float32)[t.src]
-        lim_lo = self.slices[0].options.range_min
-        lim_hi = self.slices[0].options.range_max
-        with np.errstate(invalid="ignore", over="ignore"):
-            rd = rp.astype(np.float64)
-            point = rp > 0
-            point &= rp < np.inf
-            x = rd * dx
-            x += ox
-            y = rd * dy
-            y += oy
-            z = rd * dz
-            z += oz
-            x *= x
-            y *= y
-            x += y
-            rho = np.sqrt(x, out=x)
-            near = rp < t.cols[6]
-            near &= point
-        code = rho.astype(np.float32).view(np.int32).astype(np.int64)
-        code[rho < lim_lo] = _grid.CODE_NEG_INF
-        code[rho > lim_hi] = _grid.CODE_POS_INF
-        neg = rp == -np.inf
-        code[~point] = _grid.CODE_NAN
-        code[rp == np.inf] = _grid.CODE_POS_INF
-        code[neg] = _grid.CODE_NEG_INF
-        code <<= 32
-        code |= t.keys
-        value = code
-        n_binned = int(t.bin_start[size])
-        starts = t.bin_start[:size]               # <= n_binned: a sentinel follows the values
-        empty_bin = starts == t.bin_start[1:size + 1]
-        qual = np.where(neg, t.qn, t.qf)
-        takes = []
-        for s, sl in enumerate(self.slices):
-            take = z >= sl.min_z
-            take &= z <= sl.max_z
-            take &= point
-            take |= ~point & ((qual & (t.mask_dtype(1) << t.mask_dtype(s))) != 0)
-            takes.append(take)
-        near &= np.logical_or.reduce(takes)
-        near_idx = np.flatnonzero(near)
-        near_bins = None
-        if near_idx.size:
-            rd = rd[near_idx]
-            near_bins = grid.bins(np.arctan2(rd * dy[near_idx] + oy[near_idx],
-                                             rd * dx[near_idx] + ox[near_idx]))
-        runs_in = np.empty(n_binned + 1, np.int64)
-        far = ~near[:n_binned]
-        for take, off in zip(takes, self._offsets):
-            if n_binned:
-                runs_in.fill(_grid.EMPTY)
-                np.copyto(runs_in[:n_binned], value[:n_binned],
-                          where=take[:n_binned] & far)
-                runs = np.minimum.reduceat(runs_in, starts)
-                runs[empty_bin] = _grid.EMPTY
-                np.minimum(best[off:off + size], runs, out=best[off:off + size])
-            if near_bins is not None:
-                ok = take[near_idx] & (near_bins >= 0)
-                np.minimum.at(best, near_bins[ok] + off, value[near_idx[ok]])
-
     def _fuse(self, r: np.ndarray[Any, Any], tables: _Tables) -> np.ndarray[Any, Any]:
         """One reduction array (all slices back to back) from the flat range image."""
         best = np.full(self._size, _grid.EMPTY, np.int64)
-        if tables.sorted is not None:
-            if self._kernel is not None:
-                self._fuse_sorted(r, tables.sorted, best)
+        kernel = self._kernel
+        if kernel is not None:
+            r32 = np.ascontiguousarray(r, np.float32)
+            if tables.sorted is not None:
+                kernel.fuse_sorted(r32, tables.sorted, self._bands, best)
             else:
-                self._fuse_sorted_numpy(r, tables.sorted, best)
-            return best
-        if self._kernel is not None and tables.aligned is not None:
-            self._kernel.rows(np.ascontiguousarray(r, np.float32), tables.dx, tables.dy,
-                              tables.dz, tables.ox, tables.oy, tables.oz, tables.k_keys,
-                              self.projector.width, tables.aligned[0], tables.aligned[1],
-                              self._grids[0].size, *self._kslices[:4], *self._kslices[4:],
-                              tables.k_qual, *self._kgrids, tables.k_bin_far, tables.k_r_thr,
-                              best)
-            return best
-        if self._kernel is not None:
-            self._kernel(np.ascontiguousarray(r, np.float32), _NO_KEEP, _SLICE_LIMITS,
-                         tables.dx, tables.dy, tables.dz, tables.ox, tables.oy, tables.oz,
-                         tables.k_keys, 0, *self._kslices, tables.k_qual, *self._kgrids,
-                         tables.k_bin_far, tables.k_r_thr, best)
+                kernel.fuse(r32, tables.kernel_rays, self._bands, best)
             return best
         with np.errstate(invalid="ignore", over="ignore"):
             good = (r > 0) & (r < np.inf)
             r64 = r.astype(np.float64)
             z = r64 * tables.dz + tables.oz              # float64: f4 tables are upcast
+        d64 = tables.rays[:, :3].astype(np.float64)
+        o64 = tables.rays[:, 3:].astype(np.float64)
         special = np.flatnonzero(~good)
         r_special = r64[special]
         all_bins, all_codes, all_keys = [], [], []
         for i, (s, off, g) in enumerate(zip(self.slices, self._offsets, self._slice_grid)):
             idx = np.flatnonzero((z >= s.min_z) & (z <= s.max_z) & good)
             if idx.size:
-                bins, codes = _point_codes(r64[idx], tables.rays[idx], s, tables.bin_far[g][idx],
-                                           tables.r_thr[g][idx])
-                ok = bins >= 0
-                all_bins.append(bins[ok] + off)
-                all_codes.append(codes[ok])
-                all_keys.append(tables.key(idx[ok]))
+                sel, bins, codes = _grid.point_codes(
+                    r64[idx], d64[idx], o64[idx], s.min_z, s.max_z, s.options.range_min,
+                    s.options.range_max, s.grid, tables.bin_far[g][idx], tables.r_thr[g][idx])
+                all_bins.append(bins + off)
+                all_codes.append(codes)
+                all_keys.append(tables.key(idx[sel]))
             if special.size:
                 codes = _grid.special_codes(r_special, tables.q_far[i][special],
                                             tables.q_near[i][special])
@@ -766,25 +590,6 @@ class SliceConverter:
             best = _grid.reduce_min(self._size, np.concatenate(all_bins),
                                     np.concatenate(all_codes), np.concatenate(all_keys))
         return best
-
-
-def _point_codes(r: np.ndarray[Any, Any], rays: np.ndarray[Any, Any], s: _Slice,
-                 bin_far: np.ndarray[Any, Any], r_thr: np.ndarray[Any, Any]
-                 ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """numpy path of the in-band points of one slice (their heights already tested): bins
-    (-1 = outside a sector) and codes, as :func:`converters._grid.point_codes`."""
-    rays = rays.astype(np.float64)
-    x = r * rays[:, 0] + rays[:, 3]
-    y = r * rays[:, 1] + rays[:, 4]
-    bins = bin_far.astype(np.int64)
-    near = np.flatnonzero(r < r_thr)
-    if near.size:
-        bins[near] = s.grid.bins(np.arctan2(y[near], x[near]))
-    rho = np.sqrt(x * x + y * y)
-    codes = rho.astype(np.float32).view(np.int32).astype(np.int64)
-    codes[rho < s.options.range_min] = _grid.CODE_NEG_INF
-    codes[rho > s.options.range_max] = _grid.CODE_POS_INF
-    return bins, codes
 
 
 def _as_spec(name: str, spec: SliceSpec | Mapping[str, Any]) -> SliceSpec:
@@ -801,18 +606,6 @@ def _as_spec(name: str, spec: SliceSpec | Mapping[str, Any]) -> SliceSpec:
         out = SliceSpec(**spec)
     else:
         raise ConfigError(f"slices[{name!r}]", spec, "a SliceSpec or a dict of its fields")
-    for field in ("min_height", "max_height"):
-        value = getattr(out, field)
-        try:
-            bad = math.isnan(float(value))
-        except (TypeError, ValueError):
-            bad = True
-        if bad:
-            raise ConfigError(f"slices[{name!r}].{field}", value, "a number (inf allowed)")
-    if float(out.min_height) > float(out.max_height):
-        raise ConfigError(f"slices[{name!r}].max_height", out.max_height,
-                          f">= min_height ({out.min_height}): the band is inclusive "
-                          "[min_height, max_height]")
     return out
 
 
@@ -823,7 +616,8 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
                  extrinsics: Any = None, frame_id: str | None = None,
                  angle_min: float | None = None, angle_max: float | None = None,
                  angle_increment: float | None = None, range_min: float | None = None,
-                 range_max: float | None = None, intensity_channel: str | None = "intensity",
+                 range_max: float | None = None,
+                 intensity_channel: str | None = IfPresent("intensity"),
                  use_inf: bool = True, inf_epsilon: float = 1.0, fill: float | None = None,
                  range_channel: str = "range", backend: str = "auto") -> Any:
     """One height slice of a LidarScan as a ``sensor_msgs.msg.LaserScan``.
@@ -837,18 +631,21 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
         rclpy ``sensor_msgs.msg.LaserScan`` stamped with the scan's stamp, ``ranges`` and
         ``intensities`` as ``array.array('f')``.
     """
-    options = {"extrinsics": extrinsics, "frame_id": frame_id, "angle_min": angle_min,
-               "angle_max": angle_max, "angle_increment": angle_increment,
-               "range_min": range_min, "range_max": range_max,
-               "intensity_channel": intensity_channel, "use_inf": use_inf,
-               "inf_epsilon": inf_epsilon, "fill": fill, "range_channel": range_channel,
-               "backend": backend}
-    ext = None if extrinsics is None else np.asarray(extrinsics, np.float64).tobytes()
+    kwargs = {"extrinsics": extrinsics, "frame_id": frame_id, "angle_min": angle_min,
+              "angle_max": angle_max, "angle_increment": angle_increment,
+              "range_min": range_min, "range_max": range_max,
+              "intensity_channel": intensity_channel, "use_inf": use_inf,
+              "inf_epsilon": inf_epsilon, "fill": fill, "range_channel": range_channel,
+              "backend": backend}
+    spec = SliceSpec(min_height, max_height)
+    options.slice_options({"slice": spec}, kwargs)      # before any use of the values
+    ext = None if extrinsics is None else check_extrinsics(extrinsics).tobytes()
+    # the type tells IfPresent("intensity") (the default) from a required "intensity"
     key = (info_key(info), float(min_height), float(max_height), ext,
-           tuple((k, v) for k, v in options.items() if k != "extrinsics"))
+           tuple((k, type(v), v) for k, v in kwargs.items() if k != "extrinsics"))
     converter = _CONVERTERS.get(key)
     if converter is None:
-        converter = SliceConverter(info, {"slice": SliceSpec(min_height, max_height)}, **options)
+        converter = SliceConverter(info, {"slice": spec}, **kwargs)
         _CONVERTERS[key] = converter
         while len(_CONVERTERS) > 8:
             _CONVERTERS.popitem(last=False)

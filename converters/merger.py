@@ -35,7 +35,8 @@ replays behave like live runs). A scan is fused at most once, and only with scan
 so stale data is never fused. The output stamp is the newest (``reference="newest"``) or oldest
 stamp of the fused set, exact in ns. ``time_increment`` is 0 and ``scan_time`` the largest input
 ``scan_time``. Scans are validated when pushed (header, frame): a malformed scan raises before
-it touches any queue.
+it touches any queue. A scan whose ``header.frame_id`` is not the output frame needs the input's
+``extrinsics`` (identity is never assumed across frames).
 
 **Clock jumps backwards** (``jump_back_ns``, default 1 s; None = never). Each input is judged on
 its *own* stamps: a scan older than the newest scan queued from that input by more than
@@ -76,17 +77,17 @@ from typing import Any
 
 import numpy as np
 
-from converters import _grid
+from converters import _grid, _kernels, options
 from converters._grid import AngleGrid, OutputOptions
-from converters.laserscan import check_extrinsics
+from converters._kernels.slices_numba import Bands, Rays
+from converters.frames import check_extrinsics, check_frame
 from lidarscan.errors import ConfigError, ValidationError
-from lidarscan.scan import _as_array
+from lidarscan.scan import as_array
 from lidarscan.stamps import to_ns
 
 __all__ = ["LaserScanMerger", "MergerInput", "Pose", "interpolate_pose"]
 
-_NO_KEYS = np.zeros(0, np.int64)
-_ZERO = np.zeros(1, np.int64)
+_NO_KEYS = np.zeros(0, np.int32)    # tie key = ray index + the input's base
 
 
 @dataclass(frozen=True)
@@ -94,7 +95,9 @@ class MergerInput:
     """Settings of one merger input (transport settings such as QoS belong to the node).
 
     Attributes:
-        extrinsics: 4x4 pose of the input's frame in the output frame (None = identity).
+        extrinsics: 4x4 pose of the input's frame in the output frame. None = identity, allowed
+            only for an input whose scans are in the output frame: a scan in another frame
+            without extrinsics is refused (ValidationError naming the input and both frames).
         range_min, range_max: user range filter on the input's own ranges, metres (see the
             module docstring for what happens below/above).
         angle_min, angle_max: angle window in the input frame, radians, inclusive, CCW from
@@ -192,8 +195,8 @@ class _ScanIn:
 
 
 def _read_scan(scan: Any, name: str) -> _ScanIn:
-    ranges = np.ascontiguousarray(_as_array(scan.ranges, np.float32).reshape(-1), np.float32)
-    inten = _as_array(scan.intensities, np.float32).reshape(-1)
+    ranges = np.ascontiguousarray(as_array(scan.ranges, np.float32).reshape(-1), np.float32)
+    inten = as_array(scan.intensities, np.float32).reshape(-1)
     intensities = inten.astype(np.float32, copy=False) if inten.size == ranges.size else None
     amin = float(scan.angle_min)
     inc = float(scan.angle_increment)
@@ -221,32 +224,17 @@ class _InputState:
         self.name = name
         self.cfg = cfg
         self.index = index
+        options.merger_input(name, cfg)
         self.extrinsics = check_extrinsics(cfg.extrinsics, f"inputs[{name!r}].extrinsics")
-        for field in ("range_min", "range_max", "min_height", "max_height"):
-            if math.isnan(float(getattr(cfg, field))):
-                raise ConfigError(f"inputs[{name!r}].{field}", getattr(cfg, field), "a number")
-        if not 0.0 <= float(cfg.range_min) <= float(cfg.range_max):
-            raise ConfigError(f"inputs[{name!r}].range_max", cfg.range_max,
-                              f">= range_min ({cfg.range_min}) >= 0")
-        if float(cfg.min_height) > float(cfg.max_height):
-            raise ConfigError(f"inputs[{name!r}].max_height", cfg.max_height,
-                              f">= min_height ({cfg.min_height})")
-        if (cfg.angle_min is None) != (cfg.angle_max is None):
-            raise ConfigError(f"inputs[{name!r}].angle_max", cfg.angle_max,
-                              "set together with angle_min (or both None)")
         self.window: tuple[float, float] | None = None
         if cfg.angle_min is not None:
             a, b = float(cfg.angle_min), float(cfg.angle_max)  # type: ignore[arg-type]
-            if not (math.isfinite(a) and math.isfinite(b)):
-                raise ConfigError(f"inputs[{name!r}].angle_min", (a, b), "finite angles")
             if b - a < 2.0 * math.pi:
                 self.window = (a, (b - a) % (2.0 * math.pi))
-        if cfg.timeout_ns is not None and int(cfg.timeout_ns) <= 0:
-            raise ConfigError(f"inputs[{name!r}].timeout_ns", cfg.timeout_ns, "> 0 ns or None")
         self._geom: dict[tuple[float, float, int], tuple[Any, Any, Any]] = {}
         self._rays_key: Any = None
         self._rays: Any = None
-        self.kernel_consts: Any = None
+        self.kernel_bands: Bands | None = None
         self.queue: list[tuple[int, Any]] = []
         self.consumed = -(1 << 63)
         self.last_seen: int | None = None
@@ -309,13 +297,15 @@ class _Rays:
                  q_near: np.ndarray[Any, Any]) -> None:
         self.d, self.o, self.keep = d, o, keep
         self.bin_far, self.r_thr, self.q_far, self.q_near = bin_far, r_thr, q_far, q_near
-        self.columns = tuple(np.ascontiguousarray(a[:, k]) for a in (d, o) for k in range(3))
         self.k_keep = np.zeros(0, np.uint8) if keep is None else keep.astype(np.uint8)
-        self.k_bin_far = bin_far.astype(np.int32)[None, :]
-        self.k_r_thr = _grid.round_up_f32(r_thr)[None, :]
         ok = bin_far >= 0
-        self.k_qual = ((q_far & ok).astype(np.uint8) | ((q_near & ok).astype(np.uint8) << 1)
-                       )[None, :]
+        columns = (np.ascontiguousarray(a[:, k]) for a in (d, o) for k in range(3))
+        #: the rays as the compiled kernels take them (tie keys: ray index + the input's base)
+        self.kernel_rays = Rays(
+            *columns, keys=_NO_KEYS,
+            qual=((q_far & ok).astype(np.uint8) | ((q_near & ok).astype(np.uint8) << 1)
+                  )[None, :],
+            bin_far=bin_far.astype(np.int32)[None, :], r_thr=_grid.round_up_f32(r_thr)[None, :])
 
 
 class LaserScanMerger:
@@ -337,7 +327,8 @@ class LaserScanMerger:
         odom_queue_size, odom_max_gap_ns: odometry samples kept; largest gap bridged.
         jump_back_ns: an input (or the odometry) whose stamps go back by more than this, two
             scans in a row, had its clock reset (see the module docstring); None = never.
-        backend: ``"auto"`` (compiled kernel when numba is installed), ``"numba"``, ``"numpy"``.
+        backend: ``"auto"`` (the numba kernels when installed), ``"numba"``, ``"numpy"``
+            (:func:`converters._kernels.select`).
 
     Raises:
         ConfigError: bad options.
@@ -353,13 +344,19 @@ class LaserScanMerger:
                  queue_size: int = 10, motion_compensation: bool = True,
                  odom_queue_size: int = 200, odom_max_gap_ns: int = 250_000_000,
                  jump_back_ns: int | None = 1_000_000_000, backend: str = "auto") -> None:
-        if backend not in ("auto", "numba", "numpy"):
-            raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
-        self._kernel = None if backend == "numpy" else _grid.numba_kernel()
-        if backend == "numba" and self._kernel is None:
-            raise ConfigError("backend", backend, "numba installed (pip install numba)")
-        if not inputs:
-            raise ConfigError("inputs", dict(inputs), "at least one named MergerInput")
+        options.merger_options({
+            "frame_id": frame_id, "angle_min": angle_min, "angle_max": angle_max,
+            "angle_increment": angle_increment, "range_min": range_min, "range_max": range_max,
+            "use_inf": use_inf, "inf_epsilon": inf_epsilon, "fill": fill,
+            "intensities": intensities, "slop_ns": slop_ns, "policy": policy,
+            "timeout_ns": timeout_ns, "reference": reference, "queue_size": queue_size,
+            "motion_compensation": motion_compensation, "odom_queue_size": odom_queue_size,
+            "odom_max_gap_ns": odom_max_gap_ns, "jump_back_ns": jump_back_ns,
+            "backend": backend})
+        self._kernel = _kernels.select("merger", backend=backend).numba
+        if not isinstance(inputs, Mapping) or not inputs:
+            raise ConfigError("inputs", inputs, "a non-empty dict of name -> MergerInput")
+        self.frame_id = frame_id
         self._inputs: dict[str, _InputState] = {}
         for i, (name, cfg) in enumerate(inputs.items()):
             if not isinstance(name, str) or not name:
@@ -367,27 +364,13 @@ class LaserScanMerger:
             if not isinstance(cfg, MergerInput):
                 raise ConfigError(f"inputs[{name!r}]", cfg, "a MergerInput")
             self._inputs[name] = _InputState(name, cfg, i)
-        if not frame_id:
-            raise ConfigError("frame_id", frame_id, "the output frame's name")
-        self.frame_id = frame_id
+            if cfg.frame_id is not None:
+                check_frame(f"inputs[{name!r}].frame_id", cfg.frame_id, frame_id,
+                            cfg.extrinsics is not None, ConfigError)
         self.grid = AngleGrid.create(angle_min, angle_max, angle_increment)
         self.options = OutputOptions.create(range_min, range_max, use_inf, inf_epsilon, fill)
         self.intensities = bool(intensities)
-        for field, value in (("slop_ns", slop_ns), ("timeout_ns", timeout_ns),
-                             ("queue_size", queue_size), ("odom_queue_size", odom_queue_size),
-                             ("odom_max_gap_ns", odom_max_gap_ns)):
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0 \
-                    or (field.endswith("size") and value < 1):
-                raise ConfigError(field, value, "a non-negative int (sizes >= 1)")
-        if jump_back_ns is not None and (
-                not isinstance(jump_back_ns, (int, np.integer)) or isinstance(jump_back_ns, bool)
-                or jump_back_ns <= 0):
-            raise ConfigError("jump_back_ns", jump_back_ns, "an int > 0 (ns) or None")
         self.jump_back_ns = None if jump_back_ns is None else int(jump_back_ns)
-        if policy not in ("wait", "timeout"):
-            raise ConfigError("policy", policy, "'wait' or 'timeout'")
-        if reference not in ("newest", "oldest"):
-            raise ConfigError("reference", reference, "'newest' or 'oldest'")
         self.slop_ns, self.timeout_ns = int(slop_ns), int(timeout_ns)
         self.policy, self.reference = policy, reference
         self.queue_size = int(queue_size)
@@ -484,13 +467,15 @@ class LaserScanMerger:
         read = [self._read(s, scans[s.name]) for s in states]
         return self._fuse(states, read)
 
-    @staticmethod
-    def _read(state: _InputState, scan: Any) -> _ScanIn:
-        """Header and arrays of one input's scan, validated (frame included)."""
+    def _read(self, state: _InputState, scan: Any) -> _ScanIn:
+        """Header and arrays of one input's scan, validated (frame included: the configured
+        frame, and without extrinsics the output frame)."""
         sc = _read_scan(scan, state.name)
         if state.cfg.frame_id is not None and sc.frame_id != state.cfg.frame_id:
             raise ValidationError(f"{state.name}.header.frame_id", sc.frame_id,
                                   f"{state.cfg.frame_id!r} (MergerInput.frame_id)")
+        check_frame(f"{state.name}.header.frame_id", sc.frame_id, self.frame_id,
+                    state.cfg.extrinsics is not None)
         return sc
 
     def _fuse(self, states: list[_InputState], read: list[_ScanIn]) -> Any:
@@ -550,17 +535,13 @@ class LaserScanMerger:
 
     def _input_kernel(self, kernel: Any, s: _InputState, sc: _ScanIn, rays: _Rays, base: int,
                       best: np.ndarray[Any, Any]) -> None:
-        consts = s.kernel_consts
-        if consts is None:
-            g, o = self.grid, self.options
-            consts = s.kernel_consts = (
-                (np.array([float(s.cfg.min_height)]), np.array([float(s.cfg.max_height)]),
-                 np.array([o.range_min]), np.array([o.range_max]), _ZERO, _ZERO),
-                (np.array([g.angle_min]), np.array([g.increment]), np.array([g.size], np.int64),
-                 np.array([g.full_circle])))
-        kernel(sc.ranges, rays.k_keep, np.array(self._limits(s, sc)), *rays.columns,
-                     _NO_KEYS, base, *consts[0], rays.k_qual, *consts[1], rays.k_bin_far,
-                     rays.k_r_thr, best)
+        bands = s.kernel_bands
+        if bands is None:      # the input as one slice: its height band, the output's limits
+            bands = s.kernel_bands = Bands.create(
+                [(float(s.cfg.min_height), float(s.cfg.max_height), self.options, 0)],
+                [self.grid])
+        kernel.fuse(sc.ranges, rays.kernel_rays, bands, best, keep=rays.k_keep,
+                    limits=np.array(self._limits(s, sc)), key_base=base)
 
     def _input_codes(self, s: _InputState, sc: _ScanIn, rays: _Rays
                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any]]:

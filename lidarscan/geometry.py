@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from lidarscan.errors import ValidationError
-from lidarscan.scan import _as_array, range_m, validate_info
+from lidarscan.scan import as_array, range_m, validate_info
 from lidarscan.stamps import to_ns
 
 __all__ = [
@@ -67,12 +67,12 @@ _INT_FIELDS = ("pixel_shift_by_row", "beam_time_offsets")
 
 def transform_matrix(info: Any) -> np.ndarray[Any, np.dtype[np.float64]]:
     """4x4 float64 ``lidar_to_sensor_transform`` (all zeros -> identity)."""
-    matrix = _as_array(info.lidar_to_sensor_transform, np.float64).astype(np.float64).reshape(4, 4)
+    matrix = as_array(info.lidar_to_sensor_transform, np.float64).astype(np.float64).reshape(4, 4)
     return np.eye(4) if not np.any(matrix) else matrix
 
 
 def _per_beam(info: Any, field: str, height: int, dtype: Any = np.float64) -> np.ndarray[Any, Any]:
-    arr = _as_array(getattr(info, field), dtype).astype(dtype)
+    arr = as_array(getattr(info, field), dtype).astype(dtype)
     return arr if arr.size else np.zeros(height, dtype)
 
 
@@ -86,7 +86,7 @@ def info_key(info: Any) -> tuple[int, str]:
     digest = hashlib.blake2b(digest_size=16)
     for fields, dtype in ((_FLOAT_FIELDS, np.float64), (_INT_FIELDS, np.int64)):
         for field in fields:
-            arr = np.ascontiguousarray(_as_array(getattr(info, field), dtype), dtype=dtype)
+            arr = np.ascontiguousarray(as_array(getattr(info, field), dtype), dtype=dtype)
             digest.update(f"{field}:{arr.size}:".encode())
             digest.update(arr.tobytes())
     digest.update(repr((int(info.height), int(info.width), int(info.column_time_increment),
@@ -102,14 +102,14 @@ def _angles(info: Any, column_azimuth_angles: Any) -> tuple[np.ndarray[Any, Any]
     given measured ones), beam azimuth offsets, beam elevations."""
     height, width = int(info.height), int(info.width)
     if column_azimuth_angles is None:
-        alpha = _as_array(info.horizontal_angles, np.float64).astype(np.float64)
+        alpha = as_array(info.horizontal_angles, np.float64).astype(np.float64)
     else:
         alpha = np.asarray(column_azimuth_angles, dtype=np.float64).reshape(-1)
     if alpha.size != width:
         raise ValidationError("column_azimuth_angles", f"length {alpha.size}",
                               f"length {width} (LidarInfo.width)")
     beta = _per_beam(info, "beam_azimuth_offsets", height)
-    phi = _as_array(info.vertical_angles, np.float64).astype(np.float64)
+    phi = as_array(info.vertical_angles, np.float64).astype(np.float64)
     return alpha, beta, phi
 
 
@@ -131,17 +131,17 @@ def beam_tables(info: Any, column_azimuth_angles: Any = None
     height, width = int(info.height), int(info.width)
     alpha, beta, phi = _angles(info, column_azimuth_angles)
     theta = alpha[None, :] + beta[:, None]                                    # (H, W)
-    pix_az = _as_array(info.pixel_azimuth_angles, np.float64).astype(np.float64)
+    pix_az = as_array(info.pixel_azimuth_angles, np.float64).astype(np.float64)
     if pix_az.size:
         theta_d = pix_az.reshape(height, width)
-        phi_d = _as_array(info.pixel_altitude_angles, np.float64).astype(
+        phi_d = as_array(info.pixel_altitude_angles, np.float64).astype(
             np.float64).reshape(height, width)
     else:
         theta_d, phi_d = theta, np.broadcast_to(phi[:, None], (height, width))
     cos_phi = np.cos(phi_d)
     d = np.stack([cos_phi * np.cos(theta_d), cos_phi * np.sin(theta_d),
                   np.broadcast_to(np.sin(phi_d), (height, width))], -1)
-    origins = _as_array(info.beam_origins, np.float64).astype(np.float64)
+    origins = as_array(info.beam_origins, np.float64).astype(np.float64)
     origins = origins.reshape(height, 3) if origins.size else np.zeros((height, 3))
     delta = _per_beam(info, "beam_range_offsets", height)
     cos_t, sin_t = np.cos(theta), np.sin(theta)
@@ -175,11 +175,11 @@ def beam_factors(info: Any, column_azimuth_angles: Any = None
         A point is ``x = a_x q_x + b_x q_y + (R[0, 2] q_z + t_x)`` (y, z alike) with
         ``q = o'_u + rho d'_u``, in ``info.header.frame_id``.
     """
-    if _as_array(info.pixel_azimuth_angles, np.float64).size:
+    if as_array(info.pixel_azimuth_angles, np.float64).size:
         return None
     height, width = int(info.height), int(info.width)
     alpha, beta, phi = _angles(info, column_azimuth_angles)
-    origins = _as_array(info.beam_origins, np.float64).astype(np.float64)
+    origins = as_array(info.beam_origins, np.float64).astype(np.float64)
     origins = origins.reshape(height, 3) if origins.size else np.zeros((height, 3))
     delta = _per_beam(info, "beam_range_offsets", height)
     cos_b, sin_b = np.cos(beta), np.sin(beta)
@@ -238,7 +238,7 @@ def _snapshot(info: Any) -> SimpleNamespace:
     values: dict[str, Any] = {}
     for fields, dtype in ((_FLOAT_FIELDS, np.float64), (_INT_FIELDS, np.int64)):
         for field in fields:
-            arr = np.array(_as_array(getattr(info, field), dtype), dtype=dtype)
+            arr = np.array(as_array(getattr(info, field), dtype), dtype=dtype)
             arr.flags.writeable = False
             values[field] = arr
     header = SimpleNamespace(stamp=SimpleNamespace(sec=int(info.header.stamp.sec),
@@ -273,7 +273,7 @@ class Projector:
         self.shifts = _per_beam(info, "pixel_shift_by_row", self.height, np.int64)
         self.beam_time_offsets = _per_beam(info, "beam_time_offsets", self.height, np.int64)
         self._info = _snapshot(info)  # later changes to the caller's message do not leak in
-        self.directions, self.offsets = self._tables(_as_array(info.horizontal_angles,
+        self.directions, self.offsets = self._tables(as_array(info.horizontal_angles,
                                                                np.float64).astype(np.float64))
         columns = np.arange(self.width)
         # source measurement column of each destaggered pixel, and its inverse
@@ -336,7 +336,7 @@ class Projector:
 
     def tables_for(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
         """Tables in the scan's column order, using the scan's measured column azimuths if any."""
-        measured = _as_array(scan.column_azimuth_angles, np.float64)
+        measured = as_array(scan.column_azimuth_angles, np.float64)
         if measured.size:
             if measured.size != self.width:
                 raise ValidationError("LidarScan.column_azimuth_angles", f"length {measured.size}",
@@ -408,7 +408,7 @@ class Projector:
     # ------------------------------------------------------------------------------- time
     def column_times(self, scan: Any) -> np.ndarray[Any, np.dtype[np.int64]]:
         """(W,) int64 ns of each measurement column relative to ``scan.header.stamp``."""
-        times = _as_array(scan.column_time_offsets, np.int64)
+        times = as_array(scan.column_time_offsets, np.int64)
         if times.size:
             if times.size != self.width:
                 raise ValidationError("LidarScan.column_time_offsets", f"length {times.size}",

@@ -25,6 +25,7 @@ from lidarscan.errors import (
 from lidarscan.stamps import split_ns, to_ns
 
 __all__ = [
+    "as_array",
     "make_scan",
     "make_info",
     "channel",
@@ -33,6 +34,7 @@ __all__ = [
     "range_m",
     "validate",
     "validate_info",
+    "to_native",
     "RANGE_CHANNELS",
 ]
 
@@ -67,17 +69,22 @@ def _find(scan: Any, name: str) -> Any:
     raise UnknownChannelError("name", name, f"one of {channel_names(scan)}")
 
 
-def channel(scan: Any, name: str) -> np.ndarray[Any, Any]:
+def channel(scan: Any, name: str, *, native: bool = False) -> np.ndarray[Any, Any]:
     """Zero-copy, read-only view of one channel.
 
     Args:
         scan: a LidarScan (rclpy message or decoded dataclass).
         name: channel name, e.g. ``"range"``.
+        native: return the values in the machine's byte order: the view itself when the scan's
+            byte order already is, else a converted copy (``scan.data`` is never modified).
+            Algorithms and compiled kernels take native arrays only; byte order is a property
+            of the message, handled here once.
 
     Returns:
         array of shape (height, width) when the channel's count is 1, else (height, width, count),
-        with the declared datatype and the scan's byte order, aliasing ``scan.data``.
-        Column order is the scan's (see ``scan.is_destaggered``).
+        with the declared datatype and the scan's byte order (native order with ``native``),
+        aliasing ``scan.data`` unless converted. Column order is the scan's (see
+        ``scan.is_destaggered``).
 
     Raises:
         UnknownChannelError: no channel of that name.
@@ -98,10 +105,18 @@ def channel(scan: Any, name: str) -> np.ndarray[Any, Any]:
                                  f"({data.size} bytes)")
     shape = (height, width) if count == 1 else (height, width, count)
     try:
-        return np.frombuffer(data, dtype, n, offset).reshape(shape)
+        view = np.frombuffer(data, dtype, n, offset).reshape(shape)
     except ValueError as err:  # e.g. 4294967295 x 0 x 4294967295: too big a shape for numpy
         raise ChannelLayoutError(f"channels[{name!r}] shape", shape,
                                  "height x width x count that numpy can index") from err
+    return to_native(view) if native else view
+
+
+def to_native(values: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """``values`` in the machine's byte order: itself when already native, else a copy."""
+    if values.dtype.isnative:
+        return values
+    return values.astype(values.dtype.newbyteorder("="))
 
 
 def range_m(scan: Any, info: Any = None, name: str = "range") -> np.ndarray[Any, Any]:
@@ -119,7 +134,7 @@ def range_m(scan: Any, info: Any = None, name: str = "range") -> np.ndarray[Any,
     raw = channel(scan, name)
     if raw.ndim == 3:
         raw = raw[..., 0]
-    if raw.dtype.kind == "f":
+    if raw.dtype.kind == "f":   # native float32: always (a view when the scan already is)
         return raw if raw.dtype == np.dtype("=f4") else raw.astype(np.float32)
     mult = float(info.range_multiplier) if info is not None else 0.0
     if not mult > 0.0 or not np.isfinite(mult):
@@ -306,7 +321,15 @@ _TYPECODES = {"d": "d", "q": "q", "l": "q", "i": "i", "H": "H"}
 
 # ------------------------------------------------------------------------------- validation
 
-def _as_array(value: Any, dtype: Any) -> np.ndarray[Any, Any]:
+def as_array(value: Any, dtype: Any) -> np.ndarray[Any, Any]:
+    """A message array field (numpy array, ``array.array`` of rclpy, or a sequence) as numpy,
+    without a copy where possible.
+
+    Args:
+        value: the field, e.g. ``info.horizontal_angles`` or ``scan.column_time_offsets``.
+        dtype: the dtype for plain sequences; numpy arrays keep theirs, ``array.array`` its
+            typecode (cast with ``.astype`` when a specific dtype matters).
+    """
     if isinstance(value, np.ndarray):
         return value
     if isinstance(value, array.array):
@@ -314,9 +337,13 @@ def _as_array(value: Any, dtype: Any) -> np.ndarray[Any, Any]:
     return np.asarray(value, dtype=dtype)
 
 
+#: Former private name of :func:`as_array`, kept for code outside the converter core.
+_as_array = as_array
+
+
 def _check_len(info: Any, field: str, expected: int, allow_empty: bool, dtype: Any = float,
                finite: bool = False) -> np.ndarray[Any, Any]:
-    arr = _as_array(getattr(info, field), dtype)
+    arr = as_array(getattr(info, field), dtype)
     if not (arr.size == expected or (allow_empty and arr.size == 0)):
         what = f"{expected}" + (" or 0 (empty)" if allow_empty else "")
         raise InfoMismatchError(f"LidarInfo.{field}", f"length {arr.size}",
@@ -425,7 +452,7 @@ def validate(scan: Any, info: Any = None) -> None:
         raise ChannelLayoutError("data", f"length {size}",
                                  f"length {last} (end of the last channel block)")
     for field, kind in (("column_time_offsets", np.int64), ("column_azimuth_angles", np.float64)):
-        arr = _as_array(getattr(scan, field), kind)
+        arr = as_array(getattr(scan, field), kind)
         if arr.size not in (0, width):
             raise ValidationError(f"LidarScan.{field}", f"length {arr.size}",
                                   f"length {width} (width) or 0")

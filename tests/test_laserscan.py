@@ -216,10 +216,10 @@ def test_slices_match_the_reference(sensor: Any, mount: str, backend: str) -> No
 @pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
 @pytest.mark.parametrize("mount", ["level", "tilted", "offset"])
 def test_compiled_paths_agree(sensor: Any, mount: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The compiled kernels have four drivers: the bin-ordered kernel (one grid, shared range
-    limits), and without it one call for small inputs, three passes for large ones, and the
-    row-wise path for sensor-aligned full circles; all match the oracle."""
-    from converters import _grid
+    """The compiled kernels have three drivers: the bin-ordered kernel (one grid, shared range
+    limits), and without it one call for small inputs and three passes for large ones; all
+    match the oracle."""
+    from converters._kernels import slices_numba as _grid
     ext = MOUNTS[mount]
     scan = room_scan(sensor, ext)
     grids = {"default": {}, "sector": {"angle_min": -2.0, "angle_max": 1.5, "angle_increment": 0.03}}
@@ -234,8 +234,6 @@ def test_compiled_paths_agree(sensor: Any, mount: str, monkeypatch: pytest.Monke
                 assert tables.sorted is not None
                 if not sorted_path:
                     tables.sorted = None
-                    if name == "sector" or mount == "level":  # a pitched mount: not row-aligned
-                        assert (tables.aligned is not None) == (name == "default")
                 out = conv.convert(scan)
                 for key, (zmin, zmax) in (("a", (0.05, 0.5)), ("b", (0.3, 1.5))):
                     ref = ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext,
@@ -765,10 +763,10 @@ def test_numba_is_optional() -> None:
     import subprocess
     import sys
     code = ("import numpy as np, math, lidarscan\n"
-            "from converters import _grid\n"
+            "from converters._kernels import slices_numba\n"
             "from converters.laserscan import to_laserscan\n"
-            "from converters import _slicec\n"
-            "assert _grid.numba_kernel() is None and not _slicec.available()\n"
+            "from converters._kernels import slices as _slicec\n"
+            "assert slices_numba.kernels() is None and not _slicec.available()\n"
             "info = lidarscan.make_info(stamp_ns=1, frame_id='l', vertical_angles=[0.0],\n"
             "    horizontal_angles=[0.0, math.pi], as_dataclass=True)\n"
             "scan = lidarscan.make_scan(info, {'range': np.ones((1, 2), np.float32)}, 0,\n"
@@ -941,3 +939,89 @@ def test_row_kernel_falls_back_when_it_does_not_apply(case: str) -> None:
         zmin, zmax = bands[name]
         assert_same(out[name], ref_slice(scan, sensor, zmin=zmin, zmax=zmax, ext=ext,
                                          inc=kw.get("angle_increment")))
+
+
+# ------------------------------------------- optional channels and byte order (issue 17)
+
+def test_range_only_scan_slices_with_the_defaults(sensor: Any) -> None:
+    """The default intensity channel means "intensity if the scan has one": a range-only scan
+    gives empty intensities and the same ranges; a channel named explicitly stays required."""
+    full = room_scan(sensor, MOUNTS["level"])
+    r = lidarscan.channel(full, "range")
+    only = lidarscan.make_scan(sensor, {"range": r}, 10**9, as_dataclass=True)
+    for backend in backends():
+        got = to_laserscan(only, sensor, min_height=0.0, max_height=1.0, backend=backend)
+        ref = to_laserscan(full, sensor, min_height=0.0, max_height=1.0, backend=backend)
+        np.testing.assert_array_equal(arrays(got)[0], arrays(ref)[0])
+        assert len(got.intensities) == 0 and len(ref.intensities) == len(ref.ranges)
+        conv = SliceConverter(sensor, {"a": SliceSpec(0.0, 1.0)}, backend=backend)
+        assert len(conv.convert(only)["a"].intensities) == 0
+    for call in (lambda: to_laserscan(only, sensor, min_height=0.0, max_height=1.0,
+                                      intensity_channel="intensity"),
+                 lambda: SliceConverter(sensor, {"a": SliceSpec(0.0, 1.0)},
+                                        intensity_channel="intensity").convert(only)):
+        with pytest.raises(UnknownChannelError):
+            call()
+
+
+CHANNEL_DTYPES = [np.int8, np.uint8, np.int16, np.uint16, np.int32, np.uint32, np.float32,
+                  np.float64]
+
+
+def slice_backends() -> list[str]:
+    """numpy, numba (when installed) and the C kernel (when built, forced on)."""
+    from converters._kernels import slices as _slicec
+    return backends() + (["c"] if _slicec.available() else [])
+
+
+def backend_converter(backend: str, info: Any, specs: Any, **kw: Any) -> SliceConverter:
+    conv = SliceConverter(info, specs, backend="auto" if backend == "c" else backend, **kw)
+    if backend == "c":
+        conv._c_kernel = True            # also where "auto" prefers numba (no AVX-512)
+    return conv
+
+
+@pytest.mark.parametrize("geometry", ["level", "tilted", "pixel_angles"])
+def test_big_endian_scans_give_identical_slices_on_every_backend(geometry: str) -> None:
+    """Byte order is a property of the message: every channel datatype, as range (float, or
+    integer with the info's multiplier) and as intensity, big- and little-endian, through every
+    backend, gives bit-identical slices; the little-endian specialisation is compiled first."""
+    fields: dict[str, Any] = {"range_multiplier": 0.001}
+    if geometry == "pixel_angles":
+        h, w = 16, 128
+        fields["pixel_azimuth_angles"] = np.tile(TWO_PI * (1 - np.arange(w) / w), h) + 0.001
+        fields["pixel_altitude_angles"] = np.repeat(np.radians(np.linspace(15, -15, h)), w)
+    info = make_sensor(**fields)
+    ext = MOUNTS["tilted" if geometry == "tilted" else "level"]
+    base = room_scan(info, ext)
+    r = np.array(lidarscan.channel(base, "range"))
+    rng = np.random.default_rng(5)
+    specs = {"a": SliceSpec(0.05, 0.5), "b": SliceSpec(0.6, 2.0)}
+    for dtype in CHANNEL_DTYPES:
+        kind = np.dtype(dtype).kind
+        if kind == "f":
+            inten = rng.uniform(-1e3, 1e3, r.shape).astype(dtype)
+            ranges = r.astype(dtype)
+        else:
+            lo, hi = np.iinfo(dtype).min, np.iinfo(dtype).max
+            inten = rng.integers(lo, hi, r.shape, endpoint=True).astype(dtype)
+            mm = np.where(np.isfinite(r) & (r > 0), np.round(r * 1000), 0)   # 0 = no return
+            ranges = np.clip(mm, 0, hi).astype(dtype) if kind == "u" else r
+        channels = {"range": ranges, "intensity": inten}
+        out: dict[str, Any] = {}
+        for backend in slice_backends():
+            for big in (False, True):
+                scan = lidarscan.make_scan(info, channels, 10**9, is_bigendian=big,
+                                           as_dataclass=True)
+                before = bytes(scan.data)
+                conv = backend_converter(backend, info, specs, extrinsics=ext, frame_id="base")
+                out[backend, big] = [arrays(m) for m in conv.convert(scan).values()]
+                one = to_laserscan(scan, info, min_height=0.05, max_height=0.5, extrinsics=ext,
+                                   frame_id="base",
+                                   backend="auto" if backend == "c" else backend)
+                assert bytes(scan.data) == before                 # the caller's buffer
+                np.testing.assert_array_equal(arrays(one)[0].view(np.int32),
+                                              out[backend, big][0][0].view(np.int32))
+            for (ra, ia), (rb, ib) in zip(out[backend, False], out[backend, True]):
+                np.testing.assert_array_equal(ra.view(np.int32), rb.view(np.int32))
+                np.testing.assert_array_equal(ia.view(np.int32), ib.view(np.int32))

@@ -136,7 +136,7 @@ def backends() -> list[str]:
 
 def make_scan(ranges: Any, *, angle_min: float = -math.pi, inc: float | None = None,
               stamp: int = 1_000_000_000, intensities: Any = (), range_min: float = 0.0,
-              range_max: float = 100.0, frame: str = "laser", kind: str = "dc") -> Any:
+              range_max: float = 100.0, frame: str = "base_link", kind: str = "dc") -> Any:
     """A LaserScan (dataclass with numpy arrays, or rclpy with array.array)."""
     ranges = np.asarray(ranges, np.float32)
     n = ranges.size
@@ -536,9 +536,10 @@ def test_height_band_for_a_tilted_input() -> None:
 
 
 def test_frame_and_name_checks() -> None:
-    m = LaserScanMerger({"a": MergerInput(frame_id="laser")})
+    m = LaserScanMerger({"a": MergerInput(frame_id="laser", extrinsics=np.eye(4))})
     with pytest.raises(ValidationError):
         m.merge({"a": make_scan([1.0], frame="other")})
+    m.merge({"a": make_scan([1.0], frame="laser")})
     with pytest.raises(ConfigError):
         m.merge({"zzz": make_scan([1.0])})
     with pytest.raises(ValidationError):
@@ -647,7 +648,7 @@ def test_real_scan_same_grid_and_self_merge(real_scans: list[Any]) -> None:
     src = np.asarray(scan.ranges, np.float32)
     assert src.size == 681 and np.count_nonzero(src == 0.0) > 0
     grid = {"angle_min": scan.angle_min, "angle_max": scan.angle_max,
-                "angle_increment": scan.angle_increment}
+            "angle_increment": scan.angle_increment, "frame_id": scan.header.frame_id}
     single = LaserScanMerger({"a": MergerInput()}, **grid).merge({"a": scan})
     ranges = out_arrays(single)[0]
     assert ranges.size == 681 and single.angle_max == pytest.approx(scan.angle_max, abs=1e-6)
@@ -671,23 +672,27 @@ def test_real_scan_rebinned(real_scans: list[Any], inc_deg: float, backend: str)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_real_scan_with_a_rotated_copy(real_scans: list[Any], backend: str) -> None:
     scan = real_scans[200]
-    inputs = {"front": MergerInput(), "back": MergerInput(extrinsics=pose(yaw=math.pi))}
+    here = np.eye(4)                                # the laser at base_link
+    inputs = {"front": MergerInput(extrinsics=here),
+              "back": MergerInput(extrinsics=pose(yaw=math.pi))}
     got = LaserScanMerger(inputs, backend=backend).merge({"front": scan, "back": scan})
     assert_same(got, ref_merge(inputs, {"front": scan, "back": scan}))
     ranges = out_arrays(got)[0]
     # the Hokuyo sees 239 deg; a copy turned by 180 deg covers the rest of the circle
-    alone = out_arrays(LaserScanMerger({"front": MergerInput()}).merge({"front": scan}))[0]
+    alone = out_arrays(LaserScanMerger({"front": MergerInput(extrinsics=here)}).merge(
+        {"front": scan}))[0]
     assert np.count_nonzero(np.isfinite(ranges)) > 1.4 * np.count_nonzero(np.isfinite(alone))
     # 90 deg turn: the overlapping arc holds min of both
-    inputs90 = {"a": MergerInput(), "b": MergerInput(extrinsics=pose(yaw=math.pi / 2))}
+    inputs90 = {"a": MergerInput(extrinsics=here),
+                "b": MergerInput(extrinsics=pose(yaw=math.pi / 2))}
     assert_same(LaserScanMerger(inputs90).merge({"a": scan, "b": scan}),
                 ref_merge(inputs90, {"a": scan, "b": scan}))
 
 
 def test_real_stream_push(real_scans: list[Any]) -> None:
     """Two inputs fed the real stream (the second 3 ms later): every pair merges once."""
-    m = LaserScanMerger({"a": MergerInput(), "b": MergerInput(extrinsics=pose(yaw=math.pi))},
-                        slop_ns=5_000_000)
+    m = LaserScanMerger({"a": MergerInput(extrinsics=np.eye(4)),      # the laser at base_link
+                         "b": MergerInput(extrinsics=pose(yaw=math.pi))}, slop_ns=5_000_000)
     outs = []
     for scan in real_scans[:50]:
         t = lidarscan.to_ns(scan.header.stamp)
@@ -1160,3 +1165,22 @@ def test_import_does_not_import_rclpy() -> None:
     code = ("import sys, converters.merger, converters.laserscan; "
             "sys.exit(1 if 'rclpy' in sys.modules else 0)")
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
+
+
+def test_a_scan_in_another_frame_needs_extrinsics() -> None:
+    """Without extrinsics identity is only right in the output frame: a scan in another frame
+    is refused (naming the input, its frame and the output frame), by merge and by push,
+    before it touches a queue; the same frame, or explicit extrinsics, are fine."""
+    m = LaserScanMerger({"a": MergerInput(), "b": MergerInput(extrinsics=np.eye(4))},
+                        frame_id="base_link")
+    for call in (lambda: m.merge({"a": make_scan([1.0], frame="laser")}),
+                 lambda: m.push("a", make_scan([1.0], frame="laser"))):
+        with pytest.raises(ValidationError) as err:
+            call()
+        assert err.value.field == "a.header.frame_id" and err.value.value == "laser"
+        assert "'base_link'" in str(err.value)
+    assert not m._inputs["a"].queue
+    m.merge({"a": make_scan([1.0], frame="base_link"), "b": make_scan([1.0], frame="laser")})
+    with pytest.raises(ConfigError) as cfg_err:
+        LaserScanMerger({"a": MergerInput(frame_id="laser")}, frame_id="base_link")
+    assert cfg_err.value.field == "inputs['a'].frame_id"

@@ -33,6 +33,7 @@ from lidarscan.errors import (
 pytest.importorskip("sensor_msgs.msg")
 
 from converters import pointcloud2 as pc
+from converters._kernels import cloud as kc
 
 DATA = Path(__file__).parent / "data" / "ouster"
 OS2 = "OS-2-128-U1_v2.3.0_1024x10"
@@ -878,8 +879,8 @@ def test_round_trip_random_ranges_on_ouster_geometry(os2: Any, seed: int, missin
 # ------------------------------------------------------------------------- compiled kernel
 
 KERNEL = pc.kernel_available()
-needs_kernel = pytest.mark.skipif(not KERNEL, reason="compiled kernel converters/_cloudkernel.c "
-                                                    "not built (pip install -e . builds it)")
+needs_kernel = pytest.mark.skipif(not KERNEL, reason="compiled kernel "
+                                  "converters/_kernels/_cloudkernel.c not built (pip install -e .)")
 
 
 class _Spy:
@@ -897,7 +898,7 @@ def kernel_and_numpy(scan: Any, info: Any, **options: Any) -> tuple[Any, Any, in
     """(cloud from the kernel, cloud from numpy only, number of kernel calls, either form)."""
     conv = pc.PointCloud2Converter(info, kernel=True, **options)
     spies = _Spy(conv._kfn.project), _Spy(conv._kfn.project_rc)
-    conv._kfn = pc._Kernels(*spies)
+    conv._kfn = kc.Kernels(*spies)
     with_kernel = conv.convert(scan)
     without = pc.PointCloud2Converter(info, kernel=False, **options).convert(scan)
     return with_kernel, without, spies[0].calls + spies[1].calls
@@ -1122,7 +1123,7 @@ def _kernel_oracle(out: bytearray, step: int, xoff: int, ranges: np.ndarray,
 @pytest.mark.parametrize("dense", [False, True])
 def test_kernel_contract_gather_unaligned_and_r_out(dense: bool) -> None:
     """lsk_project called directly: gather index, an odd point step and offset, r_out."""
-    fn = pc._kernel().project
+    fn = kc.kernel().project
     rng = np.random.default_rng(11)
     n, step, xoff, eoff = 301, 23, 3, 17
     ranges = rng.uniform(-1, 80, n).astype(np.float32)
@@ -1158,7 +1159,7 @@ def test_kernel_contract_gather_unaligned_and_r_out(dense: bool) -> None:
 @needs_kernel
 def test_kernel_roll_matches_gather() -> None:
     """Rolled rows (the destagger fast path) read the same pixels as the equivalent gather."""
-    fn = pc._kernel().project
+    fn = kc.kernel().project
     rng = np.random.default_rng(2)
     height, width = 5, 300                         # 300: runs cross the 256-pixel chunks
     n = height * width
@@ -1189,12 +1190,12 @@ def test_kernel_option_and_env_switch(tiny: tuple[Any, Any], monkeypatch: Any) -
         pc.PointCloud2Converter(info, kernel="yes")  # type: ignore[arg-type]
     assert pc.PointCloud2Converter(info, kernel=False)._kfn is None
     monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "1")
-    assert pc._load_kernel() is None
+    assert kc.load() is None
     monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "0")
-    built = importlib.util.find_spec("converters._cloudkernel") is not None
-    assert (pc._load_kernel() is not None) == built
-    monkeypatch.setattr(pc, "_KERNEL_ABI", pc._KERNEL_ABI + 1)   # a stale build is not used
-    assert pc._load_kernel() is None
+    built = importlib.util.find_spec("converters._kernels._cloudkernel") is not None
+    assert (kc.load() is not None) == built
+    monkeypatch.setattr(kc, "ABI", kc.ABI + 1)   # a stale build is not used
+    assert kc.load() is None
 
 
 def fallback_case() -> tuple[Any, Any]:
@@ -1218,6 +1219,7 @@ import hashlib, sys
 import numpy as np
 import lidarscan
 from converters import pointcloud2 as pc
+from converters._kernels import cloud as kc
 from lidarscan.errors import ConfigError
 sys.path.insert(0, sys.argv[1])
 from test_pointcloud2 import destaggered, fallback_case
@@ -1391,7 +1393,7 @@ def test_factored_kernel_is_bit_exact_to_its_float32_oracle(
     conv = pc.PointCloud2Converter(info, fields=layout, organized=organized,
                                    destagger=destagger, threads=threads, kernel=True)
     spy = _Spy(conv._kfn.project_rc)
-    conv._kfn = pc._Kernels(conv._kfn.project, spy)
+    conv._kfn = kc.Kernels(conv._kfn.project, spy)
     cloud = conv.convert(scan)
     assert spy.calls >= 1
     expected = factored_oracle(info, proj.destagger(metres) if grid_dest else metres, grid_dest,
@@ -1438,7 +1440,7 @@ def test_per_pixel_angles_use_the_table_kernel_bit_identical_to_numpy(
     for organized in (True, False):
         conv = pc.PointCloud2Converter(pinfo, kernel=True, organized=organized)
         spies = _Spy(conv._kfn.project), _Spy(conv._kfn.project_rc)
-        conv._kfn = pc._Kernels(*spies)
+        conv._kfn = kc.Kernels(*spies)
         cloud = conv.convert(scan)
         assert (spies[0].calls, spies[1].calls) == (1, 0)
         assert_identical(cloud, pc.PointCloud2Converter(pinfo, kernel=False,
@@ -1539,3 +1541,77 @@ def test_cloud_messages_equal_normally_built_ones(tiny: tuple[Any, Any]) -> None
     assert cloud._check_fields == normal._check_fields     # honours ROS_PYTHON_CHECK_FIELDS
     with pytest.raises(ConversionError, match="height"):
         bare_message(PointCloud2, width=3)                  # every field or nothing
+
+
+# ------------------------------------------- optional channels and byte order (issue 17)
+
+def convert(scan: Any, info: Any, **options: Any) -> Any:
+    return pc.PointCloud2Converter(info, **options).convert(scan)
+
+
+@pytest.mark.parametrize("kernel", [False, pytest.param(True, marks=needs_kernel)])
+def test_range_only_scan_with_the_defaults_and_every_preset(tiny: tuple[Any, Any],
+                                                            kernel: bool) -> None:
+    """A valid scan with only a range channel converts with the defaults (x, y, z) and with
+    every preset: the preset's channel fields it cannot fill are zero (documented)."""
+    info, scan = tiny
+    only = lidarscan.make_scan(info, {"range": lidarscan.channel(scan, "range")},
+                               lidarscan.to_ns(scan.header.stamp),
+                               column_time_offsets=scan.column_time_offsets)
+    cloud = convert(only, info, kernel=kernel)
+    assert [f.name for f in cloud.fields] == ["x", "y", "z"]
+    plain = convert(scan, info, fields=("x", "y", "z"), kernel=kernel)
+    np.testing.assert_array_equal(xyz_of(cloud), xyz_of(plain))
+    for name, preset in pc.PRESETS.items():
+        cloud = convert(only, info, preset=name, kernel=kernel)
+        pts = pc.read_points(cloud)
+        for spec in preset.fields:
+            if spec.source == "channel":
+                assert not np.any(pts[spec.name]), (name, spec.name)
+    with pytest.raises(UnknownChannelError):                   # named explicitly: required
+        convert(only, info, fields=("x", "y", "z", "intensity"), kernel=kernel)
+
+
+@pytest.mark.parametrize("range_dtype", ["f4", "f8", "u2", "u4"])
+@pytest.mark.parametrize("kernel", [False, pytest.param(True, marks=needs_kernel)])
+def test_big_endian_scans_give_identical_clouds(tiny: tuple[Any, Any], range_dtype: str,
+                                                kernel: bool) -> None:
+    """Byte order is a property of the message: big- and little-endian scans with every channel
+    datatype give byte-identical clouds on each path (the kernel runs for both), and the
+    caller's buffer is left alone."""
+    info, scan = tiny
+    rng = np.random.default_rng(11)
+    shape = (int(info.height), int(info.width))
+    r = np.asarray(lidarscan.channel(scan, "range"))
+    info2 = lidarscan.make_info(**{**_fields(info), "range_multiplier": 0.001})
+    if np.dtype(range_dtype).kind == "f":
+        ranges = r.astype(range_dtype)
+    else:
+        ranges = np.where(np.isfinite(r) & (r > 0), np.round(r * 1000), 0).astype(range_dtype)
+    channels: dict[str, Any] = {"range": ranges}
+    for dtype in ("u1", "u2", "u4", "i1", "i2", "i4", "f4", "f8"):
+        kind = np.dtype(dtype)
+        channels["c_" + dtype] = (rng.uniform(-1e3, 1e3, shape).astype(kind) if kind.kind == "f"
+                                  else rng.integers(np.iinfo(kind).min, np.iinfo(kind).max,
+                                                    shape, endpoint=True).astype(kind))
+    fields = ("x", "y", "z", "range", "t", *[n for n in channels if n != "range"])
+    clouds = {}
+    for intensity in ("c_u2", "c_f8", "c_i1"):                 # the kernel's one channel field
+        chans = {**channels, "intensity": channels[intensity]}
+        for big in (False, True):
+            one = lidarscan.make_scan(info2, chans, 10**9, is_bigendian=big,
+                                      column_time_offsets=scan.column_time_offsets)
+            before = bytes(one.data)
+            conv = pc.PointCloud2Converter(info2, kernel=kernel, fields=("intensity", *fields))
+            if kernel:
+                spies = _Spy(conv._kfn.project), _Spy(conv._kfn.project_rc)
+                conv._kfn = kc.Kernels(*spies)
+            clouds[big] = conv.convert(one)
+            if kernel:
+                assert spies[0].calls + spies[1].calls == 1
+            assert bytes(one.data) == before
+            for preset in ("ouster", "hesai"):
+                clouds[big, preset] = convert(one, info2, preset=preset, kernel=kernel)
+        assert_identical(clouds[False], clouds[True])
+        for preset in ("ouster", "hesai"):
+            assert_identical(clouds[False, preset], clouds[True, preset])

@@ -1,4 +1,5 @@
-"""The compiled slicing kernel (converters/_slicekernel.c, driven by converters/_slicec.py).
+"""The compiled slicing kernel (converters/_kernels/_slicekernel.c, driven by
+converters/_kernels/slices.py).
 
 It must give the row-ordered numba kernel's slices bit for bit (and so the numpy backend's and
 the plain-loop oracle's), in both of its implementations: the AVX-512 one (eight pixels per
@@ -18,7 +19,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan
-from converters import _grid, _slicec
+from converters import _grid
+from converters._kernels import slices as _slicec
 from converters.laserscan import SliceConverter, SliceSpec
 from grid_reference import pose
 from test_laserscan import (MOUNTS, SPECIALS, TWO_PI, arrays, draw_image, make_sensor,

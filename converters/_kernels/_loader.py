@@ -1,32 +1,27 @@
-"""Loading of the optional compiled kernels (C extensions called through ctypes).
+"""Loading of the optional C kernels (extensions called through ctypes).
 
 Each kernel is built by ``pip install [-e] .`` when a C compiler is available (setup.py) and is
 an importable, otherwise empty, extension module whose shared object exports plain C functions.
 A kernel is not used when it was not built, when its ABI number differs from the one the
-Python side was written for (a stale build), or when the environment variable
-``LIDARSCAN_NO_KERNEL`` is set to anything but "" / "0".
+Python side was written for (a stale build), or when the C kernels are switched off
+(:func:`converters._kernels.c_enabled`).
 """
 
 from __future__ import annotations
 
 import ctypes
 import importlib
-import os
 import threading
 from collections.abc import Callable
 from typing import Any
 
 
-def disabled() -> bool:
-    """Whether ``LIDARSCAN_NO_KERNEL`` switches the compiled kernels off."""
-    return os.environ.get("LIDARSCAN_NO_KERNEL", "") not in ("", "0")
-
-
 def load_library(module: str, abi_symbol: str, abi: int) -> ctypes.CDLL | None:
-    """The shared object of extension ``module`` (e.g. ``"converters._slicekernel"``) if it is
-    built, enabled and both its module constant ``ABI`` and its C function ``abi_symbol()``
-    equal ``abi``; else None."""
-    if disabled():
+    """The shared object of extension ``module`` (e.g. ``"converters._kernels._slicekernel"``)
+    if it is built, enabled and both its module constant ``ABI`` and its C function
+    ``abi_symbol()`` equal ``abi``; else None."""
+    from converters._kernels import c_enabled
+    if not c_enabled():
         return None
     try:
         ext = importlib.import_module(module)
@@ -54,3 +49,15 @@ class LoadOnce:
             if not self._value:
                 self._value.append(self._loader())
             return self._value[0]
+
+
+#: Element type codes shared by the C kernels (native byte order only: the converters convert
+#: at the message boundary).
+TYPE_CODES = {"f4": 0, "f8": 1, "u1": 2, "u2": 3, "u4": 4, "i1": 5, "i2": 6, "i4": 7}
+
+
+def type_code(image: Any) -> int | None:
+    """The kernels' type code of a numpy array, or None (another dtype, or non-native order)."""
+    if not image.dtype.isnative:
+        return None
+    return TYPE_CODES.get(image.dtype.str[1:])

@@ -1,7 +1,7 @@
 /*
  * Optional compiled kernel of converters.laserscan: height slices of a LidarScan in the
  * row-ordered configuration (converters/_grid.py, "row-ordered kernel"), fusion and decoding in
- * one call. Results are bit-identical to the numba kernel converters._grid._row_convert (the
+ * one call. Results are bit-identical to the numba kernel converters._kernels.slices_numba._row_convert (the
  * rules are in the docstring of converters/_grid.py; this file only evaluates them).
  *
  * What makes it fast: in that configuration every row u of the scan maps its columns onto the
@@ -128,7 +128,7 @@ LSS_INLINE int64_t *lss_ext(int64_t *ext, const lss_plan *p, int64_t s)
 }
 
 /* A point closer than its far-field threshold: its bin from atan2, its value into the slices
- * of mask m (converters._grid._near_point). */
+ * of mask m (converters._kernels.slices_numba._near_point). */
 static void lss_near(const lss_plan *p, int64_t *ext, int64_t pix, int64_t key, float rv,
                      uint32_t m)
 {

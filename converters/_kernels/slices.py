@@ -3,8 +3,8 @@
 The kernel computes all height slices of one scan in the *row-ordered* configuration of
 :mod:`converters._grid` (one full-circle grid at the sensor's column resolution, an upright
 sensor, every row mapping its columns onto the bins as ``start + step*c mod W``), bit-identical
-to the numba kernel :func:`converters._grid._row_convert`, but streaming the scan in pixel order
-instead of gathering it bin by bin. :class:`SlicePlan` holds the per-table-version arguments
+to the numba kernel :func:`converters._kernels.slices_numba._row_convert`, but streaming the
+scan in pixel order instead of gathering it bin by bin. :class:`SlicePlan` holds the per-table-version arguments
 (a ``ctypes`` structure, built once); :meth:`SlicePlan.run` converts one scan.
 """
 
@@ -15,13 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from converters import _ckernel
+from converters._kernels import _loader
 
 #: ABI of converters/_slicekernel.c (its LSS_ABI).
 ABI = 2
-#: Intensity element codes of the kernel (the PointField types, native byte order); other
-#: dtypes (a big-endian channel) are cast to float32 first.
-_TYPES = {"f4": 0, "f8": 1, "u1": 2, "u2": 3, "u4": 4, "i1": 5, "i2": 6, "i4": 7}
 #: Most slices the kernel takes (its qualifier bits are uint32).
 MAX_SLICES = 32
 #: 0 forces the kernel's scalar code even where AVX-512 is available (tests cover both).
@@ -51,7 +48,7 @@ def library() -> Any:
 
 
 def _load() -> Any:
-    lib = _ckernel.load_library("converters._slicekernel", "lss_abi", ABI)
+    lib = _loader.load_library("converters._kernels._slicekernel", "lss_abi", ABI)
     if lib is None:
         return None
     lib.lss_plan_size.restype = _i64
@@ -68,7 +65,7 @@ def _load() -> Any:
     return fn
 
 
-_library = _ckernel.LoadOnce(_load)
+_library = _loader.LoadOnce(_load)
 
 
 def available() -> bool:
@@ -77,8 +74,8 @@ def available() -> bool:
 
 
 def vectorised() -> bool:
-    """Whether the kernel runs its AVX-512 path on this CPU. Its scalar path is about 3x faster
-    than the numpy backend but 3x slower than the numba kernel."""
+    """Whether the kernel runs its AVX-512 path on this CPU (its scalar path elsewhere; which
+    one pays against numba: bench/README.md)."""
     fn = library()
     return fn is not None and bool(fn.vectorised)
 
@@ -173,8 +170,8 @@ class SlicePlan:
         i_addr, i_type = None, 0
         if intensity is not None:
             img = np.ascontiguousarray(intensity)
-            code = _TYPES.get(img.dtype.str[1:]) if img.dtype.isnative else None
-            if code is None:
+            code = _loader.type_code(img)
+            if code is None:                      # another dtype: cast to float32 first
                 img, code = img.astype(np.float32), 0
             if img.size != r.size:
                 raise ValueError(f"{img.size} intensities, expected {r.size}")

@@ -1,0 +1,109 @@
+"""Every compiled piece of the converters, behind one selection function: :func:`select`.
+
+Each algorithm has one readable reference in numpy (the spec, and the test oracle); the
+compiled backends below are optional accelerations that must give the same bits (or stay within
+the ulps documented by their module) and are kept only where a bench/ figure shows they pay
+(bench/README.md).
+
+==========  ==============================  =======================  ============================
+backend     where                           needs                    used by
+==========  ==============================  =======================  ============================
+C cloud     ``_cloudkernel.c`` via          a C compiler at          LidarScan -> PointCloud2
+            :mod:`.cloud` (ctypes)          ``pip install``          (x, y, z, validity, one
+                                                                     channel field)
+C slices    ``_slicekernel.c`` via          a C compiler at          slices, row-ordered case
+            :mod:`.slices` (ctypes)         ``pip install``;         (full circle at the column
+                                            AVX-512 to be chosen     resolution, upright mount)
+                                            by ``"auto"`` when
+                                            numba is installed
+numba       :mod:`.slices_numba`            ``pip install numba``    slices (row-ordered,
+                                            (extra ``fast``)         bin-ordered and general
+                                                                     kernels) and the merger
+numpy       the converters themselves       --                       everything (the reference)
+==========  ==============================  =======================  ============================
+
+Switches, read here and nowhere else (at the first use of a backend in the process):
+``LIDARSCAN_NO_KERNEL`` set to anything but "" / "0" disables both C kernels;
+``LIDARSCAN_NUMBA=0`` disables numba. Per object, ``kernel=`` (PointCloud2: None = when built,
+False = numpy, True = required) and ``backend=`` (slices and merger: ``"auto"``, ``"numba"``,
+``"numpy"``) choose among what is enabled.
+
+Kernels take native-byte-order arrays only: byte order is converted once at the message
+boundary (:func:`lidarscan.scan.channel` with ``native=True``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+from lidarscan.errors import ConfigError
+
+__all__ = ["Backends", "c_enabled", "numba_enabled", "select"]
+
+
+def c_enabled() -> bool:
+    """Whether the C kernels may be loaded (``LIDARSCAN_NO_KERNEL`` unset, "" or "0")."""
+    return os.environ.get("LIDARSCAN_NO_KERNEL", "") in ("", "0")
+
+
+def numba_enabled() -> bool:
+    """Whether the numba kernels may be compiled (``LIDARSCAN_NUMBA`` not "0")."""
+    return os.environ.get("LIDARSCAN_NUMBA", "1") != "0"
+
+
+@dataclass(frozen=True)
+class Backends:
+    """The compiled pieces one object will use (None / False: use numpy).
+
+    Attributes:
+        c: the C kernel's entry points (:class:`.cloud.Kernels` for "cloud"; True for
+            "slices", whose plans bind :func:`.slices.library` themselves), or None.
+        numba: the compiled numba kernels (:func:`.slices_numba.kernels`), or None.
+    """
+
+    c: Any = None
+    numba: Any = None
+
+
+def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> Backends:
+    """The backends of one converter object.
+
+    Args:
+        task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"`` or ``"merger"``
+            (chosen by ``backend``).
+        backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
+            runs or numba is missing, else numba, else numpy); ``"numba"``: numba only (an
+            error when it is missing); ``"numpy"``: the reference.
+        kernel: PointCloud2 only: None = the C kernel when built and enabled, False = numpy,
+            True = the C kernel or an error.
+
+    Raises:
+        ConfigError: a bad choice, or a required backend that is not available.
+    """
+    if task == "cloud":
+        if kernel not in (None, True, False):
+            raise ConfigError("kernel", kernel, "None, True or False")
+        from converters._kernels import cloud
+        fns = cloud.kernel() if kernel is not False else None
+        if kernel and fns is None:
+            raise ConfigError("kernel", kernel, "None or False: the compiled kernel is not "
+                              "available (not built, or LIDARSCAN_NO_KERNEL is set)")
+        return Backends(c=fns)
+    if task not in ("slices", "merger"):
+        raise ConfigError("task", task, "'cloud', 'slices' or 'merger'")
+    if backend not in ("auto", "numba", "numpy"):
+        raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
+    numba = None
+    if backend != "numpy":
+        from converters._kernels import slices_numba
+        numba = slices_numba.kernels()
+    if backend == "numba" and numba is None:
+        raise ConfigError("backend", backend, "numba installed (pip install numba)")
+    c = False
+    if task == "slices" and backend == "auto":
+        from converters._kernels import slices
+        # the C kernel's scalar path (no AVX-512) is slower than numba's kernel
+        c = slices.available() and (slices.vectorised() or numba is None)
+    return Backends(c=c or None, numba=numba)

@@ -1,0 +1,736 @@
+"""numba kernels of the slices and the merger, and their loader.
+
+Each kernel does, in compiled loops, exactly what the numpy reference of
+:mod:`converters._grid` does (:func:`~converters._grid.point_codes`,
+:func:`~converters._grid.special_codes`, :func:`~converters._grid.reduce_min`,
+:func:`~converters._grid.decode`) for several slices at once; results equal it except for
+points within one ulp of a bin edge (numpy's SIMD atan2 and libm's may differ in the last bit).
+Selected by :func:`converters._kernels.select` (``LIDARSCAN_NUMBA=0`` disables them).
+
+Kernels (drivers in :class:`Compiled`):
+
+* general: pass 1 (band bits per ray), then points and specials (:func:`_pass_bands`,
+  :func:`_pass_points`, :func:`_pass_others`; one call below ``_SMALL`` rays); any grids, any
+  mount, the merger's inputs;
+* bin-ordered (:func:`_sorted_fuse`): one grid and shared range limits;
+* row-ordered (:func:`_row_convert`): the bin-ordered layout of an upright sensor, with exact
+  per-row float32 band intervals, fusion and decoding in one call.
+
+The kernels call each other through module globals (``_J_*``), compiled by :func:`kernels`
+before the kernels that use them (numba resolves a global dispatcher at compile time).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
+
+__all__ = ["Bands", "Compiled", "Rays", "SORTED_CHUNK", "kernels"]
+
+# ------------------------------------------------------------------------ compiled kernels
+#
+# Optional numba kernels doing, in one pass over the rays, exactly what point_codes,
+# special_codes and reduce_min do for several slices at once. They are used when numba is
+# importable (set LIDARSCAN_NUMBA=0 to disable). Results equal the numpy path except for points
+# within one ulp of a bin edge (numpy's SIMD atan2 and libm's may differ in the last bit).
+# Pass 1 (band bits per ray) is written as loops the compiler vectorises; numpy's flatnonzero
+# compacts; passes 2 and 3 visit only the rays that can contribute.
+
+_KERNELS: Any = None
+_KERNELS_TRIED = False
+
+
+def kernels() -> Compiled | None:
+    """The compiled kernels (compiled at the first call, cached on disk by numba), or None
+    without numba or when switched off (:func:`converters._kernels.numba_enabled`)."""
+    global _KERNELS, _KERNELS_TRIED
+    if _KERNELS_TRIED:
+        return _KERNELS
+    _KERNELS_TRIED = True
+    from converters._kernels import numba_enabled
+    if not numba_enabled():
+        return None
+    try:
+        import numba
+    except ImportError:
+        return None
+    global _J_BANDS, _J_POINTS, _J_OTHERS, _J_ROW, _J_DECODE_SLICES, _J_NEAR, _J_VALUE
+    global _J_CODE_VALUE
+    jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    # called by the kernels below, so compiled first; inlined into them (a call per point
+    # measured ~15 % slower where most points are near, e.g. an offset mount)
+    _J_NEAR = numba.njit(nogil=True, error_model="numpy", inline="always")(_near_point)
+    _J_VALUE = numba.njit(nogil=True, error_model="numpy", inline="always")(_value)
+    _J_CODE_VALUE = numba.njit(nogil=True, error_model="numpy", inline="always")(_code_value)
+    _J_BANDS, _J_POINTS, _J_OTHERS = jit(_pass_bands), jit(_pass_points), jit(_pass_others)
+    _J_ROW, _J_DECODE_SLICES = jit(_row_fuse), jit(_decode_slices)
+    _KERNELS = Compiled(jit)
+    return _KERNELS
+
+
+_J_BANDS: Any = None     # the compiled passes, referenced by _fuse_small and _row_convert
+_J_ROW: Any = None
+_J_DECODE_SLICES: Any = None
+_J_NEAR: Any = None
+_J_VALUE: Any = None
+_J_CODE_VALUE: Any = None
+_J_POINTS: Any = None
+_J_OTHERS: Any = None
+
+
+def _fuse_small(r: Any, keep: Any, limits: Any, dx: Any, dy: Any, dz: Any, ox: Any, oy: Any,
+                oz: Any, keys: Any, key_base: Any, zmin: Any, zmax: Any, rmin: Any, rmax: Any,
+                slice_grid: Any, offset: Any, qual: Any, g_min: Any, g_inc: Any, g_size: Any,
+                g_full: Any, bin_far: Any, r_thr: Any, best: Any) -> None:  # pragma: no cover
+    """The three passes in one compiled call (small inputs: less call overhead)."""
+    n = r.shape[0]
+    masks = np.zeros(n, np.uint64)
+    good = np.empty(n, np.bool_)
+    _J_BANDS(r, keep, limits, dz, oz, zmin, zmax, masks, good)
+    hits = np.empty(n, np.int64)
+    rest = np.empty(n, np.int64)
+    n_hits = 0
+    n_rest = 0
+    for i in range(n):
+        hits[n_hits] = i
+        n_hits += masks[i] != 0
+        rest[n_rest] = i
+        n_rest += not good[i]
+    _J_POINTS(hits[:n_hits], masks, r, dx, dy, ox, oy, keys, key_base, rmin, rmax, slice_grid,
+              offset, g_min, g_inc, g_size, g_full, bin_far, r_thr, best)
+    _J_OTHERS(rest[:n_rest], r, keep, limits, keys, key_base, slice_grid, offset, qual,
+              bin_far, best)
+
+
+_NO_KEEP = np.zeros(0, np.uint8)
+_NO_LIMITS = np.array([0.0, np.inf, 0.0])
+
+#: Below this many rays the three passes run in one compiled call (less call overhead).
+_SMALL = 32768
+#: Positions per chunk of whole bins in :func:`_sorted_fuse` (at least one whole bin).
+SORTED_CHUNK = 512
+
+
+@dataclass(frozen=True)
+class Bands:
+    """Constants of S slices on G grids, as the kernels take them.
+
+    Attributes:
+        zmin, zmax: (S,) float64 inclusive height band, metres (output frame).
+        rmin, rmax: (S,) float64 inclusive planar range limits, metres.
+        grid: (S,) int64 index of each slice's grid; offset: (S,) int64 first element of each
+            slice in the reduction array.
+        g_min, g_inc: (G,) float64 grid start and increment (radians); g_size: (G,) int64;
+            g_full: (G,) bool full circle.
+        size: (S,) int64 bins of each slice; inf_value, fill_value: (S,) float32 decoded values.
+        zmin4, zmax4: zmin, zmax padded with empty bands to a multiple of four slices.
+    """
+
+    zmin: np.ndarray[Any, Any]
+    zmax: np.ndarray[Any, Any]
+    rmin: np.ndarray[Any, Any]
+    rmax: np.ndarray[Any, Any]
+    grid: np.ndarray[Any, Any]
+    offset: np.ndarray[Any, Any]
+    g_min: np.ndarray[Any, Any]
+    g_inc: np.ndarray[Any, Any]
+    g_size: np.ndarray[Any, Any]
+    g_full: np.ndarray[Any, Any]
+    size: np.ndarray[Any, Any]
+    inf_value: np.ndarray[Any, Any]
+    fill_value: np.ndarray[Any, Any]
+    zmin4: np.ndarray[Any, Any]
+    zmax4: np.ndarray[Any, Any]
+
+    @classmethod
+    def create(cls, slices: list[tuple[float, float, Any, int]], grids: list[Any]) -> Bands:
+        """From (min_z, max_z, OutputOptions, grid index) per slice and the distinct
+        :class:`converters._grid.AngleGrid` objects."""
+        sizes = np.array([grids[g].size for _, _, _, g in slices], np.int64)
+        pad = -len(slices) % 4
+        zmin = np.array([lo for lo, _, _, _ in slices], np.float64)
+        zmax = np.array([hi for _, hi, _, _ in slices], np.float64)
+        return cls(
+            zmin=zmin, zmax=zmax,
+            rmin=np.array([o.range_min for _, _, o, _ in slices], np.float64),
+            rmax=np.array([o.range_max for _, _, o, _ in slices], np.float64),
+            grid=np.array([g for _, _, _, g in slices], np.int64),
+            offset=(np.cumsum(sizes) - sizes).astype(np.int64),
+            g_min=np.array([g.angle_min for g in grids], np.float64),
+            g_inc=np.array([g.increment for g in grids], np.float64),
+            g_size=np.array([g.size for g in grids], np.int64),
+            g_full=np.array([g.full_circle for g in grids], np.bool_), size=sizes,
+            inf_value=np.array([o.inf_value for _, _, o, _ in slices], np.float32),
+            fill_value=np.array([o.fill_value for _, _, o, _ in slices], np.float32),
+            zmin4=np.r_[zmin, np.full(pad, np.inf)], zmax4=np.r_[zmax, np.full(pad, -np.inf)])
+
+    def grid0(self) -> tuple[float, float, int, bool]:
+        """(g_min, g_inc, g_size, g_full) of the first (single) grid."""
+        return (float(self.g_min[0]), float(self.g_inc[0]), int(self.g_size[0]),
+                bool(self.g_full[0]))
+
+
+@dataclass(frozen=True)
+class Rays:
+    """Per-ray tables of the general kernels (n rays, S slices, G grids).
+
+    Attributes:
+        dx, dy, dz, ox, oy, oz: (n,) ray ``p = r*D + O`` in the output frame.
+        keys: (n,) int32 tie keys, or empty (key = ray index + ``key_base``).
+        qual: (S, n) uint8 bit 0: +Inf/NaN qualify, bit 1: -Inf qualifies.
+        bin_far: (G, n) int32 far-field bins (-1: none); r_thr: (G, n) float32 thresholds.
+    """
+
+    dx: np.ndarray[Any, Any]
+    dy: np.ndarray[Any, Any]
+    dz: np.ndarray[Any, Any]
+    ox: np.ndarray[Any, Any]
+    oy: np.ndarray[Any, Any]
+    oz: np.ndarray[Any, Any]
+    keys: np.ndarray[Any, Any]
+    qual: np.ndarray[Any, Any]
+    bin_far: np.ndarray[Any, Any]
+    r_thr: np.ndarray[Any, Any]
+
+
+class Compiled:
+    """The compiled kernels behind calls that take named structures (:class:`Bands`,
+    :class:`Rays`, the converters' bin-ordered plans)."""
+
+    def __init__(self, jit: Any) -> None:
+        self._bands, self._points, self._others = _J_BANDS, _J_POINTS, _J_OTHERS
+        self._small = jit(_fuse_small)
+        self._sorted = jit(_sorted_fuse)
+        self._row_convert = jit(_row_convert)
+        self.decode = jit(_decode_kernel)
+        self.decode_slices = _J_DECODE_SLICES
+
+    def fuse(self, r: Any, rays: Rays, bands: Bands, best: Any, *, keep: Any = _NO_KEEP,
+             limits: Any = _NO_LIMITS, key_base: int = 0) -> None:
+        """Fuse rays into ``best``: the general kernel (pass 1 band bits, then points and
+        specials; one compiled call below ``_SMALL`` rays). ``keep``: (n,) uint8 rays to use
+        (empty: all); ``limits``: (scan range_min, scan range_max, input range_min)."""
+        t, b = rays, bands
+        args = (t.dx, t.dy, t.dz, t.ox, t.oy, t.oz, t.keys, key_base, b.zmin, b.zmax, b.rmin,
+                b.rmax, b.grid, b.offset, t.qual, b.g_min, b.g_inc, b.g_size, b.g_full,
+                t.bin_far, t.r_thr, best)
+        n = r.shape[0]
+        if n < _SMALL:
+            self._small(r, keep, limits, *args)
+            return
+        masks = np.zeros(n, np.uint8 if b.zmin.shape[0] <= 8 else np.uint64)
+        good = np.empty(n, np.bool_)
+        self._bands(r, keep, limits, t.dz, t.oz, b.zmin, b.zmax, masks, good)
+        hits = np.flatnonzero(masks)
+        if hits.size:
+            self._points(hits, masks, r, t.dx, t.dy, t.ox, t.oy, t.keys, key_base, b.rmin,
+                         b.rmax, b.grid, b.offset, b.g_min, b.g_inc, b.g_size, b.g_full,
+                         t.bin_far, t.r_thr, best)
+        others = np.flatnonzero(~good)
+        if others.size:
+            self._others(others, r, keep, limits, t.keys, key_base, b.grid, b.offset, t.qual,
+                         t.bin_far, best)
+
+    def fuse_sorted(self, r: Any, plan: Any, bands: Bands, best: Any) -> None:
+        """The bin-ordered kernel (:func:`_sorted_fuse`; one grid, shared range limits).
+
+        ``plan``: the converter's bin-ordered tables (``src``, ``keys``, ``cols`` = dz, oz,
+        dx, dy, ox, oy, r_thr in bin order, ``qf``, ``qn``, ``bin_start``, ``bin_thr``,
+        ``max_width``)."""
+        g_min, g_inc, g_size, g_full = bands.grid0()
+        self._sorted(r, plan.src, plan.keys, *plan.cols, plan.qf, plan.qn, bands.zmin4,
+                     bands.zmax4, bands.zmin.shape[0], float(bands.rmin[0]),
+                     float(bands.rmax[0]), plan.bin_start, plan.bin_thr,
+                     max(plan.max_width, SORTED_CHUNK), bands.offset, g_min, g_inc, g_size,
+                     g_full, best)
+
+    def convert_rows(self, r: Any, plan: Any, rows: Any, bands: Bands, intensity: Any,
+                     key_to_pos: Any) -> tuple[Any, Any]:
+        """The row-ordered kernel (:func:`_row_convert`): fusion and decoding in one call.
+
+        ``plan``: as :meth:`fuse_sorted`; ``rows``: its row layout (``src``, ``keys``, ``qf``,
+        ``qn``, ``q_rows``, ``lo``, ``hi``: per-row float32 band intervals). ``intensity``:
+        (n,) native image or empty; ``key_to_pos``: (n,) int64 or empty (key = pixel).
+
+        Returns:
+            (ranges, ints): float32 of all slices back to back (ints empty without intensity).
+        """
+        cols, b = plan.cols, bands
+        g_min, g_inc, g_size, g_full = b.grid0()
+        return self._row_convert(  # type: ignore[no-any-return]
+            r, rows.src, rows.keys, cols[2], cols[3], cols[4], cols[5], cols[6], rows.qf,
+            rows.qn, rows.q_rows, rows.lo, rows.hi, b.zmin.shape[0], float(b.rmin[0]),
+            float(b.rmax[0]), rows.lo.shape[1], plan.bin_thr, b.offset, g_min, g_inc, g_size,
+            g_full, int(b.size.sum()), b.size, b.inf_value, b.fill_value, intensity,
+            key_to_pos, intensity.shape[0] > 0)
+
+
+def _decode_kernel(best: Any, inf_value: Any, fill_value: Any, ranges: Any,
+                   winners: Any) -> None:  # pragma: no cover - compiled
+    """Compiled :func:`decode` into preallocated (N,) float32 ranges and int64 winners."""
+    values = best.view(np.int64)
+    for k in range(values.shape[0]):
+        v = values[k]
+        if v == EMPTY:
+            ranges[k] = fill_value
+            winners[k] = -1
+            continue
+        winners[k] = v & 0xFFFFFFFF
+        ranges[k] = _J_CODE_VALUE(v, inf_value)
+
+
+def _code_value(v: Any, inf_value: Any) -> Any:  # pragma: no cover - compiled
+    """The published float32 value of a non-empty reduction element (``code << 32 | key``):
+    the finite range, -Inf, ``inf_value`` for the +Inf class, NaN."""
+    code = v >> 32
+    if code < CODE_NEG_INF:
+        return np.int32(code).view(np.float32)
+    if code == CODE_NEG_INF:
+        return np.float32(-np.inf)
+    if code == CODE_POS_INF:
+        return np.float32(inf_value)
+    return np.float32(np.nan)
+
+
+def _decode_slices(best: Any, offset: Any, size: Any, inf_value: Any, fill_value: Any,
+                   intensity: Any, key_to_pos: Any, ranges: Any,
+                   ints: Any) -> None:  # pragma: no cover - compiled
+    """:func:`decode` of every slice (``best[offset[s]:offset[s] + size[s]]``) into ``ranges``
+    (float32, same layout) plus, when ``intensity`` is not empty, the winner's intensity cast to
+    float32 into ``ints`` (0 for empty bins); ``key_to_pos`` maps tie keys to pixels (empty:
+    identity)."""
+    use_int = intensity.shape[0] > 0
+    use_map = key_to_pos.shape[0] > 0
+    for s in range(offset.shape[0]):
+        inf_v = inf_value[s]
+        fill_v = fill_value[s]
+        for k in range(size[s]):
+            j = offset[s] + k
+            v = best[j]
+            if v == EMPTY:
+                ranges[j] = fill_v
+                if use_int:
+                    ints[j] = 0.0
+                continue
+            ranges[j] = _J_CODE_VALUE(v, inf_v)
+            if use_int:
+                key = v & 0xFFFFFFFF
+                ints[j] = np.float32(intensity[key_to_pos[key] if use_map else key])
+
+
+def _pass_bands(r: Any, keep: Any, limits: Any, dz: Any, oz: Any, zmin: Any, zmax: Any,
+                masks: Any, good: Any) -> None:  # pragma: no cover - compiled
+    """Pass 1: ``good[i]``: a point candidate (finite, > 0, inside the limits, kept);
+    ``masks[i]`` bit s: the point's height is inside slice s's band (0 unless good)."""
+    n = r.shape[0]
+    lim0 = limits[0]
+    lim1 = limits[1]
+    lim2 = limits[2]
+    for i in range(n):
+        rv = r[i]
+        good[i] = (rv > 0.0) & (rv >= lim0) & (rv < np.inf) & (rv <= lim1) & (rv >= lim2)
+    if keep.shape[0] == n:
+        for i in range(n):
+            good[i] &= keep[i] != 0
+    z = np.empty(n)
+    for i in range(n):
+        z[i] = np.float64(r[i]) * dz[i] + oz[i]
+    one = masks.dtype.type(1)
+    for s in range(zmin.shape[0]):
+        lo_z = zmin[s]
+        hi_z = zmax[s]
+        bit = one << s
+        for i in range(n):
+            masks[i] |= masks.dtype.type((z[i] >= lo_z) & (z[i] <= hi_z) & good[i]) * bit
+
+
+def _pass_points(hits: Any, masks: Any, r: Any, dx: Any, dy: Any, ox: Any, oy: Any, keys: Any,
+                 key_base: Any, rmin: Any, rmax: Any, slice_grid: Any, offset: Any, g_min: Any,
+                 g_inc: Any, g_size: Any, g_full: Any, bin_far: Any, r_thr: Any,
+                 best: Any) -> None:  # pragma: no cover - compiled
+    """Pass 2: points inside at least one band. Bins from the far-field tables, or atan2 for
+    rays closer than ``r_thr``; codes from the float32 bit pattern of rho."""
+    two_pi = 2.0 * math.pi
+    bits = np.empty(1, np.float32)
+    bits_i = bits.view(np.int32)
+    n_grids = g_min.shape[0]
+    use_keys = keys.shape[0] == r.shape[0]
+    grid_bin = np.empty(n_grids, np.int64)
+    for h in range(hits.shape[0]):
+        i = hits[h]
+        m = np.int64(masks[i])
+        rv = r[i]
+        rd = np.float64(rv)
+        x = rd * dx[i] + ox[i]
+        y = rd * dy[i] + oy[i]
+        rho = math.sqrt(x * x + y * y)
+        bits[0] = rho
+        code_f = np.int64(bits_i[0])
+        key = np.int64(keys[i]) + key_base if use_keys else np.int64(key_base + i)
+        for g in range(n_grids):
+            if rv < r_thr[g, i]:
+                d = math.atan2(y, x) - g_min[g]
+                inc = g_inc[g]
+                if g_full[g]:
+                    grid_bin[g] = np.int64(math.ceil(d / inc - 0.5)) % g_size[g]
+                else:
+                    d = d - two_pi * math.floor((d + 0.5 * inc) / two_pi)
+                    k = np.int64(math.ceil(d / inc - 0.5))
+                    grid_bin[g] = k if 0 <= k < g_size[g] else -1
+            else:
+                grid_bin[g] = bin_far[g, i]
+        s = 0
+        while m:
+            if m & 1:
+                b = grid_bin[slice_grid[s]]
+                if b >= 0:
+                    code = code_f
+                    if rho < rmin[s]:
+                        code = np.int64(CODE_NEG_INF)
+                    elif rho > rmax[s]:
+                        code = np.int64(CODE_POS_INF)
+                    comb = (code << 32) | key
+                    j = offset[s] + b
+                    best[j] = min(best[j], comb)
+            m >>= 1
+            s += 1
+
+
+def _pass_others(others: Any, r: Any, keep: Any, limits: Any, keys: Any, key_base: Any,
+                 slice_grid: Any, offset: Any, qual: Any, bin_far: Any,
+                 best: Any) -> None:  # pragma: no cover - compiled
+    """Pass 3: no return (+Inf), too close (-Inf), invalid (NaN, <= 0, below limits[0]),
+    beyond limits[1] (+Inf); below limits[2] or outside ``keep``: dropped."""
+    n_slices = slice_grid.shape[0]
+    use_keep = keep.shape[0] == r.shape[0]
+    use_keys = keys.shape[0] == r.shape[0]
+    for h in range(others.shape[0]):
+        i = others[h]
+        if use_keep and keep[i] == 0:
+            continue
+        rv = r[i]
+        need = 1
+        if rv == np.inf:
+            special = CODE_POS_INF
+        elif rv == -np.inf:
+            special, need = CODE_NEG_INF, 2
+        elif math.isnan(rv) or rv <= 0.0 or rv < limits[0]:
+            special = CODE_NAN
+        elif rv > limits[1]:
+            special = CODE_POS_INF
+        else:                     # below the user's range filter: dropped
+            continue
+        key = np.int64(keys[i]) + key_base if use_keys else np.int64(key_base + i)
+        comb = (np.int64(special) << 32) | key
+        for s in range(n_slices):
+            b = bin_far[slice_grid[s], i]
+            if b >= 0 and (qual[s, i] & need):
+                j = offset[s] + b
+                best[j] = min(best[j], comb)
+
+
+# ------------------------------------------------- bin-ordered kernel (slices, one shared grid)
+#
+# Per LidarInfo version the pixel tables are permuted once into the order of the far-field bins
+# (``src[j]`` = pixel at position ``j``; ``bin_start[b]:bin_start[b+1]`` = the positions of bin
+# ``b``; pixels without a far-field bin at the end). Per scan, bin by bin: the ranges of the bin
+# are gathered once (shared by all slices), one branch-free loop the compiler vectorises gives
+# every position its code (``code << 32 | key``) and its slice bits (height band for points,
+# the precomputed +Inf/NaN/-Inf qualifiers otherwise), and a running minimum per slice over the
+# bin's positions replaces the scatter; only points closer than their far-field threshold (rare
+# for a sensor on the target's z axis) take a scalar path with atan2. The per-pixel thresholds
+# are read only for runs of bins whose smallest positive range is below the run's largest
+# threshold (``bin_thr``), so a centred sensor does not stream them at all. Used when all slices
+# share one grid and their planar range limits (so a point's class is decided once).
+
+
+def _sorted_fuse(r: Any, src: Any, keys: Any, dz: Any, oz: Any, dx: Any, dy: Any, ox: Any,
+                 oy: Any, r_thr: Any, qf: Any, qn: Any, zmin: Any, zmax: Any, n_slices: Any,
+                 lim_lo: Any, lim_hi: Any, bin_start: Any, bin_thr: Any, max_width: Any,
+                 offset: Any, g_min: Any, g_inc: Any, g_size: Any, g_full: Any,
+                 best: Any) -> None:  # pragma: no cover - compiled
+    """Fuse one scan into ``best`` for slices ``0 .. n_slices-1`` on one grid.
+
+    Args:
+        r: (n,) float32 ranges in pixel order.
+        src, keys: (n,) int32 pixel and tie key of each position (bin order).
+        dz, oz, dx, dy, ox, oy, r_thr: (n,) float32 ray tables and far-field threshold, bin order.
+        qf, qn: (n,) bit s: slice s may report +Inf/NaN (qf) or -Inf (qn), bin order.
+        zmin, zmax: bands padded to a multiple of four slices with empty ones (inf, -inf).
+        lim_lo, lim_hi: the shared planar range limits.
+        bin_start: (size + 2,) int64 position of each bin's first pixel (last: the pixels
+            without a far-field bin, only their near points can contribute).
+        bin_thr: (size + 1,) float32 the largest ``r_thr`` of each bin's pixels: a run of
+            bins whose smallest positive range reaches it has no near point, and its
+            ``r_thr`` values are not read at all (less memory traffic).
+        max_width: positions per chunk of whole bins (>= the largest bin; scratch size).
+        offset: (n_slices,) int64 first element of each slice in ``best``.
+        g_min, g_inc, g_size, g_full: the grid.
+        best: reduction array, updated in place.
+    """
+    empty = np.int64(EMPTY)
+    chunk = max_width
+    rp = np.empty(chunk, np.float32)
+    no_thr = np.zeros(chunk, np.float32)          # stands for r_thr when no point is near
+    cm = np.empty(chunk, np.int64)
+    mm = np.empty(chunk, np.int64)
+    n_blocks = zmin.shape[0] // 4
+    b_end = 0
+    while b_end < g_size + 1:
+        # a run of whole bins, at most ``chunk`` positions (at least one bin)
+        b_first = b_end
+        j0 = bin_start[b_first]
+        b_end = b_first + 1
+        while b_end < g_size + 1 and bin_start[b_end + 1] - j0 <= chunk:
+            b_end += 1
+        j1 = bin_start[b_end]
+        w = j1 - j0
+        if w == 0:
+            continue
+        vsrc = src[j0:j1]
+        lowest = np.float32(np.inf)         # smallest positive range of the run
+        for k in range(w):
+            rv = r[vsrc[k]]
+            rp[k] = rv
+            lowest = min(lowest, rv if rv > 0.0 else np.float32(np.inf))   # branch-free
+        thr_max = bin_thr[b_first]
+        for b in range(b_first + 1, b_end):
+            thr_max = max(thr_max, bin_thr[b])
+        vthr = r_thr[j0:j1] if lowest < thr_max else no_thr[:w]
+        vkeys, vqf, vqn = keys[j0:j1], qf[j0:j1], qn[j0:j1]
+        vdz, voz, vdx, vdy, vox, voy = (dz[j0:j1], oz[j0:j1], dx[j0:j1], dy[j0:j1],
+                                        ox[j0:j1], oy[j0:j1])
+        for blk in range(n_blocks):
+            s0 = 4 * blk
+            lo0, hi0 = zmin[s0], zmax[s0]
+            lo1, hi1 = zmin[s0 + 1], zmax[s0 + 1]
+            lo2, hi2 = zmin[s0 + 2], zmax[s0 + 2]
+            lo3, hi3 = zmin[s0 + 3], zmax[s0 + 3]
+            count = np.int64(0)
+            for k in range(w):
+                rv = rp[k]
+                z = np.float64(rv) * vdz[k] + voz[k]
+                point = (rv > 0.0) & (rv < np.inf)
+                near = point & (rv < vthr[k])
+                count += np.int64(near)
+                value = _J_VALUE(rv, vdx[k], vdy[k], vox[k], voy[k], vkeys[k], lim_lo, lim_hi)
+                cm[k] = empty if near else value
+                m = np.int64((z >= lo0) & (z <= hi0))
+                m |= np.int64((z >= lo1) & (z <= hi1)) << 1
+                m |= np.int64((z >= lo2) & (z <= hi2)) << 2
+                m |= np.int64((z >= lo3) & (z <= hi3)) << 3
+                # both qualifiers loaded, one picked arithmetically: a conditional load would
+                # keep the compiler from vectorising this loop (about 1.5x slower)
+                sel = np.int64(rv == -np.inf)
+                q = (np.int64(vqn[k]) * sel) | (np.int64(vqf[k]) * (1 - sel))
+                mm[k] = m if point else (q >> s0) & 15
+            for b in range(b_first, min(b_end, g_size)):
+                vm = mm[bin_start[b] - j0:bin_start[b + 1] - j0]
+                vc = cm[bin_start[b] - j0:bin_start[b + 1] - j0]
+                r0 = empty
+                r1 = empty
+                r2 = empty
+                r3 = empty
+                for k in range(vm.shape[0]):
+                    m = vm[k]
+                    v = vc[k]
+                    r0 = min(r0, v if m & 1 else empty)
+                    r1 = min(r1, v if m & 2 else empty)
+                    r2 = min(r2, v if m & 4 else empty)
+                    r3 = min(r3, v if m & 8 else empty)
+                for t, run in enumerate((r0, r1, r2, r3)):
+                    if s0 + t < n_slices:
+                        jj = offset[s0 + t] + b
+                        best[jj] = min(best[jj], run)
+            if count == 0:
+                continue
+            # points closer than their far-field threshold: exact bin from atan2
+            for k in range(w):
+                rv = rp[k]
+                if not ((rv > 0.0) & (rv < np.inf) & (rv < vthr[k]) & (mm[k] != 0)):
+                    continue
+                _J_NEAR(rv, vdx[k], vdy[k], vox[k], voy[k], vkeys[k], mm[k], s0, n_slices,
+                        lim_lo, lim_hi, g_min, g_inc, g_size, g_full, offset, best)
+
+
+def _value(rv: Any, dx: Any, dy: Any, ox: Any, oy: Any, key: Any, lim_lo: Any,
+           lim_hi: Any) -> Any:  # pragma: no cover - compiled
+    """``code << 32 | key`` of one range on its ray (module docstring): the float32 bits of
+    the planar range of a point (or -Inf / +Inf outside the planar limits), the class code of a
+    non-point. Branch-free, inlined into the kernels' vectorised loops."""
+    rd = np.float64(rv)
+    x = rd * dx + ox
+    y = rd * dy + oy
+    rho = math.sqrt(x * x + y * y)
+    point = (rv > 0.0) & (rv < np.inf)
+    code = np.int64(np.float32(rho).view(np.int32))
+    code = np.int64(CODE_NEG_INF) if rho < lim_lo else code
+    code = np.int64(CODE_POS_INF) if rho > lim_hi else code
+    special = np.int64(CODE_NAN)
+    special = np.int64(CODE_POS_INF) if rv == np.inf else special
+    special = np.int64(CODE_NEG_INF) if rv == -np.inf else special
+    return ((code if point else special) << 32) | np.int64(key)
+
+
+def _near_point(rv: Any, dx: Any, dy: Any, ox: Any, oy: Any, key: Any, m: Any, s0: Any,
+                n_slices: Any, lim_lo: Any, lim_hi: Any, g_min: Any, g_inc: Any, g_size: Any,
+                g_full: Any, offset: Any, best: Any) -> None:  # pragma: no cover - compiled
+    """One point closer than its far-field threshold (range ``rv``, ray ``dx, dy, ox, oy``):
+    its exact bin from atan2, then its value into slices ``s0 + t`` for the bits t of ``m``
+    (shared by the bin-ordered and row-ordered kernels)."""
+    rd = np.float64(rv)
+    x = rd * dx + ox
+    y = rd * dy + oy
+    rho = math.sqrt(x * x + y * y)
+    code = np.int64(np.float32(rho).view(np.int32))
+    if rho < lim_lo:
+        code = np.int64(CODE_NEG_INF)
+    elif rho > lim_hi:
+        code = np.int64(CODE_POS_INF)
+    d = math.atan2(y, x) - g_min
+    if g_full:
+        bn = np.int64(math.ceil(d / g_inc - 0.5))
+        if bn < 0 or bn >= g_size:        # (a modulo only when needed: slow)
+            bn %= g_size
+    else:
+        two_pi = 2.0 * math.pi
+        d = d - two_pi * math.floor((d + 0.5 * g_inc) / two_pi)
+        bn = np.int64(math.ceil(d / g_inc - 0.5))
+        if bn < 0 or bn >= g_size:
+            return
+    value = (code << 32) | np.int64(key)
+    for t in range(4):
+        if (m >> t) & 1 and s0 + t < n_slices:
+            jj = offset[s0 + t] + bn
+            best[jj] = min(best[jj], value)
+
+
+def _row_fuse(r: Any, src: Any, keys: Any, dx: Any, dy: Any, ox: Any, oy: Any, r_thr: Any,
+              qf: Any, qn: Any, q_rows: Any, lo: Any, hi: Any, n_slices: Any, lim_lo: Any,
+              lim_hi: Any, height: Any, bin_thr: Any, offset: Any, g_min: Any, g_inc: Any,
+              g_size: Any, g_full: Any, best: Any) -> None:  # pragma: no cover - compiled
+    """:func:`_sorted_fuse` for the row-ordered layout: bin ``b`` is positions
+    ``b*H .. b*H + H - 1`` and position ``k`` of a bin is row ``k``.
+
+    Args:
+        r: (n,) float32 ranges in pixel order.
+        src, keys: (n,) uint32 pixel and tie key of each position (bin order).
+        dx, dy, ox, oy, r_thr: (n,) float32 ray tables and far-field threshold, bin order.
+        qf, qn: bit s: slice s may report +Inf/NaN (qf) or -Inf (qn); (H,) per row when
+            ``q_rows`` (the same for every bin), else (n,) in bin order.
+        lo, hi: (S, H) float32 per band (padded to a multiple of four with empty ones) and row,
+            from :func:`band_intervals_f32`: a range ``rv`` of row ``k`` is a point inside band
+            ``s`` iff ``lo[s, k] <= rv <= hi[s, k]`` (false for every non-point).
+        n_slices, lim_lo, lim_hi, bin_thr, offset, g_*, best: as in :func:`_sorted_fuse`.
+
+    Per bin: one gather of its H ranges; one vectorised loop giving every position its value
+    ``code << 32 | key`` (``EMPTY`` for a point closer than its far-field threshold: those take
+    the atan2 path) and, for non-points, the qualifier bits of their class; then per block of
+    four slices one vectorised loop of four running minima (a position takes part in slice s
+    iff it is inside the band interval or a qualified non-point).
+    """
+    empty = np.int64(EMPTY)
+    rows = height
+    rp = np.empty(rows, np.float32)
+    cv = np.empty(rows, np.int64)             # value of each position
+    qx = np.empty(rows, np.int32)             # qualifier bits of non-points (0 for points)
+    n_blocks = lo.shape[0] // 4
+    q_step = 0 if q_rows else rows
+    # Tables are read at index offsets (j0 + k): array views created per bin cost reference
+    # counting calls that showed up as ~20 % of the time.
+    for b in range(g_size):
+        j0 = b * rows
+        q0 = b * q_step
+        lowest = np.float32(np.inf)           # smallest positive range of the bin
+        for k in range(rows):
+            rv = r[src[j0 + k]]
+            rp[k] = rv
+            lowest = min(lowest, rv if rv > 0.0 else np.float32(np.inf))   # branch-free
+        for k in range(rows):
+            rv = rp[k]
+            point = (rv > 0.0) & (rv < np.inf)
+            cv[k] = _J_VALUE(rv, dx[j0 + k], dy[j0 + k], ox[j0 + k], oy[j0 + k], keys[j0 + k],
+                             lim_lo, lim_hi)
+            # both qualifiers loaded, one picked arithmetically (keeps the loop vectorised)
+            sel = np.int64(rv == -np.inf)
+            q = (np.int64(qn[q0 + k]) * sel) | (np.int64(qf[q0 + k]) * (1 - sel))
+            qx[k] = np.int32(0 if point else q)
+        count = np.int64(0)
+        if lowest < bin_thr[b]:
+            # some point may be closer than its far-field threshold (rare for a centred
+            # sensor): such points leave the minima and take the atan2 path below
+            for k in range(rows):
+                rv = rp[k]
+                near = (rv > 0.0) & (rv < np.inf) & (rv < r_thr[j0 + k])
+                count += np.int64(near)
+                cv[k] = empty if near else cv[k]
+        for blk in range(n_blocks):
+            s0 = 4 * blk
+            r0 = empty
+            r1 = empty
+            r2 = empty
+            r3 = empty
+            for k in range(rows):
+                rv = rp[k]
+                v = cv[k]
+                q = qx[k] >> s0
+                r0 = min(r0, v if (((rv >= lo[s0, k]) & (rv <= hi[s0, k]))
+                                   | ((q & 1) != 0)) else empty)
+                r1 = min(r1, v if (((rv >= lo[s0 + 1, k]) & (rv <= hi[s0 + 1, k]))
+                                   | ((q & 2) != 0)) else empty)
+                r2 = min(r2, v if (((rv >= lo[s0 + 2, k]) & (rv <= hi[s0 + 2, k]))
+                                   | ((q & 4) != 0)) else empty)
+                r3 = min(r3, v if (((rv >= lo[s0 + 3, k]) & (rv <= hi[s0 + 3, k]))
+                                   | ((q & 8) != 0)) else empty)
+            # (padded slices s >= n_slices have empty bands and no qualifier bits)
+            if s0 < n_slices:
+                best[offset[s0] + b] = min(best[offset[s0] + b], r0)
+            if s0 + 1 < n_slices:
+                best[offset[s0 + 1] + b] = min(best[offset[s0 + 1] + b], r1)
+            if s0 + 2 < n_slices:
+                best[offset[s0 + 2] + b] = min(best[offset[s0 + 2] + b], r2)
+            if s0 + 3 < n_slices:
+                best[offset[s0 + 3] + b] = min(best[offset[s0 + 3] + b], r3)
+            if count == 0:
+                continue
+            # points closer than their far-field threshold: exact bin from atan2
+            for k in range(rows):
+                rv = rp[k]
+                if not ((rv > 0.0) & (rv < np.inf) & (rv < r_thr[j0 + k])):
+                    continue
+                m = 0
+                for t in range(4):
+                    if (rv >= lo[s0 + t, k]) & (rv <= hi[s0 + t, k]):
+                        m |= 1 << t
+                if m != 0:
+                    _J_NEAR(rv, dx[j0 + k], dy[j0 + k], ox[j0 + k], oy[j0 + k], keys[j0 + k],
+                            m, s0, n_slices, lim_lo, lim_hi, g_min, g_inc, g_size, g_full,
+                            offset, best)
+
+
+def _row_convert(r: Any, src: Any, keys: Any, dx: Any, dy: Any, ox: Any, oy: Any, r_thr: Any,
+                 qf: Any, qn: Any, q_rows: Any, lo: Any, hi: Any, n_slices: Any, lim_lo: Any,
+                 lim_hi: Any, height: Any, bin_thr: Any, offset: Any, g_min: Any, g_inc: Any,
+                 g_size: Any, g_full: Any, total: Any, size: Any, inf_value: Any,
+                 fill_value: Any, intensity: Any, key_to_pos: Any,
+                 want_ints: Any) -> Any:  # pragma: no cover - compiled
+    """:func:`_row_fuse` into a fresh reduction array of ``total`` elements, then
+    :func:`_decode_slices`, in one compiled call (one dispatch less per scan).
+
+    Returns:
+        (ranges, ints): float32 of all slices back to back (ints empty unless ``want_ints``).
+    """
+    best = np.full(total, np.int64(EMPTY), np.int64)
+    _J_ROW(r, src, keys, dx, dy, ox, oy, r_thr, qf, qn, q_rows, lo, hi, n_slices, lim_lo, lim_hi,
+           height, bin_thr, offset, g_min, g_inc, g_size, g_full, best)
+    ranges = np.empty(total, np.float32)
+    ints = np.empty(total if want_ints else 0, np.float32)
+    _J_DECODE_SLICES(best, offset, size, inf_value, fill_value, intensity, key_to_pos, ranges,
+                     ints)
+    return ranges, ints
+
