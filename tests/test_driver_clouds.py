@@ -109,13 +109,17 @@ def test_nebula_cloud_reimport_matches_nebula_pcd(name: str) -> None:
 # --------------------------------------------------------------------- dual return (decoder)
 
 @pytest.mark.parametrize("kind", dc.KINDS)
-@pytest.mark.parametrize("product", ("VLP-16", "VLP-32C"))
-def test_dual_return_packets_become_range_and_range2(product: str, kind: str) -> None:
+@pytest.mark.parametrize(("product", "calib"), [("VLP-16", None),
+                                               ("VLP-32C", "velodyne_vlp32/VLP32.yaml"),
+                                               ("VLS-128", "velodyne_vls128/VLS128.yaml")])
+def test_dual_return_packets_become_range_and_range2(product: str, calib: str | None,
+                                                     kind: str) -> None:
     from test_velodyne_packets import MODES, PRODUCTS, synthetic_stream
 
-    packets = synthetic_stream(PRODUCTS[product], MODES["dual"], 200, deg_per_sequence=0.2,
+    packets = synthetic_stream(PRODUCTS[product], MODES["dual"], 400, deg_per_sequence=0.2,
                                seed=5)
-    results = list(velodyne.decode_packets(packets, None, as_dataclass=True))
+    calibration = velodyne.load_calibration(dc.DATA / calib) if calib else None
+    results = list(velodyne.decode_packets(packets, calibration, as_dataclass=True))
     scan, info = max(results, key=lambda r: r[0].width)
     assert "range2" in lidarscan.scan.channel_names(scan)
     cloud, truth = dc.driver_cloud(scan, info, kind)
