@@ -852,8 +852,7 @@ def _import_with_info(cloud: Any, pts: np.ndarray[Any, Any], names: Sequence[str
                               "a cloud of the sensor this LidarInfo describes (same beams and "
                               "columns per turn)")
     cnt = np.bincount(col, minlength=width).astype(np.float64)
-    ref = alpha_nom[col]
-    meas = ref + _group_mean(col, _wrap(alpha - ref), width, cnt)
+    meas = alpha_nom + _group_mean(col, _wrap(alpha - alpha_nom[col]), width, cnt)
     column_az = np.where(cnt > 0, meas, alpha_nom)
     channels: dict[str, Any] = {}
     for k in range(returns):

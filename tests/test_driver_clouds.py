@@ -48,7 +48,8 @@ def check_reimport(cloud: Any, truth: np.ndarray[Any, Any], scan: Any, info: Any
     """Kept share and nearest-neighbour errors of the re-imported scan against the truth."""
     back = scan_points(scan, info)
     kept = back.shape[0] / truth.shape[0]
-    dist = nearest_within(truth, back, 0.25)               # inf: nothing within 25 cm
+    sample = truth[::max(1, truth.shape[0] // 20_000)]    # scipy-free search: a sample
+    dist = nearest_within(sample, back, 0.03)              # inf: nothing within 3 cm
     figures = {"kept": kept, "median_m": float(np.median(dist)),
                "p99_m": float(np.quantile(dist, 0.99))}
     assert kept >= KEPT and kept <= 1.0, figures
