@@ -497,7 +497,8 @@ def _order_times(psi: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], height: 
     azimuth step between a ring's consecutive points counts the firings between them (0 for the
     second return of a firing, negative where a driver goes back for the second return's block).
     That numbers each ring's firings up to an offset; the offset of each ring is its median
-    position (in firings) against the ring with most points, interpolated by cloud index.
+    position (in firings) against the ring with most points, interpolated by cloud index (or,
+    for a cloud sorted ring after ring, the ring's mean azimuth phase).
     """
     n = psi.size
     idx = np.arange(n)
@@ -520,10 +521,18 @@ def _order_times(psi: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], height: 
     count -= np.repeat(count[first], np.diff(np.concatenate([np.flatnonzero(first), [n]])))
     c = np.empty(n)
     c[order] = count                                     # firing count within each ring
-    ref = int(np.argmax(np.bincount(rows, minlength=height)))
-    in_ref = np.flatnonzero(rows == ref)
-    f = np.interp(idx.astype(np.float64), in_ref.astype(np.float64), c[in_ref])
-    offset = _median_by(rows, f - c, height)
+    if np.count_nonzero(np.diff(rows)) < 2 * height:
+        # ring after ring (a cloud sorted by ring): align the rings by azimuth instead, each
+        # ring's offset the circular mean of (its azimuth in steps - its firing count)
+        turn = 2 * np.pi / step
+        a = np.mod(sign * psi / step - c, turn) * (2 * np.pi / turn)
+        offset = np.arctan2(np.bincount(rows, np.sin(a), height),
+                            np.bincount(rows, np.cos(a), height)) * turn / (2 * np.pi)
+    else:
+        ref = int(np.argmax(np.bincount(rows, minlength=height)))
+        in_ref = np.flatnonzero(rows == ref)
+        f = np.interp(idx.astype(np.float64), in_ref.astype(np.float64), c[in_ref])
+        offset = _median_by(rows, f - c, height)
     tau = c + np.nan_to_num(offset)[rows]
     return np.asarray(np.rint((tau - tau.min()) * 1e6), dtype=np.int64)
 
