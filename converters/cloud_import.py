@@ -434,6 +434,13 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     if t_abs is not None and np.ptp(t_abs) > 0:
         cols, beam_times = _columns_from_times(t_abs, rows, height)
     time_cols = cols is not None
+    if cols is not None:
+        # times shared by several firings (a driver stamping per packet or block) put more than
+        # two points in a pixel: then the times do not resolve firings, the point order does
+        width = int(cols.max()) + 1
+        _check_grid_size(height, width, flat.size, "time spacing")
+        if np.count_nonzero(_pixel_ranks(rows * width + cols) >= 2) > 0.01 * cols.size:
+            cols, time_cols = None, False
     if cols is None:
         beam_times[:] = 0
         cols = _columns_from_times(_order_times(psi, rows, height), rows, height)[0]
@@ -464,6 +471,8 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
             beam -= beam.min()
         beam_times = np.rint(beam).astype(np.int64)
         column_times = _column_times(tf - beam_times[rf], cf, width)
+    elif t_abs is not None and np.ptp(t_abs) > 0:
+        column_times = _column_times(t_abs[keep], cols[keep], width)
     known = None
     if range_name is not None:
         k = _field_f64(flat[None, :], range_name)[0] * range_scale

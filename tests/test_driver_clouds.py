@@ -267,3 +267,15 @@ def test_cloud_sorted_ring_after_ring_without_times() -> None:
     scan, info = pc.from_pointcloud2(sorted_cloud, as_dataclass=True)
     assert scan.height == 16 and abs(scan.width - 1808) <= 1
     check_reimport(sorted_cloud, truth[order], scan, info)
+
+
+def test_times_shared_by_a_block_fall_back_to_the_point_order() -> None:
+    """A driver that stamps whole blocks (4 firings one time): columns from the point order."""
+    cloud, truth = vlp16_dual_cloud(with_time=True)
+    pts = pc.read_points(cloud).reshape(-1).copy()
+    pts["time"] = np.floor(pts["time"] / 221.184e-6) * 221.184e-6
+    coarse = make_cloud(pts, height=1, width=pts.size, stamp_ns=10**18)
+    scan, info = pc.from_pointcloud2(coarse, as_dataclass=True)
+    assert scan.height == 16 and abs(scan.width - 1808) <= 1, (scan.height, scan.width)
+    check_reimport(coarse, truth, scan, info)
+    assert scan.column_time_offsets is not None and len(scan.column_time_offsets) == scan.width
