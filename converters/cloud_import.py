@@ -606,8 +606,8 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
         cloud: ``sensor_msgs/PointCloud2`` (rclpy message or dataclass); any byte order, float32
             or float64 x/y/z, padding, row padding. Never modified.
         layout: "organized" (rows = beams, e.g. ouster-ros H x W), "ring" (group points by their
-            ``ring`` field; velodyne / Hesai / RoboSense, organized or not) or "auto" (organized
-            when height > 1 and each row holds one ring, else ring).
+            ``ring`` / ``channel`` field; velodyne / Hesai / RoboSense / Nebula, organized or
+            not) or "auto" (organized when height > 1 and each row holds one ring, else ring).
         time_field: per-point time field; default the first of t, time, timestamp,
             time_stamp, offset_time. Integer fields are ns, float fields s; values > 1e6 s
             (or > 1e15 ns) are absolute, smaller ones relative to the header stamp.
@@ -626,12 +626,16 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
     Returns:
         (scan, info): ``range`` float32 metres (+Inf where the cloud has no point) first, then
         every other scalar field of the cloud as a channel of its own datatype (time, ring, range
-        and x/y/z excluded). Organized clouds keep their column order (``is_destaggered`` true
+        and x/y/z excluded); with two points in a pixel (dual return) also ``range2`` and each
+        field's second-return channel (``intensity2``, ...). Organized clouds keep their column order (``is_destaggered`` true
         with the estimated ``pixel_shift_by_row`` when times reveal a stagger); ring clouds are
         in firing order with per-scan ``column_azimuth_angles``. ``beam_ids`` = ring values.
 
     Raises:
-        ConversionError: no x/y/z, too few points, a layout that cannot be inferred.
+        ConversionError: no x/y/z, too few points, a layout that cannot be inferred, or a cloud
+            the beam model does not hold (more than ``MAX_LOST_SHARE`` of the points without a
+            pixel or a median re-projection error above ``MAX_MEDIAN_ERROR_M``; e.g. a Livox
+            rosette): the message says what was tried.
         ConfigError: bad option values.
     """
     if layout not in ("auto", "organized", "ring"):
