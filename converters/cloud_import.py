@@ -627,9 +627,10 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
         (scan, info): ``range`` float32 metres (+Inf where the cloud has no point) first, then
         every other scalar field of the cloud as a channel of its own datatype (time, ring, range
         and x/y/z excluded); with two points in a pixel (dual return) also ``range2`` and each
-        field's second-return channel (``intensity2``, ...). Organized clouds keep their column order (``is_destaggered`` true
-        with the estimated ``pixel_shift_by_row`` when times reveal a stagger); ring clouds are
-        in firing order with per-scan ``column_azimuth_angles``. ``beam_ids`` = ring values.
+        field's second-return channel (``intensity2``, ...). Organized clouds keep their column
+        order (``is_destaggered`` true with the estimated ``pixel_shift_by_row`` when times
+        reveal a stagger); ring clouds are in firing order with per-scan
+        ``column_azimuth_angles``. ``beam_ids`` = ring values.
 
     Raises:
         ConversionError: no x/y/z, too few points, a layout that cannot be inferred, or a cloud
