@@ -542,8 +542,36 @@ def _order_times(psi: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], height: 
         in_ref = np.flatnonzero(rows == ref)
         f = np.interp(idx.astype(np.float64), in_ref.astype(np.float64), c[in_ref])
         offset = _median_by(rows, f - c, height)
-    tau = c + np.nan_to_num(offset)[rows]
+    offset = np.nan_to_num(offset)
+    # where a firing starts: the phase (ring offset mod 1) after which the cloud order has the
+    # fewest descents (one a firing at the true start, two when cut inside a firing); phases are
+    # then packed into half a period from that start, so the firing split falls there
+    phase = np.mod(offset, 1.0)
+    start = _firing_start(phase[rows], phase[np.bincount(rows, minlength=height) > 0])
+    shifted = np.mod(phase - start, 1.0)
+    tau = c + (offset - start - shifted + 0.5 * shifted)[rows]
     return np.asarray(np.rint((tau - tau.min()) * 1e6), dtype=np.int64)
+
+
+def _firing_start(seq: np.ndarray[Any, Any], candidates: np.ndarray[Any, Any]) -> float:
+    """The candidate phase s minimising the descents of ``(seq - s) mod 1`` along ``seq``.
+
+    A consecutive pair (a, b) descends after the shift iff a > b and s is not in (b, a], or
+    a < b and s is in (a, b]; counted for all candidates at once with sorted bounds.
+    """
+    a, b = seq[:-1], seq[1:]
+    moving = a != b
+    a, b = a[moving], b[moving]
+    down = a > b
+    cand = np.sort(np.unique(candidates))
+    lo_d, hi_d = np.sort(b[down]), np.sort(a[down])          # s in (b, a]: descent removed
+    lo_u, hi_u = np.sort(a[~down]), np.sort(b[~down])        # s in (a, b]: descent added
+
+    def inside(lo: np.ndarray[Any, Any], hi: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        return (np.searchsorted(lo, cand, "left") - np.searchsorted(hi, cand, "left"))
+
+    count = down.sum() - inside(lo_d, hi_d) + inside(lo_u, hi_u)
+    return float(cand[int(np.argmin(count))]) if cand.size else 0.0
 
 
 def _columns_from_times(t_abs: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], height: int
