@@ -962,7 +962,8 @@ def estimation_error(cloud: Any, scan: Any, info: Any, *, time_field: str | None
 
     Points are matched to pixels like :func:`from_pointcloud2` arranges them: organized clouds of
     the scan's size pixel by pixel (rows through ``info.beam_ids`` = ring / source row), other
-    clouds by ring and time (or azimuth when there is no time field).
+    clouds by ring and time (or azimuth when there is no time field, or when its times are
+    shared by several firings).
     """
     from lidarscan.geometry import make_projector as _mk
     from lidarscan.scan import channel_names
@@ -1003,8 +1004,9 @@ def estimation_error(cloud: Any, scan: Any, info: Any, *, time_field: str | None
         u = np.array([row_of_id.get(int(r), -1) for r in ring], dtype=np.int64)
         if np.any(u < 0):
             raise InfoMismatchError("LidarInfo.beam_ids", ids.tolist(), "the cloud's rings")
-        if t_abs is not None:
-            c = _nearest_time_column(times, u, t_abs[ok])
+        t_ok = t_abs[ok] if t_abs is not None else None
+        if t_ok is not None and np.unique(np.stack([u, t_ok]), axis=1).shape[1] >= 0.4 * u.size:
+            c = _nearest_time_column(times, u, t_ok)
         else:
             c = _nearest_azimuth_column(xyz_scan, u, xyz[ok])
     dist = np.stack([np.linalg.norm(xyz[ok] - x[u, c], axis=-1) for x in xyz_returns])

@@ -279,3 +279,5 @@ def test_times_shared_by_a_block_fall_back_to_the_point_order() -> None:
     assert scan.height == 16 and abs(scan.width - 1808) <= 1, (scan.height, scan.width)
     check_reimport(coarse, truth, scan, info)
     assert scan.column_time_offsets is not None and len(scan.column_time_offsets) == scan.width
+    err = pc.estimation_error(coarse, scan, info)
+    assert err.matched == err.points and err.p99_m <= P99, err
