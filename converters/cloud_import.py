@@ -14,6 +14,19 @@ each destaggered pixel reveals its measurement column); without times the cloud'
 is used (exact for organized clouds, whose destaggered columns still fit ``alpha_v + beta'_u``).
 :func:`estimation_error` re-projects the estimate and compares it with the cloud's points.
 
+Driver clouds (unorganized, points in the driver's order, no-return pixels omitted): rows are the
+values of the beam number field (``ring``: velodyne_pointcloud, Hesai ROS driver, RoboSense;
+``channel``: Nebula), columns the firings, found from the time field (``time`` f32 s relative,
+``timestamp`` f64 absolute s, Nebula ``time_stamp`` u32 ns relative, ...) or, without one, from
+the cloud's point order: drivers publish firing after firing, so the azimuth step between a
+ring's consecutive points counts the firings between them. Two points in one pixel (same ring,
+same firing: dual return) become ``range`` and ``range2`` (and ``intensity``/``intensity2``...)
+in cloud order; Nebula's ``distance`` is used as the range along the beam when it fits. With a
+known LidarInfo (``info=``, e.g. from the calibration file) any cloud, xyz only too, is placed by
+that geometry instead of estimating one. A cloud the model does not hold (more than 2 % of the
+points left without a pixel, or a median re-projection error above 2 cm, e.g. a Livox rosette) is
+refused with an error saying what was tried, never returned with points silently lost.
+
 What is achievable (tests/test_pointcloud2.py): ouster-ros clouds of the REAL Ouster frames in
 tests/data re-project to <= 0.03 mm (float32 rounding; OS-2-128 0.015 mm max with the range
 field, 0.03 mm from xyz alone; OS-0-32 0.005 mm), times exactly; a noise-free VLP-16-like ring
@@ -256,8 +269,14 @@ def _fit_geometry(points: np.ndarray[Any, Any], valid: np.ndarray[Any, Any],
 # --------------------------------------------------------------------------- cloud layouts
 
 _TIME_FIELDS = ("t", "time", "timestamp", "time_stamp", "offset_time")
-_RANGE_FIELDS = ("range",)
-_SKIP = {"x", "y", "z", "ring"}
+_RANGE_FIELDS = ("range", "distance")
+#: beam number fields: velodyne / Hesai / RoboSense ``ring``, Nebula ``channel``
+_RING_FIELDS = ("ring", "channel")
+_SKIP = {"x", "y", "z", *_RING_FIELDS}
+
+
+def _ring_name(names: Sequence[str]) -> str | None:
+    return next((n for n in _RING_FIELDS if n in names), None)
 
 
 def _pick_time_field(names: Sequence[str], time_field: str | None) -> str | None:
@@ -312,6 +331,7 @@ class _Grid:
     known_range: np.ndarray[Any, Any] | None
     per_scan_azimuths: bool
     dropped: int = 0
+    returns: int = 1                           # grid columns = returns x width
 
 
 def _organized_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str | None,
@@ -342,8 +362,9 @@ def _organized_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: 
             shifts = shifts % width
             shifts[shifts > width // 2] -= width   # smallest magnitude representation
     cidx = (np.arange(width)[None, :] - shifts[:, None]) % width
-    if "ring" in names:
-        ring = pts["ring"]
+    ring_name = _ring_name(names)
+    if ring_name is not None:
+        ring = pts[ring_name]
         ring = (ring[..., 0] if ring.ndim == 3 else ring).astype(np.int64)
         beam_ids = np.array([np.bincount(r - r.min()).argmax() + r.min() for r in ring])
     else:
@@ -377,15 +398,23 @@ def _check_grid_size(height: int, width: int, points: int, source: str) -> None:
 
 def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str | None,
                stamp_ns: int, range_name: str | None, range_scale: float) -> _Grid:
+    """Unorganized (or ring-mixed) cloud -> grid of rings x firings, up to two returns a pixel.
+
+    Columns come from the per-point times when the cloud has them, else from the cloud's own
+    point order and each ring's azimuth steps (:func:`_order_times`). Points sharing a pixel
+    (same ring, same firing: dual return) become the pixel's first and second return in cloud
+    order; a third is dropped and counted.
+    """
+    ring_name = _ring_name(names) or "ring"
     flat = pts.reshape(-1)
     xyz = np.stack([_field_f64(flat[None, :], n)[0] for n in "xyz"], -1)
     ok = np.all(np.isfinite(xyz), -1) & np.any(xyz != 0, -1)
     flat, xyz = flat[ok], xyz[ok]
-    ring = flat["ring"]
+    ring = flat[ring_name]
     ring = (ring[:, 0] if ring.ndim == 2 else ring).astype(np.int64)
     rings, row_of = np.unique(ring, return_inverse=True)
     height = rings.size
-    _check_grid_size(height, 1, flat.size, "ring values")
+    _check_grid_size(height, 1, flat.size, f"{ring_name} values")
     if flat.size < 3:
         raise ConversionError("cloud", f"{flat.size} valid points", "at least 3 finite points")
     # rows top -> bottom: order rings by their median elevation
@@ -405,19 +434,36 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     if t_abs is not None and np.ptp(t_abs) > 0:
         cols, beam_times = _columns_from_times(t_abs, rows, height)
     time_cols = cols is not None
+    if cols is not None:
+        # times shared by several firings (a driver stamping per packet or block) put more than
+        # two points in a pixel: then the times do not resolve firings, the point order does
+        width = int(cols.max()) + 1
+        _check_grid_size(height, width, flat.size, "time spacing")
+        if np.count_nonzero(_pixel_ranks(rows * width + cols) >= 2) > 0.01 * cols.size:
+            cols, time_cols = None, False
     if cols is None:
-        cols = _columns_from_azimuth(psi, rows, height)
+        beam_times[:] = 0
+        cols = _columns_from_times(_order_times(psi, rows, height), rows, height)[0]
+        if cols is None:
+            raise ConversionError("cloud", "rings without azimuth steps",
+                                  "points spread over azimuth (or a time field)")
     width = int(cols.max()) + 1
     _check_grid_size(height, width, flat.size, "time or azimuth spacing")
     pix = rows * width + cols
-    first = np.unique(pix, return_index=True)[1]
-    dropped = int(pix.size - first.size)
-    grid_pts = np.full((height * width, 3), np.nan)
-    grid_pts[pix[first]] = xyz[first]
-    valid = np.zeros(height * width, bool)
-    valid[pix[first]] = True
-    if t_abs is not None and np.ptp(t_abs) > 0 and cols is not None and time_cols:
-        tf, rf, cf = t_abs[first], rows[first], cols[first]
+    # return number of every point: its rank among the points of its pixel, in cloud order
+    ret = _pixel_ranks(pix)
+    returns = 2 if np.any(ret == 1) else 1
+    keep = ret < returns
+    dropped = int(np.count_nonzero(~keep))
+    gpix = (rows * returns + ret) * width + cols        # grid (H, returns * W), row-major
+    gpix = gpix[keep]
+    size = height * returns * width
+    grid_pts = np.full((size, 3), np.nan)
+    grid_pts[gpix] = xyz[keep]
+    valid = np.zeros(size, bool)
+    valid[gpix] = True
+    if time_cols and t_abs is not None:
+        tf, rf, cf = t_abs[keep], rows[keep], cols[keep]
         beam = beam_times.astype(np.float64)
         for _ in range(2):
             col = _interp_missing(_median_by(cf, tf - beam[rf], width))
@@ -425,27 +471,107 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
             beam -= beam.min()
         beam_times = np.rint(beam).astype(np.int64)
         column_times = _column_times(tf - beam_times[rf], cf, width)
+    elif t_abs is not None and np.ptp(t_abs) > 0:
+        column_times = _column_times(t_abs[keep], cols[keep], width)
     known = None
     if range_name is not None:
         k = _field_f64(flat[None, :], range_name)[0] * range_scale
-        flat_known = np.full(height * width, np.nan)
-        flat_known[pix[first]] = k[first]
-        known = flat_known.reshape(height, width)
+        flat_known = np.full(size, np.nan)
+        flat_known[gpix] = k[keep]
+        known = flat_known.reshape(height, returns * width)
         if not np.isfinite(flat_known[valid]).all() or np.any(flat_known[valid] <= 0):
             known = None
     channels = {}
     for n in names:
         if n in _SKIP or n == time_name or n == range_name:
             continue
-        src = flat[n][first]
-        img = np.zeros((height * width,) + src.shape[1:], src.dtype)
-        img[pix[first]] = src
-        channels[n] = img.reshape((height, width) + src.shape[1:])
-    cidx = np.broadcast_to(np.arange(width)[None, :], (height, width))
-    return _Grid(points=grid_pts.reshape(height, width, 3), valid=valid.reshape(height, width),
-                 cidx=cidx, width=width, shifts=np.zeros(height, np.int64), beam_ids=beam_ids,
-                 beam_times=beam_times, column_times=column_times, channels=channels,
-                 known_range=known, per_scan_azimuths=True, dropped=dropped)
+        src = flat[n][keep]
+        img = np.zeros((size,) + src.shape[1:], src.dtype)
+        img[gpix] = src
+        channels[n] = img.reshape((height, returns * width) + src.shape[1:])
+    cidx = np.broadcast_to(np.tile(np.arange(width), returns)[None, :],
+                           (height, returns * width))
+    return _Grid(points=grid_pts.reshape(height, returns * width, 3),
+                 valid=valid.reshape(height, returns * width), cidx=cidx, width=width,
+                 shifts=np.zeros(height, np.int64), beam_ids=beam_ids, beam_times=beam_times,
+                 column_times=column_times, channels=channels, known_range=known,
+                 per_scan_azimuths=True, dropped=dropped, returns=returns)
+
+
+def _order_times(psi: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], height: int
+                 ) -> np.ndarray[Any, np.dtype[np.int64]]:
+    """Pseudo-times (firing periods x 1e6) of a cloud without times, from its point order.
+
+    Drivers publish points firing by firing, so each ring's points are in firing order: the
+    azimuth step between a ring's consecutive points counts the firings between them (0 for the
+    second return of a firing, negative where a driver goes back for the second return's block).
+    That numbers each ring's firings up to an offset; the offset of each ring is its median
+    position (in firings) against the ring with most points, interpolated by cloud index (or,
+    for a cloud sorted ring after ring, the ring's mean azimuth phase).
+    """
+    n = psi.size
+    idx = np.arange(n)
+    order = np.lexsort((idx, rows))
+    rr, pp = rows[order], psi[order]
+    same = rr[1:] == rr[:-1]
+    d = _wrap(np.diff(pp))
+    absd = np.abs(d[same])
+    if absd.size == 0 or not np.any(absd > 0):
+        return np.zeros(n, np.int64)
+    q0 = float(np.quantile(absd, 0.75))
+    moving = absd[absd > 0.3 * q0]
+    q = float(np.quantile(moving, 0.2))
+    near = moving[(moving > 0.6 * q) & (moving < 1.4 * q)]
+    step = float(near.mean()) if near.size else q
+    sign = -1.0 if np.median(d[same][absd > 0.3 * q0]) < 0 else 1.0
+    steps = np.where(same, np.rint(sign * d / step), 0.0)
+    count = np.concatenate([[0.0], np.cumsum(steps)])
+    first = np.concatenate([[True], ~same])
+    count -= np.repeat(count[first], np.diff(np.concatenate([np.flatnonzero(first), [n]])))
+    c = np.empty(n)
+    c[order] = count                                     # firing count within each ring
+    if np.count_nonzero(np.diff(rows)) < 2 * height:
+        # ring after ring (a cloud sorted by ring): align the rings by azimuth instead, each
+        # ring's offset the circular mean of (its azimuth in steps - its firing count)
+        turn = 2 * np.pi / step
+        a = np.mod(sign * psi / step - c, turn) * (2 * np.pi / turn)
+        offset = np.arctan2(np.bincount(rows, np.sin(a), height),
+                            np.bincount(rows, np.cos(a), height)) * turn / (2 * np.pi)
+    else:
+        ref = int(np.argmax(np.bincount(rows, minlength=height)))
+        in_ref = np.flatnonzero(rows == ref)
+        f = np.interp(idx.astype(np.float64), in_ref.astype(np.float64), c[in_ref])
+        offset = _median_by(rows, f - c, height)
+    offset = np.nan_to_num(offset)
+    # where a firing starts: the phase (ring offset mod 1) after which the cloud order has the
+    # fewest descents (one a firing at the true start, two when cut inside a firing); phases are
+    # then packed into half a period from that start, so the firing split falls there
+    phase = np.mod(offset, 1.0)
+    start = _firing_start(phase[rows], phase[np.bincount(rows, minlength=height) > 0])
+    shifted = np.mod(phase - start, 1.0)
+    tau = c + (offset - start - shifted + 0.5 * shifted)[rows]
+    return np.asarray(np.rint((tau - tau.min()) * 1e6), dtype=np.int64)
+
+
+def _firing_start(seq: np.ndarray[Any, Any], candidates: np.ndarray[Any, Any]) -> float:
+    """The candidate phase s minimising the descents of ``(seq - s) mod 1`` along ``seq``.
+
+    A consecutive pair (a, b) descends after the shift iff a > b and s is not in (b, a], or
+    a < b and s is in (a, b]; counted for all candidates at once with sorted bounds.
+    """
+    a, b = seq[:-1], seq[1:]
+    moving = a != b
+    a, b = a[moving], b[moving]
+    down = a > b
+    cand = np.sort(np.unique(candidates))
+    lo_d, hi_d = np.sort(b[down]), np.sort(a[down])          # s in (b, a]: descent removed
+    lo_u, hi_u = np.sort(a[~down]), np.sort(b[~down])        # s in (a, b]: descent added
+
+    def inside(lo: np.ndarray[Any, Any], hi: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        return (np.searchsorted(lo, cand, "left") - np.searchsorted(hi, cand, "left"))
+
+    count = down.sum() - inside(lo_d, hi_d) + inside(lo_u, hi_u)
+    return float(cand[int(np.argmin(count))]) if cand.size else 0.0
 
 
 def _columns_from_times(t_abs: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], height: int
@@ -496,40 +622,20 @@ def _column_times(t_col: np.ndarray[Any, Any], cols: np.ndarray[Any, Any], width
     return np.asarray(np.rint(_interp_missing(med)), dtype=np.int64)
 
 
-def _columns_from_azimuth(psi: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], height: int
-                          ) -> np.ndarray[Any, Any]:
-    """Column index from azimuth bins (clockwise sweep, as spinning lidars turn)."""
-    order = np.lexsort((psi, rows))
-    pp, rr = psi[order], rows[order]
-    d = np.diff(pp)
-    d = d[(rr[1:] == rr[:-1]) & (d > 1e-9)]
-    if d.size == 0:
-        raise ConversionError("cloud", "points without azimuth spread",
-                              "points spread over azimuth (or a time field)")
-    step = float(np.median(d))
-    width = max(round(2 * np.pi / step), 1)
-    step = 2 * np.pi / width
-    ang = 2 * np.pi * np.mod(psi, step) / step
-    phase = np.arctan2(np.bincount(rows, np.sin(ang), height),
-                       np.bincount(rows, np.cos(ang), height)) * step / (2 * np.pi)
-    k = np.rint((np.pi - (psi - phase[rows])) / step).astype(np.int64) % width
-    return np.asarray(k, dtype=np.int64)
-
-
 # ----------------------------------------------------------------------------- public API
 
 def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None = None,
                      range_field: str | None = "auto", range_scale: float | None = None,
                      stamp_ns: int | None = None, frame_id: str | None = None,
-                     as_dataclass: bool = False) -> tuple[Any, Any]:
+                     info: Any = None, as_dataclass: bool = False) -> tuple[Any, Any]:
     """PointCloud2 from a lidar driver -> (LidarScan, estimated LidarInfo).
 
     Args:
         cloud: ``sensor_msgs/PointCloud2`` (rclpy message or dataclass); any byte order, float32
             or float64 x/y/z, padding, row padding. Never modified.
         layout: "organized" (rows = beams, e.g. ouster-ros H x W), "ring" (group points by their
-            ``ring`` field; velodyne / Hesai / RoboSense, organized or not) or "auto" (organized
-            when height > 1 and each row holds one ring, else ring).
+            ``ring`` / ``channel`` field; velodyne / Hesai / RoboSense / Nebula, organized or
+            not) or "auto" (organized when height > 1 and each row holds one ring, else ring).
         time_field: per-point time field; default the first of t, time, timestamp,
             time_stamp, offset_time. Integer fields are ns, float fields s; values > 1e6 s
             (or > 1e15 ns) are absolute, smaller ones relative to the header stamp.
@@ -539,17 +645,26 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
             (ouster-ros millimetres), 1 for float fields.
         stamp_ns: the info's stamp (version key); default the scan's stamp.
         frame_id: frame of scan and info; default the cloud's.
+        info: a known LidarInfo of the sensor (e.g. from its calibration file): every point is
+            then placed by this geometry (row by elevation, column by azimuth, range along its
+            beam; a second point in a pixel is its second return) and the scan refers to this
+            info, which is returned as is. Works for xyz-only clouds.
         as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
 
     Returns:
         (scan, info): ``range`` float32 metres (+Inf where the cloud has no point) first, then
         every other scalar field of the cloud as a channel of its own datatype (time, ring, range
-        and x/y/z excluded). Organized clouds keep their column order (``is_destaggered`` true
-        with the estimated ``pixel_shift_by_row`` when times reveal a stagger); ring clouds are
-        in firing order with per-scan ``column_azimuth_angles``. ``beam_ids`` = ring values.
+        and x/y/z excluded); with two points in a pixel (dual return) also ``range2`` and each
+        field's second-return channel (``intensity2``, ...). Organized clouds keep their column
+        order (``is_destaggered`` true with the estimated ``pixel_shift_by_row`` when times
+        reveal a stagger); ring clouds are in firing order with per-scan
+        ``column_azimuth_angles``. ``beam_ids`` = ring values.
 
     Raises:
-        ConversionError: no x/y/z, too few points, a layout that cannot be inferred.
+        ConversionError: no x/y/z, too few points, a layout that cannot be inferred, or a cloud
+            the beam model does not hold (more than ``MAX_LOST_SHARE`` of the points without a
+            pixel or a median re-projection error above ``MAX_MEDIAN_ERROR_M``; e.g. a Livox
+            rosette): the message says what was tried.
         ConfigError: bad option values.
     """
     if layout not in ("auto", "organized", "ring"):
@@ -564,6 +679,9 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
                               "a cloud with points to estimate a geometry from")
     header_ns = to_ns(cloud.header.stamp, field="cloud.header.stamp")
     time_name = _pick_time_field(names, time_field)
+    if info is not None:
+        return _import_with_info(cloud, pts, names, info, time_name, header_ns, frame_id,
+                                 as_dataclass)
     range_name: str | None = None
     if range_field == "auto":
         range_name = next((n for n in _RANGE_FIELDS if n in names), None)
@@ -576,23 +694,69 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
         kind = pts.dtype[range_name].base.kind
         scale = float(range_scale) if range_scale is not None else (0.001 if kind in "iu"
                                                                      else 1.0)
+    ring_name = _ring_name(names)
     chosen = layout
     if layout == "auto":
-        chosen = "ring" if "ring" in names else "organized"
+        chosen = "ring" if ring_name is not None else "organized"
         if chosen == "ring" and pts.shape[0] > 1:
-            ring = pts["ring"]
+            ring = pts[ring_name]
             ring = ring[..., 0] if ring.ndim == 3 else ring
             if np.all(ring == ring[:, :1]) and np.unique(ring[:, 0]).size == pts.shape[0]:
                 chosen = "organized"
         if chosen == "organized" and pts.shape[0] < 2:
-            raise ConversionError("cloud.height", pts.shape[0],
-                                  "an organized cloud (height > 1, rows = beams) or a ring field")
-    if chosen == "ring" and "ring" not in names:
-        raise ConversionError("fields", names, 'a "ring" field for layout="ring"')
+            raise ConversionError(
+                "cloud", f"1 x {pts.shape[1]} points with fields {names}",
+                "a beam structure: tried an organized cloud (height > 1, rows = beams) and a "
+                f"beam number field ({', '.join(_RING_FIELDS)}); this cloud has neither. A "
+                "cloud without beams (e.g. a Livox non-repetitive pattern) has no LidarScan grid: "
+                "keep it as sensor_msgs/PointCloud2 (non-grid sensors, msgs/README.md), or pass "
+                "info= with the sensor's LidarInfo to place each point by its geometry")
+    if chosen == "ring" and ring_name is None:
+        raise ConversionError("fields", names,
+                              f"a beam number field ({', '.join(_RING_FIELDS)}) for "
+                              'layout="ring"')
     build = _organized_grid if chosen == "organized" else _ring_grid
     grid = build(pts, names, time_name, header_ns, range_name, scale)
     fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
+    _check_fit(grid, fit, chosen, ring_name, time_name)
     return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass)
+
+
+#: A beam model that leaves more than this share of points out, or re-projects the median point
+#: farther than this (m), is not the cloud's structure: from_pointcloud2 refuses it.
+MAX_LOST_SHARE, MAX_MEDIAN_ERROR_M = 0.02, 0.02
+
+
+def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
+               time_name: str | None) -> None:
+    """Raise instead of returning a scan that silently loses points or misplaces them."""
+    u, g = np.nonzero(grid.valid)
+    points = u.size + grid.dropped
+    theta = fit.alpha[grid.cidx[u, g]] + fit.beta[u]
+    ct, st = np.cos(theta), np.sin(theta)
+    o = fit.origins[u]
+    rho = fit.rho[u, g]
+    cp, sp = np.cos(fit.phi[u]), np.sin(fit.phi[u])
+    model = np.stack([ct * o[:, 0] - st * o[:, 1] + rho * cp * ct,
+                      st * o[:, 0] + ct * o[:, 1] + rho * cp * st,
+                      o[:, 2] + rho * sp], -1)
+    err = np.linalg.norm(model - grid.points[u, g], axis=-1)
+    err = np.where(np.isfinite(err), err, np.inf)
+    median = float(np.median(err)) if err.size else 0.0
+    if grid.dropped <= MAX_LOST_SHARE * points and median <= MAX_MEDIAN_ERROR_M:
+        return
+    if layout == "organized":
+        tried = "rows as beams (organized cloud), columns in cloud order"
+    else:
+        tried = (f"rows from the {ring_name!r} field, columns (firings) from "
+                 + (f"the {time_name!r} times" if grid.column_times is not None
+                    else "the point order and azimuth steps"))
+    raise ConversionError(
+        "cloud", f"{grid.dropped} of {points} points without a pixel, median re-projection "
+                 f"error {median:.3g} m on a {grid.points.shape[0]} x {grid.width} grid",
+        f"a beam x firing structure (tried: {tried}). A cloud without one (e.g. a Livox "
+        "non-repetitive pattern) has no LidarScan grid: keep it as sensor_msgs/PointCloud2 "
+        "(non-grid sensors, msgs/README.md), or pass info= with the sensor's LidarInfo")
 
 
 def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: int | None,
@@ -624,7 +788,9 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
         model="estimated from sensor_msgs/PointCloud2",
         as_dataclass=as_dataclass)
     rng = np.where(grid.valid, fit.rho, np.inf).astype(np.float32)
-    channels: dict[str, Any] = {"range": rows(rng)}
+    channels: dict[str, Any] = {}
+    for k in range(grid.returns):              # grid columns: return 1, then return 2
+        channels["range" + ("2" if k else "")] = rows(rng[:, k * width:(k + 1) * width])
     for name, img in grid.channels.items():
         if name == "range":
             continue
@@ -632,11 +798,138 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
             datatype_of(img.dtype)
         except ValidationError:
             continue
-        channels[name] = rows(np.ascontiguousarray(img).astype(img.dtype.newbyteorder("=")))
+        img = np.ascontiguousarray(img).astype(img.dtype.newbyteorder("="))
+        for k in range(grid.returns):
+            channels[name + ("2" if k else "")] = rows(img[:, k * width:(k + 1) * width])
     scan = make_scan(info, channels, scan_stamp, frame_id=frame,
                      is_destaggered=bool(np.any(shifts)),
                      column_time_offsets=col_offsets,
                      column_azimuth_angles=fit.alpha if grid.per_scan_azimuths else None,
+                     as_dataclass=as_dataclass)
+    return scan, info
+
+
+# ------------------------------------------------------------------- cloud + known LidarInfo
+
+def _pixel_ranks(pix: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Rank of every point among the points of its pixel, in cloud order (0 = first return)."""
+    o = np.argsort(pix, kind="stable")
+    ps = pix[o]
+    starts = np.flatnonzero(np.concatenate([[True], ps[1:] != ps[:-1]]))
+    run = np.arange(ps.size) - np.repeat(starts, np.diff(np.concatenate([starts, [ps.size]])))
+    rank = np.empty(ps.size, np.int64)
+    rank[o] = run
+    return rank
+
+
+def _nearest_angle(values: np.ndarray[Any, Any], table: np.ndarray[Any, Any]
+                   ) -> np.ndarray[Any, Any]:
+    """Index of the table angle nearest to each value (radians, on the circle)."""
+    tab = np.mod(table, 2 * np.pi)
+    order = np.argsort(tab, kind="stable")
+    ext = np.concatenate([tab[order[-1:]] - 2 * np.pi, tab[order], tab[order[:1]] + 2 * np.pi])
+    ext_idx = np.concatenate([order[-1:], order, order[:1]])
+    v = np.mod(values, 2 * np.pi)
+    k = np.clip(np.searchsorted(ext, v), 1, ext.size - 1)
+    left = (v - ext[k - 1]) <= (ext[k] - v)
+    return np.asarray(ext_idx[np.where(left, k - 1, k)], dtype=np.int64)
+
+
+def _import_with_info(cloud: Any, pts: np.ndarray[Any, Any], names: Sequence[str], info: Any,
+                      time_name: str | None, header_ns: int, frame_id: str | None,
+                      as_dataclass: bool) -> tuple[Any, Any]:
+    """Place every point of a cloud by a known beam model (see :func:`from_pointcloud2`).
+
+    Row: the beam whose elevation line (from its origin) passes nearest to the point, among
+    the five beams nearest in plain elevation; column: the measurement column whose azimuth
+    (``horizontal_angles``) is nearest to the point's ``theta - beam_azimuth_offsets[u]``. The
+    scan's ``column_azimuth_angles`` are the mean measured azimuths of its columns (the info's
+    where a column has no point), so points re-project where they were.
+    """
+    height, width = int(info.height), int(info.width)
+    if len(as_array(info.pixel_azimuth_angles, np.float64)):
+        raise ConversionError("info.pixel_azimuth_angles", "per-pixel directions",
+                              "a beam model with one elevation per row and one azimuth per "
+                              "column to place points by")
+    phi = as_array(info.vertical_angles, np.float64)
+    alpha_nom = as_array(info.horizontal_angles, np.float64)
+    beta = as_array(info.beam_azimuth_offsets, np.float64)
+    beta = beta if beta.size else np.zeros(height)
+    orig = as_array(info.beam_origins, np.float64)
+    orig = orig.reshape(height, 3) if orig.size else np.zeros((height, 3))
+    delta = as_array(info.beam_range_offsets, np.float64)
+    delta = delta if delta.size else np.zeros(height)
+    flat = pts.reshape(-1)
+    xyz = np.stack([_field_f64(flat[None, :], n)[0] for n in "xyz"], -1)
+    ok = np.all(np.isfinite(xyz), -1) & np.any(xyz != 0, -1)
+    flat, xyz = flat[ok], xyz[ok]
+    if xyz.shape[0] == 0:
+        raise ConversionError("cloud", "0 finite points", "points to place")
+    transform = as_array(info.lidar_to_sensor_transform, np.float64).reshape(4, 4)
+    if np.any(transform) and not np.allclose(transform, np.eye(4)):
+        xyz = (xyz - transform[:3, 3]) @ transform[:3, :3]     # sensor -> beam-model frame
+    rxy = np.hypot(xyz[:, 0], xyz[:, 1])
+    psi = np.arctan2(xyz[:, 1], xyz[:, 0])
+    asc = np.argsort(phi, kind="stable")
+    near = np.searchsorted(phi[asc], np.arctan2(xyz[:, 2], rxy))
+    best_err = np.full(xyz.shape[0], np.inf)
+    row = np.zeros(xyz.shape[0], np.int64)
+    for off in range(-3, 3):
+        u = asc[np.clip(near + off, 0, height - 1)]
+        a = np.sqrt(np.maximum(rxy**2 - orig[u, 1] ** 2, 0.0))
+        e = np.abs(np.arctan2(xyz[:, 2] - orig[u, 2], a - orig[u, 0]) - phi[u])
+        better = e < best_err
+        row[better], best_err[better] = u[better], e[better]
+    o = orig[row]
+    a = np.sqrt(np.maximum(rxy**2 - o[:, 1] ** 2, 0.0))
+    rho = np.hypot(a - o[:, 0], xyz[:, 2] - o[:, 2]) - delta[row]
+    theta = psi - np.arctan2(o[:, 1], a)
+    alpha = theta - beta[row]
+    col = _nearest_angle(alpha, alpha_nom)
+    pix = row * width + col
+    rank = _pixel_ranks(pix)
+    returns = 2 if np.any(rank == 1) else 1
+    keep = rank < returns
+    if np.count_nonzero(~keep) > 0.02 * keep.size:
+        raise ConversionError("cloud", f"{np.count_nonzero(~keep)} of {keep.size} points in "
+                              "pixels that already hold two returns",
+                              "a cloud of the sensor this LidarInfo describes (same beams and "
+                              "columns per turn)")
+    cnt = np.bincount(col, minlength=width).astype(np.float64)
+    meas = alpha_nom + _group_mean(col, _wrap(alpha - alpha_nom[col]), width, cnt)
+    column_az = np.where(cnt > 0, meas, alpha_nom)
+    channels: dict[str, Any] = {}
+    for k in range(returns):
+        sel = keep & (rank == k)
+        img = np.full(height * width, np.inf, np.float32)
+        img[pix[sel]] = rho[sel]
+        channels["range" + ("2" if k else "")] = img.reshape(height, width)
+    skip = set(_SKIP) | set(_RANGE_FIELDS) | {time_name}
+    for n in names:
+        if n in skip or flat[n].ndim != 1:
+            continue
+        src = flat[n]
+        try:
+            datatype_of(src.dtype)
+        except ValidationError:
+            continue
+        for k in range(returns):
+            sel = keep & (rank == k)
+            img = np.zeros(height * width, src.dtype.newbyteorder("="))
+            img[pix[sel]] = src[sel]
+            channels[n + ("2" if k else "")] = img.reshape(height, width)
+    stamp = header_ns
+    col_offsets = None
+    if time_name is not None:
+        t_abs = _time_ns(flat[None, :], time_name, header_ns)[0]
+        bt = as_array(info.beam_time_offsets, np.int64)
+        bt = bt if bt.size else np.zeros(height, np.int64)
+        col_t = _column_times(t_abs - bt[row], col, width)
+        stamp = int(col_t[0])
+        col_offsets = col_t - np.int64(stamp)
+    scan = make_scan(info, channels, stamp,
+                     frame_id=frame_id if frame_id is not None else cloud.header.frame_id,
+                     column_time_offsets=col_offsets, column_azimuth_angles=column_az,
                      as_dataclass=as_dataclass)
     return scan, info
 
@@ -648,8 +941,9 @@ class ReprojectionError:
     Attributes:
         points: finite points in the cloud.
         matched: of those, points whose pixel re-projects to a point.
-        max_m, rms_m: largest and RMS distance (metres) between the cloud's xyz and the
-            re-projected pixel (over matched points).
+        max_m, rms_m, median_m, p99_m: largest, RMS, median and 99th-percentile distance
+            (metres) between the cloud's xyz and the re-projected pixel (over matched points;
+            with two returns, the nearer of the pixel's two points).
         max_time_ns: largest |cloud time - pixel time| (None without a time field).
     """
 
@@ -658,6 +952,8 @@ class ReprojectionError:
     max_m: float
     rms_m: float
     max_time_ns: int | None
+    median_m: float = 0.0
+    p99_m: float = 0.0
 
 
 def estimation_error(cloud: Any, scan: Any, info: Any, *, time_field: str | None = None
@@ -666,12 +962,16 @@ def estimation_error(cloud: Any, scan: Any, info: Any, *, time_field: str | None
 
     Points are matched to pixels like :func:`from_pointcloud2` arranges them: organized clouds of
     the scan's size pixel by pixel (rows through ``info.beam_ids`` = ring / source row), other
-    clouds by ring and time (or azimuth when there is no time field).
+    clouds by ring and time (or azimuth when there is no time field, or when its times are
+    shared by several firings).
     """
     from lidarscan.geometry import make_projector as _mk
+    from lidarscan.scan import channel_names
 
     proj = _mk(info)
-    xyz_scan = proj.project(scan, info).astype(np.float64)
+    xyz_returns = [proj.project(scan, info, ch).astype(np.float64)
+                   for ch in ("range", "range2") if ch in channel_names(scan)]
+    xyz_scan = xyz_returns[0]
     stamp = to_ns(scan.header.stamp)
     times = proj.pixel_times(scan) + np.int64(stamp)
     pts = read_points(cloud)
@@ -686,37 +986,46 @@ def estimation_error(cloud: Any, scan: Any, info: Any, *, time_field: str | None
     xyz = np.stack([_field_f64(pts, n) for n in "xyz"], -1)
     ok = np.all(np.isfinite(xyz), -1) & np.any(xyz != 0, -1)
     t_abs = _time_ns(pts, time_name, header_ns) if time_name else None
-    if pts.shape == (height, width) and not (
-            "ring" in names and not np.all(_ring_rows(pts) == _ring_rows(pts)[:, :1])):
-        ring = _ring_rows(pts)[:, 0] if "ring" in names else np.arange(height)
+    ring_name = _ring_name(names)
+    ring_all = _ring_rows(pts, ring_name) if ring_name is not None else None
+    if pts.shape == (height, width) and (ring_all is None
+                                         or np.all(ring_all == ring_all[:, :1])):
+        ring = ring_all[:, 0] if ring_all is not None else np.arange(height)
         rows = np.array([row_of_id.get(int(r), -1) for r in ring])
         if np.any(rows < 0):
             raise InfoMismatchError("LidarInfo.beam_ids", ids.tolist(), "the cloud's rings")
         u = np.broadcast_to(rows[:, None], pts.shape)[ok]
         c = np.broadcast_to(np.arange(width)[None, :], pts.shape)[ok]
     else:
-        ring = _ring_rows(pts)[ok]
+        if ring_all is None:
+            raise ConversionError("fields", names, "a beam number field "
+                                  f"({', '.join(_RING_FIELDS)}) to match points to rows")
+        ring = ring_all[ok]
         u = np.array([row_of_id.get(int(r), -1) for r in ring], dtype=np.int64)
         if np.any(u < 0):
             raise InfoMismatchError("LidarInfo.beam_ids", ids.tolist(), "the cloud's rings")
-        if t_abs is not None:
-            c = _nearest_time_column(times, u, t_abs[ok])
+        t_ok = t_abs[ok] if t_abs is not None else None
+        if t_ok is not None and np.unique(np.stack([u, t_ok]), axis=1).shape[1] >= 0.4 * u.size:
+            c = _nearest_time_column(times, u, t_ok)
         else:
             c = _nearest_azimuth_column(xyz_scan, u, xyz[ok])
-    target = xyz_scan[u, c]
-    matched = np.all(np.isfinite(target), -1)
-    diff = np.linalg.norm(xyz[ok][matched] - target[matched], axis=-1)
+    dist = np.stack([np.linalg.norm(xyz[ok] - x[u, c], axis=-1) for x in xyz_returns])
+    dist = np.where(np.isfinite(dist), dist, np.inf).min(axis=0)
+    matched = np.isfinite(dist)
+    diff = dist[matched]
     max_t = None
     if t_abs is not None:
         max_t = int(np.abs(t_abs[ok] - times[u, c]).max(initial=0))
     return ReprojectionError(points=int(ok.sum()), matched=int(matched.sum()),
                              max_m=float(diff.max(initial=0.0)),
                              rms_m=float(np.sqrt(np.mean(diff**2))) if diff.size else 0.0,
-                             max_time_ns=max_t)
+                             max_time_ns=max_t,
+                             median_m=float(np.median(diff)) if diff.size else 0.0,
+                             p99_m=float(np.quantile(diff, 0.99)) if diff.size else 0.0)
 
 
-def _ring_rows(pts: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    ring = pts["ring"]
+def _ring_rows(pts: np.ndarray[Any, Any], name: str) -> np.ndarray[Any, Any]:
+    ring = pts[name]
     return (ring[..., 0] if ring.ndim == 3 else ring).astype(np.int64)
 
 
