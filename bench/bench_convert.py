@@ -5,14 +5,16 @@ recording, the convert time as a multiple of real time (sensor seconds / wall se
 baseline measured in the same run, and optionally the cProfile top entries. No assertions.
 Target (issue "Real sensors in"): >= 20x real time.
 
-Input: the real VLS-128 dual-return and Pandar64 dual-return recordings of
+Input: the real VLS-128 (single return, 6 250 packets/s) and Pandar64 (dual return) recordings of
 ``tests/data/nebula`` (0.3-0.4 s each, see their NOTICE files) repeated into one rosbag2 .db3
 directory per sensor of about ``--seconds`` of sensor time: a copy of the recording's own .db3
 (its schema: topics, metadata tables) whose ``messages`` rows are replaced by the recorded
 messages over and over, every copy shifted in time by the recording's length: the bag stamps,
 each message's ``header.stamp`` and packet stamps, and the packets' own clocks (Velodyne
 microseconds past the hour; Hesai UTC date-time + microseconds) so the decoders see one
-continuous recording (with an azimuth jump at each seam).
+continuous recording (with an azimuth jump at each seam). An empty ``serialization_format``
+(the VLS-128 bag) is written as "cdr" (rosbags refuses the empty one; ``converters.bags`` reads
+both).
 
 Candidates (the bag already on disk, page cache warm):
 
@@ -43,7 +45,7 @@ DATA = ROOT / "tests" / "data" / "nebula"
 
 #: name -> (folder, calibration, payload bytes in the message, message carries data[:size])
 RECORDINGS = {
-    "VLS-128 dual": ("velodyne_vls128", "VLS128.yaml", 1206, False),
+    "VLS-128": ("velodyne_vls128", "VLS128.yaml", 1206, False),
     "Pandar64 dual": ("hesai_pandar64", "Pandar64.csv", 1500, True),
 }
 
@@ -119,6 +121,8 @@ def build_bag(name: str, seconds: float, where: Path) -> tuple[Path, float, int,
     length = (stamps[-1] - stamps[0] + period) // 1000 * 1000       # whole microseconds
     copies = max(1, round(seconds * 1e9 / length))
     con.execute("DELETE FROM messages")
+    # the VLS-128 bag leaves serialization_format empty; rosbags (the baseline) refuses that
+    con.execute("UPDATE topics SET serialization_format='cdr' WHERE serialization_format=''")
     packets = 0
     for k in range(copies):
         shift = k * length
@@ -137,6 +141,7 @@ def build_bag(name: str, seconds: float, where: Path) -> tuple[Path, float, int,
     info["message_count"] = count
     for entry in info["topics_with_message_count"]:
         entry["message_count"] = count
+        entry["topic_metadata"]["serialization_format"] = "cdr"
     for entry in info.get("files", []):
         entry["duration"] = {"nanoseconds": total - period}
         entry["message_count"] = count
