@@ -247,17 +247,16 @@ def _velodyne(folder: str) -> list[dict[str, Any]]:
 
 
 def _hesai_points(scan: Any, info: Any, lo: float, hi: float) -> np.ndarray[Any, Any]:
-    """(N, 3) points of every return inside [lo, hi] m."""
+    """(N, 3) float64 points of every return whose range is inside [lo, hi] m."""
     import lidarscan
-    proj = lidarscan.make_projector(info)
-    out = []
-    for name in ("range", "range2"):
-        if name in lidarscan.scan.channel_names(scan):
-            rng = lidarscan.scan.range_m(scan, info, name)
-            xyz = proj.xyz(np.where((rng >= lo) & (rng <= hi), rng, np.inf),
-                           tables=proj.tables_for(scan))
-            out.append(xyz[np.isfinite(xyz[..., 0])])
-    return np.concatenate(out).astype(np.float64)
+    projector = lidarscan.make_projector(info)
+    names = [n for n in ("range", "range2") if n in lidarscan.scan.channel_names(scan)]
+    clouds = []
+    for name in names:
+        metres = lidarscan.scan.range_m(scan, info, name)
+        xyz = projector.project(scan, info, name)
+        clouds.append(xyz[(metres >= lo) & (metres <= hi) & np.isfinite(xyz).all(-1)])
+    return np.concatenate(clouds).astype(np.float64)
 
 
 def _hesai(folder: str) -> list[dict[str, Any]]:
