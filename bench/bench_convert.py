@@ -115,7 +115,8 @@ def build_bag(name: str, seconds: float, where: Path) -> tuple[Path, float, int,
     db_name = info["relative_file_paths"][0]
     shutil.copy(source / db_name, bag / db_name)
     con = sqlite3.connect(bag / db_name)
-    rows = con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY timestamp").fetchall()
+    rows = con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY timestamp"
+                       ).fetchall()
     stamps = [r[1] for r in rows]
     period = (stamps[-1] - stamps[0]) // (len(stamps) - 1)
     length = (stamps[-1] - stamps[0] + period) // 1000 * 1000       # whole microseconds

@@ -159,7 +159,8 @@ def _truth(folder: str) -> tuple[int, np.ndarray[Any, Any]]:
     end = raw.index(b"DATA binary\n") + len(b"DATA binary\n")
     head = raw[:end].decode("ascii")
     if "FIELDS x y z\n" not in head or "SIZE 4 4 4\n" not in head:
-        raise ValueError(f"{path.name}: expected a binary PCD of float32 x y z")
+        from lidarscan.errors import DecodeError
+        raise DecodeError(f"{path.name} header", head[:200], "a binary PCD of float32 x y z")
     count = int(head.split("POINTS ")[1].split()[0])
     points = np.frombuffer(raw, "<f4", count * 3, end).reshape(-1, 3)
     return int(path.stem.rsplit("_", 1)[1]), points.astype(np.float64)
@@ -230,7 +231,9 @@ def _velodyne(folder: str) -> list[dict[str, Any]]:
                                                 - first[stamp]))
     lidarscan.validate(scan, info)
     if np.any(info.beam_origins):
-        raise ValueError(f"{folder}: the interpolation model assumes no beam offsets")
+        from lidarscan.errors import ValidationError
+        raise ValidationError(f"{folder} LidarInfo.beam_origins", "non-zero",
+                              "zeros (the Nebula interpolation model rotates about z only)")
     points = lidarscan.make_projector(info).project(scan, info)
     rng = lidarscan.geometry.range_m(scan, info).astype(np.float64) + np.asarray(
         info.beam_range_offsets)[:, None]
