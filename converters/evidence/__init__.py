@@ -19,6 +19,7 @@ module                 answers
 ``range_error``        3: float32 metres vs integer units, worst round-trip error
 ``units``              3: uint32 mm vs float32 m on the real frames: bytes, precision, cost
 ``geometry``           4: cost of omitting a geometry field, on real metadata
+``sensors``            4b: real Ouster, Velodyne, Hesai data vs the vendor's / Nebula's points
 ``transport``          2: CPU per frame through real rclpy; receiver-side conversions
 ``linkage``            5: the info link, scenario counts, resolver vs "latest info wins"
 ``slicing``            6: slices from the scan vs from a point cloud; merger vs per-point
@@ -52,6 +53,7 @@ def _deterministic_sections() -> list[tuple[str, Callable[[], list[Block]]]]:
         images,
         linkage,
         range_error,
+        sensors,
         sizes,
         slicing,
         summary,
@@ -65,6 +67,7 @@ def _deterministic_sections() -> list[tuple[str, Callable[[], list[Block]]]]:
         ("range_error", range_error.blocks),
         ("units", lambda: units.blocks(timing=False)),
         ("geometry", geometry.blocks),
+        ("sensors", sensors.blocks),
         ("linkage", linkage.blocks),
         ("slicing", lambda: slicing.blocks(timing=False)),
         ("summary", summary.blocks),
@@ -75,7 +78,8 @@ def _deterministic_sections() -> list[tuple[str, Callable[[], list[Block]]]]:
 #: blocks each section writes (used for the placeholders when a section fails)
 _SECTION_BLOCKS = {
     "sizes": ("sizes", "rates"), "compression": ("compression", "range-encoding"),
-    "range_error": ("range-error",), "geometry": ("geometry",), "linkage": ("linkage",),
+    "range_error": ("range-error",), "geometry": ("geometry",),
+    "sensors": ("sensors-error", "sensors-claims", "sensors-fields", "sensors-size"), "linkage": ("linkage",),
     "slicing": ("slicing", "merger"), "summary": ("headline", "headline-compression"),
     "decision": ("decision-msgs", "decision-answers", "decision-compression", "decision-rejected"),
     "compression timing": ("timing-compression",),
