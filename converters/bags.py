@@ -507,6 +507,11 @@ class PacketScan:
     frame_id: str
     stamp_ns: int
     packets: list[tuple[int, memoryview]]
+    #: the same packets as arrays, for ``PacketDecoder.push_many``: stamps (N,) int64 ns and
+    #: payloads (N, size) uint8, a read-only view of the message bytes (strided, no copy); None
+    #: when the payload sizes differ (PandarScan with mixed ``size``).
+    stamps: Any = None
+    payloads: Any = None
 
 
 class _Cdr:
@@ -568,39 +573,80 @@ class _Cdr:
         return n
 
 
+def _packet_arrays(reader: _Cdr, what: str, n: int, stride: int, data_at: int, size: int,
+                   size_at: int | None = None) -> tuple[Any, Any, Any]:
+    """Stamps (n,) int64 ns, payloads (n, size) uint8 and (PandarScan) the ``size`` fields of a
+    CDR sequence of n fixed-stride packet structs starting at ``reader.pos`` (4-aligned): each
+    struct is a Time at 0, the data at ``data_at``, a uint32 at ``size_at``. Views, no copy."""
+    import numpy as np
+
+    reader.align(4)
+    start, view = reader.pos, reader.view
+    end = start + (n - 1) * stride + (size_at + 4 if size_at is not None else data_at + size)
+    if n and end > len(view):
+        raise DecodeError(f"{what}.packets", len(view), f"at least {end} bytes (message "
+                          "truncated)")
+    order = reader.order
+    buf = np.frombuffer(view, np.uint8)
+    words = np.ndarray((n, 2), np.dtype(order + "u4"), buf, start, (stride, 4)) if n else \
+        np.zeros((0, 2), np.uint32)
+    sec, nanosec = words[:, 0].view(order + "i4").astype(np.int64), words[:, 1].astype(np.int64)
+    bad = np.flatnonzero(nanosec >= 1_000_000_000)
+    if bad.size:
+        k = int(bad[0])
+        raise DecodeError(f"{what}.packets[{k}].stamp.nanosec", int(nanosec[k]), "< 1e9")
+    payloads = np.ndarray((n, size), np.uint8, buf, start + data_at, (stride, 1))
+    payloads.flags.writeable = False
+    sizes = None
+    if size_at is not None:
+        sizes = np.ndarray((n,), np.dtype(order + "u4"), buf, start + size_at, (stride,)) \
+            .astype(np.int64) if n else np.zeros(0, np.int64)
+    reader.pos = max(reader.pos, end)
+    return sec * 1_000_000_000 + nanosec, payloads, sizes
+
+
 def velodyne_packets(cdr: bytes | bytearray | memoryview) -> PacketScan:
     """``velodyne_msgs/msg/VelodyneScan`` CDR -> :class:`PacketScan` (1206-byte payloads).
+
+    Each VelodynePacket is a Time (8 bytes) and ``uint8[1206]``, padded to 1216 bytes so that
+    the next Time is 4-aligned: the packets are read as one strided array.
 
     Raises:
         DecodeError: truncated message, bad encapsulation, count larger than the message.
     """
     reader = _Cdr(cdr, "VelodyneScan")
     frame_id, stamp = reader.header()
-    packets = []
-    for k in range(reader.count("packets", 8 + 1206)):
-        when = reader.time(f"packets[{k}].stamp")
-        packets.append((when, reader.take(1206, f"packets[{k}].data")))
-    return PacketScan(frame_id, stamp, packets)
+    n = reader.count("packets", 8 + 1206)
+    stamps, payloads, _ = _packet_arrays(reader, "VelodyneScan", n, 1216, 8, 1206)
+    packets = [(int(t), memoryview(p)) for t, p in zip(stamps.tolist(), payloads)]
+    return PacketScan(frame_id, stamp, packets, stamps, payloads)
 
 
 def pandar_packets(cdr: bytes | bytearray | memoryview) -> PacketScan:
     """``pandar_msgs/msg/PandarScan`` CDR -> :class:`PacketScan` (payload = ``data[:size]``).
 
+    Each PandarPacket is a Time (8 bytes), ``uint8[1500]`` and a uint32 ``size``: 1512 bytes,
+    no padding, read as one strided array.
+
     Raises:
         DecodeError: truncated message, bad encapsulation, count larger than the message,
             ``size`` > 1500.
     """
+    import numpy as np
+
     reader = _Cdr(cdr, "PandarScan")
     frame_id, stamp = reader.header()
-    packets = []
-    for k in range(reader.count("packets", 8 + 1500 + 4)):
-        when = reader.time(f"packets[{k}].stamp")
-        data = reader.take(1500, f"packets[{k}].data")
-        size = reader.u32(f"packets[{k}].size")
-        if size > 1500:
-            raise DecodeError(f"PandarScan.packets[{k}].size", size, "at most 1500 bytes")
-        packets.append((when, data[:size]))
-    return PacketScan(frame_id, stamp, packets)
+    n = reader.count("packets", 8 + 1500 + 4)
+    stamps, data, sizes = _packet_arrays(reader, "PandarScan", n, 1512, 8, 1500, 1508)
+    big = np.flatnonzero(sizes > 1500)
+    if big.size:
+        raise DecodeError(f"PandarScan.packets[{big[0]}].size", int(sizes[big[0]]),
+                          "at most 1500 bytes")
+    packets = [(int(t), memoryview(p[:m])) for t, p, m in zip(stamps.tolist(), data,
+                                                             sizes.tolist())]
+    same = n > 0 and bool((sizes == sizes[0]).all())
+    return PacketScan(frame_id, stamp, packets, stamps if same else None,
+                      data[:, :int(sizes[0])] if same else None)
 
 
 #: packet message type -> (module providing ``PacketDecoder``, parser of the message's CDR)
