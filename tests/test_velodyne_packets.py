@@ -566,3 +566,75 @@ def test_strongest_and_last_share_a_version() -> None:
     results = list(decode_packets(first + second, calib, as_dataclass=True))
     assert len(results) == 2
     assert len({lidarscan.stamps.to_ns(i.header.stamp) for _, i in results}) == 1
+
+
+# ---------------------------------------------------------------------------- batch API
+
+def _same_scans(a: list[Any], b: list[Any]) -> None:
+    assert len(a) == len(b)
+    for (sa, ia), (sb, ib) in zip(a, b):
+        np.testing.assert_array_equal(sa.data, sb.data)
+        np.testing.assert_array_equal(sa.column_time_offsets, sb.column_time_offsets)
+        np.testing.assert_array_equal(sa.column_azimuth_angles, sb.column_azimuth_angles)
+        assert sa.header == sb.header and sa.channels == sb.channels
+        np.testing.assert_array_equal(ia.beam_azimuth_offsets, ib.beam_azimuth_offsets)
+        assert ia.header == ib.header and ia.width == ib.width
+
+
+@pytest.mark.parametrize("name", sorted(PRODUCTS))
+def test_push_many_equals_push_and_keeps_no_view(name: str) -> None:
+    product = PRODUCTS[name]
+    calib = _random_calibration(MODELS[product].lasers, 11)
+    packets = (synthetic_stream(product, 0x39, 150, deg_per_sequence=1.3)
+               + synthetic_stream(product, 0x37, 150, deg_per_sequence=1.3, start_deg=20.0,
+                                  stamp_ns=1_700_000_001_000_000_000))
+    one = PacketDecoder(calib, as_dataclass=True)
+    expected = [r for s, d in packets for r in one.push(s, d)] + one.flush()
+    rows = np.frombuffer(b"".join(d for _, d in packets), np.uint8).reshape(-1, 1206).copy()
+    stamps = np.array([s for s, _ in packets], np.int64)
+    batch = PacketDecoder(calib, as_dataclass=True)
+    got = []
+    for i in range(0, len(rows), 41):                    # odd batches across rotations
+        got += batch.push_many(stamps[i:i + 41], rows[i:i + 41])
+        rows[i:i + 41] = 0                               # the caller reuses its buffer
+    _same_scans(expected, got + batch.flush())
+
+
+def test_push_many_errors_and_the_numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    calib = _random_calibration(32, 12)
+    packets = synthetic_stream(0x28, 0x37, 90, deg_per_sequence=2.0)
+    rows = np.frombuffer(b"".join(d for _, d in packets), np.uint8).reshape(-1, 1206).copy()
+    stamps = np.array([s for s, _ in packets], np.int64)
+    clean = list(decode_packets(packets, calib, as_dataclass=True))
+    bad = rows.copy()
+    bad[7, 301] = 0x12                                   # block flag
+    bad[8, 202:204] = (0xA0, 0x8C)                       # azimuth 36000
+    bad[9, 1205] = 0x99                                  # unknown product
+    decoder = PacketDecoder(calib, as_dataclass=True)
+    with pytest.raises(DecodeError, match=r"payloads\[7\].*flag"):
+        decoder.push_many(stamps, bad)                   # nothing consumed
+    errors: list[tuple[int, LidarScanError]] = []
+    got = decoder.push_many(stamps, bad, errors=errors) + decoder.flush()
+    assert [i for i, _ in errors] == [7, 8, 9]
+    assert "azimuth" in str(errors[1][1]) and "product" in str(errors[2][1])
+    skipped = [p for i, p in enumerate(packets) if i not in (7, 8, 9)]
+    _same_scans(list(decode_packets(skipped, calib, as_dataclass=True)), got)
+    for wrong in (rows[:, :1000], rows.astype(np.uint16), rows[0]):
+        with pytest.raises(DecodeError, match="payloads"):
+            PacketDecoder(calib).push_many(stamps[: len(wrong)], wrong)
+    with pytest.raises(DecodeError, match="stamps_ns"):
+        PacketDecoder(calib).push_many(stamps[:5].astype(float), rows[:5])
+    # the numpy reference path (LIDARSCAN_NUMBA=0) gives the same bytes as the kernel
+    from converters._kernels import velodyne as kernels
+    monkeypatch.setattr(kernels, "_KERNEL", None)
+    monkeypatch.setattr(kernels, "_TRIED", True)
+    _same_scans(clean, list(decode_packets(packets, calib, as_dataclass=True)))
+    for name in ("VLP-16", "VLS-128"):
+        product = PRODUCTS[name]
+        stream = synthetic_stream(product, 0x39, 120, deg_per_sequence=2.0)
+        cal = _random_calibration(MODELS[product].lasers, 13)
+        numpy_path = list(decode_packets(stream, cal, as_dataclass=True))
+        monkeypatch.setattr(kernels, "_TRIED", False)
+        _same_scans(numpy_path, list(decode_packets(stream, cal, as_dataclass=True)))
+        monkeypatch.setattr(kernels, "_KERNEL", None)
+        monkeypatch.setattr(kernels, "_TRIED", True)
