@@ -128,7 +128,9 @@ def main() -> None:
                   "push_many, numpy path": numpy_batch, "per-point loop": loop}
     wall: dict[str, list[float]] = {name: [] for name in candidates}
     cpu: dict[str, list[float]] = {name: [] for name in candidates}
-    rotations = decoder() + batch() * 0 + numpy_batch() * 0      # warm-up (and compile)
+    rotations = decoder()                                      # warm-up (and compile)
+    batch()
+    numpy_batch()
     for _ in range(args.repeat):
         for name, run in candidates.items():
             scale = len(packets) / len(subset) if run is loop else 1.0
