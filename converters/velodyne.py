@@ -74,10 +74,11 @@ What the decoder produces (conventions):
   0.01 %. A rotation whose rate differs by more than 1 % from the info's (measured over >= 100
   columns) starts a new info version.
 - Which firing times (measured, ``converters.evidence.velodyne_timing``): vertical depth edges
-  seen by elevation-adjacent beams of the real VLS-128 recording (21 723 matched edges, 125 row
-  pairs) line up to an RMS per-pair shift of 26 millidegrees under the manual's times, 35 under
-  Nebula's and 55 with no intra-sequence timing (noise floor 13-14); fitting the untimed shifts
-  with both models' predictions at once gives the manual's a weight of 0.62 and Nebula's -0.09.
+  seen by elevation-adjacent beams of the real VLS-128 recording (45 296 matched edges, 125 row
+  pairs) line up to an RMS per-pair shift of 24.5 millidegrees under the manual's times, 42.6
+  under Nebula's and 67.8 with no intra-sequence timing (noise floor 10); with a roll and a
+  constant fitted out, 17.2 vs 40.2; fitting the untimed shifts with both models' predictions
+  at once gives the manual's a weight of 0.81 and Nebula's -0.14.
   So the manual's times are the default. The VLP-32C recording (nominal calibration, half a
   field of view, 2 388 edges) cannot tell: a 112 millidegree per-pair pattern that neither
   model explains (the nominal ``rot_correction`` values, presumably) swamps the difference.

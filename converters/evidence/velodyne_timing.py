@@ -126,7 +126,7 @@ def measure(packets: list[tuple[int, bytes]], calib: dict[str, Any], cut: float
         if real.sum() < 100:
             continue
         dt, da = np.diff(times), np.diff(np.unwrap(alpha))
-        regular = np.abs(dt - model.sequence_ns) < 2000
+        regular = (dt > 0) & (dt < 1.5 * model.sequence_ns)           # consecutive firings
         omega = -da[regular].sum() / (dt[regular].sum() * 1e-9)       # rad/s, clockwise
         last = np.append(np.abs(dt - round(model.sequence_ns)) > 1, True)  # last of its packet
         gap = np.where(last, 0.0, -np.append(da, 0.0))                # rad to the next block
