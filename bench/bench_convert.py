@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
                 prof = cProfile.Profile()
                 prof.runcall(run_convert, bag, DATA / folder / calib, out)
                 text = io.StringIO()
-                pstats.Stats(prof, stream=text).sort_stats("tottime").print_stats(args.profile)
+                pstats.Stats(prof, stream=text).sort_stats("cumulative").print_stats(args.profile)
                 print("\n".join(line for line in text.getvalue().splitlines()[6:] if line))
             shutil.rmtree(bag)
     return 0

@@ -235,9 +235,10 @@ def open_bag(path: str | os.PathLike[str]) -> Bag:
 
 def _bag_from_metadata(folder: Path, meta: Path) -> Bag:
     import yaml
+    from lidarscan import _yaml
 
     try:
-        doc = yaml.safe_load(meta.read_text(encoding="utf-8"))
+        doc = _yaml.safe_load(meta.read_text(encoding="utf-8"))
         info = doc["rosbag2_bagfile_information"]
         if not isinstance(info, dict):
             raise TypeError("rosbag2_bagfile_information is not a mapping")

@@ -121,7 +121,7 @@ from typing import Any
 import numpy as np
 
 from lidarscan import types
-from lidarscan.errors import ConfigError, DecodeError
+from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from lidarscan.scan import make_info, make_scan
 from lidarscan.stamps import split_ns
 
@@ -512,7 +512,9 @@ class PacketDecoder:
                        (fmt.blocks - returns) * fmt.block_size)
 
     # ------------------------------------------------------------------------------ batches
-    def push_many(self, stamps_ns: Any, payloads: Any) -> list[tuple[Any, Any]]:
+    def push_many(self, stamps_ns: Any, payloads: Any,
+                  errors: list[tuple[int, LidarScanError]] | None = None
+                  ) -> list[tuple[Any, Any]]:
         """Add N UDP payloads of one size at once; returns the rotations they completed.
 
         The same as ``push(stamps_ns[i], payloads[i])`` for i = 0..N-1 with the results
@@ -536,8 +538,26 @@ class PacketDecoder:
                 call ``push_many(stamps_ns[i + 1:], payloads[i + 1:])`` to go on. A batch
                 whose arrays are themselves wrong (shape, dtype) raises with ``index`` -1
                 before consuming anything.
+
+        With a list as ``errors`` (the same contract as :meth:`converters.velodyne.
+        PacketDecoder.push_many`), malformed packets are skipped instead: each is recorded as
+        ``(row index, DecodeError)`` and decoding goes on with the next row; only a batch
+        whose arrays are wrong still raises.
         """
-        return self._push_rows(stamps_ns, payloads, owned=False)
+        if errors is None:
+            return self._push_rows(stamps_ns, payloads, owned=False)
+        out: list[tuple[Any, Any]] = []
+        start = 0
+        while True:
+            try:
+                return out + self._push_rows(stamps_ns[start:], payloads[start:], owned=False)
+            except DecodeError as err:
+                index = getattr(err, "index", -1)
+                if index < 0:
+                    raise
+                out += getattr(err, "results", [])
+                errors.append((start + index, err))
+                start += index + 1
 
     def _push_rows(self, stamps_ns: Any, payloads: Any, owned: bool) -> list[tuple[Any, Any]]:
         """push_many(); ``owned``: the caller hands ``payloads`` over (never used again)."""

@@ -161,10 +161,11 @@ def load_calibration(calib: Mapping[str, Any] | str | os.PathLike[str]) -> dict[
         data: Any = dict(calib)
     else:
         import yaml
+        from lidarscan import _yaml
 
         path = Path(os.fspath(calib))
         try:
-            data = yaml.safe_load(path.read_text(encoding="utf-8"))
+            data = _yaml.safe_load(path.read_text(encoding="utf-8"))
         except OSError as err:
             raise DecodeError("calibration", str(path), "a readable velodyne calibration YAML "
                               "file or a mapping") from err
@@ -1018,9 +1019,9 @@ def _fill_numpy(buf: np.ndarray[Any, Any], begin: int, count: int, offsets: np.n
 def _fill(buf: np.ndarray[Any, Any], begin: int, count: int, offsets: np.ndarray[Any, Any],
           ranges: np.ndarray[Any, Any], intensities: np.ndarray[Any, Any]) -> None:
     """_fill_numpy, by the compiled kernel when there is one (identical results)."""
-    from converters._kernels.velodyne import fill_kernel
+    from converters._kernels import select
 
-    kernel = fill_kernel()
+    kernel = select("velodyne").numba
     if kernel is not None and count > 0:
         kernel(buf, begin, count, offsets, ranges, intensities)
     else:

@@ -231,12 +231,13 @@ def parse_qos(text: str | Sequence[Mapping[str, Any]]) -> list[QosProfile]:
         McapFormatError: text that is not a list of profiles.
     """
     import yaml
+    from lidarscan import _yaml
 
     if isinstance(text, str):
         if not text.strip():
             return []
         try:
-            items = yaml.safe_load(text)
+            items = _yaml.safe_load(text)
         except yaml.YAMLError as err:
             raise McapFormatError("offered_qos_profiles", text[:80], "YAML text") from err
     else:

@@ -77,3 +77,32 @@ def test_convert_packet_bag_without_calibration_names_the_file_needed(
     err = capsys.readouterr().err
     assert "csv" in err.lower() or "calibration" in err.lower()
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["velodyne_vlp32", "hesai_qt64"])
+def test_push_many_skips_bad_packets_like_push(name: str, tmp_path: Path) -> None:
+    """The batch contract the CLI relies on, for both vendors: with ``errors=``, a malformed
+    row is recorded with its index and skipped; the scans equal push() one by one without it."""
+    calibration = DATA / name / RECORDINGS[name][0]
+    if name.startswith("velodyne"):
+        from test_velodyne_packets import _read_bag
+        packets = [p for _, msg in _read_bag(DATA / name, tmp_path) for p in msg]
+        module: Any = velodyne
+    else:
+        from test_hesai import _packets
+        packets, module = _packets(name), hesai
+    stamps = np.array([t for t, _ in packets], np.int64)
+    rows = np.stack([np.frombuffer(p, np.uint8) for _, p in packets])
+    bad_rows = (5, len(rows) // 2)
+    damaged = rows.copy()
+    for k in bad_rows:
+        damaged[k, :8] = 0x5A                  # no valid header / block flag
+    errors: list[Any] = []
+    batch = module.PacketDecoder(calibration).push_many(stamps, damaged, errors=errors)
+    assert [k for k, _ in errors] == list(bad_rows)
+    one = module.PacketDecoder(calibration)
+    single = [pair for k, (t, p) in enumerate(packets) if k not in bad_rows
+              for pair in one.push(t, p)]
+    assert len(batch) == len(single) > 0
+    for (scan, _), (ref, _) in zip(batch, single):
+        assert bytes(scan.data) == bytes(ref.data)

@@ -21,6 +21,8 @@ numba       :mod:`.slices_numba`            ``pip install numba``    slices (row
                                                                      kernels) and the merger
 numba       :mod:`.hesai`                   ``pip install numba``    Hesai packets -> grids
                                             (extra ``fast``)         (converters.hesai)
+numba       :mod:`.velodyne`                ``pip install numba``    Velodyne packets -> grids
+                                            (extra ``fast``)         (converters.velodyne)
 numpy       the converters themselves       --                       everything (the reference)
 ==========  ==============================  =======================  ============================
 
@@ -74,7 +76,8 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
 
     Args:
         task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"`` or ``"merger"``
-            (chosen by ``backend``), ``"hesai"`` (packet decoding: numba when enabled).
+            (chosen by ``backend``), ``"hesai"`` / ``"velodyne"`` (packet decoding: numba when
+            enabled).
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy); ``"numba"``: numba only (an
             error when it is missing); ``"numpy"``: the reference.
@@ -96,8 +99,11 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
     if task == "hesai":
         from converters._kernels import hesai
         return Backends(numba=hesai.kernel() if numba_enabled() else None)
+    if task == "velodyne":
+        from converters._kernels import velodyne
+        return Backends(numba=velodyne.fill_kernel() if numba_enabled() else None)
     if task not in ("slices", "merger"):
-        raise ConfigError("task", task, "'cloud', 'slices', 'merger' or 'hesai'")
+        raise ConfigError("task", task, "'cloud', 'slices', 'merger', 'hesai' or 'velodyne'")
     if backend not in ("auto", "numba", "numpy"):
         raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
     numba = None

@@ -1,13 +1,12 @@
 """Optional numba kernel of the Velodyne packet decoder: packet bytes -> the scan's channel grids.
 
 It does exactly what ``converters.velodyne._fill_numpy`` (the numpy reference) does, so the
-results are bit-identical (integer copies only). Used when numba is importable (extra ``fast``);
-``LIDARSCAN_NUMBA=0`` forces the numpy path.
+results are bit-identical (integer copies only). Chosen by :func:`converters._kernels.select`
+(``"velodyne"``), which reads ``LIDARSCAN_NUMBA``.
 """
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 _KERNEL: Any = None
@@ -36,14 +35,12 @@ def _fill(buf: Any, begin: int, count: int, offsets: Any, ranges: Any,
 
 
 def fill_kernel() -> Any:
-    """The compiled ``fill(buf, begin, count, offsets, ranges, intensities)`` or None (no numba,
-    or ``LIDARSCAN_NUMBA=0``)."""
+    """The compiled ``fill(buf, begin, count, offsets, ranges, intensities)`` or None (no
+    numba). Callers go through :func:`converters._kernels.select`."""
     global _KERNEL, _TRIED
     if _TRIED:
         return _KERNEL
     _TRIED = True
-    if os.environ.get("LIDARSCAN_NUMBA", "1") == "0":
-        return None
     try:
         import numba
     except ImportError:

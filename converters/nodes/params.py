@@ -202,10 +202,11 @@ def load_slices_file(path: str | os.PathLike[str], *,
         ConfigError: unreadable file, invalid YAML or invalid slices.
     """
     import yaml
+    from lidarscan import _yaml
 
     try:
         text = Path(path).read_text(encoding="utf-8")
-        data = yaml.safe_load(text)
+        data = _yaml.safe_load(text)
     except (OSError, yaml.YAMLError) as err:
         raise ConfigError("slices_file", os.fspath(path), f"a readable YAML file ({err})") from err
     return slices_from_mapping(data, defaults=defaults)
