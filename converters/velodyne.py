@@ -770,7 +770,7 @@ class PacketDecoder:
 
     def flush(self) -> list[tuple[Any, Any]]:
         """The last, partial rotation (if it has any firing); the decoder is then empty."""
-        out = self._emit(stop=None) if self._packets else []
+        out = self._emit(stop=None, partial=True) if self._packets else []
         self._packets, self._stamps, self._rows, self._first_seq = [], [], 0, 0
         self._prev_rel = -1
         return out
@@ -813,8 +813,9 @@ class PacketDecoder:
             return runs, stamps[0]
         return runs, np.concatenate([np.atleast_1d(np.asarray(t, np.int64)) for t in stamps])
 
-    def _emit(self, stop: int | None) -> list[tuple[Any, Any]]:
-        """Decode the buffered packets' sequences [first_seq, stop of the last packet)."""
+    def _emit(self, stop: int | None, partial: bool = False) -> list[tuple[Any, Any]]:
+        """Decode the buffered packets' sequences [first_seq, stop of the last packet);
+        ``partial``: the last, unfinished rotation (see :meth:`_assemble`)."""
         layout = self._layout
         assert layout is not None and self._key is not None
         n = self._rows
@@ -833,12 +834,16 @@ class PacketDecoder:
         azimuth = head[:, :blocks.size] + 256.0 * head[:, blocks.size:]
         toh = np.ascontiguousarray(toh).view("<u4").reshape(-1).astype(np.int64)
         times, azimuth = _sequence_columns(azimuth, toh, stamps, layout, self._time_source)
-        return [self._assemble(runs, begin, times[begin:end], azimuth[begin:end])]
+        return [self._assemble(runs, begin, times[begin:end], azimuth[begin:end],
+                               partial=partial)]
 
     def _assemble(self, runs: list[np.ndarray[Any, Any]], begin: int,
-                  times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any]) -> tuple[Any, Any]:
+                  times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any],
+                  partial: bool = False) -> tuple[Any, Any]:
         """One rotation: sequences begin.. of the packet runs, their times (ns) and azimuths
-        (clockwise 0.01 deg)."""
+        (clockwise 0.01 deg). ``partial``: the stream's last, unfinished rotation (flush): its
+        rate is not measured over a whole turn (at a field-of-view edge it can be far off), so
+        it keeps the current version when it fits in it."""
         layout = self._layout
         assert layout is not None and self._key is not None
         model = layout.model
@@ -846,7 +851,7 @@ class PacketDecoder:
         period, omega = _rates(times, azimuth)
         key = (self._key[0], layout.dual)     # strongest <-> last keeps the geometry
         changed = (self._info is None or self._info_key != key
-                   or (count >= _RATE_COLUMNS and omega > 0
+                   or (not partial and count >= _RATE_COLUMNS and omega > 0
                        and abs(omega - self._omega) > _RATE_CHANGE * self._omega))
         if changed or count > int(self._info.width):
             if not changed:
