@@ -124,6 +124,7 @@ from lidarscan import types
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from lidarscan.scan import make_info, make_scan
 from lidarscan.stamps import split_ns
+from converters._packets import payload_bytes
 
 __all__ = [
     "FORMATS",
@@ -442,7 +443,7 @@ class PacketDecoder:
         Raises:
             DecodeError: malformed or unsupported packet (the decoder stays usable).
         """
-        data = packet if type(packet) is bytes else _as_bytes(packet)
+        data = packet if type(packet) is bytes else payload_bytes(packet)
         fast = self._fast
         if (fast is not None and len(data) == fast[0] and data.startswith(fast[1])
                 and data[fast[2]] == fast[3]):
@@ -947,17 +948,6 @@ def _channel_rank(name: str) -> tuple[int, int]:
     return order[name]
 
 
-def _as_bytes(packet: Any) -> bytes:
-    if isinstance(packet, bytes):
-        return packet
-    if isinstance(packet, (bytearray, memoryview)):
-        return bytes(packet)
-    if isinstance(packet, np.ndarray):
-        if packet.ndim != 1 or packet.dtype != np.uint8:
-            raise DecodeError("packet", f"{packet.dtype} {packet.shape}", "a 1-D uint8 array")
-        return packet.tobytes()
-    raise DecodeError("packet", type(packet).__name__, "bytes, bytearray, memoryview or a "
-                      "1-D uint8 ndarray")
 
 
 #: packets pushed at once by decode_packets (a run of equal-size payloads is cut there)
@@ -992,7 +982,7 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None, 
 
     for stamp, packet in packets:
         try:
-            data = packet if type(packet) is bytes else _as_bytes(packet)
+            data = packet if type(packet) is bytes else payload_bytes(packet)
         except DecodeError as err:
             index = done + len(run)
             if run:

@@ -113,6 +113,7 @@ import numpy as np
 
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
 from lidarscan.scan import make_info, make_scan
+from converters._packets import payload_bytes
 
 __all__ = [
     "MODELS",
@@ -604,7 +605,7 @@ class PacketDecoder:
                 return mode); the packet is skipped and the decoder stays usable.
             ConfigError / ValidationError: the calibration does not fit the detected model.
         """
-        data = packet if isinstance(packet, bytes) else _as_bytes(packet)
+        data = packet if isinstance(packet, bytes) else payload_bytes(packet)
         key, layout = self._validate(data)
         out: list[tuple[Any, Any]] = []
         if key != self._key:                          # a valid packet of another mode/model
@@ -921,15 +922,6 @@ class PacketDecoder:
         self._last_info_stamp = stamp
 
 
-def _as_bytes(packet: Any) -> bytes:
-    if isinstance(packet, (bytearray, memoryview)):
-        return bytes(packet)
-    if isinstance(packet, np.ndarray):
-        if packet.ndim != 1 or packet.dtype != np.uint8:
-            raise DecodeError("packet", f"{packet.dtype} {packet.shape}", "a 1-D uint8 array")
-        return packet.tobytes()
-    raise DecodeError("packet", type(packet).__name__,
-                      "bytes, bytearray, memoryview or a 1-D uint8 ndarray")
 
 
 def _flags(data: bytes, count: int) -> list[str]:
