@@ -650,19 +650,16 @@ def test_push_many_errors_and_the_numpy_path(monkeypatch: pytest.MonkeyPatch) ->
     with pytest.raises(DecodeError, match="stamps_ns"):
         PacketDecoder(calib).push_many(stamps[:5].astype(float), rows[:5])
     # the numpy reference path (LIDARSCAN_NUMBA=0) gives the same bytes as the kernel
-    from converters._kernels import velodyne as kernels
-    monkeypatch.setattr(kernels, "_KERNEL", None)
-    monkeypatch.setattr(kernels, "_TRIED", True)
+    monkeypatch.setenv("LIDARSCAN_NUMBA", "0")
     _same_scans(clean, list(decode_packets(packets, calib, as_dataclass=True)))
     for name in ("VLP-16", "VLS-128"):
         product = PRODUCTS[name]
         stream = synthetic_stream(product, 0x39, 120, deg_per_sequence=2.0)
         cal = _random_calibration(MODELS[product].lasers, 13)
         numpy_path = list(decode_packets(stream, cal, as_dataclass=True))
-        monkeypatch.setattr(kernels, "_TRIED", False)
+        monkeypatch.setenv("LIDARSCAN_NUMBA", "1")
         _same_scans(numpy_path, list(decode_packets(stream, cal, as_dataclass=True)))
-        monkeypatch.setattr(kernels, "_KERNEL", None)
-        monkeypatch.setattr(kernels, "_TRIED", True)
+        monkeypatch.setenv("LIDARSCAN_NUMBA", "0")
 
 
 def test_vls128_edges_favour_the_manual_firing_times() -> None:

@@ -51,6 +51,17 @@ class LoadOnce:
             return self._value[0]
 
 
+def numba_jit(fn: Callable[..., Any], **options: Any) -> Any:
+    """``fn`` compiled by ``numba.njit(cache=True, nogil=True, **options)`` (compiled at its
+    first call, cached on disk), or None without numba. The switch ``LIDARSCAN_NUMBA`` is read
+    by :func:`converters._kernels.select`, not here."""
+    try:
+        import numba
+    except ImportError:
+        return None
+    return numba.njit(cache=True, nogil=True, **options)(fn)
+
+
 #: Element type codes shared by the C kernels (native byte order only: the converters convert
 #: at the message boundary).
 TYPE_CODES = {"f4": 0, "f8": 1, "u1": 2, "u2": 3, "u4": 4, "i1": 5, "i2": 6, "i4": 7}

@@ -13,8 +13,7 @@ from typing import Any
 
 import numpy as np
 
-_KERNEL: Any = None
-_TRIED = False
+from converters._kernels._loader import LoadOnce, numba_jit
 
 
 def _fill_units(rows: Any, first: int, count: int, col: int, offsets: Any, r: int,
@@ -36,16 +35,10 @@ def _fill_units(rows: Any, first: int, count: int, col: int, offsets: Any, r: in
             refl[u, c] = rows[p, o + 2]
 
 
+_COMPILED = LoadOnce(lambda: numba_jit(_fill_units, boundscheck=False))
+
+
 def kernel() -> Any:
     """The compiled ``fill_units`` (same arguments as ``_fill_units``), or None without numba.
     Callers go through :func:`converters._kernels.select`, which honours ``LIDARSCAN_NUMBA``."""
-    global _KERNEL, _TRIED
-    if _TRIED:
-        return _KERNEL
-    _TRIED = True
-    try:
-        import numba
-    except ImportError:
-        return None
-    _KERNEL = numba.njit(cache=True, nogil=True, boundscheck=False)(_fill_units)
-    return _KERNEL
+    return _COMPILED.get()

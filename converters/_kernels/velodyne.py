@@ -9,8 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-_KERNEL: Any = None
-_TRIED = False
+from converters._kernels._loader import LoadOnce, numba_jit
 
 
 def _fill(buf: Any, begin: int, count: int, offsets: Any, ranges: Any,
@@ -34,16 +33,10 @@ def _fill(buf: Any, begin: int, count: int, offsets: Any, ranges: Any,
                 intensities[r, h, c] = buf[p, o + 2]
 
 
+_COMPILED = LoadOnce(lambda: numba_jit(_fill))
+
+
 def fill_kernel() -> Any:
     """The compiled ``fill(buf, begin, count, offsets, ranges, intensities)`` or None (no
     numba). Callers go through :func:`converters._kernels.select`."""
-    global _KERNEL, _TRIED
-    if _TRIED:
-        return _KERNEL
-    _TRIED = True
-    try:
-        import numba
-    except ImportError:
-        return None
-    _KERNEL = numba.njit(cache=True, nogil=True)(_fill)
-    return _KERNEL
+    return _COMPILED.get()
