@@ -496,23 +496,37 @@ def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | No
 
 @dataclass(frozen=True)
 class PacketScan:
-    """The packets of one VelodyneScan / PandarScan message.
+    """The packets of one VelodyneScan / PandarScan message, as views of the message bytes.
 
     Attributes:
         frame_id: ``header.frame_id``.
         stamp_ns: ``header.stamp`` (int64 ns).
-        packets: ``(stamp_ns, payload)`` per packet, payload a memoryview of the message bytes
-            (VelodyneScan: 1206 bytes; PandarScan: ``data[:size]``).
+        stamps: (N,) int64 ns, each packet's recorded stamp.
+        data: (N, 1206 or 1500) uint8, read-only strided view of each packet's ``data`` array.
+        sizes: (N,) int64 bytes of ``data`` in use (VelodyneScan: 1206; PandarScan: ``size``).
     """
 
     frame_id: str
     stamp_ns: int
-    packets: list[tuple[int, memoryview]]
-    #: the same packets as arrays, for ``PacketDecoder.push_many``: stamps (N,) int64 ns and
-    #: payloads (N, size) uint8, a read-only view of the message bytes (strided, no copy); None
-    #: when the payload sizes differ (PandarScan with mixed ``size``).
-    stamps: Any = None
-    payloads: Any = None
+    stamps: Any
+    data: Any
+    sizes: Any
+
+    @property
+    def payloads(self) -> Any:
+        """(N, size) uint8 view for ``PacketDecoder.push_many`` when every packet has the same
+        size, else None (PandarScan with mixed ``size``)."""
+        n = len(self.sizes)
+        if n == 0 or not bool((self.sizes == self.sizes[0]).all()):
+            return None
+        return self.data[:, :int(self.sizes[0])]
+
+    @property
+    def packets(self) -> list[tuple[int, memoryview]]:
+        """``(stamp_ns, payload)`` per packet, payload a memoryview of ``data[i, :sizes[i]]``
+        (built on demand: the batch path never needs it)."""
+        return [(t, memoryview(row[:m])) for t, row, m in
+                zip(self.stamps.tolist(), self.data, self.sizes.tolist())]
 
 
 class _Cdr:
@@ -615,12 +629,13 @@ def velodyne_packets(cdr: bytes | bytearray | memoryview) -> PacketScan:
     Raises:
         DecodeError: truncated message, bad encapsulation, count larger than the message.
     """
+    import numpy as np
+
     reader = _Cdr(cdr, "VelodyneScan")
     frame_id, stamp = reader.header()
     n = reader.count("packets", 8 + 1206)
     stamps, payloads, _ = _packet_arrays(reader, "VelodyneScan", n, 1216, 8, 1206)
-    packets = [(int(t), memoryview(p)) for t, p in zip(stamps.tolist(), payloads)]
-    return PacketScan(frame_id, stamp, packets, stamps, payloads)
+    return PacketScan(frame_id, stamp, stamps, payloads, np.full(n, 1206, np.int64))
 
 
 def pandar_packets(cdr: bytes | bytearray | memoryview) -> PacketScan:
@@ -643,11 +658,7 @@ def pandar_packets(cdr: bytes | bytearray | memoryview) -> PacketScan:
     if big.size:
         raise DecodeError(f"PandarScan.packets[{big[0]}].size", int(sizes[big[0]]),
                           "at most 1500 bytes")
-    packets = [(int(t), memoryview(p[:m])) for t, p, m in zip(stamps.tolist(), data,
-                                                             sizes.tolist())]
-    same = n > 0 and bool((sizes == sizes[0]).all())
-    return PacketScan(frame_id, stamp, packets, stamps if same else None,
-                      data[:, :int(sizes[0])] if same else None)
+    return PacketScan(frame_id, stamp, stamps, data, sizes)
 
 
 #: packet message type -> (module providing ``PacketDecoder``, parser of the message's CDR)

@@ -263,7 +263,7 @@ def cmd_info(args: argparse.Namespace) -> int:
             layout = None
             if item.msgtype in PACKET_TYPES:
                 scan = PACKET_TYPES[item.msgtype][1](item.payload)
-                packets[item.topic] = packets.get(item.topic, 0) + len(scan.packets)
+                packets[item.topic] = packets.get(item.topic, 0) + len(scan.stamps)
                 layout = (scan.frame_id, "")
             elif item.msgtype in (INFO_TYPE, SCAN_TYPE, "sensor_msgs/msg/LaserScan",
                                   "sensor_msgs/msg/PointCloud2"):
@@ -889,13 +889,14 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
                 decoder = decoders[item.topic](args.calibration,
                                                frame_id=packets.frame_id or "lidar")
                 active[item.topic] = decoder
-            if packets.payloads is not None and hasattr(decoder, "push_many"):
+            payloads = packets.payloads
+            if payloads is not None and hasattr(decoder, "push_many"):
                 # one batch per message (the contract's optional fast path), bad rows skipped
                 bad: list[tuple[int, Any]] = []
-                done = decoder.push_many(packets.stamps, packets.payloads, errors=bad)
+                done = decoder.push_many(packets.stamps, payloads, errors=bad)
                 for k, err in bad:
                     report.report_bad(item.index, item.topic, item.log_time_ns,
-                                      f"packet {k} of {len(packets.packets)}: {err}", emit)
+                                      f"packet {k} of {len(packets.stamps)}: {err}", emit)
                 emit_scans(item.topic, done, item.log_time_ns, item.index)
             else:                               # PandarScan packets of mixed sizes
                 for k, (stamp, payload) in enumerate(packets.packets):
@@ -903,7 +904,7 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
                         done = decoder.push(stamp, payload)
                     except LidarScanError as err:
                         report.report_bad(item.index, item.topic, item.log_time_ns,
-                                          f"packet {k} of {len(packets.packets)}: {err}", emit)
+                                          f"packet {k} of {len(packets.stamps)}: {err}", emit)
                         continue
                     emit_scans(item.topic, done, item.log_time_ns, item.index)
             last[item.topic] = (item.log_time_ns, item.index)
