@@ -6,7 +6,9 @@ different contents (as far back as the resolver remembers), nor with an info who
 been forgotten. When the resolver cannot be sure, the scan is dropped and reported; it never
 guesses. Rules (each pinned by ``tests/test_linkage.py``):
 
-* the newest ``max_infos`` versions (by publication) are kept whole and can be paired;
+* the ``max_infos`` versions most recently published *or paired with a scan* are kept whole
+  and can be paired (so every sensor still sending scans keeps its version, however many other
+  sensors or versions a shared resolver -- e.g. one reading a multi-sensor recording -- sees);
 * a version pushed out of them is *evicted*: its info is forgotten but its content digest
   (:func:`lidarscan.geometry.info_key`, 16 bytes) is remembered, for at most ``max_digests``
   evicted versions. A scan naming an evicted version is dropped ("evicted"); the same content
@@ -75,7 +77,8 @@ class InfoResolver:
     the guarantee and every rule).
 
     Args:
-        max_infos: info versions kept whole (pairable); older ones are evicted to a digest.
+        max_infos: info versions kept whole (pairable); the least recently published or used
+            is evicted to a digest.
         max_digests: evicted versions whose content digest is remembered; past it the smallest
             stamp is forgotten and the forgotten watermark rises (fail safe, see the module).
         max_pending: scans held while their info is missing.
@@ -106,7 +109,7 @@ class InfoResolver:
         self.max_pending, self.max_wait_ns = max_pending, max_wait_ns
         self._clock = clock
         self._on_event = on_event
-        self._infos: OrderedDict[int, Any] = OrderedDict()  # pairable, least recent first
+        self._infos: OrderedDict[int, Any] = OrderedDict()  # pairable, least recently used first
         self._digests: dict[int, str] = {}  # every remembered stamp -> digest or _CONFLICT
         self._pending: deque[tuple[int, Any, int]] = deque()  # (info stamp, scan, arrival ns)
         self._dropped: list[Dropped] = []
@@ -161,7 +164,7 @@ class InfoResolver:
             return "its LidarInfo stamp is ambiguous (two geometries)"
         if digest is not None and stamp not in self._infos:
             return (f"its LidarInfo version was evicted (more than max_infos={self.max_infos} "
-                    "newer versions since)")
+                    "versions published or used since)")
         if digest is None and self.forgotten_ns is not None and stamp <= self.forgotten_ns:
             return (f"its LidarInfo stamp is at or below the forgotten watermark "
                     f"{self.forgotten_ns} (more than max_infos + max_digests = "
@@ -258,11 +261,13 @@ class InfoResolver:
                 self.forgotten_ns = stamp
 
     def _pair(self, scan: Any, info: Any) -> list[tuple[Any, Any]]:
+        stamp = to_ns(scan.lidar_info_time)
         try:
             validate(scan, info)
         except LidarScanError as err:
-            self._drop(scan, to_ns(scan.lidar_info_time), f"does not fit its LidarInfo: {err}")
+            self._drop(scan, stamp, f"does not fit its LidarInfo: {err}")
             return []
+        self._infos.move_to_end(stamp)  # in use: the last to be evicted
         self.released += 1
         return [(scan, info)]
 

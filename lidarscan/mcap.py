@@ -804,7 +804,7 @@ def read_messages(source: str | os.PathLike[str] | IO[bytes] | bytes, *,
 def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes | None, *,
                scan_topics: Iterable[str] | None = None, info_topics: Iterable[str] | None = None,
                on_error: Callable[[BadMessage], None] | None = None,
-               max_pending: int = 64,
+               max_pending: int = 64, max_infos: int = 256,
                items: Iterable[McapMessage | BadMessage] | None = None
                ) -> Iterator[tuple[Any, Any]]:
     """Iterate ``(scan, info)`` pairs: each LidarScan with the LidarInfo its
@@ -813,14 +813,17 @@ def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes | None, *,
     Scans recorded before their info are held (at most ``max_pending``) until it appears;
     scans whose info never appears, undecodable messages and inconsistent scans are passed to
     ``on_error`` (as :class:`BadMessage`) and skipped; the rest are yielded. In a file the info
-    wait is bounded by the file, not by time. ``items`` (then ``source`` is ignored) reads
-    messages from another reader (e.g. a rosbag2 reader of the same items).
+    wait is bounded by the file, not by time. One resolver pairs every topic: ``max_infos``
+    LidarInfo versions (all sensors together) are held, the least recently published or used
+    evicted first (a recording's latched infos all come first, so it must hold one per sensor
+    plus the versions whose stragglers may still come). ``items`` (then ``source`` is ignored)
+    reads messages from another reader (e.g. a rosbag2 reader of the same items).
     """
     from lidarscan.linkage import InfoResolver
 
     scans = set(scan_topics) if scan_topics is not None else None
     infos = set(info_topics) if info_topics is not None else None
-    resolver = InfoResolver(max_pending=max_pending, max_wait_ns=None)
+    resolver = InfoResolver(max_pending=max_pending, max_infos=max_infos, max_wait_ns=None)
     origin: dict[int, McapMessage] = {}
 
     def report(bad: BadMessage) -> None:

@@ -132,6 +132,33 @@ def test_same_stamp_with_other_geometry_drops_its_scans_with_a_reason() -> None:
     assert [e.index for e in errors] == [3, 4]
 
 
+def test_a_recording_of_more_sensors_than_the_live_default_pairs_every_scan() -> None:
+    """Twelve sensors (more than a live resolver's eight held versions), each info latched at
+    the start as rosbag2 records them, then their scans interleaved: every scan is paired with
+    its own sensor's geometry and nothing is dropped. (Before: the first four sensors' scans
+    were all dropped as "evicted".)"""
+    infos = [_info(STAMP_A + i, tilt=0.01 * i) for i in range(12)]
+    buf = io.BytesIO()
+    with McapWriter(buf, chunk_size=2048) as writer:
+        for i, info in enumerate(infos):
+            writer.write(f"/lidar{i}/lidar_info", info, log_time_ns=STAMP_A)
+        for k in range(3):
+            for i, info in enumerate(infos):
+                scan = ls.make_scan(info, {"range": np.full((H, W), 1.0 + i, np.float32)},
+                                    STAMP_B + k, as_dataclass=True)
+                writer.write(f"/lidar{i}/lidar_scan", scan, log_time_ns=STAMP_B + k)
+    errors: list[BadMessage] = []
+    pairs = list(read_scans(buf.getvalue(), on_error=errors.append))
+    assert errors == [] and len(pairs) == 36
+    for scan, info in pairs:
+        i = int(ls.channel(scan, "range")[0, 0]) - 1
+        assert info is not None and ls.to_ns(info.header.stamp) == STAMP_A + i
+    # the bound is a parameter: with the live default of 8, the four oldest are lost
+    errors.clear()
+    assert len(list(read_scans(buf.getvalue(), on_error=errors.append, max_infos=8))) == 24
+    assert len(errors) == 12 and all("evicted" in e.reason for e in errors)
+
+
 def test_info_that_never_arrives_reports_every_scan() -> None:
     events = [("info", GEOMETRY[STAMP_A])] + [("scan", _scan(STAMP_B, 10 + i)) for i in range(4)]
     pairs, errors = _run(events)

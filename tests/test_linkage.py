@@ -158,6 +158,18 @@ def test_old_versions_are_evicted_beyond_max_infos_and_their_scans_dropped() -> 
     assert "evicted" in dropped.reason and "max_infos=2" in dropped.reason
 
 
+def test_a_version_in_use_outlives_newer_ones_it_is_evicted_least_recently_used() -> None:
+    """Eviction order is publication OR use: a version whose scans keep coming stays."""
+    resolver = InfoResolver(max_infos=2, max_wait_ns=None)
+    a, b, c = (_info(100 * (i + 1), tilt=0.01 * i) for i in range(3))
+    resolver.add_info(a)
+    resolver.add_info(b)
+    scan_a = _scan(a, 1)
+    assert resolver.add_scan(scan_a) == [(scan_a, a)]  # a used after b was published
+    resolver.add_info(c)                                # evicts b, not a
+    assert resolver.info(100) is a and resolver.info(200) is None and resolver.info(300) is c
+
+
 def test_holding_disabled_drops_immediately() -> None:
     resolver = InfoResolver(max_pending=0)
     resolver.add_scan(_scan(_info(100), 1))
