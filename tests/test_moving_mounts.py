@@ -23,6 +23,7 @@ from converters.transforms import OutOfSpanError, TransformLookupError, Transfor
 from lidarscan.errors import ConfigError, LidarScanError, ValidationError
 from lidarscan.types import Header, Time, message_class
 from grid_reference import ref_bin, ref_grid
+from test_nodes import graph  # noqa: F401 - the rclpy graph fixture
 
 LaserScanDC = message_class("sensor_msgs/msg/LaserScan")
 F32 = np.float32
@@ -401,3 +402,146 @@ def test_moving_mount_with_odometry_compensation() -> None:
     got = np.asarray(out.ranges, np.float64)
     assert np.array_equal(np.isfinite(got), finite)
     assert np.max(np.abs(got[finite] - expected[finite])) < 1e-4
+
+
+# ----------------------------------------------------------------------------- node parts
+
+def tf_buffer_with_pan(stamps: range) -> Any:
+    """TransformBuffer: base_link -> pan_link (moving, /tf) -> pan_laser (static arm)."""
+    from converters.nodes.tf import TransformBuffer
+
+    buf = TransformBuffer()
+    arm = np.eye(4)
+    arm[:3, 3] = ARM
+    buf.set_transform("pan_link", "pan_laser", arm, static=True)
+    for t in stamps:
+        buf.set_transform("base_link", "pan_link", pan_pose(t) @ np.linalg.inv(arm), t)
+    return buf
+
+
+def test_transform_buffer_samples_chain_static_and_moving_edges() -> None:
+    buf = tf_buffer_with_pan(range(T0, T0 + 50 * MS, 10 * MS))
+    samples = buf.samples("base_link", "pan_laser")
+    assert [t for t, _ in samples] == list(range(T0, T0 + 50 * MS, 10 * MS))
+    for t, m in samples:
+        assert np.allclose(m, pan_pose(t), atol=1e-12)
+    assert [t for t, _ in buf.samples("base_link", "pan_laser", after_ns=T0 + 20 * MS)] == \
+        [T0 + 30 * MS, T0 + 40 * MS]
+    assert buf.samples("pan_link", "pan_laser") == []          # all static
+    assert buf.samples("base_link", "nowhere") == []
+
+
+def test_merger_core_moving_input_waits_for_tf_then_matches_truth() -> None:
+    from converters.nodes.merger_node import MergerCore
+    from converters.nodes.tf import TransformBuffer
+
+    buf = TransformBuffer()
+    arm = np.eye(4)
+    arm[:3, 3] = ARM
+    buf.set_transform("pan_link", "pan_laser", arm, static=True)
+    core = MergerCore({"pan": {}}, moving=["pan"], tf_samples=buf.samples,
+                      angle_increment=INC_OUT, frame_id="base_link")
+    scan, ends = pan_scan(T0)
+    assert core.push("pan", scan) == []                          # no /tf yet: waits
+    out: list[Any] = []
+    for t in range(T0 - 30 * MS, T0 + SCAN_NS + 30 * MS, 10 * MS):
+        buf.set_transform("base_link", "pan_link", pan_pose(t) @ np.linalg.inv(arm), t)
+        got = core.update_tracks()
+        if t < T0 + SCAN_NS:
+            assert got == []                                     # sweep not covered yet
+        out += got
+    assert len(out) == 1
+    expected = truth(ends)
+    finite = np.isfinite(expected)
+    ranges = np.asarray(out[0].ranges, np.float64)
+    assert np.array_equal(np.isfinite(ranges), finite)
+    assert np.max(np.abs(ranges[finite] - expected[finite])) < 1e-4
+    # no /tf any more: the next scans wait tf_wait (data time), then are dropped, counted
+    for k in (1, 2, 3):
+        later, _ = pan_scan(T0 + k * SCAN_NS)
+        assert core.push("pan", later) == []
+    assert core.merger.stats["dropped_no_pose"] >= 1
+    with pytest.raises(ConfigError, match="use_tf"):
+        MergerCore({"pan": {}}, moving=["pan"])
+    with pytest.raises(ConfigError):
+        MergerCore({"pan": {}}, moving=["nope"], tf_samples=buf.samples)
+
+
+def _tf_message(parent: str, child: str, matrix: np.ndarray, stamp: int) -> Any:
+    from geometry_msgs.msg import TransformStamped
+
+    from lidarscan.stamps import time_msg
+
+    t = TransformStamped()
+    t.header.frame_id, t.child_frame_id = parent, child
+    t.header.stamp = time_msg(stamp)
+    t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = \
+        (float(v) for v in matrix[:3, 3])
+    q = quaternion_from_matrix(matrix)
+    t.transform.rotation.x, t.transform.rotation.y = q[0], q[1]
+    t.transform.rotation.z, t.transform.rotation.w = q[2], q[3]
+    return t
+
+
+def _rclpy_scan(scan: Any) -> Any:
+    import array
+
+    from sensor_msgs.msg import LaserScan
+
+    from lidarscan.stamps import time_msg
+
+    msg = LaserScan()
+    msg.header.stamp = time_msg(scan.header.stamp.sec * 10**9 + scan.header.stamp.nanosec)
+    msg.header.frame_id = scan.header.frame_id
+    for key in ("angle_min", "angle_max", "angle_increment", "time_increment", "scan_time",
+                "range_min", "range_max"):
+        setattr(msg, key, float(getattr(scan, key)))
+    msg.ranges = array.array("f", np.asarray(scan.ranges, F32).tobytes())
+    return msg
+
+
+@pytest.mark.ros
+def test_merger_node_merges_a_moving_input_from_tf(graph: Any) -> None:
+    """The real node: /tf_static (arm) + /tf (pan joint at 100 Hz, data time) and the pan
+    laser's sweeps; the merged scan equals the static-scene truth."""
+    from sensor_msgs.msg import LaserScan
+
+    from converters.nodes.merger_node import MergerNode
+    from test_nodes import overrides
+
+    tf2_msgs = pytest.importorskip("tf2_msgs.msg")
+    arm = np.eye(4)
+    arm[:3, 3] = ARM
+    out = graph.collect(LaserScan, "scan_merged")
+    static_pub = graph.publisher(tf2_msgs.TFMessage, "/tf_static", "latched")
+    tf_pub = graph.publisher(tf2_msgs.TFMessage, "/tf", "reliable")
+    scan_pub = graph.publisher(LaserScan, "pan/scan", "reliable")
+    static_pub.publish(tf2_msgs.TFMessage(transforms=[
+        _tf_message("pan_link", "pan_laser", arm, 0)]))
+    node = graph.add(MergerNode(context=graph.context, parameter_overrides=overrides(
+        input_names=["pan"], inputs__pan__topic="pan/scan", inputs__pan__qos="reliable",
+        inputs__pan__moving=True, angle_increment=INC_OUT, tf_wait=0.5)))
+    assert graph.wait(lambda: node.tf_buffer.can_transform("pan_link", "pan_laser") and
+                      tf_pub.get_subscription_count() > 0 and
+                      scan_pub.get_subscription_count() > 0 and
+                      node.pub.get_subscription_count() > 0)
+    expected = {}
+    for k in range(3):
+        stamp = T0 + k * SCAN_NS
+        scan, ends = pan_scan(stamp)
+        expected[stamp] = truth(ends)
+        scan_pub.publish(_rclpy_scan(scan))                      # the sweep before its /tf
+        for t in range(stamp - 10 * MS if k == 0 else stamp + 10 * MS,
+                       stamp + SCAN_NS + 10 * MS, 10 * MS):
+            tf_pub.publish(tf2_msgs.TFMessage(transforms=[
+                _tf_message("base_link", "pan_link", pan_pose(t) @ np.linalg.inv(arm), t)]))
+    assert graph.wait(lambda: len(out) >= 3, timeout=15.0)
+    for msg in out:
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        want = expected[stamp]
+        finite = np.isfinite(want)
+        got = np.asarray(msg.ranges, np.float64)
+        assert msg.header.frame_id == "base_link"
+        assert np.array_equal(np.isfinite(got), finite)
+        assert np.max(np.abs(got[finite] - want[finite])) < 1e-4
+    assert node.core.merger.stats["dropped_no_pose"] == 0
