@@ -69,9 +69,9 @@ between samples larger than that, or no odometry, leaves the scan uncompensated 
 **Moving mounts.** An input's ``extrinsics`` may move: a :class:`converters.TransformTrack`
 (stamped poses, interpolated: linear translation, slerp rotation) or any callable
 ``stamp_ns -> 4x4``. The mount's pose is looked up at each ray's own time: ray ``i`` of a scan
-was measured at ``stamp + i * time_increment`` (REP 117 LaserScan convention; ``time_increment``
-0 or not finite, or ``MergerInput.deskew`` false: every ray at the stamp), so a sensor on a pan
-unit turning during its sweep is de-skewed ray by ray. (The slices of ``to_laserscan`` do not
+was measured at ``stamp + i * time_increment`` (sensor_msgs/LaserScan's definition; negative
+increments work; ``time_increment`` 0 or not finite, or ``MergerInput.deskew`` false: every ray
+at the stamp), so a sensor on a pan unit turning during its sweep is de-skewed ray by ray. (The slices of ``to_laserscan`` do not
 follow that convention: their ray ``i`` is not measured at ``stamp + i * time_increment``; give
 such an input ``deskew=False``.) A callable is called once per distinct ray time and its result
 checked (rigid 4x4); a track computes them in one batch. A pose that cannot be found (outside
@@ -638,7 +638,8 @@ class LaserScanMerger:
 
     # ---------------------------------------------------------------------------- streaming
     def push(self, name: str, scan: Any) -> Any:
-        """Queue one scan; return the merged scan if a set now matches, else None.
+        """Queue one scan; return the merged scan if a set now matches, else None (also when
+        every scan of the set lacked its moving mount's pose: ``stats["dropped_no_pose"]``).
 
         The scan is validated here (header, frame), so a malformed scan is rejected before it
         touches any queue. Why a scan was not queued is in :attr:`last_drop` (None: queued).

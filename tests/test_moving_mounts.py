@@ -285,6 +285,26 @@ def test_pan_unit_sweep_is_deskewed_to_the_static_truth(kind: str, backend: str)
     assert np.max(np.abs(worse[both] - expected[both])) > 0.1
 
 
+def test_reversed_sweep_with_negative_time_increment() -> None:
+    """The same rays stored last-measured first (negative angle and time increments, the stamp
+    of the last-measured ray) give the same merged scan."""
+    scan, ends = pan_scan(T0)
+    n = N_RAYS
+    tinc = float(scan.time_increment)
+    stamp = T0 + round((n - 1) * tinc * 1e9)
+    rev = LaserScanDC(header=Header(stamp=Time(*divmod(stamp, 10**9)), frame_id="pan_laser"),
+                      angle_min=float(F32(scan.angle_max)), angle_max=scan.angle_min,
+                      angle_increment=-scan.angle_increment, time_increment=-tinc,
+                      scan_time=scan.scan_time, range_min=0.05, range_max=30.0,
+                      ranges=np.asarray(scan.ranges)[::-1].copy(), intensities=np.zeros(0, F32))
+    out = merger(pan_pose, "numpy").merge({"pan": rev})
+    expected = truth(ends)
+    finite = np.isfinite(expected)
+    got = np.asarray(out.ranges, np.float64)
+    assert np.array_equal(np.isfinite(got), finite)
+    assert np.max(np.abs(got[finite] - expected[finite])) < 1e-4
+
+
 def test_pan_unit_every_endpoint_on_the_scene() -> None:
     """The truth itself: the de-skewed endpoints lie on the room wall or a pillar."""
     _, ends = pan_scan(T0)

@@ -629,7 +629,8 @@ def _node_class() -> type:
                     "received_per_s": round(delta[f"{n}.received"] / dt, 2),
                     "dropped_last_period": delta[f"{n}.bad"],
                     "silent_s": round(now - seen, 2) if seen is not None else "never seen",
-                    "mount_known": self.core.extrinsics[n] is not None})
+                    "mount_known": self.core.extrinsics[n] is not None and
+                    (n not in self.core.tracks or len(self.core.tracks[n]) > 0)})
                 if seen is None:
                     st.worse(WARN, "no scan received yet")
                 elif now - seen > silent_after:
