@@ -451,6 +451,22 @@ def test_transform_buffer_samples_chain_static_and_moving_edges() -> None:
     assert buf.samples("base_link", "nowhere") == []
 
 
+def test_transform_buffer_samples_two_moving_joints() -> None:
+    """Stamps of both joints, each composite from the other joint interpolated; a stamp the
+    other joint cannot reach (beyond the buffer's tolerance) is left out."""
+    from converters.nodes.tf import TransformBuffer
+
+    buf = TransformBuffer(tolerance_ns=5)
+    for t in (0, 100):
+        buf.set_transform("base", "a", matrix_from_xyz_rpy(t / 100, 0, 0), t)
+    for t in (50, 300):
+        buf.set_transform("a", "b", matrix_from_xyz_rpy(0, 0, 0, yaw=t / 100), t)
+    samples = buf.samples("base", "b")
+    assert [t for t, _ in samples] == [50, 100]                   # 0: b unknown, 300: a unknown
+    assert np.allclose(samples[0][1], matrix_from_xyz_rpy(0.5, 0, 0, yaw=0.5))
+    assert np.allclose(samples[1][1], matrix_from_xyz_rpy(1.0, 0, 0, yaw=1.0))
+
+
 def test_merger_core_moving_input_waits_for_tf_then_matches_truth() -> None:
     from converters.nodes.merger_node import MergerCore
     from converters.nodes.tf import TransformBuffer

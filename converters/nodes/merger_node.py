@@ -284,6 +284,8 @@ class MergerCore:
         """New /tf arrived (``cleared``: its time jumped back and the buffer was cleared):
         extend the tracks, then release the waiting scans now covered (or waited long enough).
         Returns the merged scans now ready."""
+        if cleared:
+            self._data_clock = None              # a new timeline: wait afresh
         for name, track in self.tracks.items():
             if cleared:
                 track.clear()
@@ -351,6 +353,7 @@ class MergerCore:
         self.on_event(f"input {name}: time jumped back {(old_ns - new_ns) / 1e9:.3f} s (2 scans "
                       "in a row): new timeline, its queued scans dropped")
         horizon = new_ns + int(self.jump_back_ns or 0)
+        self._data_clock = new_ns
         self._recent[name].clear()
         for queue in self._recent.values():
             keep = [s for s in queue if to_ns(s.header.stamp) <= horizon]
