@@ -67,18 +67,18 @@ between samples larger than that, or no odometry, leaves the scan uncompensated 
 ``stats["uncompensated"]``). One odometry pose per scan (no per-ray deskew by odometry).
 
 **Moving mounts.** An input's ``extrinsics`` may move: a :class:`converters.TransformTrack`
-(stamped poses, interpolated: linear translation, slerp rotation) or any callable
-``stamp_ns -> 4x4``. The mount's pose is looked up at each ray's own time: ray ``i`` of a scan
-was measured at ``stamp + i * time_increment`` (sensor_msgs/LaserScan's definition; negative
-increments work; ``time_increment`` 0 or not finite, or ``MergerInput.deskew`` false: every ray
-at the stamp), so a sensor on a pan unit turning during its sweep is de-skewed ray by ray. (The slices of ``to_laserscan`` do not
-follow that convention: their ray ``i`` is not measured at ``stamp + i * time_increment``; give
-such an input ``deskew=False``.) A callable is called once per distinct ray time and its result
-checked (rigid 4x4); a track computes them in one batch. A pose that cannot be found (outside
-the track's span, :class:`converters.transforms.OutOfSpanError`, or any
+(stamped poses, interpolated: linear translation, slerp rotation) or any callable ``stamp_ns ->
+4x4``. The mount's pose is looked up at each ray's own time: ray ``i`` of a scan was measured at
+``stamp + i * time_increment`` (sensor_msgs/LaserScan's definition; negative increments work;
+``time_increment`` 0 or not finite, or ``MergerInput.deskew`` false: every ray at the stamp), so
+a sensor on a pan unit turning during its sweep is de-skewed ray by ray. (The slices of
+``to_laserscan`` do not follow that convention: their ray ``i`` is not measured at ``stamp + i *
+time_increment``; give such an input ``deskew=False``.) A callable is called once per distinct
+ray time and its result checked (rigid 4x4); a track computes them in one batch. A pose that
+cannot be found (outside the track's span, :class:`converters.transforms.OutOfSpanError`, or any
 :class:`~converters.transforms.TransformLookupError` the callable raises) never falls back to
-another pose: :meth:`LaserScanMerger.merge` raises it; in :meth:`LaserScanMerger.push` that
-scan is left out of the fused set and counted (``stats["dropped_no_pose"]``,
+another pose: :meth:`LaserScanMerger.merge` raises it; in :meth:`LaserScanMerger.push` that scan
+is left out of the fused set and counted (``stats["dropped_no_pose"]``,
 :attr:`LaserScanMerger.last_no_pose` says why); the others are merged without it (nothing is
 output when no scan is left).
 """

@@ -119,7 +119,8 @@ class TransformTrack:
             quaternion: (x, y, z, w), normalised here.
 
         Raises:
-            ConfigError: not a rigid transform / bad numbers (:func:`converters.deskew.pose_matrix`).
+            ConfigError: not a rigid transform, or bad numbers
+                (:func:`converters.deskew.pose_matrix`).
         """
         field = f"{self.name}.add({int(stamp_ns)})"
         matrix = pose_matrix(pose if quaternion is None else (pose, quaternion), field).copy()

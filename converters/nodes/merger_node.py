@@ -61,11 +61,12 @@ Parameters (defaults in brackets; ``config/merger.yaml`` is a complete example):
 
 ``lidarscan-merger --help`` prints every parameter (one table, :func:`_specs`). Topics, QoS,
 ``input_names``, ``frame_id``, ``use_tf``, ``odometry_topic``, the inputs' extrinsics,
-``moving``, ``tf_wait`` and ``tf_tolerance`` are read-only; the grid, limits, bands, windows and timing (slop, policy, timeouts, queue_size,
-jump_back, odometry options) may be changed while running: a change is checked by its rule and
-by building :class:`converters.merger.LaserScanMerger` with it (refused with the reason
-otherwise), then the merger is rebuilt (queues restart). ``/diagnostics`` (1 Hz): output and
-per-input rates, drops, silence and latency.
+``moving``, ``tf_wait`` and ``tf_tolerance`` are read-only; the grid, limits, bands, windows,
+``deskew`` and timing (slop, policy, timeouts, queue_size, jump_back, odometry options) may be
+changed while running: a change is checked by its rule and by building
+:class:`converters.merger.LaserScanMerger` with it (refused with the reason otherwise), then the
+merger is rebuilt (queues restart). ``/diagnostics`` (1 Hz): output and per-input rates, drops,
+silence and latency.
 
 Behaviour: nothing is merged while nobody subscribes to the output (incoming scans are counted and
 dropped); a malformed scan is dropped with one log line (rate-limited) and counted; Ctrl-C exits
