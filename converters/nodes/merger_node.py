@@ -22,7 +22,9 @@ most ``tf_wait`` seconds of data time (the newest stamp seen on any input or on 
 it is merged anyway and, if a pose is still missing, left out of the fusion and counted
 (``dropped_no_pose`` in the diagnostics). ``tf_tolerance`` holds the newest pose that long after
 it (0 = strict, as tf2). A moving input needs ``use_tf``; its ``extrinsics`` parameter is not
-used. The input's frame is its scans' ``header.frame_id``.
+used. The input's frame is its scans' ``header.frame_id``. Its chain must contain a ``/tf``
+(dynamic) edge: a mount known only from ``/tf_static`` gives no poses (every scan counted in
+``dropped_no_pose``); leave ``moving`` false for it.
 
 Parameters (defaults in brackets; ``config/merger.yaml`` is a complete example):
 
