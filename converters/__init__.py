@@ -3,7 +3,8 @@
 * LidarScan -> PointCloud2: :func:`to_pointcloud2` (driver presets, deskew);
 * PointCloud2 -> LidarScan + estimated LidarInfo: :func:`from_pointcloud2`;
 * LidarScan -> height-filtered LaserScan slices: :func:`to_laserscan`, :class:`SliceConverter`;
-* N LaserScans -> one: :class:`LaserScanMerger` configured with :class:`MergerInput`;
+* N LaserScans -> one: :class:`LaserScanMerger` configured with :class:`MergerInput`; moving
+  mounts as :class:`TransformTrack` (:mod:`converters.transforms`);
 * importers: :mod:`converters.ouster` (metadata JSON, frames), :mod:`converters.velodyne`
   (calibration YAML, raw packets), :mod:`converters.hesai` (raw packets -> scans per rotation),
   :func:`from_laserscan_sweep` (tilting 2D lasers), :func:`from_depth_image` (depth cameras,
@@ -26,6 +27,7 @@ __all__ = [
     "SliceConverter",
     "LaserScanMerger",
     "MergerInput",
+    "TransformTrack",
     "from_laserscan_sweep",
     "from_depth_image",
     "ouster",
@@ -42,11 +44,12 @@ _LAZY = {
     "SliceConverter": "converters.laserscan",
     "LaserScanMerger": "converters.merger",
     "MergerInput": "converters.merger",
+    "TransformTrack": "converters.transforms",
     "from_laserscan_sweep": "converters.sweep",
     "from_depth_image": "converters.depth",
 }
 _SUBMODULES = {"ouster", "velodyne", "hesai", "pointcloud2", "laserscan", "merger", "sweep",
-               "depth"}
+               "depth", "transforms"}
 
 
 def __getattr__(name: str) -> Any:

@@ -13,7 +13,7 @@ import numpy as np
 
 from lidarscan.errors import ConfigError, ValidationError
 
-__all__ = ["check_extrinsics", "check_frame", "transform_rays"]
+__all__ = ["check_extrinsics", "check_frame", "check_poses", "transform_rays"]
 
 
 def check_extrinsics(extrinsics: Any, field: str = "extrinsics") -> np.ndarray[Any, Any]:
@@ -34,12 +34,40 @@ def check_extrinsics(extrinsics: Any, field: str = "extrinsics") -> np.ndarray[A
     if matrix.size != 16:
         raise ConfigError(field, matrix.shape, "a 4x4 matrix (or 16 values, row-major)")
     matrix = matrix.reshape(4, 4)
-    rot = matrix[:3, :3]
-    if not (np.all(np.isfinite(matrix)) and np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9)
-            and np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0):
-        raise ConfigError(field, matrix.round(6).tolist(),
-                          "a rigid transform (orthonormal rotation with det +1, last row 0 0 0 1)")
+    if not _rigid(matrix[None]):
+        raise ConfigError(field, matrix.round(6).tolist(), _RIGID)
     return matrix
+
+
+_RIGID = "a rigid transform (orthonormal rotation with det +1, last row 0 0 0 1)"
+
+
+def _rigid(stack: np.ndarray[Any, Any]) -> bool:
+    """Whether every (N, 4, 4) matrix is a finite rigid transform."""
+    rot = stack[:, :3, :3]
+    return bool(np.all(np.isfinite(stack))
+                and np.allclose(stack[:, 3], [0, 0, 0, 1], atol=1e-9)
+                and np.allclose(rot @ rot.transpose(0, 2, 1), np.eye(3), atol=1e-6)
+                and np.all(np.linalg.det(rot) > 0))
+
+
+def check_poses(poses: Any, field: str) -> np.ndarray[Any, Any]:
+    """(N, 4, 4) float64 rigid transforms (e.g. what a moving mount's callable returned).
+
+    Raises:
+        ValidationError: wrong shape, or a matrix that is not a finite rigid transform (the
+            first one is named by its index).
+    """
+    try:
+        stack = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValidationError(field, poses, "4x4 homogeneous transforms") from err
+    if stack.ndim != 3 or stack.shape[1:] != (4, 4):
+        raise ValidationError(field, stack.shape, "4x4 homogeneous transforms")
+    if not _rigid(stack):
+        bad = next(i for i in range(len(stack)) if not _rigid(stack[i:i + 1]))
+        raise ValidationError(f"{field}[{bad}]", stack[bad].round(6).tolist(), _RIGID)
+    return stack
 
 
 def check_frame(field: str, frame: str, output_frame: str, has_extrinsics: bool,

@@ -64,7 +64,23 @@ same rule on its own stamps (``stats["odometry_resets"]``: the pose history rest
 are interpolated linearly (position) and by slerp along the shortest arc (orientation); outside
 the queued window the nearest pose is held (clamp), but only up to ``odom_max_gap_ns``; a gap
 between samples larger than that, or no odometry, leaves the scan uncompensated (counted in
-``stats["uncompensated"]``). One pose per scan (no per-ray deskew).
+``stats["uncompensated"]``). One odometry pose per scan (no per-ray deskew by odometry).
+
+**Moving mounts.** An input's ``extrinsics`` may move: a :class:`converters.TransformTrack`
+(stamped poses, interpolated: linear translation, slerp rotation) or any callable ``stamp_ns ->
+4x4``. The mount's pose is looked up at each ray's own time: ray ``i`` of a scan was measured at
+``stamp + i * time_increment`` (sensor_msgs/LaserScan's definition; negative increments work;
+``time_increment`` 0 or not finite, or ``MergerInput.deskew`` false: every ray at the stamp), so
+a sensor on a pan unit turning during its sweep is de-skewed ray by ray. (The slices of
+``to_laserscan`` do not follow that convention: their ray ``i`` is not measured at ``stamp + i *
+time_increment``; give such an input ``deskew=False``.) A callable is called once per distinct
+ray time and its result checked (rigid 4x4); a track computes them in one batch. A pose that
+cannot be found (outside the track's span, :class:`converters.transforms.OutOfSpanError`, or any
+:class:`~converters.transforms.TransformLookupError` the callable raises) never falls back to
+another pose: :meth:`LaserScanMerger.merge` raises it; in :meth:`LaserScanMerger.push` that scan
+is left out of the fused set and counted (``stats["dropped_no_pose"]``,
+:attr:`LaserScanMerger.last_no_pose` says why); the others are merged without it (nothing is
+output when no scan is left).
 """
 
 from __future__ import annotations
@@ -80,7 +96,8 @@ import numpy as np
 from converters import _grid, _kernels, options
 from converters._grid import AngleGrid, OutputOptions
 from converters._kernels.slices_numba import Bands, Rays
-from converters.frames import check_extrinsics, check_frame
+from converters.frames import check_extrinsics, check_frame, check_poses
+from converters.transforms import TransformLookupError, TransformTrack
 from lidarscan.errors import ConfigError, ValidationError
 from lidarscan.scan import as_array
 from lidarscan.stamps import to_ns
@@ -98,6 +115,8 @@ class MergerInput:
         extrinsics: 4x4 pose of the input's frame in the output frame. None = identity, allowed
             only for an input whose scans are in the output frame: a scan in another frame
             without extrinsics is refused (ValidationError naming the input and both frames).
+            A moving mount: a :class:`converters.TransformTrack` or a callable
+            ``stamp_ns (int) -> 4x4``, looked up at each ray's time (module docstring).
         range_min, range_max: user range filter on the input's own ranges, metres (see the
             module docstring for what happens below/above).
         angle_min, angle_max: angle window in the input frame, radians, inclusive, CCW from
@@ -107,6 +126,8 @@ class MergerInput:
         timeout_ns: how long the input may stay silent before policy ``"timeout"`` merges without
             it (None = the merger's ``timeout_ns``).
         frame_id: if set, scans must carry this ``header.frame_id``.
+        deskew: with moving extrinsics, look the pose up per ray at
+            ``stamp + i * time_increment`` (false: one pose at the scan's stamp).
     """
 
     extrinsics: Any = None
@@ -118,6 +139,7 @@ class MergerInput:
     max_height: float = math.inf
     timeout_ns: int | None = None
     frame_id: str | None = None
+    deskew: bool = True
 
 
 @dataclass(frozen=True)
@@ -192,6 +214,7 @@ class _ScanIn:
     range_min: float
     range_max: float
     scan_time: float
+    time_increment: float
 
 
 def _read_scan(scan: Any, name: str) -> _ScanIn:
@@ -212,9 +235,11 @@ def _read_scan(scan: Any, name: str) -> _ScanIn:
     if rmin > rmax:
         raise ValidationError(f"{name}.range_min", rmin, f"<= range_max ({rmax})")
     scan_time = float(scan.scan_time)
+    time_inc = float(getattr(scan, "time_increment", 0.0))
     return _ScanIn(to_ns(scan.header.stamp, field=f"{name}.header.stamp"),
                    scan.header.frame_id, amin, inc, ranges, intensities, rmin, rmax,
-                   scan_time if math.isfinite(scan_time) else 0.0)
+                   scan_time if math.isfinite(scan_time) else 0.0,
+                   time_inc if math.isfinite(time_inc) else 0.0)
 
 
 class _InputState:
@@ -225,7 +250,15 @@ class _InputState:
         self.cfg = cfg
         self.index = index
         options.merger_input(name, cfg)
-        self.extrinsics = check_extrinsics(cfg.extrinsics, f"inputs[{name!r}].extrinsics")
+        if not isinstance(cfg.deskew, bool):
+            raise ConfigError(f"inputs[{name!r}].deskew", cfg.deskew, "True or False")
+        #: a moving mount: TransformTrack or callable stamp_ns -> 4x4 (else None)
+        self.moving: Any = None
+        if callable(cfg.extrinsics):
+            self.moving = cfg.extrinsics
+            self.extrinsics = np.eye(4)
+        else:
+            self.extrinsics = check_extrinsics(cfg.extrinsics, f"inputs[{name!r}].extrinsics")
         self.window: tuple[float, float] | None = None
         if cfg.angle_min is not None:
             a, b = float(cfg.angle_min), float(cfg.angle_max)  # type: ignore[arg-type]
@@ -258,23 +291,47 @@ class _InputState:
             self._geom[key] = geom
         return geom
 
+    def poses(self, sc: _ScanIn) -> np.ndarray[Any, Any]:
+        """The mount's pose(s) for a scan: (4, 4), or (n, 4, 4) one per ray when it moves
+        during the sweep (ray ``i`` at ``stamp + i * time_increment``).
+
+        Raises:
+            TransformLookupError: a pose the track (or callable) does not know.
+            ValidationError: the callable returned something that is not a rigid 4x4.
+        """
+        if self.moving is None:
+            return self.extrinsics
+        n = sc.ranges.size
+        if self.cfg.deskew and sc.time_increment != 0.0 and n > 1:
+            times = sc.stamp + np.round(np.arange(n) * (sc.time_increment * 1e9)).astype(np.int64)
+        else:
+            times = np.array([sc.stamp], np.int64)
+        if isinstance(self.moving, TransformTrack):
+            mats = self.moving.lookup_many(times)
+        else:
+            unique, inverse = np.unique(times, return_inverse=True)
+            field = f"inputs[{self.name!r}].extrinsics(stamp_ns)"
+            mats = check_poses([self.moving(int(t)) for t in unique], field)[inverse]
+        return mats[0] if len(mats) == 1 else mats
+
     def rays(self, matrix: np.ndarray[Any, Any], amin: float, inc: float, n: int,
              grid: AngleGrid, options: OutputOptions, near: float, static: bool) -> _Rays:
         """Rays of a scan header in the output frame, cached while transform and header stay.
 
-        ``static``: the transform will be reused (no motion compensation), so the far-field
-        tables are worth computing; otherwise every point gets atan2.
+        ``matrix``: (4, 4), or (n, 4, 4) one transform per ray (a mount moving during the
+        sweep). ``static``: the transform will be reused (no motion compensation, a rigid
+        mount), so the far-field tables are worth computing; otherwise every point gets atan2.
         """
         key = (matrix.tobytes(), amin, inc, n, near, static)
         if key == self._rays_key:
             return self._rays  # type: ignore[no-any-return]
         c, s, keep = self.geometry(amin, inc, n)
-        m = matrix
+        m = matrix if matrix.ndim == 3 else matrix[None]
         d = np.empty((n, 3))
         for i in range(3):
-            d[:, i] = m[i, 0] * c + m[i, 1] * s
+            d[:, i] = m[:, i, 0] * c + m[:, i, 1] * s
         o = np.empty((n, 3))
-        o[:] = m[:3, 3]
+        o[:] = m[:, :3, 3]
         if static:
             bin_far, r_thr = _grid.far_field(d, o, grid)
         else:
@@ -383,12 +440,14 @@ class LaserScanMerger:
         self.last_inputs: tuple[str, ...] = ()
         #: why the last pushed scan was not queued (None: it was queued)
         self.last_drop: str | None = None
+        #: why the last scan left out for want of a moving mount's pose was (None: never)
+        self.last_no_pose: str | None = None
         #: (input, its newest stamp before, new stamp) if the last push reset an input's time
         self.last_reset: tuple[str, int, int] | None = None
         self.stats = {"merged": 0, "partial": 0, "dropped_late": 0, "dropped_duplicate": 0,
                       "dropped_overflow": 0, "dropped_unmatched": 0, "dropped_backlog": 0,
                       "dropped_jump": 0, "time_resets": 0, "odometry_resets": 0,
-                      "dropped_odometry": 0, "uncompensated": 0}
+                      "dropped_odometry": 0, "uncompensated": 0, "dropped_no_pose": 0}
 
     @property
     def input_names(self) -> tuple[str, ...]:
@@ -457,6 +516,8 @@ class LaserScanMerger:
         Raises:
             ConfigError: an unknown input name.
             ValidationError: no scan, or a scan with a bad header / wrong frame.
+            TransformLookupError: a moving mount's pose is unknown at a ray's time
+                (:class:`converters.transforms.OutOfSpanError` outside a track's span).
         """
         for name in scans:
             if name not in self._inputs:
@@ -465,7 +526,7 @@ class LaserScanMerger:
         if not states:
             raise ValidationError("scans", dict(scans), "at least one input scan")
         read = [self._read(s, scans[s.name]) for s in states]
-        return self._fuse(states, read)
+        return self._fuse(states, read, [s.poses(sc) for s, sc in zip(states, read)])
 
     def _read(self, state: _InputState, scan: Any) -> _ScanIn:
         """Header and arrays of one input's scan, validated (frame included: the configured
@@ -478,8 +539,9 @@ class LaserScanMerger:
                     state.cfg.extrinsics is not None)
         return sc
 
-    def _fuse(self, states: list[_InputState], read: list[_ScanIn]) -> Any:
-        """Fuse validated scans (one per state, in tie order)."""
+    def _fuse(self, states: list[_InputState], read: list[_ScanIn],
+              mounts: list[np.ndarray[Any, Any]]) -> Any:
+        """Fuse validated scans (one per state, in tie order) with their mounts' poses."""
         stamps = [sc.stamp for sc in read]
         ref = max(stamps) if self.reference == "newest" else min(stamps)
         ref_inv = None
@@ -490,18 +552,17 @@ class LaserScanMerger:
         bins_l, codes_l, keys_l, ints_l = [], [], [], []
         base = 0
         compensate = self.motion_compensation and bool(self._odom_t)
-        for s, sc in zip(states, read):
-            matrix = s.extrinsics
+        for s, sc, matrix in zip(states, read, mounts):
             if compensate and sc.stamp != ref:
                 pose = self.pose_at(sc.stamp)
                 if pose is None or ref_inv is None:
                     self.stats["uncompensated"] += 1
                 else:
-                    matrix = ref_inv @ pose.matrix() @ s.extrinsics
+                    matrix = ref_inv @ pose.matrix() @ matrix
             n = sc.ranges.size
             if n:
                 rays = s.rays(matrix, sc.angle_min, sc.increment, n, self.grid, self.options,
-                              sc.range_min, static=not compensate)
+                              sc.range_min, static=not compensate and s.moving is None)
                 if self._kernel is not None:
                     self._input_kernel(self._kernel, s, sc, rays, base, best)
                 else:
@@ -577,7 +638,8 @@ class LaserScanMerger:
 
     # ---------------------------------------------------------------------------- streaming
     def push(self, name: str, scan: Any) -> Any:
-        """Queue one scan; return the merged scan if a set now matches, else None.
+        """Queue one scan; return the merged scan if a set now matches, else None (also when
+        every scan of the set lacked its moving mount's pose: ``stats["dropped_no_pose"]``).
 
         The scan is validated here (header, frame), so a malformed scan is rejected before it
         touches any queue. Why a scan was not queued is in :attr:`last_drop` (None: queued).
@@ -681,10 +743,24 @@ class LaserScanMerger:
             found, partial = matched
         if found is None:
             return None
+        states, read, mounts = [], [], []
+        for s in self._inputs.values():
+            if s.name not in found:
+                continue
+            try:
+                mounts.append(s.poses(found[s.name]))
+            except TransformLookupError as err:   # no pose: this scan is left out, counted
+                self.stats["dropped_no_pose"] += 1
+                self.last_no_pose = f"input {s.name!r}: scan left out of the fusion: {err}"
+                partial = True
+                continue
+            states.append(s)
+            read.append(found[s.name])
+        if not states:
+            return None
         self.stats["merged"] += 1
         self.stats["partial"] += int(partial)
-        states = [s for s in self._inputs.values() if s.name in found]
-        return self._fuse(states, [found[s.name] for s in states])
+        return self._fuse(states, read, mounts)
 
     def _match_once(self) -> tuple[dict[str, _ScanIn], bool] | None:
         while True:

@@ -10,6 +10,22 @@ identity when the input's frame is the output frame. A scan whose pose is unknow
 log line. When a mount changes (a new ``/tf_static``) the merger is rebuilt (its queues restart;
 the recent odometry is replayed).
 
+**Moving inputs** (``inputs.NAME.moving: true``, e.g. a laser on a pan unit or an arm): the
+input's pose ``frame_id <- scan frame`` is a :class:`converters.TransformTrack` filled from
+``/tf``: each time a dynamic transform of the chain between the two frames arrives, the chained
+transform at that stamp is added (static edges from ``/tf_static`` compose in; see
+:meth:`converters.nodes.tf.TransformBuffer.samples` for chains with several moving joints). The
+merger looks the pose up at each ray's time (``stamp + i * time_increment``, de-skew; off with
+``inputs.NAME.deskew: false``) and never extrapolates. Since ``/tf`` usually arrives a little
+after a sweep ends, a moving input's scan waits until the track covers its whole sweep, for at
+most ``tf_wait`` seconds of data time (the newest stamp seen on any input or on the track); then
+it is merged anyway and, if a pose is still missing, left out of the fusion and counted
+(``dropped_no_pose`` in the diagnostics). ``tf_tolerance`` holds the newest pose that long after
+it (0 = strict, as tf2). A moving input needs ``use_tf``; its ``extrinsics`` parameter is not
+used. The input's frame is its scans' ``header.frame_id``. Its chain must contain a ``/tf``
+(dynamic) edge: a mount known only from ``/tf_static`` gives no poses (every scan counted in
+``dropped_no_pose``); leave ``moving`` false for it.
+
 Parameters (defaults in brackets; ``config/merger.yaml`` is a complete example):
 
 * ``input_names`` [[]] (required): names of the inputs, in tie order (first wins ties); per NAME:
@@ -18,7 +34,9 @@ Parameters (defaults in brackets; ``config/merger.yaml`` is a complete example):
   ``inputs.NAME.range_min`` [0.0], ``inputs.NAME.range_max`` [inf] (user range filter),
   ``inputs.NAME.angle_min`` / ``angle_max`` (optional window, input frame, radians),
   ``inputs.NAME.min_height`` [-inf] / ``max_height`` [inf] (band in the output frame),
-  ``inputs.NAME.timeout`` (optional, seconds; default ``timeout``);
+  ``inputs.NAME.timeout`` (optional, seconds; default ``timeout``),
+  ``inputs.NAME.moving`` [false] (pose from ``/tf`` at every ray's time, see above),
+  ``inputs.NAME.deskew`` [true] (a moving input's pose per ray, not one per scan);
 * ``frame_id`` [``base_link``]: output frame; ``output_topic`` [``scan_merged``];
   ``output_qos`` [``sensor_data``];
 * output grid: ``angle_min`` [-pi], ``angle_max`` [pi], ``angle_increment`` [0.25 deg in
@@ -31,6 +49,8 @@ Parameters (defaults in brackets; ``config/merger.yaml`` is a complete example):
 * odometry: ``odometry_topic`` [""] ("" = none), ``odometry_qos`` [``reliable``],
   ``motion_compensation`` [true], ``odom_max_gap`` [0.25] s;
 * ``use_tf`` [true]: read ``/tf`` and ``/tf_static`` for the mounts;
+* moving inputs: ``tf_wait`` [0.1] s (how long a scan waits for ``/tf`` to cover its sweep),
+  ``tf_tolerance`` [0.0] s (newest pose held that long; 0 = never beyond the newest);
 * ``jump_back`` [1.0] s: an input whose *own* stamps go back by more than this, two scans in a
   row, had its clock reset (a looping recording, a simulator reset): that input starts a new
   timeline (its queue dropped, one log line) instead of every later scan being dropped as late
@@ -42,12 +62,13 @@ Parameters (defaults in brackets; ``config/merger.yaml`` is a complete example):
   start-up unless true.
 
 ``lidarscan-merger --help`` prints every parameter (one table, :func:`_specs`). Topics, QoS,
-``input_names``, ``frame_id``, ``use_tf``, ``odometry_topic`` and the inputs' extrinsics are
-read-only; the grid, limits, bands, windows and timing (slop, policy, timeouts, queue_size,
-jump_back, odometry options) may be changed while running: a change is checked by its rule and
-by building :class:`converters.merger.LaserScanMerger` with it (refused with the reason
-otherwise), then the merger is rebuilt (queues restart). ``/diagnostics`` (1 Hz): output and
-per-input rates, drops, silence and latency.
+``input_names``, ``frame_id``, ``use_tf``, ``odometry_topic``, the inputs' extrinsics,
+``moving``, ``tf_wait`` and ``tf_tolerance`` are read-only; the grid, limits, bands, windows,
+``deskew`` and timing (slop, policy, timeouts, queue_size, jump_back, odometry options) may be
+changed while running: a change is checked by its rule and by building
+:class:`converters.merger.LaserScanMerger` with it (refused with the reason otherwise), then the
+merger is rebuilt (queues restart). ``/diagnostics`` (1 Hz): output and per-input rates, drops,
+silence and latency.
 
 Behaviour: nothing is merged while nobody subscribes to the output (incoming scans are counted and
 dropped); a malformed scan is dropped with one log line (rate-limited) and counted; Ctrl-C exits
@@ -60,7 +81,7 @@ import functools
 import math
 import sys
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -84,6 +105,12 @@ class MergerCore:
             whose own stamps go back by more than this, two scans in a row, starts a new
             timeline (a recording restarted, a simulator reset). None = never.
         on_event: called with one line per notable event (an input's time reset).
+        moving: names of moving inputs (pose per ray from a :class:`converters.TransformTrack`
+            filled by ``tf_samples``; see the module docstring).
+        tf_samples: ``(output frame, input frame, after_ns) -> [(stamp_ns, 4x4), ...]``
+            (:meth:`converters.nodes.tf.TransformBuffer.samples`); required with ``moving``.
+        tf_wait_ns: how long (data time) a moving input's scan waits for its poses.
+        tf_tolerance_ns: the tracks' ``tolerance_ns`` (newest pose held that long).
         **output_options: keyword options of :class:`converters.merger.LaserScanMerger`
             (``frame_id`` included).
     """
@@ -94,9 +121,21 @@ class MergerCore:
                  tf_version: Callable[[], int] | None = None,
                  jump_back_ns: int | None = 1_000_000_000,
                  on_event: Callable[[str], None] | None = None,
+                 moving: Iterable[str] = (),
+                 tf_samples: Callable[[str, str, int | None], Any] | None = None,
+                 tf_wait_ns: int = 100_000_000, tf_tolerance_ns: int = 0,
                  **output_options: Any) -> None:
+        from converters.transforms import TransformTrack
+
         if not inputs:
             raise ConfigError("input_names", [], "at least one input")
+        moving = list(moving)
+        for name in moving:
+            if name not in inputs:
+                raise ConfigError("moving", name, f"one of the inputs {list(inputs)}")
+        if moving and tf_samples is None:
+            raise ConfigError(f"inputs.{moving[0]}.moving", True,
+                              "use_tf true: a moving input's poses come from /tf")
         self.inputs = {name: dict(opts) for name, opts in inputs.items()}
         self.fallback = dict(fallback_extrinsics or {})
         self.resolve = resolve
@@ -104,9 +143,18 @@ class MergerCore:
         self.output_options = dict(output_options)
         self.frame_id = str(self.output_options.get("frame_id", "base_link"))
         # mounts known without a scan (fallback parameters) are used from the start
-        self.extrinsics: dict[str, np.ndarray[Any, Any] | None] = {
+        self.extrinsics: dict[str, Any] = {
             n: None if self.fallback.get(n) is None else np.asarray(self.fallback[n], np.float64)
             for n in inputs}
+        #: moving inputs: name -> TransformTrack (the merger's extrinsics for that input)
+        self.tracks = {n: TransformTrack(name=f"{self.frame_id} <- input {n}",
+                                         tolerance_ns=int(tf_tolerance_ns)) for n in moving}
+        self.extrinsics.update(self.tracks)
+        self.tf_samples = tf_samples
+        self.tf_wait_ns = int(tf_wait_ns)
+        self.frames: dict[str, str] = {}          # a moving input's frame (from its scans)
+        self._waiting: dict[str, deque[Any]] = {n: deque() for n in moving}
+        self._data_clock: int | None = None
         self._versions: dict[str, int | None] = {n: None for n in inputs}
         depth = int(self.output_options.get("queue_size", 10))
         self._recent: dict[str, deque[Any]] = {n: deque(maxlen=depth) for n in inputs}
@@ -156,6 +204,9 @@ class MergerCore:
         of an input (``jump_back_ns``) is counted in :attr:`resets` and reported to
         ``on_event``.
 
+        A moving input's scan waits (:meth:`update_tracks` releases it) until its track covers
+        the sweep or ``tf_wait_ns`` has passed.
+
         Raises:
             LidarScanError: unknown input, malformed scan, or no pose for its frame.
         """
@@ -163,10 +214,27 @@ class MergerCore:
 
         if name not in self.inputs:
             raise ConfigError("input", name, f"one of {list(self.inputs)}")
+        stamp = to_ns(scan.header.stamp, field=f"{name}.header.stamp")
+        self._tick(stamp)
+        if name in self.tracks:
+            frame = str(scan.header.frame_id).lstrip("/")
+            if self.frames.get(name) != frame:       # first scan, or the frame changed
+                self.frames[name] = frame
+                self.tracks[name].clear()
+                self._fill(name)
+            self._waiting[name].append(scan)
+            return self._release()
+        return self._release() + self._push(name, scan)
+
+    def _push(self, name: str, scan: Any) -> list[Any]:
+        """:meth:`push` without the wait for a moving input's poses."""
+        from lidarscan.stamps import to_ns
+
         version = self.tf_version()
         rebuilt = False
-        if self.resolve is not None and self._versions[name] != version or \
-                self.extrinsics[name] is None:
+        if name not in self.tracks and (self.resolve is not None and
+                                        self._versions[name] != version or
+                                        self.extrinsics[name] is None):
             matrix = self._mount(name, str(scan.header.frame_id))
             self._versions[name] = version
             current = self.extrinsics[name]
@@ -197,6 +265,62 @@ class MergerCore:
             if self.last_output_ns is None or out_ns > self.last_output_ns:  # not sent before
                 self.last_output_ns = out_ns
                 out.append(merged)
+        return out
+
+    def _tick(self, stamp: int) -> None:
+        if self._data_clock is None or stamp > self._data_clock:
+            self._data_clock = stamp
+
+    def _fill(self, name: str) -> None:
+        """Extend a moving input's track with the chained /tf samples newer than it holds."""
+        frame = self.frames.get(name)
+        if frame is None or self.tf_samples is None:
+            return
+        track = self.tracks[name]
+        span = track.span
+        for stamp, matrix in self.tf_samples(self.frame_id, frame,
+                                             None if span is None else span[1]):
+            track.add(stamp, matrix)
+            self._tick(stamp)
+
+    def update_tracks(self, cleared: bool = False) -> list[Any]:
+        """New /tf arrived (``cleared``: its time jumped back and the buffer was cleared):
+        extend the tracks, then release the waiting scans now covered (or waited long enough).
+        Returns the merged scans now ready."""
+        if cleared:
+            self._data_clock = None              # a new timeline: wait afresh
+        for name, track in self.tracks.items():
+            if cleared:
+                track.clear()
+            self._fill(name)
+        return self._release()
+
+    def _release(self) -> list[Any]:
+        """Push every waiting scan whose sweep the track covers, that can never be covered
+        (older than the track), or that waited ``tf_wait_ns`` (oldest first per input)."""
+        from lidarscan.stamps import to_ns
+
+        out: list[Any] = []
+        depth = int(self.output_options.get("queue_size", 10))
+        for name, queue in self._waiting.items():
+            track = self.tracks[name]
+            while queue:
+                scan = queue[0]
+                stamp = to_ns(scan.header.stamp)
+                end = stamp
+                n = len(scan.ranges)
+                inc = float(scan.time_increment)
+                if self.inputs[name].get("deskew", True) and n > 1 and math.isfinite(inc):
+                    end = stamp + round((n - 1) * inc * 1e9)
+                lo, hi = min(stamp, end), max(stamp, end)
+                span = track.span
+                ready = span is not None and (
+                    lo < span[0] or hi <= span[1] + track.tolerance_ns)
+                waited = self._data_clock is not None and self._data_clock - hi > self.tf_wait_ns
+                if not (ready or waited or len(queue) > depth):
+                    break
+                queue.popleft()
+                out += self._push(name, scan)
         return out
 
     def reconfigure(self, inputs: Mapping[str, Mapping[str, Any]], *,
@@ -232,6 +356,7 @@ class MergerCore:
         self.on_event(f"input {name}: time jumped back {(old_ns - new_ns) / 1e9:.3f} s (2 scans "
                       "in a row): new timeline, its queued scans dropped")
         horizon = new_ns + int(self.jump_back_ns or 0)
+        self._data_clock = new_ns
         self._recent[name].clear()
         for queue in self._recent.values():
             keep = [s for s in queue if to_ns(s.header.stamp) <= horizon]
@@ -282,6 +407,10 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
         S("odometry_qos", "reliable", "QoS of the odometry", choices=QOS_NAMES,
           read_only=True),
         S("use_tf", True, "read /tf and /tf_static for the mounts", read_only=True),
+        S("tf_wait", 0.1, "seconds (data time) a moving input's scan waits for /tf to cover "
+          "its sweep", low=0.0, read_only=True),
+        S("tf_tolerance", 0.0, "seconds a moving input's newest /tf pose is held (0 = never "
+          "beyond it, as tf2)", low=0.0, read_only=True),
         S("jump_back", 1.0, "an input whose stamps go back by more than this (s), 2 scans in "
           "a row, starts a new timeline (0 = never)", low=0.0),
         S("allow_unknown_parameters", False, "start even with parameters this node does not "
@@ -305,6 +434,10 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
           kind="float"),
         S("inputs.NAME.timeout", None, "input NAME: seconds (optional; default timeout)",
           kind="float", low=0.0),
+        S("inputs.NAME.moving", False, "input NAME: its mount moves: pose from /tf at every "
+          "ray's time", read_only=True),
+        S("inputs.NAME.deskew", True, "input NAME (moving): one pose per ray at stamp + i * "
+          "time_increment (false: one per scan)"),
     )
     return node, per_input
 
@@ -328,8 +461,9 @@ def usage() -> str:
 
 def settings(values: Mapping[str, Any]) -> dict[str, Any]:
     """:class:`MergerCore` arguments from checked parameter values: ``inputs``,
-    ``fallback_extrinsics``, ``jump_back_ns``, ``options`` (LaserScanMerger's) and ``topics``
-    (name -> (topic, qos)).
+    ``fallback_extrinsics``, ``jump_back_ns``, ``options`` (LaserScanMerger's), ``topics``
+    (name -> (topic, qos)), ``moving`` (names) and ``tf`` (``tf_wait_ns``,
+    ``tf_tolerance_ns``).
 
     Raises:
         ConfigError: no or duplicate input names, bad extrinsics.
@@ -346,7 +480,8 @@ def settings(values: Mapping[str, Any]) -> dict[str, Any]:
     topics: dict[str, tuple[str, str]] = {}
     for n in names:
         p = f"inputs.{n}."
-        cfg = {k: values[p + k] for k in ("range_min", "range_max", "min_height", "max_height")}
+        cfg = {k: values[p + k] for k in ("range_min", "range_max", "min_height", "max_height",
+                                          "deskew")}
         for key in ("angle_min", "angle_max"):
             if values.get(p + key) is not None:
                 cfg[key] = values[p + key]
@@ -365,7 +500,10 @@ def settings(values: Mapping[str, Any]) -> dict[str, Any]:
                    odom_max_gap_ns=round(values["odom_max_gap"] * 1e9))
     jump = values["jump_back"]
     return {"inputs": inputs, "fallback_extrinsics": fallback, "options": options,
-            "jump_back_ns": round(jump * 1e9) if jump > 0 else None, "topics": topics}
+            "jump_back_ns": round(jump * 1e9) if jump > 0 else None, "topics": topics,
+            "moving": [n for n in names if values[f"inputs.{n}.moving"]],
+            "tf": {"tf_wait_ns": round(values["tf_wait"] * 1e9),
+                   "tf_tolerance_ns": round(values["tf_tolerance"] * 1e9)}}
 
 
 # ------------------------------------------------------------------------------------ node
@@ -403,7 +541,8 @@ def _node_class() -> type:
 
             self.tf_buffer = TransformBuffer()
             self.tf_listener = TfListener(self, self.tf_buffer,
-                                          on_error=lambda line: self._log(line, "tf")) \
+                                          on_error=lambda line: self._log(line, "tf"),
+                                          on_message=self._on_tf) \
                 if values["use_tf"] else None
 
             def resolve(target: str, source: str) -> Any:
@@ -418,7 +557,9 @@ def _node_class() -> type:
                                    tf_version=lambda: self.tf_buffer.version,
                                    jump_back_ns=config["jump_back_ns"],
                                    on_event=lambda line: self._log(line, "reset"),
-                                   **config["options"])
+                                   moving=config["moving"],
+                                   tf_samples=self.tf_buffer.samples if values["use_tf"]
+                                   else None, **config["tf"], **config["options"])
             self.guard = P.ParameterGuard(
                 self, {s.name: s for s in (*node_specs, *input_specs)}, values,
                 self._validate, self._apply)
@@ -477,6 +618,8 @@ def _node_class() -> type:
             delta, dt = self._rates.update(counters)
             out = Status("output", {**{f"{k}_per_s": round(v / dt, 2) for k, v in delta.items()},
                                     **self.stats, "rebuilds": self.core.rebuilds,
+                                    "dropped_no_pose":
+                                        self.core.merger.stats["dropped_no_pose"],
                                     "resets": self.core.resets, **self._latency.take()})
             if delta["bad"]:
                 out.worse(WARN, f"{delta['bad']} input scan(s) dropped in the last {dt:.1f} s")
@@ -492,7 +635,8 @@ def _node_class() -> type:
                     "received_per_s": round(delta[f"{n}.received"] / dt, 2),
                     "dropped_last_period": delta[f"{n}.bad"],
                     "silent_s": round(now - seen, 2) if seen is not None else "never seen",
-                    "mount_known": self.core.extrinsics[n] is not None})
+                    "mount_known": self.core.extrinsics[n] is not None and
+                    (n not in self.core.tracks or len(self.core.tracks[n]) > 0)})
                 if seen is None:
                     st.worse(WARN, "no scan received yet")
                 elif now - seen > silent_after:
@@ -506,7 +650,6 @@ def _node_class() -> type:
             import time
 
             from lidarscan import decode
-            from lidarscan.stamps import to_ns
 
             self.stats["received"] += 1
             self.input_stats[name]["received"] += 1
@@ -528,11 +671,30 @@ def _node_class() -> type:
                 self._log(f"input {name}: scan dropped (internal error {type(err).__name__}: "
                           f"{err})", "internal")
                 return
+            self._publish(ready)
+
+        def _publish(self, ready: list[Any]) -> None:
+            from lidarscan.stamps import to_ns
+
             for merged in ready:
                 self.pub.publish(merged)
                 self.stats["published"] += 1
                 self._latency.add(self.get_clock().now().nanoseconds -
                                   to_ns(merged.header.stamp))
+
+        def _on_tf(self, cleared: bool) -> None:
+            """New /tf: extend the moving inputs' tracks, publish what they release."""
+            if not self.core.tracks:
+                return
+            try:
+                self._publish(self.core.update_tracks(cleared))
+            except LidarScanError as err:
+                self.stats["bad"] += 1
+                self._log(f"moving input: scan dropped: {err}", "moving")
+            except Exception as err:  # noqa: BLE001 - a node must survive any input
+                self.stats["bad"] += 1
+                self._log(f"moving input: scan dropped (internal error {type(err).__name__}: "
+                          f"{err})", "internal")
 
         def _on_odom(self, raw: bytes) -> None:
             from lidarscan import decode

@@ -9,13 +9,20 @@ two frames through their common ancestor, and looks a transform up at a time:
   ``max_per_edge`` samples; a lookup between two samples interpolates (linear translation,
   spherical-linear rotation); a lookup outside the samples is allowed up to ``tolerance_ns``
   beyond the newest/oldest one (the nearest sample is used) and fails beyond that;
-* ``time_ns=None`` asks for the newest transform of each edge (tf2's "time 0").
+* ``time_ns=None`` asks for the newest transform of each edge (tf2's "time 0");
+* :meth:`TransformBuffer.samples` gives the chained transform at every stored stamp of the
+  chain's dynamic edges, to fill a :class:`converters.transforms.TransformTrack` (a moving
+  mount). With one moving joint in the chain the composite samples are exact; with several,
+  each is composed from the other joints' interpolated (or, within ``tolerance_ns`` of their
+  ends, nearest) samples, and between two composite samples the track interpolates the
+  composite as one rigid motion.
 
 :class:`TfListener` attaches a buffer to an rclpy node: ``/tf_static`` (reliable,
 transient-local, so late joiners get it) and ``/tf``, subscribed raw and decoded by
 :func:`lidarscan.decode`, so a malformed message is counted and logged, never fatal. It needs the
 ``tf2_msgs`` type (built from ``third_party/tf2_msgs`` by ``make tf2msgs``); without it the
-listener stays inactive and nodes fall back to their extrinsics parameters.
+listener stays inactive and nodes fall back to their extrinsics parameters. ``on_message`` is
+called after each ``/tf`` message is stored (e.g. to extend moving mounts' tracks).
 
 Conventions: a transform ``parent -> child`` (TransformStamped ``header.frame_id`` = parent,
 ``child_frame_id`` = child) is the 4x4 matrix that maps points of the child frame into the
@@ -32,7 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan.errors import ConversionError, ValidationError
+from converters.transforms import TransformLookupError
+from lidarscan.errors import ValidationError
 from lidarscan.stamps import to_ns
 
 __all__ = [
@@ -45,10 +53,6 @@ __all__ = [
     "quaternion_from_matrix",
     "slerp",
 ]
-
-
-class TransformLookupError(ConversionError):
-    """No transform between two frames at the requested time."""
 
 
 def matrix_from_quaternion(q: Any, translation: Any = (0.0, 0.0, 0.0)
@@ -268,6 +272,30 @@ class TransformBuffer:
             chain = up_s[:up_s.index(common)] + up_t[:up_t.index(common)]
             return all(self._edges[f].static for f in chain)
 
+    def samples(self, target: str, source: str, after_ns: int | None = None
+                ) -> list[tuple[int, np.ndarray[Any, np.dtype[np.float64]]]]:
+        """``(stamp, target_from_source)`` at every stamp held by a dynamic edge of the chain
+        (newer than ``after_ns``), oldest first; stamps where the chain cannot be composed
+        (another edge has no sample near) are left out. Empty when the frames are not
+        connected or the chain is all static."""
+        target, source = _strip(target), _strip(source)
+        with self._lock:
+            up_s, up_t = self._path(source), self._path(target)
+            common = next((f for f in up_s if f in up_t), None)
+            if common is None or target == source:
+                return []
+            chain = up_s[:up_s.index(common)] + up_t[:up_t.index(common)]
+            stamps = sorted({t for f in chain if not self._edges[f].static
+                             for t in self._edges[f].times
+                             if after_ns is None or t > after_ns})
+        out = []
+        for stamp in stamps:
+            try:
+                out.append((stamp, self.lookup(target, source, stamp)))
+            except TransformLookupError:
+                continue
+        return out
+
     def lookup(self, target: str, source: str, time_ns: int | None = None
                ) -> np.ndarray[Any, np.dtype[np.float64]]:
         """``target_from_source`` (4x4 float64) at ``time_ns`` (``None``: newest samples).
@@ -347,6 +375,8 @@ class TfListener:
         node: the rclpy node that owns the subscriptions.
         buffer: the buffer to fill.
         on_error: called with one line when a TF message is malformed (default: node logger).
+        on_message: called after each ``/tf`` message is stored, with True when the dynamic
+            transforms were just cleared (``/tf`` time jumped back).
         tf_topic, tf_static_topic: topic names.
 
     Attributes:
@@ -355,13 +385,15 @@ class TfListener:
     """
 
     def __init__(self, node: Any, buffer: TransformBuffer, *,
-                 on_error: Callable[[str], None] | None = None, tf_topic: str = "/tf",
+                 on_error: Callable[[str], None] | None = None,
+                 on_message: Callable[[bool], None] | None = None, tf_topic: str = "/tf",
                  tf_static_topic: str = "/tf_static") -> None:
         self.buffer = buffer
         self.received = 0
         self.bad = 0
         self._node = node
         self._on_error = on_error or (lambda line: node.get_logger().warning(line))
+        self._on_message = on_message
         self._last_stamp: int | None = None
         try:
             from tf2_msgs.msg import TFMessage
@@ -392,6 +424,7 @@ class TfListener:
         from lidarscan.errors import LidarScanError
 
         self.received += 1
+        cleared = False
         try:
             message = decode(raw, "tf2_msgs/msg/TFMessage")
             if not static:
@@ -403,9 +436,12 @@ class TfListener:
                                    " s (recording restarted?): dynamic transforms cleared")
                     self.buffer.clear()
                     self._last_stamp = None
+                    cleared = True
                 if newest is not None:
                     self._last_stamp = max(newest, self._last_stamp or newest)
             self.buffer.add_message(message, static=static)
         except LidarScanError as err:
             self.bad += 1
             self._on_error(f"bad {'/tf_static' if static else '/tf'} message ignored: {err}")
+        if not static and self._on_message is not None:
+            self._on_message(cleared)
