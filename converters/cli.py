@@ -1211,6 +1211,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LidarScanError as err:
         _err(f"lidarscan {args.command}: error: {err}")
         return EXIT_FATAL
+    except ModuleNotFoundError as err:    # an extra or a message package not installed
+        from lidarscan._install import missing_module_hint
+        _err(f"lidarscan {args.command}: error: "
+             f"{missing_module_hint(err, f'lidarscan {args.command}')}")
+        return EXIT_FATAL
     except (OSError, ImportError) as err:
         _err(f"lidarscan {args.command}: error: {err}")
         return EXIT_FATAL
