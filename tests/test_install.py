@@ -49,7 +49,8 @@ class Installed:
     def __init__(self, venv: Path, work: Path) -> None:
         self.venv, self.work = venv, work
 
-    def run(self, program: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    def run(self, program: str, *args: str,
+            timeout: float = 600) -> subprocess.CompletedProcess[str]:
         return subprocess.run([str(self.venv / "bin" / program), *args], cwd=self.work,
                               env=_env(), check=False, capture_output=True, text=True,
                               timeout=timeout)
@@ -155,3 +156,31 @@ def test_a_missing_extra_is_named(installed: Installed) -> None:
     assert "[viz]" in _one_line(done.stderr)
     help_text: Any = installed.run("lidarscan-merger", "--help", timeout=120)
     assert help_text.returncode == 0 and "lidarscan-merger" in help_text.stdout
+
+
+def test_running_what_the_nodes_say_builds_the_messages(installed: Installed) -> None:
+    """Last (it changes the environment): the command of the nodes' line, run in the copy,
+    builds lidarscan_msgs into the environment; make_scan then returns the rclpy message."""
+    missing = [tool for tool in ("cmake", "ninja", "make", "c++") if shutil.which(tool) is None]
+    if missing:
+        pytest.skip(f"building msgs/ needs {', '.join(missing)} (not on this machine)")
+    line = _one_line(installed.run("lidarscan-converter", timeout=120).stderr)
+    command = line.split("build them into this environment: `", 1)[1].split("`", 1)[0]
+    pip, make = command.split(" && ")
+    source = installed.venv.parent / "lidarscan"
+    done = subprocess.run(pip, shell=True, cwd=source, env=_env(), check=False,
+                          capture_output=True, text=True, timeout=1200)
+    assert done.returncode == 0, done.stderr[-3000:]
+    done = subprocess.run(make, shell=True, cwd=source, env=_env(), check=False,
+                          capture_output=True, text=True, timeout=1200)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    done = installed.python(
+        "import numpy as np, lidarscan as ls\n"
+        "from rclpy.serialization import serialize_message\n"
+        "info = ls.make_info(stamp_ns=5, frame_id='lidar', vertical_angles=[0.1, -0.1],\n"
+        "                    horizontal_angles=[0.0, 2.0, 4.0])\n"
+        "scan = ls.make_scan(info, {'range': np.full((2, 3), 4.0, np.float32)}, stamp_ns=9)\n"
+        "same = ls.decode_scan(serialize_message(scan))\n"
+        "print(type(scan).__module__, ls.channel(same, 'range').max())\n")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["lidarscan_msgs.msg._lidar_scan", "4.0"]
