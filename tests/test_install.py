@@ -14,8 +14,10 @@ wheels, ...) and no message package built, gives:
 * the nodes that need ``lidarscan_msgs`` stop with exit status 2 and one line saying what to
   run, as does a command whose extra is missing (``lidarscan view``); no traceback anywhere.
 
-It takes about a minute (venv, pip from the local wheel cache or index, the demo's 2 frames).
-Skipped only when pip cannot obtain the dependencies (no index reachable).
+These take a few minutes (venv, pip from the local wheel cache or index, the demo's 2 frames,
+the msgs/ build of the last test): marked ``slow``; skipped only when pip cannot obtain the
+dependencies (no index reachable). The fast tests at the end check the same fallbacks in this
+environment with ``lidarscan_msgs`` hidden.
 """
 
 from __future__ import annotations
@@ -28,8 +30,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
-pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parent.parent
 _NOT_SOURCES = shutil.ignore_patterns(".git", ".venv", "build", "dist", "*.egg-info", "__pycache__",
@@ -85,6 +85,7 @@ def _one_line(stderr: str) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 def test_the_install_is_plain_pip_without_message_packages(installed: Installed) -> None:
     done = installed.python(
         "import importlib.util, lidarscan, converters\n"
@@ -105,6 +106,7 @@ def test_the_install_is_plain_pip_without_message_packages(installed: Installed)
         assert (installed.venv / "bin" / name).is_file(), name
 
 
+@pytest.mark.slow
 def test_make_info_and_make_scan_work_without_lidarscan_msgs(installed: Installed) -> None:
     done = installed.python(
         "import numpy as np, lidarscan as ls\n"
@@ -125,6 +127,7 @@ def test_make_info_and_make_scan_work_without_lidarscan_msgs(installed: Installe
     assert not done.stderr
 
 
+@pytest.mark.slow
 def test_the_demo_runs_and_records_a_sound_file(installed: Installed) -> None:
     out = installed.work / "demo_out"
     done = installed.run("lidarscan", "demo", "--out", str(out), "--frames", "2")
@@ -138,6 +141,7 @@ def test_the_demo_runs_and_records_a_sound_file(installed: Installed) -> None:
     assert "lidarscan_msgs/msg/LidarInfo" in info.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("node", ["lidarscan-converter", "lidarscan-cloud-to-scan"])
 def test_nodes_that_need_lidarscan_msgs_say_what_to_run(installed: Installed, node: str) -> None:
     done = installed.run(node, timeout=120)
@@ -147,6 +151,7 @@ def test_nodes_that_need_lidarscan_msgs_say_what_to_run(installed: Installed, no
     assert "make install" in line and f"make msgs VENV={installed.venv}" in line
 
 
+@pytest.mark.slow
 def test_a_missing_extra_is_named(installed: Installed) -> None:
     out = installed.work / "demo_out"
     if not (out / "demo.mcap").exists():
@@ -158,6 +163,7 @@ def test_a_missing_extra_is_named(installed: Installed) -> None:
     assert help_text.returncode == 0 and "lidarscan-merger" in help_text.stdout
 
 
+@pytest.mark.slow
 def test_running_what_the_nodes_say_builds_the_messages(installed: Installed) -> None:
     """Last (it changes the environment): the command of the nodes' line, run in the copy,
     builds lidarscan_msgs into the environment; make_scan then returns the rclpy message."""
@@ -184,3 +190,64 @@ def test_running_what_the_nodes_say_builds_the_messages(installed: Installed) ->
         "print(type(scan).__module__, ls.channel(same, 'range').max())\n")
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["lidarscan_msgs.msg._lidar_scan", "4.0"]
+
+
+# ------------------------------------------------ the same fallbacks here, lidarscan_msgs hidden
+
+_HIDE = "import sys\nsys.modules['lidarscan_msgs'] = None   # as after a plain pip install\n"
+
+
+def _here(code: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if k != "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, check=False,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_without_lidarscan_msgs_make_scan_and_make_info_make_dataclasses() -> None:
+    done = _here(_HIDE + (
+        "import numpy as np, lidarscan as ls\n"
+        "from lidarscan._install import have_messages\n"
+        "info = ls.make_info(stamp_ns=5, frame_id='l', vertical_angles=[0.1, -0.1],\n"
+        "                    horizontal_angles=[0.0, 2.0, 4.0], as_dataclass=False)\n"
+        "scan = ls.make_scan(info, {'range': np.ones((2, 3), np.float32)}, stamp_ns=9)\n"
+        "ls.validate(scan, info)\n"
+        "print(have_messages(), type(info).__module__, type(scan).__module__)\n"))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["False", "lidarscan.types", "lidarscan.types"]
+
+
+def test_with_lidarscan_msgs_make_scan_still_makes_the_rclpy_message() -> None:
+    pytest.importorskip("lidarscan_msgs.msg", reason="lidarscan_msgs not built (make install)")
+    import numpy as np
+
+    import lidarscan as ls
+
+    info = ls.make_info(stamp_ns=5, frame_id="l", vertical_angles=[0.1, -0.1],
+                        horizontal_angles=[0.0, 2.0, 4.0])
+    scan = ls.make_scan(info, {"range": np.ones((2, 3), np.float32)}, stamp_ns=9)
+    assert type(info).__module__.startswith("lidarscan_msgs.msg")
+    assert type(scan).__module__.startswith("lidarscan_msgs.msg")
+    assert type(ls.make_scan(info, {"range": np.ones((2, 3), np.float32)}, stamp_ns=9,
+                             as_dataclass=True)).__module__ == "lidarscan.types"
+
+
+def test_a_node_without_lidarscan_msgs_prints_one_line() -> None:
+    done = _here(_HIDE + "from converters.nodes.converter_node import main\n"
+                         "sys.exit(main(['lidarscan-converter']))\n")
+    assert done.returncode == 2, done.stderr
+    line = _one_line(done.stderr)
+    assert line.startswith("error: lidarscan-converter needs the module 'lidarscan_msgs': ")
+    assert "make install" in line and "make msgs VENV=" in line
+
+
+def test_the_hints_name_what_provides_a_module() -> None:
+    from lidarscan._install import missing_module_hint
+
+    assert missing_module_hint(ModuleNotFoundError("x", name="matplotlib.figure"), "view") == (
+        "view needs the module 'matplotlib': it is an extra: `pip install '.[viz]'` in the "
+        "lidarscan checkout")
+    assert "'.[fast]'" in missing_module_hint("numba")
+    assert "ROS 2 Jazzy wheels" in missing_module_hint("sensor_msgs.msg")
+    assert f"make tf2msgs VENV={sys.prefix}" in missing_module_hint("tf2_msgs.msg")
+    assert missing_module_hint("nosuch.sub", "it") == (
+        "it needs the module 'nosuch': install the Python package that provides 'nosuch'")
