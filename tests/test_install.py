@@ -36,6 +36,14 @@ _NOT_SOURCES = shutil.ignore_patterns(".git", ".venv", "build", "dist", "*.egg-i
                                       ".pytest_cache", ".hypothesis", "demo_out", "tests", "*.so")
 
 
+#: a 2 x 3 LidarInfo and LidarScan made with the defaults (``info``, ``scan``), validated
+_MAKE = ("import numpy as np, lidarscan as ls\n"
+         "info = ls.make_info(stamp_ns=5, frame_id='lidar', vertical_angles=[0.1, -0.1],\n"
+         "                    horizontal_angles=[0.0, 2.0, 4.0])\n"
+         "scan = ls.make_scan(info, {'range': np.full((2, 3), 4.0, np.float32)}, stamp_ns=9)\n"
+         "ls.validate(scan, info)\n")
+
+
 def _env() -> dict[str, str]:
     """This process's environment without what ties it to this checkout's .venv."""
     drop = {"_ROS_WHEELS_BOOTSTRAP_COMPLETE", "LD_LIBRARY_PATH", "PYTHONPATH", "AMENT_PREFIX_PATH",
@@ -109,13 +117,8 @@ def test_the_install_is_plain_pip_without_message_packages(installed: Installed)
 @pytest.mark.slow
 def test_make_info_and_make_scan_work_without_lidarscan_msgs(installed: Installed) -> None:
     done = installed.python(
-        "import numpy as np, lidarscan as ls\n"
-        "from converters.demo import METADATA_PATH\n"
+        _MAKE + "from converters.demo import METADATA_PATH\n"
         "from converters.ouster import info_from_metadata\n"
-        "info = ls.make_info(stamp_ns=5, frame_id='lidar', vertical_angles=[0.1, -0.1],\n"
-        "                    horizontal_angles=[0.0, 2.0, 4.0])\n"
-        "scan = ls.make_scan(info, {'range': np.full((2, 3), 4.0, np.float32)}, stamp_ns=9)\n"
-        "ls.validate(scan, info)\n"
         "same = ls.decode_scan(ls.encode(scan))\n"
         "assert ls.encode(same) == ls.encode(scan) and ls.channel(same, 'range').max() == 4\n"
         "ouster = info_from_metadata(METADATA_PATH, stamp_ns=1)\n"
@@ -181,11 +184,7 @@ def test_running_what_the_nodes_say_builds_the_messages(installed: Installed) ->
                           capture_output=True, text=True, timeout=1200)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     done = installed.python(
-        "import numpy as np, lidarscan as ls\n"
-        "from rclpy.serialization import serialize_message\n"
-        "info = ls.make_info(stamp_ns=5, frame_id='lidar', vertical_angles=[0.1, -0.1],\n"
-        "                    horizontal_angles=[0.0, 2.0, 4.0])\n"
-        "scan = ls.make_scan(info, {'range': np.full((2, 3), 4.0, np.float32)}, stamp_ns=9)\n"
+        _MAKE + "from rclpy.serialization import serialize_message\n"
         "same = ls.decode_scan(serialize_message(scan))\n"
         "print(type(scan).__module__, ls.channel(same, 'range').max())\n")
     assert done.returncode == 0, done.stderr
@@ -204,13 +203,8 @@ def _here(code: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_without_lidarscan_msgs_make_scan_and_make_info_make_dataclasses() -> None:
-    done = _here(_HIDE + (
-        "import numpy as np, lidarscan as ls\n"
+    done = _here(_HIDE + _MAKE + (
         "from lidarscan._install import have_messages\n"
-        "info = ls.make_info(stamp_ns=5, frame_id='l', vertical_angles=[0.1, -0.1],\n"
-        "                    horizontal_angles=[0.0, 2.0, 4.0], as_dataclass=False)\n"
-        "scan = ls.make_scan(info, {'range': np.ones((2, 3), np.float32)}, stamp_ns=9)\n"
-        "ls.validate(scan, info)\n"
         "print(have_messages(), type(info).__module__, type(scan).__module__)\n"))
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["False", "lidarscan.types", "lidarscan.types"]
