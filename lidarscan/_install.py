@@ -1,6 +1,6 @@
 """What is installed, and what to run when a module is missing (one line, no traceback).
 
-Install paths (README "Install"): ``make install`` (or ``make demo`` / ``make test``) gives
+Install paths (README, "Other ways to install"): ``make install`` (or ``make demo`` / ``make test``) gives
 everything: the ROS 2 Jazzy wheels, ``lidarscan_msgs`` and ``tf2_msgs`` built into ``.venv``,
 and the extras. A plain ``pip install .`` installs the Python packages and the ROS 2 wheels but
 builds no message package: the core then makes :mod:`lidarscan.types` dataclasses where it
