@@ -21,7 +21,8 @@ $(STAMP): pyproject.toml setup.py $(wildcard converters/_kernels/*.c) msgs/CMake
 	$(MAKE) tf2msgs
 	touch $(STAMP)
 
-# Build the interface package into the venv with cmake + ninja (about 15 s).
+# Build the interface package into the venv with cmake + ninja (about 15 s). Into another
+# environment (after its `pip install '.[msgs-build]'`): make msgs tf2msgs VENV=/path/to/env
 msgs:
 	rm -rf build/msgs
 	mkdir -p build

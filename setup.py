@@ -7,8 +7,11 @@ install still succeeds and the numba / numpy paths are used.
 (A setup.py because ``[tool.setuptools] ext-modules`` needs setuptools >= 74.1.)
 """
 
+from pathlib import Path
+
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
+from setuptools.command.build_py import build_py
 
 
 class BuildExt(build_ext):  # type: ignore[misc]
@@ -26,10 +29,25 @@ class BuildExt(build_ext):  # type: ignore[misc]
         super().build_extensions()
 
 
+class BuildPy(build_py):  # type: ignore[misc]
+    """Also copy ``msgs/msg/*.msg`` (the definitions of lidarscan_msgs) into the built package as
+    ``lidarscan/_msgs/``: an installed lidarscan (no checkout next to it, no interface package
+    built) still has the MCAP schemas and CDR layouts of its own messages
+    (``lidarscan/msgdef.py`` looks there after the source tree)."""
+
+    def run(self) -> None:
+        super().run()
+        target = Path(self.build_lib) / "lidarscan" / "_msgs"
+        self.mkpath(str(target))
+        sources = Path(__file__).resolve().parent / "msgs" / "msg"
+        for source in sorted(sources.glob("*.msg")):
+            self.copy_file(str(source), str(target / source.name))
+
+
 setup(
     ext_modules=[Extension("converters._kernels._cloudkernel",
                            ["converters/_kernels/_cloudkernel.c"], optional=True),
                  Extension("converters._kernels._slicekernel",
                            ["converters/_kernels/_slicekernel.c"], optional=True)],
-    cmdclass={"build_ext": BuildExt},
+    cmdclass={"build_ext": BuildExt, "build_py": BuildPy},
 )

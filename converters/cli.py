@@ -181,11 +181,18 @@ def _describe_bad(item: Any) -> str:
 # ------------------------------------------------------------------------------------ demo
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from converters.demo import run_demo
+    import importlib.util
 
+    from converters.demo import run_demo
+    from lidarscan._install import missing_module_hint
+
+    images = not args.no_images
+    if images and importlib.util.find_spec("matplotlib") is None:   # a plain `pip install`
+        images = False
+        _err(f"note: no PNG views: {missing_module_hint('matplotlib', 'lidarscan demo')}")
     progress = Progress(args.frames, "simulating")
     try:
-        result = run_demo(args.out, args.frames, images=not args.no_images,
+        result = run_demo(args.out, args.frames, images=images,
                           noise_m=args.noise, progress=lambda d, t: progress.update(d, f"{d}/{t}"))
     finally:
         progress.close()
@@ -1210,6 +1217,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     except LidarScanError as err:
         _err(f"lidarscan {args.command}: error: {err}")
+        return EXIT_FATAL
+    except ModuleNotFoundError as err:    # an extra or a message package not installed
+        from lidarscan._install import missing_module_hint
+        _err(f"lidarscan {args.command}: error: "
+             f"{missing_module_hint(err, f'lidarscan {args.command}')}")
         return EXIT_FATAL
     except (OSError, ImportError) as err:
         _err(f"lidarscan {args.command}: error: {err}")

@@ -8,12 +8,18 @@ import time
 
 import numpy as np
 import rclpy
-from lidarscan_msgs.msg import LidarInfo, LidarScan
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 import lidarscan
+
+try:
+    from lidarscan_msgs.msg import LidarInfo, LidarScan
+except ModuleNotFoundError:   # a plain `pip install` builds no message package
+    raise SystemExit("this example publishes lidarscan_msgs, not built into this environment: "
+                     "run `make install` in the checkout (README, 'Other ways to install')"
+                     ) from None
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)

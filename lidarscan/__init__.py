@@ -6,6 +6,13 @@ Importing this package never imports rclpy. The public API:
 * check: :func:`validate`, :func:`validate_info` (errors in :mod:`lidarscan.errors`);
 * bytes: :func:`encode`, :func:`decode`, :func:`decode_scan`, :func:`decode_info`;
 * geometry: :func:`make_projector` (direction/offset tables, destagger, pixel times).
+
+Two forms of each message, same fields, taken alike by every function here and in
+``converters``: the rclpy messages ``lidarscan_msgs.msg.LidarScan`` / ``LidarInfo`` (what
+:func:`make_scan` / :func:`make_info` return, to publish) and the frozen dataclasses
+``lidarscan.types.LidarScan`` / ``LidarInfo`` (what the decoders return, and what ``make_*``
+return with ``as_dataclass=True`` or where ``lidarscan_msgs`` is not built, as after a plain
+``pip install``: see :mod:`lidarscan._install`).
 """
 
 from lidarscan import errors

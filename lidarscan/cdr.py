@@ -295,12 +295,14 @@ def _empty_wide_sequences(msg: Any, msgtype: str) -> int:
 
 
 def decode_scan(payload: bytes | bytearray | memoryview) -> Any:
-    """Decode a ``lidarscan_msgs/LidarScan`` payload; ``data`` views the payload (zero-copy)."""
+    """Decode a ``lidarscan_msgs/LidarScan`` payload into the frozen dataclass
+    :class:`lidarscan.types.LidarScan` (not the rclpy message :func:`lidarscan.make_scan` makes
+    by default); ``data`` views the payload (zero-copy)."""
     return decode(payload, "lidarscan_msgs/msg/LidarScan")
 
 
 def decode_info(payload: bytes | bytearray | memoryview) -> Any:
-    """Decode a ``lidarscan_msgs/LidarInfo`` payload."""
+    """Decode a ``lidarscan_msgs/LidarInfo`` payload into :class:`lidarscan.types.LidarInfo`."""
     return decode(payload, "lidarscan_msgs/msg/LidarInfo")
 
 

@@ -2,8 +2,10 @@
 
 ``msgs/msg/*.msg`` is the single source of truth for lidarscan_msgs; sensor_msgs and friends come
 from the ROS 2 wheels' ``share/<pkg>/msg`` folders. Definitions are searched, in order, in every
-prefix of ``AMENT_PREFIX_PATH``, in ``sys.prefix`` and, for lidarscan_msgs, in the source tree
-(``msgs/msg`` next to this package) so that a checkout works before the build.
+prefix of ``AMENT_PREFIX_PATH``, in ``sys.prefix`` and, for lidarscan_msgs, first in the source tree
+(``msgs/msg`` next to this package) so that a checkout works before the build, then in the copy
+an installed package carries (``lidarscan/_msgs``, made by setup.py) so that a plain
+``pip install`` reads and writes recordings without the built interface package.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ PRIMITIVE_TYPES: dict[str, str] = {
 }
 
 _SOURCE_MSGS = Path(__file__).resolve().parent.parent / "msgs"
+_SHIPPED_MSGS = Path(__file__).resolve().parent / "_msgs"   # msgs/msg copied by setup.py
 _registered: dict[str, str] = {}
 
 
@@ -180,7 +183,7 @@ def find_msg_text(name: str) -> str:
     package, _, short = full.split("/")
     candidates = [p / "share" / package / "msg" / f"{short}.msg" for p in _prefixes()]
     if package == "lidarscan_msgs":
-        candidates.insert(0, _SOURCE_MSGS / "msg" / f"{short}.msg")
+        candidates[:0] = [_SOURCE_MSGS / "msg" / f"{short}.msg", _SHIPPED_MSGS / f"{short}.msg"]
     for path in candidates:
         if path.is_file():
             return path.read_text(encoding="utf-8")

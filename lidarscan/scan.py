@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from lidarscan._install import have_messages
 from lidarscan.datatypes import FLOAT32, FLOAT64, datatype_of, dtype_of
 from lidarscan.errors import (
     ChannelLayoutError,
@@ -180,12 +181,15 @@ def make_scan(info: Any, channels: Mapping[str, Any], stamp_ns: int, *,
         column_time_offsets: (W,) int ns of each measurement column relative to ``stamp_ns``.
         column_azimuth_angles: (W,) measured azimuth per measurement column, radians.
         is_bigendian: byte order of the channel blocks (little-endian by default).
-        as_dataclass: return a :class:`lidarscan.types.LidarScan` instead of the rclpy message
-            (no ROS libraries needed).
+        as_dataclass: always return the dataclass :class:`lidarscan.types.LidarScan` (what
+            :func:`lidarscan.decode_scan` returns; no ROS libraries needed). When False, the
+            dataclass is still returned if ``lidarscan_msgs`` is not built into this
+            environment (a plain ``pip install``: see :mod:`lidarscan._install`).
 
     Returns:
-        ``lidarscan_msgs.msg.LidarScan`` (or the dataclass), with ``lidar_info_time`` equal to
-        ``info.header.stamp``.
+        the rclpy message ``lidarscan_msgs.msg.LidarScan`` (to publish), or the dataclass
+        ``lidarscan.types.LidarScan`` (see ``as_dataclass``); every lidarscan and converters
+        function takes either. ``lidar_info_time`` equals ``info.header.stamp``.
 
     Raises:
         ValidationError: wrong shape, unsupported dtype, bad time/azimuth arrays.
@@ -212,7 +216,7 @@ def make_scan(info: Any, channels: Mapping[str, Any], stamp_ns: int, *,
     info_stamp = info.header.stamp
     if frame_id is None:
         frame_id = info.header.frame_id
-    if as_dataclass:
+    if as_dataclass or not have_messages():
         from lidarscan import types
         data_arr = np.frombuffer(data, np.uint8)
         return types.LidarScan(
@@ -267,8 +271,14 @@ def make_info(*, stamp_ns: int, frame_id: str, vertical_angles: Any, horizontal_
         frame_id: header.frame_id, the frame the projected points are expressed in.
         vertical_angles: (H,) radians, row 0 = highest beam.
         horizontal_angles: (W,) radians, azimuth of each measurement column (REP 103, CCW).
-        as_dataclass: return :class:`lidarscan.types.LidarInfo` instead of the rclpy message.
+        as_dataclass: always return the dataclass :class:`lidarscan.types.LidarInfo` (what
+            :func:`lidarscan.decode_info` returns). When False, the dataclass is still returned
+            if ``lidarscan_msgs`` is not built into this environment (as in :func:`make_scan`).
         **fields: any other LidarInfo field by name (arrays as numpy/sequences).
+
+    Returns:
+        the rclpy message ``lidarscan_msgs.msg.LidarInfo``, or the dataclass
+        ``lidarscan.types.LidarInfo`` (see ``as_dataclass``).
 
     Raises:
         ValidationError / InfoMismatchError: unknown field name or inconsistent arrays.
@@ -295,7 +305,7 @@ def make_info(*, stamp_ns: int, frame_id: str, vertical_angles: Any, horizontal_
             arr = np.ascontiguousarray(np.asarray(value, dtype=default.dtype).reshape(-1))
             arrays[name] = arr
     scalars = {n: values.get(n, getattr(defaults, n)) for n in known if n not in arrays}
-    if as_dataclass:
+    if as_dataclass or not have_messages():
         readonly: dict[str, Any] = {n: _readonly(a) for n, a in arrays.items()}
         info = types.LidarInfo(header=types.Header(types.Time(sec, nanosec), frame_id),
                                **readonly, **scalars)

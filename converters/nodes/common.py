@@ -227,7 +227,12 @@ def entry_points(class_name: str, node_class: Callable[[], Any], script: str,
                   f"{' '.join(ours)} (ROS arguments go after --ros-args; -h for help)",
                   file=sys.stderr)
             return 2
-        return run_node(lambda: node_class()(), argv)
+        try:
+            return run_node(lambda: node_class()(), argv)
+        except ModuleNotFoundError as err:   # e.g. a plain `pip install`: no lidarscan_msgs
+            from lidarscan._install import missing_module_hint
+            print(f"error: {missing_module_hint(err, script)}", file=sys.stderr)
+            return 2
 
     main.__doc__ = f"Console script ``{script}`` (ROS arguments after ``--ros-args``)."
     return module_getattr, main
