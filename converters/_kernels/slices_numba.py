@@ -297,8 +297,9 @@ class Compiled:
         """
         cols, b = plan.cols, bands
         g_min, g_inc, g_size, g_full = b.grid0()
+        r = frozen_f32(r)
         return self._row_convert(  # type: ignore[no-any-return]
-            frozen_f32(r), rows.src, rows.keys, cols[2], cols[3], cols[4], cols[5], cols[6], rows.qf,
+            r, rows.src, rows.keys, cols[2], cols[3], cols[4], cols[5], cols[6], rows.qf,
             rows.qn, rows.q_rows, rows.lo, rows.hi, b.zmin.shape[0], float(b.rmin[0]),
             float(b.rmax[0]), rows.lo.shape[1], plan.bin_thr, b.offset, g_min, g_inc, g_size,
             g_full, int(b.size.sum()), b.size, b.inf_value, b.fill_value, frozen_f32(intensity),

@@ -62,12 +62,13 @@ def probe_info(height: int = 32, width: int = 1024, *, stamp_ns: int = 1,
 
 
 def probe_scan(info: Any, *, stamp_ns: int = 2, range_dtype: Any = np.float32,
-               intensity_dtype: Any = np.uint16, seed: int = 0) -> Any:
+               intensity_dtype: Any = np.uint16, intensity_name: str = "intensity",
+               destaggered: bool = False, seed: int = 0) -> Any:
     """A LidarScan dataclass of ``info`` decoded from CDR bytes (read-only views, as a node
     receives it): ranges 0.05 to 60 m with no-return (+Inf), too-close (-Inf) and invalid
     (NaN) pixels so that every kernel pass runs; ``range_dtype`` float32 (metres) or an
-    integer type (millimetres, 0 = no return); ``intensity_dtype`` None for a range-only
-    scan."""
+    integer type (millimetres, 0 = no return); an intensity channel ``intensity_name`` of
+    ``intensity_dtype`` (None: a range-only scan); ``destaggered``: its ``is_destaggered``."""
     import lidarscan
 
     height, width = int(info.height), int(info.width)
@@ -82,8 +83,9 @@ def probe_scan(info: Any, *, stamp_ns: int = 2, range_dtype: Any = np.float32,
         ranges = np.where(np.isfinite(metres), np.round(metres * 1000.0), 0).astype(range_dtype)
     channels = {"range": ranges}
     if intensity_dtype is not None:
-        channels["intensity"] = rng.integers(0, 100, (height, width)).astype(intensity_dtype)
-    scan = lidarscan.make_scan(info, channels, stamp_ns=stamp_ns, as_dataclass=True)
+        channels[intensity_name] = rng.integers(0, 100, (height, width)).astype(intensity_dtype)
+    scan = lidarscan.make_scan(info, channels, stamp_ns=stamp_ns, is_destaggered=destaggered,
+                               as_dataclass=True)
     return lidarscan.decode_scan(lidarscan.encode(scan))
 
 
