@@ -12,7 +12,12 @@ topic                     type                                   QoS
 ``points`` (out)          sensor_msgs/PointCloud2                ``output_qos``
 ``<slice topic>`` (out)   sensor_msgs/LaserScan, one per slice   ``output_qos``
 ``/diagnostics`` (out)    diagnostic_msgs/DiagnosticArray        1 Hz: rates, drops, latency,
-                                                                 linkage state
+                                                                 linkage state, start-up
+``depth/image_rect`` (in) sensor_msgs/Image                      ``depth.qos``, when
+``depth/camera_info`` in  sensor_msgs/CameraInfo                 ``depth.enabled``
+``depth/slices/NAME``     sensor_msgs/LaserScan, one per slice   ``output_qos``
+``depth/lidar_scan``,     lidarscan_msgs/LidarScan, LidarInfo    ``depth.publish_scan``
+``depth/lidar_info``                                             (the info latched)
 ========================  =====================================  ==============================
 
 (``scan`` is left to sensor_msgs/LaserScan, as everywhere else in ROS.)
@@ -48,7 +53,27 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
   ``max_wait`` [2.0] seconds; ``max_infos`` [8] LidarInfo versions kept pairable (see
   :mod:`lidarscan.linkage` for what happens to older ones: dropped, never mispaired);
 * ``allow_unknown_parameters`` [false]: a parameter this node does not declare (a typo such as
-  ``target_fram``) stops it at start-up with the list and a suggestion, unless true.
+  ``target_fram``) stops it at start-up with the list and a suggestion, unless true;
+* ``depth.*``: a depth camera input (below).
+
+Depth camera (``depth.enabled`` [false], needs ``target_frame``): ``sensor_msgs/Image``
+(``depth.image_topic`` [``depth/image_rect``], 16UC1 millimetres or 32FC1 metres) and its
+``sensor_msgs/CameraInfo`` (``depth.camera_info_topic`` [``depth/camera_info``]) are paired by
+identical header stamps, as message_filters' ExactTime policy does
+(:class:`converters.nodes.common.ExactSync`: ``depth.sync_queue`` [10] messages kept per input,
+unpaired ones dropped and counted in the ``depth`` diagnostics). Each pair becomes a LidarScan
+(:class:`converters.depth.DepthImageConverter`: one ray per pixel, ``depth.rectified``
+[auto], ``depth.no_measurement`` [invalid], ``depth.range_min`` / ``depth.range_max`` [0 = none])
+and is sliced with the slices of ``slice_names`` in ``target_frame``, published on
+``<depth.slice_namespace>/NAME`` [``depth/slices/NAME``]; the camera's pose comes from TF at the
+image stamp, else ``depth.extrinsics``. ``depth.publish_scan`` [false] also publishes the
+LidarScan and the latched LidarInfo. A new CameraInfo content rebuilds the rays and the slice
+tables when it arrives, before the image that needs them.
+
+Ready: the node compiles or loads every kernel its configuration will call (numba's cache,
+filled by ``make install``) before it logs ``ready: warm-up ... ms`` and publishes a ``startup``
+status, and it builds each LidarInfo version's converters and tables when that info arrives, so
+the first scan after ready costs about what the next ones cost (bench/bench_startup.py).
 
 ``lidarscan-converter --help`` prints every parameter with its default, rule and description
 (from the one table in :func:`_specs`) without starting ROS. Topics, QoS, ``slice_names``,
