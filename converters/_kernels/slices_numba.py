@@ -208,8 +208,8 @@ def frozen_f32(a: Any) -> Any:
     channels), of any of the eight channel dtypes. Every per-scan array goes through here on
     its way into a kernel, so each kernel has exactly one specialisation, compiled (or loaded
     from the cache) by :mod:`converters._kernels.warm` before the first scan. An intensity
-    image cast to float32 is what the kernels produced from it anyway (bench/README.md:
-    the cast costs about 2 % of a slice conversion).
+    image cast to float32 gives the values the kernels produced from it anyway; the cast's
+    cost is in bench/README.md (start-up).
     """
     out = np.ascontiguousarray(a, np.float32)
     if out.flags.writeable:
