@@ -629,7 +629,7 @@ def _node_class() -> type:
             self._rates = RateMeter()
             self._latency = LatencyWindow()
             self._status = (Status, WARN, ERROR)
-            self._init_depth(values, out_qos, ExactSync)
+            self._init_depth(values, out_qos)
             self.diagnostics = Diagnostics(self, self._diagnose)
             log.info(f"converting '{self.resolve_topic_name(scan_topic)}' -> "
                      f"{'PointCloud2 ' + repr(cloud_topic) if self.cloud_pub else 'no cloud'}"
@@ -642,9 +642,10 @@ def _node_class() -> type:
                 self.diagnostics)
 
         # ---------------------------------------------------------------------- depth input
-        def _init_depth(self, values: dict[str, Any], out_qos: Any, sync_class: Any) -> None:
+        def _init_depth(self, values: dict[str, Any], out_qos: Any) -> None:
             """Subscriptions and publishers of the depth-image input (``depth.*``)."""
             self.depth_sync: Any = None
+            self._depth_latency = LatencyWindow()
             self.depth_converter: Any = None
             self.depth_pubs: dict[str, Any] = {}
             self.depth_scan_pub = self.depth_info_pub = None
@@ -665,7 +666,7 @@ def _node_class() -> type:
             self.depth_core = ConverterCore(slices=self.core.slices,
                                             target_frame=self.target_frame,
                                             slice_options={"intensity_channel": None})
-            self.depth_sync = sync_class(("image", "camera_info"), values["depth.sync_queue"])
+            self.depth_sync = ExactSync(("image", "camera_info"), values["depth.sync_queue"])
             space = values["depth.slice_namespace"].rstrip("/")
             self.depth_pubs = {s.name: self.create_publisher(
                 LaserScan, f"{space}/{s.name}" if space else s.name, out_qos)
@@ -766,20 +767,13 @@ def _node_class() -> type:
             for name, msg in slices.items():
                 self.depth_pubs[name].publish(msg)
                 st.slices_published += 1
-            self._latency.add(self.get_clock().now().nanoseconds - to_ns(scan.header.stamp))
+            self._depth_latency.add(self.get_clock().now().nanoseconds -
+                                    to_ns(scan.header.stamp))
 
         def _depth_extrinsics(self, info: Any, stamp_ns: int | None) -> np.ndarray[Any, Any]:
             """target_frame <- camera: TF at the image stamp, else ``depth.extrinsics``."""
-            source = info.header.frame_id
-            try:
-                return self.tf_buffer.lookup(self.target_frame, source, stamp_ns)
-            except self._lookup_error as err:
-                if self.depth_extrinsics is not None:
-                    return self.depth_extrinsics
-                raise self._lookup_error(
-                    "target_frame", self.target_frame,
-                    f"a transform {self.target_frame} <- {source} on /tf or /tf_static, or the "
-                    f"'depth.extrinsics' parameter ({err})") from err
+            return self._mount(info.header.frame_id, stamp_ns, self.depth_extrinsics,
+                               "depth.extrinsics")
 
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:
@@ -867,7 +861,7 @@ def _node_class() -> type:
                       f"{int(self.depth_converter.info.height)}x"
                       f"{int(self.depth_converter.info.width)} "
                       f"{'rectified' if self.depth_converter.rectified else 'raw'}"}
-            status = Status("depth", values)
+            status = Status("depth", {**values, **self._depth_latency.take()})
             last = self._depth_last
             self._depth_last = dict(values)
             for key, level, what in (("sync_dropped", WARN, "image/CameraInfo message(s) "
@@ -909,10 +903,11 @@ def _node_class() -> type:
             extrinsics = None
             if self.target_frame:
                 try:
-                    extrinsics = self.tf_buffer.lookup(self.target_frame, info.header.frame_id,
-                                                       to_ns(info.header.stamp))
+                    extrinsics = self._mount(
+                        info.header.frame_id, to_ns(info.header.stamp),
+                        self.fallback_extrinsics if self._have_fallback else None, "extrinsics")
                 except self._lookup_error:
-                    extrinsics = self.fallback_extrinsics if self._have_fallback else None
+                    pass                                # no mount yet: the cloud only
             try:
                 self.core.prepare(info, extrinsics, cloud=self.cloud_pub is not None)
             except Exception as err:  # noqa: BLE001 - the first scan then builds them itself
@@ -985,17 +980,28 @@ def _node_class() -> type:
                 return None
             from lidarscan.stamps import to_ns
 
-            source = info.header.frame_id
+            return self._mount(info.header.frame_id, to_ns(scan.header.stamp),
+                               self.fallback_extrinsics if self._have_fallback else None,
+                               "extrinsics")
+
+        def _mount(self, source: str, stamp_ns: int | None,
+                   fallback: np.ndarray[Any, Any] | None, parameter: str
+                   ) -> np.ndarray[Any, Any]:
+            """target_frame <- ``source``: TF at ``stamp_ns`` (None: the newest), else
+            ``fallback`` (the value of ``parameter``).
+
+            Raises:
+                TransformLookupError: neither, naming both ways to give the mount.
+            """
             try:
-                return self.tf_buffer.lookup(self.target_frame, source,
-                                             to_ns(scan.header.stamp))
+                return self.tf_buffer.lookup(self.target_frame, source, stamp_ns)
             except self._lookup_error as err:
-                if self._have_fallback:
-                    return self.fallback_extrinsics
+                if fallback is not None:
+                    return fallback
                 raise self._lookup_error(
                     "target_frame", self.target_frame,
                     f"a transform {self.target_frame} <- {source} on /tf or /tf_static, or the "
-                    f"'extrinsics' parameter ({err})") from err
+                    f"'{parameter}' parameter ({err})") from err
 
     return ConverterNode
 
