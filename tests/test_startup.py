@@ -212,21 +212,28 @@ P = lambda **kw: [Parameter(k.replace("__", "."), value=v) for k, v in kw.items(
 t0 = time.perf_counter()
 node = ConverterNode(parameter_overrides=P(
     slice_names=["low", "high"], slices__low__min_height=-0.3, slices__low__max_height=0.3,
-    slices__high__min_height=0.3, slices__high__max_height=2.0))
+    slices__high__min_height=0.3, slices__high__max_height=2.0, target_frame="base_link",
+    extrinsics=[0.0, 0.0, 0.4, 0.0, 0.0, 0.0]))
 built = time.perf_counter() - t0
 ready = warm.specialisations()
 # what the callbacks do (no subscriber is needed): info, then scans through the core
 node._on_info(raw_info)
+prepared = (list(node.core._clouds.values()), list(node.core._slicers.values()))
 times = []
 for raw in raw_scans:
     t = time.perf_counter()
     (pair,) = node.core.add_scan(raw)
-    cloud, slices = node.core.convert(*pair)
+    cloud, slices = node.core.convert(*pair, extrinsics=node._extrinsics(*pair))
     times.append(time.perf_counter() - t)
+# the scans used the converters prepared when the info arrived (same cache keys)
+used = (list(node.core._clouds.values()), list(node.core._slicers.values()))
 out = {"ready": ready, "after": warm.specialisations(), "startup": node.startup.seconds,
        "failed": node.startup.failed, "is_ready": node.startup.ready,
        "status": node.startup.status().values, "times": times, "built": built,
-       "slices": sorted(slices), "has_cloud": cloud is not None}
+       "slices": sorted(slices), "has_cloud": cloud is not None,
+       "prepared": [len(p) for p in prepared],
+       "same_converters": all(len(a) == len(b) and all(x is y for x, y in zip(a, b))
+                              for a, b in zip(prepared, used))}
 node.destroy_node()
 rclpy.try_shutdown()
 print(json.dumps(out))
@@ -240,6 +247,7 @@ def test_converter_node_compiles_nothing_after_it_reports_ready() -> None:
     assert out["is_ready"] and not out["failed"] and "kernels" in out["startup"]
     assert out["status"]["ready"] is True and "kernels_ms" in out["status"]
     assert out["slices"] == ["high", "low"] and out["has_cloud"]
+    assert out["prepared"] == [1, 1] and out["same_converters"]
     if out["ready"]:                       # numba: the warm-up compiled or loaded the kernels
         assert sum(out["ready"].values()) >= 1
         # the first scans (float and integer ranges) after ready compiled nothing
