@@ -88,13 +88,17 @@ def test_converter_node_slices_a_depth_camera(graph: Graph) -> None:  # noqa: F8
     from converters.laserscan import SliceConverter
     from converters.nodes.converter_node import ConverterNode
 
+    from lidarscan_msgs.msg import LidarInfo, LidarScan
+
     slices = graph.collect(LaserScan, "depth/slices/knee")
+    scans = graph.collect(LidarScan, "depth/lidar_scan")
+    infos = graph.collect(LidarInfo, "depth/lidar_info", "latched")
     lidar_slices = graph.collect(LaserScan, "slices/knee")
     image_pub = graph.publisher(Image, "depth/image_rect", "sensor_data")
     info_pub = graph.publisher(CameraInfo, "depth/camera_info", "sensor_data")
     node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
         **{"depth.enabled": True, "depth.extrinsics": BASE_FROM_OPTICAL.reshape(-1).tolist(),
-           "depth.sync_queue": 4},
+           "depth.sync_queue": 4, "depth.publish_scan": True},
         target_frame="base_link", slice_names=["knee"], slices__knee__min_height=0.3,
         slices__knee__max_height=0.7, slices__knee__angle_increment=math.radians(0.25))))
     assert node.startup.ready and not node.startup.failed
@@ -113,18 +117,27 @@ def test_converter_node_slices_a_depth_camera(graph: Graph) -> None:  # noqa: F8
         info_pub.publish(_camera_info(stamp))
         image_pub.publish(_image(stamp, depth))
 
-    assert graph.wait(lambda: len(slices) >= 1, timeout=20, tick=tick)
+    assert graph.wait(lambda: len(slices) >= 1 and scans and infos, timeout=20, tick=tick)
     got = slices[0]
     assert got.header.frame_id == "base_link"
     stamp_ns = got.header.stamp.sec * 10**9 + got.header.stamp.nanosec
     # the library, step by step, on the same pair
     camera = _camera_info(stamp_ns)
-    scan, info = DepthImageConverter(camera).convert(_image(stamp_ns, depth))
+    version = infos[-1].header.stamp      # the first CameraInfo's stamp (the version key)
+    scan, info = DepthImageConverter(camera, info_stamp_ns=version.sec * 10**9 +
+                                     version.nanosec).convert(_image(stamp_ns, depth))
     expected = SliceConverter(info, {"knee": {"min_height": 0.3, "max_height": 0.7,
                                               "angle_increment": math.radians(0.25)}},
                               extrinsics=BASE_FROM_OPTICAL, frame_id="base_link",
                               intensity_channel=None).convert(scan)["knee"]
     assert same_floats(got.ranges, expected.ranges) and len(got.intensities) == 0
+    # the LidarScan and its latched LidarInfo, as the library makes them
+    import lidarscan
+
+    assert lidarscan.encode(infos[-1]) == lidarscan.encode(info)
+    pub = next(m for m in scans if m.header.stamp == got.header.stamp)
+    assert np.array_equal(lidarscan.channel(pub, "range"), lidarscan.channel(scan, "range"),
+                          equal_nan=True)
     # and the geometry itself: straight ahead the wall is 2 m away, planar
     ranges = np.asarray(got.ranges)
     seen = np.isfinite(ranges)
