@@ -142,6 +142,11 @@ def child_node(config: dict[str, Any]) -> dict[str, Any]:
     return result
 
 
+def show(value: float | None) -> str:
+    """A table cell: '-' for none, whole milliseconds from 10 up."""
+    return "-" if value is None else f"{value:.0f}" if value >= 10 else f"{value:.1f}"
+
+
 def run(case: str, cache_dir: str) -> dict[str, Any]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("_ROS_WHEELS")}
     env["NUMBA_CACHE_DIR"] = cache_dir
@@ -172,8 +177,6 @@ def main() -> int:
                          ("cloud", "slices"))
                 if r["ready"] is not None:
                     failed += not ok
-                def show(v: Any) -> str:
-                    return "-" if v is None else f"{v:.0f}" if v >= 10 else f"{v:.1f}"
                 goal = "n/a (no warm-up)" if r["ready"] is None else "met" if ok else "MISSED"
                 print(f"{case:<22} {cache:<5} {show(r['import']):>7} {show(r['ready']):>8} "
                       f"{show(r['info']):>6} {show(r['first_cloud']):>9} "
