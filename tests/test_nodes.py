@@ -853,3 +853,7 @@ def test_nodes_publish_diagnostics_with_linkage_state(graph: Graph) -> None:
     c2s = latest("lidarscan_cloud_to_scan: conversion")
     assert c2s is not None and level(c2s) == DiagnosticStatus.WARN[0]
     assert "no PointCloud2" in c2s.message
+    for name in ("lidarscan_converter", "lidarscan_cloud_to_scan"):   # warmed up, then ready
+        start = latest(f"{name}: startup")
+        assert start is not None and level(start) == DiagnosticStatus.OK[0]
+        assert {kv.key: kv.value for kv in start.values}["ready"] == "True"

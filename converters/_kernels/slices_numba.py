@@ -198,9 +198,30 @@ class Rays:
     r_thr: np.ndarray[Any, Any]
 
 
+def frozen_f32(a: Any) -> Any:
+    """``a`` as a read-only, C-contiguous float32 array (a view when it already is float32 and
+    contiguous, else a cast copy).
+
+    numba compiles one machine-code specialisation per argument type, and an array's type
+    includes its dtype and whether it is writeable; a scan's ranges and intensities arrive
+    read-only (views of a message) or writeable (decoded integer ranges, byte-swapped
+    channels), of any of the eight channel dtypes. Every per-scan array goes through here on
+    its way into a kernel, so each kernel has exactly one specialisation, compiled (or loaded
+    from the cache) by :mod:`converters._kernels.warm` before the first scan. An intensity
+    image cast to float32 gives the values the kernels produced from it anyway; the cast's
+    cost is in bench/README.md (start-up).
+    """
+    out = np.ascontiguousarray(a, np.float32)
+    if out.flags.writeable:
+        out = out.view()
+        out.flags.writeable = False
+    return out
+
+
 class Compiled:
     """The compiled kernels behind calls that take named structures (:class:`Bands`,
-    :class:`Rays`, the converters' bin-ordered plans)."""
+    :class:`Rays`, the converters' bin-ordered plans). Per-scan arrays enter the kernels
+    through :func:`frozen_f32` (one specialisation per kernel)."""
 
     def __init__(self, jit: Any) -> None:
         self._bands, self._points, self._others = _J_BANDS, _J_POINTS, _J_OTHERS
@@ -208,7 +229,20 @@ class Compiled:
         self._sorted = jit(_sorted_fuse)
         self._row_convert = jit(_row_convert)
         self.decode = jit(_decode_kernel)
-        self.decode_slices = _J_DECODE_SLICES
+        self._decode_slices = _J_DECODE_SLICES
+
+    def dispatchers(self) -> dict[str, Any]:
+        """Every numba dispatcher behind this object, by name (for the warm-up and its
+        tests: ``len(d.signatures)`` is how many specialisations each has compiled)."""
+        return {"bands": self._bands, "points": self._points, "others": self._others,
+                "small": self._small, "sorted": self._sorted, "row_convert": self._row_convert,
+                "row_fuse": _J_ROW, "decode": self.decode, "decode_slices": self._decode_slices}
+
+    def decode_slices(self, best: Any, offset: Any, size: Any, inf_value: Any, fill_value: Any,
+                      intensity: Any, key_to_pos: Any, ranges: Any, ints: Any) -> None:
+        """:func:`_decode_slices` (``intensity`` through :func:`frozen_f32`)."""
+        self._decode_slices(best, offset, size, inf_value, fill_value, frozen_f32(intensity),
+                            key_to_pos, ranges, ints)
 
     def fuse(self, r: Any, rays: Rays, bands: Bands, best: Any, *, keep: Any = _NO_KEEP,
              limits: Any = _NO_LIMITS, key_base: int = 0) -> None:
@@ -216,6 +250,7 @@ class Compiled:
         specials; one compiled call below ``_SMALL`` rays). ``keep``: (n,) uint8 rays to use
         (empty: all); ``limits``: (scan range_min, scan range_max, input range_min)."""
         t, b = rays, bands
+        r = frozen_f32(r)
         args = (t.dx, t.dy, t.dz, t.ox, t.oy, t.oz, t.keys, key_base, b.zmin, b.zmax, b.rmin,
                 b.rmax, b.grid, b.offset, t.qual, b.g_min, b.g_inc, b.g_size, b.g_full,
                 t.bin_far, t.r_thr, best)
@@ -243,7 +278,7 @@ class Compiled:
         dx, dy, ox, oy, r_thr in bin order, ``qf``, ``qn``, ``bin_start``, ``bin_thr``,
         ``max_width``)."""
         g_min, g_inc, g_size, g_full = bands.grid0()
-        self._sorted(r, plan.src, plan.keys, *plan.cols, plan.qf, plan.qn, bands.zmin4,
+        self._sorted(frozen_f32(r), plan.src, plan.keys, *plan.cols, plan.qf, plan.qn, bands.zmin4,
                      bands.zmax4, bands.zmin.shape[0], float(bands.rmin[0]),
                      float(bands.rmax[0]), plan.bin_start, plan.bin_thr,
                      max(plan.max_width, SORTED_CHUNK), bands.offset, g_min, g_inc, g_size,
@@ -262,11 +297,12 @@ class Compiled:
         """
         cols, b = plan.cols, bands
         g_min, g_inc, g_size, g_full = b.grid0()
+        r = frozen_f32(r)
         return self._row_convert(  # type: ignore[no-any-return]
             r, rows.src, rows.keys, cols[2], cols[3], cols[4], cols[5], cols[6], rows.qf,
             rows.qn, rows.q_rows, rows.lo, rows.hi, b.zmin.shape[0], float(b.rmin[0]),
             float(b.rmax[0]), rows.lo.shape[1], plan.bin_thr, b.offset, g_min, g_inc, g_size,
-            g_full, int(b.size.sum()), b.size, b.inf_value, b.fill_value, intensity,
+            g_full, int(b.size.sum()), b.size, b.inf_value, b.fill_value, frozen_f32(intensity),
             key_to_pos, intensity.shape[0] > 0)
 
 

@@ -243,6 +243,11 @@ def _node_class() -> type:
                 f"'{self.resolve_topic_name(cloud_topic)}' -> LidarScan "
                 f"'{self.resolve_topic_name(scan_topic)}' + LidarInfo "
                 f"'{self.resolve_topic_name(info_topic)}' (latched)")
+            import importlib
+
+            from converters.nodes.common import warm_up
+            self.startup = warm_up(self, {"imports": lambda: importlib.import_module(
+                "converters.cloud_import")}, self.diagnostics)
 
         def _validate(self, values: dict[str, Any]) -> None:
             CloudToScanCore(**settings(values))

@@ -1,6 +1,12 @@
-"""Pieces every node uses: bounded logging, rates and latency for ``/diagnostics``, and the
-``main`` runner (``--help`` without ROS, clean shutdown). Nothing here imports rclpy at module
-import time.
+"""Pieces every node uses: bounded logging, rates and latency for ``/diagnostics``, the warm-up
+before a node reports ready, an exact-stamp synchroniser, and the ``main`` runner (``--help``
+without ROS, clean shutdown). Nothing here imports rclpy at module import time.
+
+Ready: a node compiles or loads every kernel it will use (:func:`warm_up`, which runs the
+node's steps, e.g. :func:`converters._kernels.warm_up` with its configuration) at the end of
+its constructor, then logs one ``ready`` line; its ``/diagnostics`` carry a ``startup`` status
+with the time each step took. A scan that arrives after that line is converted without
+compiling anything.
 
 Diagnostics: each node publishes ``diagnostic_msgs/DiagnosticArray`` on ``/diagnostics`` once a
 second (:class:`Diagnostics`); levels are OK (0), WARN (1), ERROR (2) with the reason in the
@@ -16,8 +22,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-__all__ = ["OK", "WARN", "ERROR", "Diagnostics", "LatencyWindow", "LogLimiter", "RateMeter",
-           "Status", "entry_points", "run_node"]
+__all__ = ["OK", "WARN", "ERROR", "Diagnostics", "ExactSync", "LatencyWindow", "LogLimiter",
+           "RateMeter", "Startup", "Status", "entry_points", "run_node", "warm_up"]
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -105,6 +111,8 @@ class Diagnostics:
         self._collect = collect
         self.publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.last: list[Status] = []
+        #: the node's warm-up (:func:`warm_up`), published as a ``startup`` status once set
+        self.startup: Startup | None = None
         self.timer = node.create_timer(period, self.publish)
 
     def publish(self) -> None:
@@ -115,6 +123,8 @@ class Diagnostics:
         except Exception as err:  # noqa: BLE001 - diagnostics must never stop the node
             statuses = [Status("diagnostics")]
             statuses[0].worse(ERROR, f"collecting failed: {type(err).__name__}: {err}")
+        if self.startup is not None:
+            statuses = [*statuses, self.startup.status()]
         self.last = statuses
         msg = DiagnosticArray()
         msg.header.stamp = self._node.get_clock().now().to_msg()
@@ -126,6 +136,139 @@ class Diagnostics:
                 values=[KeyValue(key=str(k), value=str(v)) for k, v in st.values.items()]))
         self.publisher.publish(msg)
 
+
+
+class Startup:
+    """What a node did before it reported ready: each warm-up step's time and failure.
+
+    Attributes:
+        seconds: step -> seconds it took.
+        failed: step -> the error of a step that failed (the node runs anyway: a warm-up only
+            moves work off the message path).
+        ready: set once every step ran.
+    """
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self.failed: dict[str, str] = {}
+        self.ready = False
+
+    def run(self, name: str, step: Callable[[], Any]) -> None:
+        """Run and time one step; an exception is recorded, not raised."""
+        start = time.perf_counter()
+        try:
+            step()
+        except Exception as err:  # noqa: BLE001 - a failed warm-up must not stop the node
+            self.failed[name] = f"{type(err).__name__}: {err}"
+        self.seconds[name] = time.perf_counter() - start
+
+    def summary(self) -> str:
+        """One line: total and per-step milliseconds, failures."""
+        total = sum(self.seconds.values())
+        steps = ", ".join(f"{k} {1e3 * v:.0f} ms" for k, v in self.seconds.items())
+        line = f"warm-up {1e3 * total:.0f} ms ({steps or 'nothing to do'})"
+        if self.failed:
+            line += "; failed: " + "; ".join(f"{k}: {v}" for k, v in self.failed.items())
+        return line
+
+    def status(self) -> Status:
+        """The ``startup`` DiagnosticStatus: ready, total and per-step milliseconds (WARN when
+        a step failed: the first messages then pay that work)."""
+        values: dict[str, Any] = {"ready": self.ready,
+                                  "warmup_ms": round(1e3 * sum(self.seconds.values()), 1)}
+        values.update({f"{k}_ms": round(1e3 * v, 1) for k, v in self.seconds.items()})
+        st = Status("startup", values)
+        if not self.ready:
+            st.worse(WARN, "warming up")
+        for name, err in self.failed.items():
+            st.worse(WARN, f"warm-up step {name} failed ({err}): first messages may be slow")
+        return st
+
+
+def warm_up(node: Any, steps: dict[str, Callable[[], Any]],
+            diagnostics: Diagnostics | None = None) -> Startup:
+    """Run a node's warm-up ``steps`` (name -> callable), then log ``ready`` with their times.
+
+    Call it at the end of the node's constructor, after its publishers and subscriptions exist
+    (no callback runs before the constructor returns). ``diagnostics`` gets the ``startup``
+    status.
+    """
+    startup = Startup()
+    for name, step in steps.items():
+        startup.run(name, step)
+    startup.ready = True
+    log = node.get_logger()
+    (log.warning if startup.failed else log.info)(f"ready: {startup.summary()}")
+    if diagnostics is not None:
+        diagnostics.startup = startup
+    return startup
+
+
+class ExactSync:
+    """Pairs messages of several inputs that carry the same stamp (the ExactTime policy of
+    ``message_filters``), with bounded queues and every unpaired message counted.
+
+    Each input keeps at most ``queue_size`` messages waiting for their partners. A message
+    whose stamp all inputs have is released at once, in input order. Counted drops (per
+    input, in :attr:`dropped`): ``overflow`` (the oldest waiting message of a full queue),
+    ``stale`` (a waiting message older than a released set: its partners will not come when
+    stamps increase), ``duplicate`` (a second message with a waiting stamp replaces the first).
+
+    Args:
+        names: the inputs, in the order the released tuples have.
+        queue_size: messages kept per input (>= 1).
+    """
+
+    def __init__(self, names: Sequence[str], queue_size: int = 10) -> None:
+        from lidarscan.errors import ConfigError
+
+        if isinstance(queue_size, bool) or not isinstance(queue_size, int) or queue_size < 1:
+            raise ConfigError("queue_size", queue_size, "an int >= 1")
+        if len(set(names)) != len(names) or len(names) < 2:
+            raise ConfigError("names", list(names), "at least two distinct input names")
+        self.names = tuple(names)
+        self.queue_size = queue_size
+        self._queues: dict[str, dict[int, Any]] = {n: {} for n in self.names}
+        self.dropped: dict[str, dict[str, int]] = {
+            n: {"overflow": 0, "stale": 0, "duplicate": 0} for n in self.names}
+        self.released = 0
+
+    def add(self, name: str, stamp_ns: int, message: Any) -> tuple[Any, ...] | None:
+        """Add one message; returns the messages of every input at ``stamp_ns`` when this
+        completes the set (in :attr:`names` order), else None.
+
+        Raises:
+            ConfigError: an unknown input name.
+        """
+        from lidarscan.errors import ConfigError
+
+        queue = self._queues.get(name)
+        if queue is None:
+            raise ConfigError("input", name, f"one of {list(self.names)}")
+        stamp = int(stamp_ns)
+        if stamp in queue:
+            self.dropped[name]["duplicate"] += 1
+        queue[stamp] = message
+        while len(queue) > self.queue_size:
+            del queue[min(queue)]
+            self.dropped[name]["overflow"] += 1
+        if not all(stamp in q for q in self._queues.values()):
+            return None
+        out = tuple(self._queues[n].pop(stamp) for n in self.names)
+        for n, q in self._queues.items():
+            for old in [t for t in q if t < stamp]:
+                del q[old]
+                self.dropped[n]["stale"] += 1
+        self.released += 1
+        return out
+
+    def waiting(self) -> dict[str, int]:
+        """Messages waiting per input."""
+        return {n: len(q) for n, q in self._queues.items()}
+
+    def drops(self) -> int:
+        """Total messages dropped unpaired."""
+        return sum(sum(d.values()) for d in self.dropped.values())
 
 
 class LogLimiter:

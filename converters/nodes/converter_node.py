@@ -12,7 +12,12 @@ topic                     type                                   QoS
 ``points`` (out)          sensor_msgs/PointCloud2                ``output_qos``
 ``<slice topic>`` (out)   sensor_msgs/LaserScan, one per slice   ``output_qos``
 ``/diagnostics`` (out)    diagnostic_msgs/DiagnosticArray        1 Hz: rates, drops, latency,
-                                                                 linkage state
+                                                                 linkage state, start-up
+``depth/image_rect`` (in) sensor_msgs/Image                      ``depth.qos``, when
+``depth/camera_info`` in  sensor_msgs/CameraInfo                 ``depth.enabled``
+``depth/slices/NAME``     sensor_msgs/LaserScan, one per slice   ``output_qos``
+``depth/lidar_scan``,     lidarscan_msgs/LidarScan, LidarInfo    ``depth.publish_scan``
+``depth/lidar_info``                                             (the info latched)
 ========================  =====================================  ==============================
 
 (``scan`` is left to sensor_msgs/LaserScan, as everywhere else in ROS.)
@@ -48,7 +53,27 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
   ``max_wait`` [2.0] seconds; ``max_infos`` [8] LidarInfo versions kept pairable (see
   :mod:`lidarscan.linkage` for what happens to older ones: dropped, never mispaired);
 * ``allow_unknown_parameters`` [false]: a parameter this node does not declare (a typo such as
-  ``target_fram``) stops it at start-up with the list and a suggestion, unless true.
+  ``target_fram``) stops it at start-up with the list and a suggestion, unless true;
+* ``depth.*``: a depth camera input (below).
+
+Depth camera (``depth.enabled`` [false], needs ``target_frame``): ``sensor_msgs/Image``
+(``depth.image_topic`` [``depth/image_rect``], 16UC1 millimetres or 32FC1 metres) and its
+``sensor_msgs/CameraInfo`` (``depth.camera_info_topic`` [``depth/camera_info``]) are paired by
+identical header stamps, as message_filters' ExactTime policy does
+(:class:`converters.nodes.common.ExactSync`: ``depth.sync_queue`` [10] messages kept per input,
+unpaired ones dropped and counted in the ``depth`` diagnostics). Each pair becomes a LidarScan
+(:class:`converters.depth.DepthImageConverter`: one ray per pixel, ``depth.rectified``
+[auto], ``depth.no_measurement`` [invalid], ``depth.range_min`` / ``depth.range_max`` [0 = none])
+and is sliced with the slices of ``slice_names`` in ``target_frame``, published on
+``<depth.slice_namespace>/NAME`` [``depth/slices/NAME``]; the camera's pose comes from TF at the
+image stamp, else ``depth.extrinsics``. ``depth.publish_scan`` [false] also publishes the
+LidarScan and the latched LidarInfo. A new CameraInfo content rebuilds the rays and the slice
+tables when it arrives, before the image that needs them.
+
+Ready: the node compiles or loads every kernel its configuration will call (numba's cache,
+filled by ``make install``) before it logs ``ready: warm-up ... ms`` and publishes a ``startup``
+status, and it builds each LidarInfo version's converters and tables when that info arrives, so
+the first scan after ready costs about what the next ones cost (bench/bench_startup.py).
 
 ``lidarscan-converter --help`` prints every parameter with its default, rule and description
 (from the one table in :func:`_specs`) without starting ROS. Topics, QoS, ``slice_names``,
@@ -66,6 +91,7 @@ counted (``node.stats``), never fatal; Ctrl-C exits cleanly with status 0.
 from __future__ import annotations
 
 import functools
+import math
 import sys
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping, Sequence
@@ -135,6 +161,8 @@ class ConverterCore:
                                      max_infos=max_infos, on_event=self._resolver_event)
         self._clouds: OrderedDict[Any, Any] = OrderedDict()
         self._slicers: OrderedDict[Any, Any] = OrderedDict()
+        #: the last LidarInfo added (decoded), for :meth:`prepare`
+        self.last_info: Any = None
 
     def reconfigure(self, *, cloud_options: Mapping[str, Any], slices: Sequence[SliceConfig],
                     slice_options: Mapping[str, Any], max_pending: int,
@@ -167,6 +195,61 @@ class ConverterCore:
             self._make_slicer(info, self.slices, extrinsics,
                               self.slice_options.get("intensity_channel"))
 
+    def warm(self, cloud: bool = True) -> dict[str, float]:
+        """Compile or load every kernel this configuration will call
+        (:func:`converters._kernels.warm_up`); call before reporting ready.
+
+        Returns:
+            task -> seconds.
+        """
+        from converters._kernels import warm_up
+
+        tasks = ["cloud"] if cloud else []
+        if self.slices:
+            tasks.append("slices")
+        return warm_up(tasks, slices={s.name: s.spec() for s in self.slices},
+                       slice_options=self.slice_options, cloud_options=self.cloud_options)
+
+    def prepare(self, info: Any, extrinsics: np.ndarray[Any, Any] | None = None, *,
+                cloud: bool = True, intensity: bool = True) -> None:
+        """Build the converters of a new LidarInfo version and their per-pixel tables (both
+        column orders when the sensor is staggered) by converting a synthetic scan of it, so
+        that its first real scan does not pay for them. Counts nothing.
+
+        Args:
+            info: the LidarInfo.
+            extrinsics: 4x4 ``target_frame <- sensor`` the scans will use (None: as
+                :meth:`convert`); slices are not prepared when the target frame needs one.
+            cloud: prepare the PointCloud2 converter.
+            intensity: the scans will carry the configured intensity channel.
+        """
+        from converters._kernels.warm import probe_scan
+        from lidarscan.geometry import info_key
+        from lidarscan.stamps import to_ns
+
+        key = info_key(info)
+        channel = self.slice_options.get("intensity_channel", "intensity")
+        stamp = to_ns(info.header.stamp)
+        scans = [probe_scan(info, stamp_ns=stamp, intensity_dtype=np.uint16 if intensity
+                            else None, intensity_name=channel or "intensity",
+                            destaggered=d)
+                 for d in ((False, True) if np.any(info.pixel_shift_by_row) else (False,))]
+        if cloud:
+            converter = self._cached(self._clouds, key, lambda: self._make_cloud(info))
+            for scan in scans:
+                converter.convert(scan)
+        frame = self.target_frame or info.header.frame_id
+        if not self.slices or (extrinsics is None and frame != info.header.frame_id):
+            return
+        matrix = None if extrinsics is None else np.asarray(extrinsics, np.float64)
+        names = tuple(s.name for s in self.slices)
+        wanted = channel if intensity and channel else None
+        slicer = self._cached(
+            self._slicers, (key, names, None if matrix is None else matrix.tobytes(), wanted),
+            lambda: self._make_slicer(info, self.slices, matrix, wanted))
+        for scan in scans:
+            slicer.convert(scan)
+
     def _resolver_event(self, line: str) -> None:
         self._on_event(line)
 
@@ -189,6 +272,7 @@ class ConverterCore:
             info = decode_info(message) if isinstance(message, (bytes, bytearray, memoryview)) \
                 else message
             ready = self.resolver.add_info(info)
+            self.last_info = info
         except LidarScanError as err:
             self.stats.bad_messages += 1
             self.stats.count(f"bad LidarInfo: {err}")
@@ -333,6 +417,7 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
           low=1, high=1024),
         S("allow_unknown_parameters", False, "start even with parameters this node does not "
           "know (a typo is otherwise an error)", read_only=True),
+        *_depth_specs(S, QOS_NAMES),
     )
     per_slice = (
         S("slices.NAME.min_height", None, "slice NAME: lowest z in target_frame, metres "
@@ -355,11 +440,61 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
     return node, per_slice
 
 
+def _depth_specs(S: Any, qos_names: tuple[str, ...]) -> tuple[Any, ...]:  # noqa: N803
+    """Parameters of the depth-image input (``depth.*``), built with ``S`` = ParamSpec."""
+    return (
+        S("depth.enabled", False, "also slice a depth camera: sensor_msgs/Image + CameraInfo "
+          "paired by identical stamps (needs target_frame)", read_only=True),
+        S("depth.image_topic", "depth/image_rect", "input depth image (16UC1 mm or 32FC1 m, "
+          "REP 118)", read_only=True),
+        S("depth.camera_info_topic", "depth/camera_info", "input CameraInfo of the depth image",
+          read_only=True),
+        S("depth.qos", "sensor_data", "QoS of both depth inputs", choices=qos_names,
+          read_only=True),
+        S("depth.slice_namespace", "depth/slices", "the depth slices are published on "
+          "<slice_namespace>/NAME for every NAME of slice_names", read_only=True),
+        S("depth.publish_scan", False, "also publish the depth LidarScan and its latched "
+          "LidarInfo", read_only=True),
+        S("depth.scan_topic", "depth/lidar_scan", "output LidarScan of the depth image",
+          read_only=True),
+        S("depth.info_topic", "depth/lidar_info", "output LidarInfo of the depth camera "
+          "(latched)", read_only=True),
+        S("depth.rectified", "auto", "camera model: true = image_rect (P, R), false = "
+          "image_raw (K, D), auto = decided from the CameraInfo when unambiguous",
+          choices=("auto", "true", "false")),
+        S("depth.no_measurement", "invalid", "range of a pixel without a depth (0 or NaN): "
+          "invalid (NaN, REP 117) or no_return (+Inf: costmaps clear through it)",
+          choices=("invalid", "no_return")),
+        S("depth.range_min", 0.0, "nearest valid range along the ray, metres (0 = none)",
+          low=0.0, high=1000.0),
+        S("depth.range_max", 0.0, "farthest valid range along the ray, metres (0 = none)",
+          low=0.0, high=1000.0),
+        S("depth.extrinsics", (), "target_frame <- camera optical frame when TF has none: 6, "
+          "7 or 16 numbers as extrinsics; [] = use TF only", kind="float_list"),
+        S("depth.sync_queue", 10, "images and CameraInfos each kept while waiting for the "
+          "partner with the same stamp (older ones dropped and counted)", low=1, high=1000),
+    )
+
+
+def depth_options(values: Mapping[str, Any]) -> dict[str, Any]:
+    """Keyword options of :class:`converters.depth.DepthImageConverter` from checked
+    parameter values."""
+    rectified = {"auto": None, "true": True, "false": False}[values["depth.rectified"]]
+    invalid = math.inf if values["depth.no_measurement"] == "no_return" else math.nan
+    return {"rectified": rectified, "invalid": invalid, "range_min": values["depth.range_min"],
+            "range_max": values["depth.range_max"]}
+
+
 TOPICS = (("lidar_scan", "in  lidarscan_msgs/LidarScan", "scan_topic, scan_qos"),
           ("lidar_info", "in  lidarscan_msgs/LidarInfo", "info_topic, latched"),
           ("/tf, /tf_static", "in  tf2_msgs/TFMessage", "when target_frame is set"),
           ("points", "out sensor_msgs/PointCloud2", "cloud_topic, output_qos"),
           ("slices/NAME", "out sensor_msgs/LaserScan", "one per slice"),
+          ("depth/image_rect", "in  sensor_msgs/Image", "depth.enabled; exact stamp sync"),
+          ("depth/camera_info", "in  sensor_msgs/CameraInfo", "depth.enabled"),
+          ("depth/slices/NAME", "out sensor_msgs/LaserScan", "one per slice (depth)"),
+          ("depth/lidar_scan", "out lidarscan_msgs/LidarScan", "depth.publish_scan"),
+          ("depth/lidar_info", "out lidarscan_msgs/LidarInfo", "depth.publish_scan, latched"),
           ("/diagnostics", "out diagnostic_msgs/DiagnosticArray", "1 Hz"))
 
 
@@ -435,10 +570,12 @@ def _node_class() -> type:
         ERROR,
         WARN,
         Diagnostics,
+        ExactSync,
         LatencyWindow,
         LogLimiter,
         RateMeter,
         Status,
+        warm_up,
     )
     from converters.nodes.tf import TfListener, TransformBuffer, TransformLookupError
 
@@ -482,6 +619,7 @@ def _node_class() -> type:
                                      P.qos_profile(values["scan_qos"]), raw=True)
             self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
                                      P.qos_profile(values["info_qos"]), raw=True)
+            self._prepared: set[Any] = set()
             self.tf_buffer = TransformBuffer()
             self.tf_listener = TfListener(self, self.tf_buffer,
                                           on_error=lambda line: self._log(line, "tf")) \
@@ -491,11 +629,151 @@ def _node_class() -> type:
             self._rates = RateMeter()
             self._latency = LatencyWindow()
             self._status = (Status, WARN, ERROR)
+            self._init_depth(values, out_qos)
             self.diagnostics = Diagnostics(self, self._diagnose)
             log.info(f"converting '{self.resolve_topic_name(scan_topic)}' -> "
                      f"{'PointCloud2 ' + repr(cloud_topic) if self.cloud_pub else 'no cloud'}"
                      f"{', slices ' + ', '.join(s.name + '->' + s.topic for s in specs) if specs else ''}"
-                     f"; target frame {self.target_frame or '(sensor frame)'}")
+                     f"; target frame {self.target_frame or '(sensor frame)'}"
+                     + (f"; depth images {self.resolve_topic_name(values['depth.image_topic'])!r}"
+                        if self.depth_sync is not None else ""))
+            self.startup = warm_up(
+                self, {"kernels": lambda: self.core.warm(cloud=self.cloud_pub is not None)},
+                self.diagnostics)
+
+        # ---------------------------------------------------------------------- depth input
+        def _init_depth(self, values: dict[str, Any], out_qos: Any) -> None:
+            """Subscriptions and publishers of the depth-image input (``depth.*``)."""
+            self.depth_sync: Any = None
+            self._depth_latency = LatencyWindow()
+            self.depth_converter: Any = None
+            self.depth_pubs: dict[str, Any] = {}
+            self.depth_scan_pub = self.depth_info_pub = None
+            self.depth_stats = ConverterStats()
+            self._depth_last: dict[str, Any] = {}
+            if not values["depth.enabled"]:
+                return
+            if not self.target_frame:
+                raise ConfigError("target_frame", "", "a frame with z up (e.g. base_link) "
+                                  "when depth.enabled: a camera's own frame has z forward")
+            from lidarscan_msgs.msg import LidarInfo, LidarScan
+            from sensor_msgs.msg import CameraInfo, Image, LaserScan
+
+            self.depth_options = depth_options(values)
+            self.depth_extrinsics = parse_extrinsics(values["depth.extrinsics"],
+                                                     "depth.extrinsics") \
+                if values["depth.extrinsics"] else None
+            self.depth_core = ConverterCore(slices=self.core.slices,
+                                            target_frame=self.target_frame,
+                                            slice_options={"intensity_channel": None})
+            self.depth_sync = ExactSync(("image", "camera_info"), values["depth.sync_queue"])
+            space = values["depth.slice_namespace"].rstrip("/")
+            self.depth_pubs = {s.name: self.create_publisher(
+                LaserScan, f"{space}/{s.name}" if space else s.name, out_qos)
+                for s in self.core.slices}
+            if values["depth.publish_scan"]:
+                self.depth_scan_pub = self.create_publisher(LidarScan, values["depth.scan_topic"],
+                                                            out_qos)
+                self.depth_info_pub = self.create_publisher(
+                    LidarInfo, values["depth.info_topic"], P.qos_profile("latched"))
+            in_qos = P.qos_profile(values["depth.qos"])
+            self.create_subscription(Image, values["depth.image_topic"], self._on_depth_image,
+                                     in_qos, raw=True)
+            self.create_subscription(CameraInfo, values["depth.camera_info_topic"],
+                                     self._on_depth_info, in_qos, raw=True)
+
+        def _on_depth_image(self, raw: bytes) -> None:
+            self._depth_add("image", raw, "sensor_msgs/msg/Image")
+
+        def _on_depth_info(self, raw: bytes) -> None:
+            self._depth_add("camera_info", raw, "sensor_msgs/msg/CameraInfo")
+
+        def _depth_add(self, name: str, raw: bytes, msgtype: str) -> None:
+            """Decode one depth input (a new CameraInfo content builds its converter and
+            tables at once) and pass it to the synchroniser, which may release a pair;
+            malformed input is counted and logged."""
+            from lidarscan import decode
+            from lidarscan.stamps import to_ns
+
+            st = self.depth_stats
+            if name == "image":
+                st.scans_received += 1
+            else:
+                st.infos_received += 1
+            try:
+                msg = decode(raw, msgtype)
+                stamp = to_ns(msg.header.stamp, field=f"{msgtype}.header.stamp")
+                if name == "camera_info":
+                    self._depth_camera(msg)
+            except LidarScanError as err:
+                st.bad_messages += 1
+                st.count(f"bad {msgtype}: {err}")
+                self._log(f"bad {msgtype} ignored: {err}", f"bad depth {name}")
+                return
+            pair = self.depth_sync.add(name, stamp, msg)
+            if pair is not None:
+                self._convert_depth(*pair)
+
+        def _depth_camera(self, camera_info: Any) -> bool:
+            """Build the depth converter for a new CameraInfo content, and the slice tables
+            of its LidarInfo version (before the image that needs them); True if new."""
+            from converters.depth import DepthImageConverter
+
+            if self.depth_converter is None:
+                self.depth_converter = DepthImageConverter(camera_info, **self.depth_options)
+            elif not self.depth_converter.update(camera_info):
+                return False
+            info = self.depth_converter.info
+            if self.depth_info_pub is not None:
+                self.depth_info_pub.publish(info)
+            try:
+                self.depth_core.prepare(info, self._depth_extrinsics(info, None), cloud=False,
+                                        intensity=False)
+            except (LidarScanError, self._lookup_error):
+                pass                  # no transform yet: the first image reports it
+            return True
+
+        def _convert_depth(self, image: Any, camera_info: Any) -> None:
+            st = self.depth_stats
+            want = [n for n, p in self.depth_pubs.items() if p.get_subscription_count()]
+            want_scan = self.depth_scan_pub is not None and \
+                self.depth_scan_pub.get_subscription_count() > 0
+            if not want and not want_scan:
+                st.scans_idle += 1
+                return
+            from lidarscan.stamps import to_ns
+
+            try:
+                self._depth_camera(camera_info)
+                scan, info = self.depth_converter.convert(image)
+                slices: dict[str, Any] = {}
+                if want:
+                    extrinsics = self._depth_extrinsics(info, to_ns(scan.header.stamp))
+                    _, slices = self.depth_core.convert(scan, info, cloud=False, slices=want,
+                                                        extrinsics=extrinsics)
+            except LidarScanError as err:
+                st.conversion_errors += 1
+                st.count(f"depth: {err}")
+                self._log(f"depth image not converted: {err}", "depth")
+                return
+            except Exception as err:  # noqa: BLE001 - a node must survive any input
+                st.conversion_errors += 1
+                st.count(f"internal: {type(err).__name__}")
+                self._log(f"depth image not converted (internal error {type(err).__name__}: "
+                          f"{err})", "depth internal")
+                return
+            if want_scan:
+                self.depth_scan_pub.publish(scan)
+            for name, msg in slices.items():
+                self.depth_pubs[name].publish(msg)
+                st.slices_published += 1
+            self._depth_latency.add(self.get_clock().now().nanoseconds -
+                                    to_ns(scan.header.stamp))
+
+        def _depth_extrinsics(self, info: Any, stamp_ns: int | None) -> np.ndarray[Any, Any]:
+            """target_frame <- camera: TF at the image stamp, else ``depth.extrinsics``."""
+            return self._mount(info.header.frame_id, stamp_ns, self.depth_extrinsics,
+                               "depth.extrinsics")
 
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:
@@ -506,12 +784,24 @@ def _node_class() -> type:
             latest = self.core.resolver.latest_stamp_ns
             info = self.core.resolver.info(latest) if latest is not None else None
             core.check(probe_info(info), np.eye(4) if self.target_frame else None)
+            parse_extrinsics(values["depth.extrinsics"], "depth.extrinsics")
 
         def _apply(self, values: dict[str, Any], changed: set[str]) -> None:
             config = settings(values, self._file_slices)
             self.fallback_extrinsics = config.pop("extrinsics")
             self._have_fallback = bool(values["extrinsics"])
             self.core.reconfigure(**{k: v for k, v in config.items() if k != "target_frame"})
+            self._prepared.clear()
+            if self.depth_sync is not None:
+                self.depth_core.reconfigure(**{**{k: v for k, v in config.items()
+                                                  if k != "target_frame"},
+                                               "slice_options": {"intensity_channel": None}})
+                self.depth_options = depth_options(values)
+                self.depth_extrinsics = parse_extrinsics(
+                    values["depth.extrinsics"], "depth.extrinsics") \
+                    if values["depth.extrinsics"] else None
+                self.depth_converter = None       # rebuilt with the next CameraInfo
+                self.depth_sync.queue_size = values["depth.sync_queue"]
             self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
 
         # ----------------------------------------------------------------- diagnostics
@@ -552,7 +842,39 @@ def _node_class() -> type:
             if state["conflicting"]:
                 linkage.worse(WARN, f"{state['conflicting']} LidarInfo stamp(s) re-published "
                               "with different geometry (their scans are dropped)")
-            return [io, linkage]
+            if self.depth_sync is None:
+                return [io, linkage]
+            return [io, linkage, self._diagnose_depth()]
+
+        def _diagnose_depth(self) -> Any:
+            Status, WARN, ERROR = self._status
+            st, sync = self.depth_stats, self.depth_sync
+            drops = sync.drops()
+            values = {"images_received": st.scans_received,
+                      "camera_infos_received": st.infos_received,
+                      "pairs": sync.released, "images_idle": st.scans_idle,
+                      "slices_published": st.slices_published,
+                      "bad_messages": st.bad_messages, "conversion_errors": st.conversion_errors,
+                      "sync_dropped": drops, **{f"waiting_{k}": v for k, v in
+                                                sync.waiting().items()},
+                      "camera": "none yet" if self.depth_converter is None else
+                      f"{int(self.depth_converter.info.height)}x"
+                      f"{int(self.depth_converter.info.width)} "
+                      f"{'rectified' if self.depth_converter.rectified else 'raw'}"}
+            status = Status("depth", {**values, **self._depth_latency.take()})
+            last = self._depth_last
+            self._depth_last = dict(values)
+            for key, level, what in (("sync_dropped", WARN, "image/CameraInfo message(s) "
+                                      "without a partner of the same stamp dropped"),
+                                     ("bad_messages", WARN, "malformed depth message(s)"),
+                                     ("conversion_errors", ERROR, "depth image(s) not "
+                                      "converted (e.g. no transform)")):
+                new = values[key] - last.get(key, 0)
+                if new:
+                    status.worse(level, f"{new} {what}")
+            if not st.scans_received:
+                status.worse(WARN, "no depth image received")
+            return status
 
         # ------------------------------------------------------------------- callbacks
         def _on_info(self, raw: bytes) -> None:
@@ -561,7 +883,41 @@ def _node_class() -> type:
             except LidarScanError as err:
                 self._log(f"bad LidarInfo ignored: {err}", "bad info")
                 return
+            self._prepare(self.core.last_info)
             self._publish(ready)
+
+        def _prepare(self, info: Any) -> None:
+            """Converters and tables of a new LidarInfo version, before its first scan (the
+            mount from TF at the info's stamp, else the parameter; without either, only the
+            cloud)."""
+            from lidarscan.geometry import info_key
+            from lidarscan.stamps import to_ns
+
+            key = info_key(info)
+            if key in self._prepared:
+                return
+            if len(self._prepared) >= 64:
+                self._prepared.clear()
+            self._prepared.add(key)
+            start = self.get_clock().now().nanoseconds
+            extrinsics = None
+            if self.target_frame:
+                try:
+                    extrinsics = self._mount(
+                        info.header.frame_id, to_ns(info.header.stamp),
+                        self.fallback_extrinsics if self._have_fallback else None, "extrinsics")
+                except self._lookup_error:
+                    pass                                # no mount yet: the cloud only
+            try:
+                self.core.prepare(info, extrinsics, cloud=self.cloud_pub is not None)
+            except Exception as err:  # noqa: BLE001 - the first scan then builds them itself
+                self._log(f"LidarInfo tables not prepared: {type(err).__name__}: {err}",
+                          "prepare")
+                return
+            took = (self.get_clock().now().nanoseconds - start) / 1e6
+            self.get_logger().info(f"LidarInfo {info.header.frame_id} "
+                                   f"{int(info.height)}x{int(info.width)}: tables ready in "
+                                   f"{took:.0f} ms")
 
         def _on_scan(self, raw: bytes) -> None:
             want_cloud = self.cloud_pub is not None and \
@@ -624,17 +980,28 @@ def _node_class() -> type:
                 return None
             from lidarscan.stamps import to_ns
 
-            source = info.header.frame_id
+            return self._mount(info.header.frame_id, to_ns(scan.header.stamp),
+                               self.fallback_extrinsics if self._have_fallback else None,
+                               "extrinsics")
+
+        def _mount(self, source: str, stamp_ns: int | None,
+                   fallback: np.ndarray[Any, Any] | None, parameter: str
+                   ) -> np.ndarray[Any, Any]:
+            """target_frame <- ``source``: TF at ``stamp_ns`` (None: the newest), else
+            ``fallback`` (the value of ``parameter``).
+
+            Raises:
+                TransformLookupError: neither, naming both ways to give the mount.
+            """
             try:
-                return self.tf_buffer.lookup(self.target_frame, source,
-                                             to_ns(scan.header.stamp))
+                return self.tf_buffer.lookup(self.target_frame, source, stamp_ns)
             except self._lookup_error as err:
-                if self._have_fallback:
-                    return self.fallback_extrinsics
+                if fallback is not None:
+                    return fallback
                 raise self._lookup_error(
                     "target_frame", self.target_frame,
                     f"a transform {self.target_frame} <- {source} on /tf or /tf_static, or the "
-                    f"'extrinsics' parameter ({err})") from err
+                    f"'{parameter}' parameter ({err})") from err
 
     return ConverterNode
 

@@ -591,6 +591,10 @@ def _node_class() -> type:
                 f"merging {', '.join(f'{n} ({self.resolve_topic_name(t)})' for n, (t, _) in topics.items())}"
                 f" -> '{self.resolve_topic_name(output_topic)}' in '{frame_id}', policy "
                 f"{values['policy']}" + (f", odometry '{odom_topic}'" if odom_topic else ""))
+            from converters._kernels import warm_up as warm_kernels
+            from converters.nodes.common import warm_up
+            self.startup = warm_up(self, {"kernels": lambda: warm_kernels(("merger",))},
+                                   self.diagnostics)
 
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:

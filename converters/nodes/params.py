@@ -461,7 +461,10 @@ def declare_specs(node: Any, specs: Iterable[ParamSpec]) -> dict[str, Any]:
     given = getattr(node, "_parameter_overrides", {}) or {}  # noqa: SLF001 - no public view
     for spec in specs:
         if spec.name in given:  # our rule and message first, rclpy's descriptor checks after
-            spec.check(given[spec.name].value)
+            value = given[spec.name].value
+            if value is None and spec.kind in kinds:    # YAML [] has no element type
+                value = []
+            spec.check(value)
         desc = spec.descriptor()
         try:
             if spec.kind in kinds and not spec.default:

@@ -1,0 +1,204 @@
+"""Warm-up: compile (or load from numba's on-disk cache) every kernel specialisation a converter
+will call, and load the C kernels, before the first message.
+
+numba compiles a kernel at its first call for the argument types of that call, and caches the
+machine code on disk (``__pycache__`` next to the source, or ``NUMBA_CACHE_DIR``). Without a
+warm-up, a node's first scan pays the compilation (seconds) or the cache load (a large part of
+a second). The per-scan arrays enter the kernels through
+:func:`converters._kernels.slices_numba.frozen_f32`, so each kernel has exactly one
+specialisation whatever the scan's channel dtypes and writeability; which kernels run
+depends on the configuration and the geometry:
+
+=====================  ==============================================================
+kernel                 runs when
+=====================  ==============================================================
+row-ordered            one grid, full circle at the sensor's column resolution, upright
+                       mount (the C kernel instead where its AVX-512 path runs)
+bin-ordered            one grid and shared range limits, any other mount
+general (large)        several grids or range limits, >= 32768 rays
+general (small)        the same below 32768 rays, and every merger input
+mask dtype             uint8 bit masks up to 8 slices, uint64 above
+=====================  ==============================================================
+
+so :func:`warm` converts small synthetic scans through the converters themselves, with the
+caller's slice configuration, on three geometries: an upright sensor of 32 x 1024 rays, the
+same tilted, and a small one of 8 x 64. A kernel a configuration cannot reach is not
+compiled. Nothing here is needed for correctness; it only moves the cost to start-up.
+
+``python -m converters._kernels.warm`` fills the cache for every specialisation the library
+has (both mask dtypes, every path), as the Makefile's install does.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import numpy as np
+
+__all__ = ["TASKS", "probe_info", "probe_scan", "specialisations", "warm"]
+
+#: What :func:`warm` can prepare.
+TASKS = ("cloud", "slices", "merger")
+
+#: (height, width, tilt about y in radians) of the synthetic sensors: >= 32768 rays upright,
+#: the same tilted, and a small one (the general kernel's one-call path).
+_GEOMETRIES = ((32, 1024, 0.0), (32, 1024, 0.3), (8, 64, 0.0))
+
+
+def probe_info(height: int = 32, width: int = 1024, *, stamp_ns: int = 1,
+               frame_id: str = "warm") -> Any:
+    """A synthetic LidarInfo dataclass: ``height`` beams from +15 to -15 degrees, ``width``
+    columns over a full clockwise turn, 0.1 to 120 m, millimetre integer ranges."""
+    from lidarscan import make_info
+
+    return make_info(stamp_ns=stamp_ns, frame_id=frame_id,
+                     vertical_angles=np.radians(np.linspace(15.0, -15.0, height)),
+                     horizontal_angles=2 * np.pi * (1 - np.arange(width) / width),
+                     range_min=0.1, range_max=120.0, range_multiplier=0.001,
+                     column_time_increment=100_000_000 // width, as_dataclass=True)
+
+
+def probe_scan(info: Any, *, stamp_ns: int = 2, range_dtype: Any = np.float32,
+               intensity_dtype: Any = np.uint16, intensity_name: str = "intensity",
+               destaggered: bool = False, seed: int = 0) -> Any:
+    """A LidarScan dataclass of ``info`` decoded from CDR bytes (read-only views, as a node
+    receives it): ranges 0.05 to 60 m with no-return (+Inf), too-close (-Inf) and invalid
+    (NaN) pixels so that every kernel pass runs; ``range_dtype`` float32 (metres) or an
+    integer type (millimetres, 0 = no return); an intensity channel ``intensity_name`` of
+    ``intensity_dtype`` (None: a range-only scan); ``destaggered``: its ``is_destaggered``."""
+    import lidarscan
+
+    height, width = int(info.height), int(info.width)
+    rng = np.random.default_rng(seed)
+    metres = rng.uniform(0.05, 60.0, (height, width)).astype(np.float32)
+    metres.reshape(-1)[::7] = np.inf
+    if np.dtype(range_dtype).kind == "f":
+        metres.reshape(-1)[3::11] = np.nan
+        metres.reshape(-1)[5::13] = -np.inf
+        ranges: np.ndarray[Any, Any] = metres.astype(range_dtype)
+    else:
+        ranges = np.where(np.isfinite(metres), np.round(metres * 1000.0), 0).astype(range_dtype)
+    channels = {"range": ranges}
+    if intensity_dtype is not None:
+        channels[intensity_name] = rng.integers(0, 100, (height, width)).astype(intensity_dtype)
+    scan = lidarscan.make_scan(info, channels, stamp_ns=stamp_ns, is_destaggered=destaggered,
+                               as_dataclass=True)
+    return lidarscan.decode_scan(lidarscan.encode(scan))
+
+
+def _tilt(angle: float) -> np.ndarray[Any, Any]:
+    """4x4 pose: rotated by ``angle`` about y, 0.4 m up."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, 0.4],
+                     [0.0, 0.0, 0.0, 1.0]])
+
+
+def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any]) -> None:
+    from converters.laserscan import SliceConverter
+
+    specs = dict(slices) if slices else {"warm": {"min_height": -0.5, "max_height": 0.5}}
+    opts = {k: v for k, v in options.items() if k not in ("extrinsics", "frame_id")}
+    for height, width, tilt in _GEOMETRIES:
+        info = probe_info(height, width)
+        converter = SliceConverter(info, specs, extrinsics=_tilt(tilt), frame_id="warm_target",
+                                   **opts)
+        converter.convert(probe_scan(info))
+
+
+def _warm_cloud(options: Mapping[str, Any]) -> None:
+    from converters.pointcloud2 import PointCloud2Converter
+
+    info = probe_info(8, 64)
+    PointCloud2Converter(info, **options).convert(probe_scan(info))
+
+
+def _warm_merger() -> None:
+    from converters.laserscan import SliceConverter
+    from converters.merger import LaserScanMerger, MergerInput
+
+    info = probe_info(8, 64)
+    laser = SliceConverter(info, {"s": {"min_height": -100.0, "max_height": 100.0}}
+                           ).convert(probe_scan(info))["s"]
+    merger = LaserScanMerger({"a": MergerInput(),
+                              "b": MergerInput(extrinsics=_tilt(0.0), frame_id="warm")},
+                             frame_id="warm")
+    merger.merge({"a": laser, "b": laser})
+
+
+def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = None,
+         slice_options: Mapping[str, Any] | None = None,
+         cloud_options: Mapping[str, Any] | None = None) -> dict[str, float]:
+    """Prepare the compiled kernels of ``tasks`` (a subset of :data:`TASKS`).
+
+    Args:
+        tasks: "cloud" (LidarScan -> PointCloud2: the C kernel), "slices" (height slices: the
+            numba kernels the configuration can reach), "merger" (the merger's kernels).
+        slices: the slice configuration a node will use (name -> SliceSpec or dict), as
+            :class:`converters.laserscan.SliceConverter` takes it; None = one slice.
+        slice_options, cloud_options: keyword options of the slice / PointCloud2 converters
+            (e.g. ``intensity_channel``, ``backend``; ``preset``, ``fields``).
+
+    Returns:
+        task -> seconds it took (milliseconds when the cache is warm; seconds when numba
+        compiles).
+
+    Raises:
+        ConfigError: an unknown task, or options the converters refuse.
+    """
+    from lidarscan.errors import ConfigError
+
+    steps: dict[str, Callable[[], None]] = {
+        "cloud": lambda: _warm_cloud(cloud_options or {}),
+        "slices": lambda: _warm_slices(slices, slice_options or {}),
+        "merger": _warm_merger}
+    chosen = list(tasks)
+    for task in chosen:
+        if task not in steps:
+            raise ConfigError("warm task", task, f"one of {', '.join(TASKS)}")
+    seconds = {}
+    for task in chosen:
+        start = time.perf_counter()
+        steps[task]()
+        seconds[task] = time.perf_counter() - start
+    return seconds
+
+
+def specialisations() -> dict[str, int]:
+    """Compiled specialisations of each numba slice / merger kernel loaded in this process
+    (empty without numba): what a warm-up made ready, and what a later call must not add."""
+    from converters._kernels import slices_numba
+
+    compiled = slices_numba.kernels()
+    if compiled is None:
+        return {}
+    return {name: len(d.signatures) for name, d in compiled.dispatchers().items()}
+
+
+def main() -> int:
+    """``python -m converters._kernels.warm``: fill the cache for every specialisation."""
+    one = {"a": {"min_height": -0.5, "max_height": 0.5}}
+    nine = {f"s{i}": {"min_height": -0.5 + 0.1 * i, "max_height": 0.5} for i in range(9)}
+    two_grids = {"a": {"min_height": -0.5, "max_height": 0.5},
+                 "b": {"min_height": 0.0, "max_height": 1.0, "angle_increment": 0.01}}
+    nine_grids = {**nine, "b": two_grids["b"]}
+    total = time.perf_counter()
+    for label, config in (("1 slice", one), ("9 slices", nine), ("2 grids", two_grids),
+                          ("10 slices, 2 grids", nine_grids)):
+        took = warm(("slices",), slices=config)
+        print(f"slices ({label}): {took['slices']:.2f} s", flush=True)
+    for task, took in warm(("cloud", "merger")).items():
+        print(f"{task}: {took:.2f} s", flush=True)
+    compiled = specialisations()
+    print(f"kernels ready in {time.perf_counter() - total:.1f} s: "
+          + (", ".join(f"{k} {v}" for k, v in compiled.items()) if compiled else
+             "numba not installed or disabled (nothing to compile)"))
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())
