@@ -525,3 +525,33 @@ def test_property_matches_the_loop_oracle(case: Any) -> None:
                            angle_max=o["amax"], angle_increment=o["inc"], range_min=o["rmin"],
                            range_max=o["rmax"], holes=True, backend=backend, **o["holes"])
         assert_same(got, ref)
+
+
+# ------------------------------------------------------------------------ configuration files
+
+def test_node_parameters_and_slices_file_pass_the_hole_options(small_info: Any) -> None:
+    from pathlib import Path
+
+    from converters.nodes import converter_node
+    from converters.nodes.params import load_slices_file
+
+    node, per_slice = converter_node._specs()
+    values = {s.name: s.default for s in node}
+    values["slice_names"] = ["low"]
+    values.update({t.for_name("low").name: t.default for t in per_slice})
+    values.update({"slices.low.min_height": 0.0, "slices.low.max_height": 1.0,
+                   "slices.low.holes": True, "slices.low.floor_height": -0.1,
+                   "slices.low.hole_range_max": 2.5})
+    spec = converter_node.settings(values)["slices"][0].spec()
+    assert (spec.holes, spec.floor_height, spec.hole_depth, spec.hole_range_max,
+            spec.hole_no_return) == (True, -0.1, None, 2.5, True)
+    values["slices.low.hole_depth"] = 0.0
+    bad = converter_node.settings(values)["slices"][0].spec()
+    with pytest.raises(ConfigError, match="hole_depth"):
+        SliceConverter(small_info, {"low": bad})
+    config = Path(__file__).resolve().parent.parent / "config" / "slices.yaml"
+    specs = {s.name: s.spec() for s in load_slices_file(config)}
+    conv = SliceConverter(small_info, specs)
+    holes = {s.name: s.holes for s in conv.slices}
+    assert holes["drop_ahead"] is not None and holes["drop_ahead"].range_max == 3.0
+    assert holes["costmap_obstacles"] is None
