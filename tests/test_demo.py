@@ -67,6 +67,19 @@ def test_demo_writes_recording_views_and_summary(demo_run: tuple[Path, str]) -> 
     assert cloud_bytes > scan_bytes  # the compact message is the point of the project
 
 
+def recording(demo_run: tuple[Path, str]) -> tuple[dict[str, list[Any]], Any]:
+    """(messages by topic, a TransformBuffer filled from /tf_static and /tf) of the demo run."""
+    from converters.nodes.tf import TransformBuffer
+
+    out, _ = demo_run
+    topics = by_topic(out / "demo.mcap")
+    tf = TransformBuffer()
+    tf.add_message(topics["/tf_static"][0].decode(), static=True)
+    for item in topics["/tf"]:
+        tf.add_message(item.decode())
+    return topics, tf
+
+
 def _box_distance(points: np.ndarray[Any, Any], box: demo.Box) -> np.ndarray[Any, Any]:
     """|signed distance| of points to an axis-aligned box surface."""
     lo, hi = np.asarray(box.lo), np.asarray(box.hi)
@@ -77,14 +90,7 @@ def _box_distance(points: np.ndarray[Any, Any], box: demo.Box) -> np.ndarray[Any
 
 
 def test_simulated_scan_lands_exactly_on_the_scene(demo_run: tuple[Path, str]) -> None:
-    from converters.nodes.tf import TransformBuffer
-
-    out, _ = demo_run
-    topics = by_topic(out / "demo.mcap")
-    tf = TransformBuffer()
-    tf.add_message(topics["/tf_static"][0].decode(), static=True)
-    for item in topics["/tf"]:
-        tf.add_message(item.decode())
+    topics, tf = recording(demo_run)
     info = topics["/lidar/info"][0].decode()
     scan = topics["/lidar/scan"][-1].decode()
     points = lidarscan.make_projector(info).project(scan, info).reshape(-1, 3)
@@ -133,14 +139,7 @@ def test_ray_casting_matches_a_loop_reference() -> None:
 def test_the_table_top_is_missed_by_the_2d_lidar_and_seen_by_the_slices(
         demo_run: tuple[Path, str]) -> None:
     from converters import viz
-    from converters.nodes.tf import TransformBuffer
-
-    out, _ = demo_run
-    topics = by_topic(out / "demo.mcap")
-    tf = TransformBuffer()
-    tf.add_message(topics["/tf_static"][0].decode(), static=True)
-    for item in topics["/tf"]:
-        tf.add_message(item.decode())
+    topics, tf = recording(demo_run)
     scene = demo.room_scene()
     top = next(b for b in scene.boxes if b.name == "table" and b.lo[2] > 0.5)
     legs = [b for b in scene.boxes if b.name == "table" and b.lo[2] == 0.0]
@@ -174,14 +173,7 @@ def test_the_depth_camera_reports_the_stair_edge_that_no_band_sees(
     slice without holes sees nothing there, and the merged scan carries the edge too."""
     from converters import viz
     from converters.depth import from_depth_image
-    from converters.nodes.tf import TransformBuffer
-
-    out, _ = demo_run
-    topics = by_topic(out / "demo.mcap")
-    tf = TransformBuffer()
-    tf.add_message(topics["/tf_static"][0].decode(), static=True)
-    for item in topics["/tf"]:
-        tf.add_message(item.decode())
+    topics, tf = recording(demo_run)
     info = topics["/camera/lidar_info"][0].decode()
     image = topics["/camera/depth/image_rect_raw"][-1].decode()
     scan = topics["/camera/lidar_scan"][-1].decode()
