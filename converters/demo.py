@@ -696,7 +696,9 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
     laser = SimulatedLaser2D(scene)
     camera = SimulatedDepthCamera(scene)
     optical_mount = config.camera_mount @ LINK_FROM_OPTICAL      # base_link <- optical frame
-    depth_converter = DepthImageConverter(camera.camera_info(info_stamp(info)))
+    # the camera's LidarInfo is derived from the CameraInfo and not recorded (the recording holds
+    # the Image + CameraInfo a robot would); its version key is the first image's stamp
+    depth_converter = DepthImageConverter(camera.camera_info(poses[0].stamp_ns))
     camera_slicer = _camera_slicer(depth_converter.info, optical_mount, config, holes=True)
     cloud_converter = PointCloud2Converter(info)
     slicer = SliceConverter(info, {name: {"min_height": lo, "max_height": hi}
@@ -728,7 +730,6 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
                                  info_stamp(info))]
         write(writer, "/tf_static", tf_message(static), info_stamp(info))
         write(writer, "/lidar/info", info)
-        write(writer, "/camera/lidar_info", depth_converter.info)
         for k, pose in enumerate(poses):
             base = pose.matrix()
             laser_stamp = pose.stamp_ns + config.laser_delay_ns
@@ -760,7 +761,6 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
             write(writer, "/laser/scan", laser_scan)
             write(writer, "/camera/depth/image_rect_raw", image)
             write(writer, "/camera/depth/camera_info", camera_info)
-            write(writer, "/camera/lidar_scan", camera_scan)
             write(writer, "/camera/slice", camera_slice)
             if merged is not None:
                 write(writer, "/scan_merged", merged)
