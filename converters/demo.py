@@ -17,7 +17,8 @@ Everything here is deterministic and offline (no network, nothing read outside t
   the table legs but not the table top or the shelf;
 * the depth camera (:class:`SimulatedDepthCamera`): a pinhole camera (424 x 240, 87 degrees wide,
   no distortion) 0.6 m up, pitched down and turned to the right, publishing 16UC1 depth images
-  (REP 118, millimetres) and their CameraInfo; :class:`converters.depth.DepthImageConverter` turns them into LidarScans;
+  (REP 118, millimetres) and their CameraInfo, which
+  :class:`converters.depth.DepthImageConverter` turns into LidarScans;
 * :func:`run_demo`: moves the robot slowly through the room, converts every frame (PointCloud2,
   three height slices in ``base_link``, the depth camera's slice with hole detection, the merged
   scan of the full slice, the 2D lidar and the camera slice), writes ``demo.mcap`` and PNG

@@ -6,7 +6,8 @@ the parameter (``"range_min"``, ``"slices['floor'].max_height"``,
 ``"inputs['front'].timeout_ns"``), never later with a bare ``TypeError`` inside the algorithm.
 
 * :func:`slice_options`: the keyword options of :class:`converters.laserscan.SliceConverter` and
-  :func:`converters.laserscan.to_laserscan` (also used by the nodes' helpers);
+  :func:`converters.laserscan.to_laserscan` (also used by the nodes' helpers), including the
+  hole-detection options (:data:`HOLE_DEFAULTS`; a caller that has none gets their defaults);
 * :func:`merger_options` and :func:`merger_input`: :class:`converters.merger.LaserScanMerger` and
   one :class:`converters.merger.MergerInput`;
 * small checkers (:func:`number`, :func:`integer`, :func:`flag`, :func:`name`, :func:`choice`)
@@ -31,8 +32,9 @@ import numpy as np
 from converters.frames import check_extrinsics
 from lidarscan.errors import ConfigError
 
-__all__ = ["HOLE_DEFAULTS", "HOLE_KEYS", "IfPresent", "choice", "flag", "integer", "merger_input", "merger_options", "name",
-           "number", "resolve_channel", "slice_options"]
+__all__ = ["HOLE_DEFAULTS", "HOLE_KEYS", "IfPresent", "choice", "flag", "integer",
+           "merger_input", "merger_options", "name", "number", "resolve_channel",
+           "slice_options"]
 
 BACKENDS = ("auto", "numba", "numpy")
 #: The hole-detection options of a slice and their defaults
@@ -203,8 +205,8 @@ def slice_options(slices: Any, options: Mapping[str, Any]) -> None:
 
 _OUTPUT_KEYS = ("angle_min", "angle_max", "angle_increment", "range_min", "range_max",
                 "use_inf", "inf_epsilon", "fill")
-_SLICE_KEYS = {*_OUTPUT_KEYS, *HOLE_KEYS, "extrinsics", "frame_id", "intensity_channel", "range_channel",
-               "backend"}
+_SLICE_KEYS = {*_OUTPUT_KEYS, *HOLE_KEYS, "extrinsics", "frame_id", "intensity_channel",
+               "range_channel", "backend"}
 
 
 def merger_input(key: str, cfg: Any) -> None:
