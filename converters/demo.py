@@ -1,10 +1,12 @@
-"""The simulated scene of ``lidarscan demo``: a robot with a 3D and a 2D lidar in a small room.
+"""The simulated scene of ``lidarscan demo``: a robot with a 3D lidar, a 2D lidar and a depth
+camera in a small room with a staircase down.
 
 Everything here is deterministic and offline (no network, nothing read outside the package):
 
 * the room (``room_scene``): floor, four walls 2.5 m high with a doorway, a table (top at
-  0.68..0.72 m on four thin legs), a shelf overhanging from a wall at 1.18..1.22 m, a crate and a
-  pillar; every object is an axis-aligned box in the ``odom`` frame (metres, REP 103, z up);
+  0.68..0.72 m on four thin legs), a shelf overhanging from a wall at 1.18..1.22 m, a crate, a
+  pillar and a staircase down (a stairwell in the floor, four 0.18 m steps); every object is an
+  axis-aligned box in the ``odom`` frame (metres, REP 103, z up);
 * the 3D lidar (:class:`SimulatedLidar3D`): the geometry of a real Ouster OS-1-128 (2048 x 10,
   metadata shipped in ``converters/data``, see its NOTICE.md) turned into a LidarInfo by
   :func:`converters.ouster.info_from_metadata`; every pixel's ray (``P = rho * D + O`` from the
@@ -13,9 +15,16 @@ Everything here is deterministic and offline (no network, nothing read outside t
   (albedo, incidence angle, 1/r^2, light from the doorway);
 * the 2D lidar (:class:`SimulatedLaser2D`): a 270 degree scanner 0.2 m above the floor, which sees
   the table legs but not the table top or the shelf;
+* the depth camera (:class:`SimulatedDepthCamera`): a pinhole camera (424 x 240, 87 degrees wide,
+  no distortion) 0.6 m up, pitched down and turned to the right, publishing 16UC1 depth images
+  (REP 118, millimetres) and their CameraInfo, which
+  :class:`converters.depth.DepthImageConverter` turns into LidarScans;
 * :func:`run_demo`: moves the robot slowly through the room, converts every frame (PointCloud2,
-  three height slices in ``base_link``, the merged scan of the full slice and the 2D lidar),
-  writes ``demo.mcap`` and PNG views, and returns sizes and timings.
+  three height slices in ``base_link``, the depth camera's slice with hole detection, the merged
+  scan of the full slice, the 2D lidar and the camera slice), writes ``demo.mcap`` and PNG
+  views, and returns sizes and timings. Neither lidar's height band sees the staircase (it is
+  below the floor); the camera slice reports its edge as an obstacle (holes, see
+  :mod:`converters.laserscan`).
 
 The robot pose is constant during one frame (no motion inside a scan; at 0.2 m/s it would move
 2 cm in 0.1 s). Ranges are exact (no noise) unless ``noise_m`` is given.
@@ -42,6 +51,8 @@ __all__ = [
     "Hits",
     "Pose2D",
     "Scene",
+    "STAIRWELL",
+    "SimulatedDepthCamera",
     "SimulatedLaser2D",
     "SimulatedLidar3D",
     "pose_matrix",
@@ -62,6 +73,10 @@ DEFAULT_SLICES: dict[str, tuple[float, float]] = {
 }
 
 START_NS = 1_700_000_000 * 1_000_000_000  # 2023-11-14, a fixed epoch: reproducible files
+
+#: The opening of the stairwell in the floor, ``odom`` frame: (x0, y0, x1, y1) metres. The stairs
+#: go down towards +x from its edge x = x0, in four steps of 0.18 m (0.25 m treads).
+STAIRWELL = (-1.4, -2.0, -0.4, -0.8)
 
 
 # ------------------------------------------------------------------------------------ geometry
@@ -188,14 +203,20 @@ class Scene:
 def room_scene() -> Scene:
     """The demo room (``odom`` frame): 8 m x 6 m, walls 2.5 m high, open doorway at y = +3.
 
-    Objects: floor (z <= 0); table 1.2 x 0.8 m, top at 0.68..0.72 m, four 4 cm legs; shelf
-    0.45 m deep at 1.18..1.22 m on the wall y = -3 (no legs: it overhangs); a crate 0.5 x 0.5 x
-    0.4 m; a pillar 0.3 x 0.3 m. The doorway (x in [1.5, 2.4], z < 2.1) opens to nothing, so
-    rays through it return nothing (+Inf).
+    Objects: floor (z <= 0, 0.9 m thick around the stairwell :data:`STAIRWELL`, whose four steps
+    down have their tops at -0.18, -0.36, -0.54 and -0.72 m); table 1.2 x 0.8 m, top at
+    0.68..0.72 m, four 4 cm legs; shelf 0.45 m deep at 1.18..1.22 m on the wall y = -3 (no legs:
+    it overhangs); a crate 0.5 x 0.5 x 0.4 m; a pillar 0.3 x 0.3 m. The doorway (x in [1.5,
+    2.4], z < 2.1) opens to nothing, so rays through it return nothing (+Inf).
     """
     wall_h, t = 2.5, 0.1
+    x0, y0, x1, y1 = STAIRWELL
+    floor = (0.35, -0.9)                                                  # albedo, bottom
     boxes = [
-        Box("floor", (-4.1, -3.1, -0.1), (4.1, 3.1, 0.0), 0.35),
+        Box("floor", (-4.1, -3.1, floor[1]), (x0, 3.1, 0.0), floor[0]),
+        Box("floor", (x1, -3.1, floor[1]), (4.1, 3.1, 0.0), floor[0]),
+        Box("floor", (x0, -3.1, floor[1]), (x1, y0, 0.0), floor[0]),
+        Box("floor", (x0, y1, floor[1]), (x1, 3.1, 0.0), floor[0]),
         Box("wall", (-4.1, -3.1, 0.0), (4.1, -3.0, wall_h), 0.7),          # south, y = -3
         Box("wall", (-4.1, -3.0, 0.0), (-4.0, 3.0, wall_h), 0.7),          # west, x = -4
         Box("wall", (4.0, -3.0, 0.0), (4.1, 3.0, wall_h), 0.7),            # east, x = +4
@@ -207,6 +228,10 @@ def room_scene() -> Scene:
         Box("crate", (-1.0, 1.4, 0.0), (-0.5, 1.9, 0.4), 0.45),
         Box("pillar", (3.0, 1.2, 0.0), (3.3, 1.5, wall_h), 0.6),
     ]
+    tread = (x1 - x0) / 4
+    for k in range(4):
+        boxes.append(Box("stairs", (x0 + k * tread, y0, floor[1]),
+                         (x0 + (k + 1) * tread, y1, -0.18 * (k + 1)), 0.4))
     leg = 0.04
     for x in (0.85, 2.0 - 0.05 - leg):
         for y in (-1.25, -0.5 - 0.05 - leg):
@@ -363,6 +388,77 @@ class SimulatedLaser2D:
         return msg
 
 
+#: camera_link <- camera_depth_optical_frame (REP 103 body axes <- optical axes z forward).
+LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0],
+                              [0.0, 0.0, 0.0, 1.0]])
+
+
+class SimulatedDepthCamera:
+    """A pinhole depth camera (no distortion) ray-cast against a :class:`Scene`.
+
+    Args:
+        scene: what it sees.
+        width, height: image size, pixels.
+        hfov: horizontal field of view, radians (square pixels, principal point at the centre).
+        frame_id: the optical frame (z forward, x right, y down).
+        range_min, range_max: depths (z, metres) outside this interval read 0 (no measurement,
+            REP 118), as do rays that hit nothing.
+    """
+
+    def __init__(self, scene: Scene, *, width: int = 424, height: int = 240,
+                 hfov: float = math.radians(87.0),
+                 frame_id: str = "camera_depth_optical_frame", range_min: float = 0.1,
+                 range_max: float = 6.0) -> None:
+        self.scene = scene
+        self.width, self.height, self.frame_id = int(width), int(height), frame_id
+        self.range_min, self.range_max = float(range_min), float(range_max)
+        f = self.width / 2 / math.tan(hfov / 2)
+        cx, cy = (self.width - 1) / 2, (self.height - 1) / 2
+        self.k = (f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0)
+        v, u = np.mgrid[0:self.height, 0:self.width].astype(np.float64)
+        # (x, y, 1) per pixel: a hit at parameter t along it has z-depth t
+        self._rays = [((u - cx) / f).reshape(-1), ((v - cy) / f).reshape(-1),
+                      np.ones(u.size)]
+
+    def depth(self, world_from_optical: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """(H, W) uint16 z-depth in millimetres (0 = no measurement)."""
+        m = np.asarray(world_from_optical, dtype=np.float64)
+        directions = [m[i, 0] * self._rays[0] + m[i, 1] * self._rays[1] + m[i, 2] * self._rays[2]
+                      for i in range(3)]
+        origins = [np.full(self._rays[0].size, m[i, 3]) for i in range(3)]
+        z = self.scene.cast_components(origins, directions).t
+        valid = (z >= self.range_min) & (z <= self.range_max)
+        mm = np.where(valid, np.round(np.where(valid, z, 0.0) * 1000.0), 0.0)
+        return mm.astype(np.uint16).reshape(self.height, self.width)
+
+    def camera_info(self, stamp_ns: int) -> Any:
+        """The ``sensor_msgs.msg.CameraInfo`` of every image (plumb_bob, zero distortion)."""
+        from sensor_msgs.msg import CameraInfo
+        from std_msgs.msg import Header
+
+        from lidarscan.stamps import time_msg
+
+        k = list(self.k)
+        return CameraInfo(header=Header(stamp=time_msg(stamp_ns), frame_id=self.frame_id),
+                          height=self.height, width=self.width, distortion_model="plumb_bob",
+                          d=[0.0] * 5, k=k, r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                          p=[k[0], 0.0, k[2], 0.0, 0.0, k[4], k[5], 0.0, 0.0, 0.0, 1.0, 0.0])
+
+    def image(self, world_from_optical: np.ndarray[Any, Any], stamp_ns: int) -> Any:
+        """A ``sensor_msgs.msg.Image`` (16UC1, little-endian) of the scene from that pose."""
+        from sensor_msgs.msg import Image
+        from std_msgs.msg import Header
+
+        from lidarscan.stamps import time_msg
+
+        depth = self.depth(world_from_optical).astype("<u2")
+        msg = Image(header=Header(stamp=time_msg(stamp_ns), frame_id=self.frame_id),
+                    height=self.height, width=self.width, encoding="16UC1", is_bigendian=0,
+                    step=2 * self.width)
+        msg.data = depth.tobytes()
+        return msg
+
+
 # --------------------------------------------------------------------------------- trajectory
 
 @dataclass(frozen=True)
@@ -475,7 +571,12 @@ class DemoConfig:
     Attributes:
         lidar_mount: 4x4 base_link_from_os_sensor (the Ouster 0.40 m above the base centre).
         laser_mount: 4x4 base_link_from_laser (the 2D lidar 0.25 m forward, 0.2 m high).
+        camera_mount: 4x4 base_link_from_camera_link (the depth camera 0.2 m forward, 0.6 m
+            high, pitched 0.5 rad down, turned 0.45 rad to the right; its optical frame:
+            :data:`LINK_FROM_OPTICAL`).
         slices: name -> (min_height, max_height) in base_link, metres.
+        camera_slice: (min_height, max_height) of the depth camera's slice, with hole detection
+            (floor at base_link z = 0, holes 5 cm deep or more, edges up to 3 m).
         rate_hz: frame rate of both sensors.
         laser_delay_ns: the 2D lidar's stamps lag the 3D lidar's by this much.
     """
@@ -484,7 +585,10 @@ class DemoConfig:
         default_factory=lambda: pose_matrix(0.0, 0.0, 0.40))
     laser_mount: np.ndarray[Any, Any] = field(
         default_factory=lambda: pose_matrix(0.25, 0.0, 0.20))
+    camera_mount: np.ndarray[Any, Any] = field(
+        default_factory=lambda: pose_matrix(0.2, -0.05, 0.6, pitch=0.5, yaw=-0.45))
     slices: dict[str, tuple[float, float]] = field(default_factory=lambda: dict(DEFAULT_SLICES))
+    camera_slice: tuple[float, float] = (0.05, 1.8)
     rate_hz: float = 10.0
     laser_delay_ns: int = 10_000_000
 
@@ -567,6 +671,7 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
         ConfigError: ``frames`` < 1.
     """
     import lidarscan
+    from converters.depth import DepthImageConverter
     from converters.laserscan import SliceConverter
     from converters.merger import LaserScanMerger, MergerInput
     from converters.pointcloud2 import PointCloud2Converter
@@ -581,8 +686,8 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
     out.mkdir(parents=True, exist_ok=True)
     result = DemoResult(out, out / "demo.mcap", frames=int(frames))
     timings: dict[str, list[float]] = {k: [] for k in (
-        "ray casting (3D + 2D)", "LidarScan build", "PointCloud2", "slices (3)", "merge",
-        "encode + write")}
+        "ray casting (3D + 2D + depth)", "LidarScan build", "PointCloud2", "slices (3)",
+        "depth image -> scan + slice", "merge", "encode + write")}
     result.timings = timings
 
     scene = room_scene()
@@ -590,6 +695,12 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
     info = _info(poses[0].stamp_ns - 1_000_000_000)
     lidar = SimulatedLidar3D(info, scene, noise_m=noise_m)
     laser = SimulatedLaser2D(scene)
+    camera = SimulatedDepthCamera(scene)
+    optical_mount = config.camera_mount @ LINK_FROM_OPTICAL      # base_link <- optical frame
+    # the camera's LidarInfo is derived from the CameraInfo and not recorded (the recording holds
+    # the Image + CameraInfo a robot would); its version key is the first image's stamp
+    depth_converter = DepthImageConverter(camera.camera_info(poses[0].stamp_ns))
+    camera_slicer = _camera_slicer(depth_converter.info, optical_mount, config, holes=True)
     cloud_converter = PointCloud2Converter(info)
     slicer = SliceConverter(info, {name: {"min_height": lo, "max_height": hi}
                                    for name, (lo, hi) in config.slices.items()},
@@ -598,7 +709,8 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
                             range_min=0.1, range_max=20.0)
     merger = LaserScanMerger(
         {"full": MergerInput(extrinsics=None),
-         "laser": MergerInput(extrinsics=config.laser_mount)},
+         "laser": MergerInput(extrinsics=config.laser_mount),
+         "camera": MergerInput(extrinsics=None)},
         frame_id="base_link", angle_min=-math.pi, angle_increment=math.radians(0.25),
         range_min=0.1, range_max=20.0)
 
@@ -612,7 +724,11 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
     last: dict[str, Any] = {}
     with McapWriter(result.mcap_path, chunk_size=1 << 20) as writer:
         static = [_transform_msg("base_link", "os_sensor", config.lidar_mount, info_stamp(info)),
-                  _transform_msg("base_link", "laser", config.laser_mount, info_stamp(info))]
+                  _transform_msg("base_link", "laser", config.laser_mount, info_stamp(info)),
+                  _transform_msg("base_link", "camera_link", config.camera_mount,
+                                 info_stamp(info)),
+                  _transform_msg("camera_link", camera.frame_id, LINK_FROM_OPTICAL,
+                                 info_stamp(info))]
         write(writer, "/tf_static", tf_message(static), info_stamp(info))
         write(writer, "/lidar/info", info)
         for k, pose in enumerate(poses):
@@ -621,6 +737,8 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
             t0 = time.perf_counter()
             channels = lidar.channels(base @ config.lidar_mount)
             laser_scan = laser.scan(base @ config.laser_mount, laser_stamp)
+            image = camera.image(base @ optical_mount, pose.stamp_ns)
+            camera_info = camera.camera_info(pose.stamp_ns)
             t1 = time.perf_counter()
             scan = lidarscan.make_scan(info, channels, pose.stamp_ns)
             t2 = time.perf_counter()
@@ -628,7 +746,11 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
             t3 = time.perf_counter()
             slices = slicer.convert(scan)
             t4 = time.perf_counter()
-            merged = merger.merge({"full": slices["full"], "laser": laser_scan})
+            camera_scan, _ = depth_converter.convert(image, camera_info=camera_info)
+            camera_slice = camera_slicer.convert(camera_scan)["camera"]
+            t4b = time.perf_counter()
+            merged = merger.merge({"full": slices["full"], "laser": laser_scan,
+                                   "camera": camera_slice})
             t5 = time.perf_counter()
             write(writer, "/tf", tf_message([_transform_msg("odom", "base_link", base,
                                                             pose.stamp_ns)]), pose.stamp_ns)
@@ -638,11 +760,14 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
             for name, slice_scan in slices.items():
                 write(writer, f"/lidar/slices/{name}", slice_scan)
             write(writer, "/laser/scan", laser_scan)
+            write(writer, "/camera/depth/image_rect_raw", image)
+            write(writer, "/camera/depth/camera_info", camera_info)
+            write(writer, "/camera/slice", camera_slice)
             if merged is not None:
                 write(writer, "/scan_merged", merged)
             t6 = time.perf_counter()
-            for stage, seconds in zip(timings, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4,
-                                                t6 - t5)):
+            for stage, seconds in zip(timings, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4b - t4,
+                                                t5 - t4b, t6 - t5)):
                 timings[stage].append(seconds)
             if k == 0:
                 from converters.pointcloud2 import to_pointcloud2
@@ -655,9 +780,12 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
                     "LidarInfo (once, latched)": len(lidarscan.encode(info)),
                     "LaserScan slice 'full'": len(lidarscan.encode(slices["full"])),
                     "LaserScan 2D lidar": len(lidarscan.encode(laser_scan)),
+                    "Image 16UC1 depth": len(lidarscan.encode(image)),
+                    "LidarScan depth camera": len(lidarscan.encode(camera_scan)),
                 }
             last = {"scan": scan, "cloud": cloud, "slices": slices, "laser": laser_scan,
-                    "merged": merged, "pose": pose}
+                    "merged": merged, "pose": pose, "image": image, "camera_scan": camera_scan,
+                    "camera_slice": camera_slice, "camera_info": depth_converter.info}
             if progress is not None:
                 progress(k + 1, len(poses))
     result.topics = {topic: (msgtype, n) for topic, (msgtype, n) in counts.items()}
@@ -665,6 +793,19 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 10, *, images: bool
         result.images = _draw(out, scene, info, last, config)
     result.total_s = time.perf_counter() - started
     return result
+
+
+def _camera_slicer(info: Any, optical_mount: np.ndarray[Any, Any], config: DemoConfig, *,
+                   holes: bool) -> Any:
+    """The depth camera's slice (a sector of base_link covering its view, at 0.25 degrees)."""
+    from converters.laserscan import SliceConverter
+
+    lo, hi = config.camera_slice
+    return SliceConverter(info, {"camera": {"min_height": lo, "max_height": hi}},
+                          extrinsics=optical_mount, frame_id="base_link", angle_min=-1.3,
+                          angle_max=0.4, angle_increment=math.radians(0.25), range_min=0.1,
+                          range_max=6.0, intensity_channel=None, holes=holes,
+                          floor_height=0.0, hole_depth=0.05, hole_range_max=3.0)
 
 
 def info_stamp(info: Any) -> int:
@@ -705,16 +846,75 @@ def _draw(out: Path, scene: Scene, info: Any, last: dict[str, Any], config: Demo
     if last["merged"] is not None:
         paths.append(viz.birdseye(
             out / "merged_scan.png",
-            [("merged scan (slice 'full' + 2D lidar) over the plain 2D lidar",
+            [("merged scan (slice 'full' + 2D lidar + camera slice) over the plain 2D lidar",
               [viz.Layer("2D lidar alone", laser_xy, "tab:red", size=14.0, alpha=0.35),
                viz.Layer("merged", viz.laserscan_xy(last["merged"]), "tab:purple",
                          size=2.5)])],
             outlines=outlines, notes=notes, extent=extent))
+    paths.append(_draw_camera(out / "depth_camera.png", scene, last, config, base_from_odom,
+                              outlines))
     paths.append(viz.cloud_topview(last["cloud"], out / "pointcloud_topview.png",
                                    extrinsics=config.lidar_mount, extent=extent,
                                    title="PointCloud2 (organized 128x2048) in base_link, "
                                          "coloured by height"))
     return paths
+
+
+def hole_bins(with_holes: Any, without: Any) -> np.ndarray[Any, np.dtype[np.bool_]]:
+    """(N,) bool: bins of a slice with holes whose obstacle is a hole edge, given the same slice
+    without holes (the edge is nearer than anything the band saw)."""
+    a = np.asarray(with_holes.ranges, np.float32)
+    b = np.asarray(without.ranges, np.float32)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(a) & ~(a >= b)
+
+
+def _draw_camera(path: Path, scene: Scene, last: dict[str, Any], config: DemoConfig,
+                 base_from_odom: np.ndarray[Any, Any],
+                 outlines: list[tuple[str, np.ndarray[Any, Any]]]) -> Path:
+    """The depth image and the camera's slice with the detected stair edge."""
+    from converters import viz
+
+    optical_mount = config.camera_mount @ LINK_FROM_OPTICAL
+    plain = _camera_slicer(last["camera_info"], optical_mount, config, holes=False).convert(
+        last["camera_scan"])["camera"]
+    cut = last["camera_slice"]
+    ranges = np.asarray(cut.ranges, np.float64)
+    angles = cut.angle_min + cut.angle_increment * np.arange(ranges.size)
+    edge = hole_bins(cut, plain)
+    band = np.isfinite(ranges) & ~edge
+    xy = np.stack([ranges * np.cos(angles), ranges * np.sin(angles)], 1)
+    image = last["image"]
+    depth = np.frombuffer(bytes(image.data), "<u2").reshape(image.height, image.width)
+    x0, y0, x1, y1 = STAIRWELL
+    well = _footprint_in(base_from_odom, (x0, y0, x1, y1))
+    fig = viz._figure(12.0, 5.4)
+    ax_img, ax_top = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.15, 1.0]})
+    shown = ax_img.imshow(np.where(depth > 0, depth / 1000.0, np.nan), cmap=viz._cmap("viridis"))
+    fig.colorbar(shown, ax=ax_img, shrink=0.7, label="depth z [m] (black: no measurement)")
+    ax_img.set_title(f"depth image {image.width}x{image.height} 16UC1: the stairs go down "
+                     "ahead, right", fontsize=9)
+    ax_img.set_axis_off()
+    for _, poly in outlines:
+        ax_top.fill(poly[:, 0], poly[:, 1], color="0.88", zorder=0)
+    ax_top.fill(well[:, 0], well[:, 1], color="#f3d9c9", zorder=0, label="stairwell (down)")
+    ax_top.plot(well[:, 0], well[:, 1], color="tab:brown", lw=0.8, zorder=1)
+    lo, hi = config.camera_slice
+    ax_top.scatter(xy[band, 0], xy[band, 1], s=4, color="tab:blue", linewidths=0, zorder=3,
+                   label=f"band {lo:g}..{hi:g} m ({int(band.sum())} bins)")
+    ax_top.scatter(xy[edge, 0], xy[edge, 1], s=7, color="tab:red", linewidths=0, zorder=4,
+                   label=f"hole edge ({int(edge.sum())} bins)")
+    ax_top.add_patch(viz._robot_patch())
+    ax_top.set_xlim(-0.5, 4.5)
+    ax_top.set_ylim(-2.5, 2.5)
+    ax_top.set_aspect("equal")
+    ax_top.grid(True, lw=0.3)
+    ax_top.set_xlabel("x [m] (forward)")
+    ax_top.set_ylabel("y [m] (left)")
+    ax_top.set_title("camera slice in base_link with hole detection: the drop is an obstacle",
+                     fontsize=9)
+    ax_top.legend(loc="upper left", fontsize=7, markerscale=2, framealpha=0.9)
+    return viz._save(fig, path)
 
 
 def _footprint_in(matrix: np.ndarray[Any, Any], rect: tuple[float, float, float, float]

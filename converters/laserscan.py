@@ -15,6 +15,18 @@ and fusion rules are those of :mod:`converters._grid` (read its docstring); in s
 * a pixel with no return (+Inf) whose ray crosses the band within the range limits keeps ``+Inf``
   in its bin, so costmaps can clear; an invalid pixel (NaN, or a float range <= 0) gives ``NaN``.
 
+**Holes** (negative obstacles: a stair down, a drop, a pit), off by default, per slice
+(``holes=True``): a pixel whose ray points down from above the floor plane ``z =
+floor_height`` (target frame) and whose measurement lies at or below ``floor_height -
+hole_depth`` (or, with ``hole_no_return``, got no return at all) reports an obstacle at the
+*edge*: the point where its ray crosses the floor plane, at that point's planar range and bin,
+when that range is ``<= hole_range_max`` (default: the slice's ``range_max``). The edge is a point
+like any other for the REP 117 classes, the limits and the ties (it carries the pixel's tie key
+and intensity); the height band does not apply to it. Exact rules: :mod:`converters._grid`
+(**Holes**). This is the cliff detection of the multi-laserscan toolbox's depth converter (its
+``cliff_height`` is ``floor_height - hole_depth``), for any LidarScan: a lidar or a depth image
+(:func:`converters.from_depth_image`).
+
 Tables: with a fixed mount every pixel is a ray ``p = r*D + O`` whose direction ``D`` and
 origin ``O`` in the target frame (float32 components, like the projector's tables; arithmetic in
 float64) are computed once per LidarInfo version and column order (:func:`lidarscan.make_projector`,
@@ -34,6 +46,10 @@ else the per-pixel passes); the C kernel of :mod:`converters._kernels.slices` fo
 row-ordered case (streams the scan in pixel order). All give identical slices (up to points
 within an ulp of a bin edge, where numpy's SIMD ``atan2`` may differ from libm's in the last
 bit). Inputs reach the kernels in native byte order (:func:`lidarscan.channel`, ``native=True``).
+With holes enabled in any slice the one-call row-ordered kernels (C and numba) are not used: the
+bands are fused by the other compiled kernels (or numpy), the holes are then added to the same
+reduction array by numpy (:meth:`SliceConverter._add_holes`, the same code for every backend, on
+static per-pixel tables: only the height test runs per scan), and the result is decoded.
 
 Time fields: ``header.stamp`` is the scan's stamp (measurement column 0), identical for all slices
 of a scan; ``scan_time`` is ``W * column_time_increment`` (or from ``column_time_offsets``);
@@ -58,7 +74,7 @@ import numpy as np
 from converters import _grid, _kernels, options
 from converters._kernels import slices as _cslices
 from converters._kernels.slices_numba import Bands, Rays
-from converters._grid import AngleGrid, OutputOptions
+from converters._grid import AngleGrid, HoleOptions, OutputOptions
 from converters.frames import check_extrinsics, transform_rays
 from converters.options import IfPresent, resolve_channel
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
@@ -80,8 +96,9 @@ class SliceSpec:
         min_height, max_height: inclusive band in metres, in the target frame (``-inf``/``inf``
             allowed for an open side; no default on purpose: pointcloud_to_laserscan's
             ``DBL_MIN`` default silently dropped everything at z <= 0).
-        angle_min, angle_max, angle_increment, range_min, range_max, use_inf, inf_epsilon, fill:
-            None = the converter's common value.
+        angle_min, angle_max, angle_increment, range_min, range_max, use_inf, inf_epsilon, fill,
+        holes, floor_height, hole_depth, hole_range_max, hole_no_return:
+            None = the converter's common value (see :class:`SliceConverter`).
     """
 
     min_height: float
@@ -94,10 +111,15 @@ class SliceSpec:
     use_inf: bool | None = None
     inf_epsilon: float | None = None
     fill: float | None = None
+    holes: bool | None = None
+    floor_height: float | None = None
+    hole_depth: float | None = None
+    hole_range_max: float | None = None
+    hole_no_return: bool | None = None
 
 
 _OVERRIDES = ("angle_min", "angle_max", "angle_increment", "range_min", "range_max", "use_inf",
-              "inf_epsilon", "fill")
+              "inf_epsilon", "fill", *options.HOLE_KEYS)
 
 
 @dataclass(frozen=True)
@@ -107,13 +129,15 @@ class _Slice:
     max_z: float
     grid: AngleGrid
     options: OutputOptions
+    holes: HoleOptions | None = None
 
 
 class _Tables:
     """Static per-pixel tables of one column order (per LidarInfo version and extrinsics).
 
     Rays ``p = r*D + O`` in the target frame (float32 components, arithmetic in float64); per
-    distinct grid the far-field bin and ``r_thr``; per slice the +Inf/NaN/-Inf qualifiers.
+    distinct grid the far-field bin and ``r_thr``; per slice the +Inf/NaN/-Inf qualifiers and,
+    for slices with holes, their :class:`converters._grid.HoleEdges`.
     """
 
     def __init__(self, d: np.ndarray[Any, Any], o: np.ndarray[Any, Any],
@@ -145,6 +169,10 @@ class _Tables:
             ok = self.bin_far[g] >= 0
             self.q_far.append(q_far & ok)
             self.q_near.append(q_near & ok)
+        #: (slice index, edges) of the slices with holes
+        self.holes = [(i, _grid.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
+                                           s.options.range_max))
+                      for i, s in enumerate(slices) if s.holes is not None]
         self.k_r_thr = np.ascontiguousarray(np.stack([_grid.round_up_f32(t) for t in self.r_thr]))
         #: the tables as the general compiled kernels take them
         self.kernel_rays = Rays(
@@ -314,6 +342,16 @@ class SliceConverter:
             ``IfPresent("intensity")``, uses the scan's ``intensity`` channel when it has one
             (empty ``intensities`` for a range-only scan); a plain name is required.
         use_inf, inf_epsilon, fill: output values (see :class:`converters._grid.OutputOptions`).
+        holes: report negative obstacles (module docstring, **Holes**); off by default.
+        floor_height: z of the floor in the target frame, metres (0: a target frame on the
+            floor, such as ``base_footprint``).
+        hole_depth: metres (> 0): a measured point at or below ``floor_height - hole_depth``
+            is in a hole (the tolerance for floor noise and a slightly tilted floor).
+        hole_range_max: largest planar range of a reported hole edge, metres (inclusive; None =
+            the slice's ``range_max``): beyond it the floor is seen too obliquely to judge.
+        hole_no_return: a pixel with no return (+Inf) whose ray crosses the floor also reports
+            a hole (nothing answered where the floor should be); set False for sensors that
+            lose returns on dark or wet floors.
         range_channel: the range channel (float metres or integer with the info's multiplier).
         backend: ``"auto"``, ``"numba"`` or ``"numpy"``, as :func:`converters._kernels.select`
             chooses them (the C kernel where it applies, numba, numpy). All give the same
@@ -330,24 +368,26 @@ class SliceConverter:
                  range_max: float | None = None,
                  intensity_channel: str | None = IfPresent("intensity"),
                  use_inf: bool = True, inf_epsilon: float = 1.0, fill: float | None = None,
+                 holes: bool = False, floor_height: float = 0.0, hole_depth: float = 0.05,
+                 hole_range_max: float | None = None, hole_no_return: bool = True,
                  range_channel: str = "range", backend: str = "auto") -> None:
         if not isinstance(slices, Mapping):
             raise ConfigError("slices", slices, "a non-empty dict of name -> SliceSpec")
         specs = {name: _as_spec(name, spec) for name, spec in slices.items()}
+        common = {"angle_min": angle_min, "angle_max": angle_max,
+                  "angle_increment": angle_increment, "range_min": range_min,
+                  "range_max": range_max, "use_inf": use_inf, "inf_epsilon": inf_epsilon,
+                  "fill": fill, "holes": holes, "floor_height": floor_height,
+                  "hole_depth": hole_depth, "hole_range_max": hole_range_max,
+                  "hole_no_return": hole_no_return}
         options.slice_options(specs, {
-            "extrinsics": extrinsics, "frame_id": frame_id, "angle_min": angle_min,
-            "angle_max": angle_max, "angle_increment": angle_increment,
-            "range_min": range_min, "range_max": range_max,
-            "intensity_channel": intensity_channel, "use_inf": use_inf,
-            "inf_epsilon": inf_epsilon, "fill": fill, "range_channel": range_channel,
+            **common, "extrinsics": extrinsics, "frame_id": frame_id,
+            "intensity_channel": intensity_channel, "range_channel": range_channel,
             "backend": backend})
         chosen = _kernels.select("slices", backend=backend)
         self._kernel = chosen.numba
         self._c_kernel = bool(chosen.c)
-        self._common = {"angle_min": angle_min, "angle_max": angle_max,
-                        "angle_increment": angle_increment, "range_min": range_min,
-                        "range_max": range_max, "use_inf": use_inf, "inf_epsilon": inf_epsilon,
-                        "fill": fill}
+        self._common = common
         self._specs: dict[str, SliceSpec] = specs
         self.extrinsics = check_extrinsics(extrinsics)
         self._frame_id = frame_id
@@ -368,6 +408,7 @@ class SliceConverter:
         self.slices = [self._build_slice(name, spec, info, width)
                        for name, spec in self._specs.items()]
         self._size = sum(s.grid.size for s in self.slices)
+        self._holes = any(s.holes is not None for s in self.slices)
         self._offsets = np.cumsum([0] + [s.grid.size for s in self.slices])[:-1]
         self._grids: list[AngleGrid] = []
         self._slice_grid: list[int] = []
@@ -398,7 +439,13 @@ class SliceConverter:
             rmax = float(info.range_max) if float(info.range_max) > 0 else math.inf
         options = OutputOptions.create(rmin, rmax, bool(opts["use_inf"]), opts["inf_epsilon"],
                                        opts["fill"])
-        return _Slice(name, float(spec.min_height), float(spec.max_height), grid, options)
+        holes = None
+        if opts["holes"]:
+            edge_max = opts["hole_range_max"]
+            holes = HoleOptions(float(opts["floor_height"]), float(opts["hole_depth"]),
+                                options.range_max if edge_max is None else float(edge_max),
+                                bool(opts["hole_no_return"]))
+        return _Slice(name, float(spec.min_height), float(spec.max_height), grid, options, holes)
 
     @staticmethod
     def _sweep_sign(info: Any) -> float:
@@ -472,9 +519,11 @@ class SliceConverter:
         if wanted is not None:
             values = channel(scan, wanted, native=True)
             intensity = (values[..., 0] if values.ndim == 3 else values).reshape(-1)
-        decoded = self._row_convert(r, tables, intensity)
+        decoded = None if self._holes else self._row_convert(r, tables, intensity)
         if decoded is None:
             best = self._fuse(r, tables)
+            if self._holes:
+                self._add_holes(best, r, tables)
             decoded = self._decode_all(best, tables, intensity)
         stamp = to_ns(scan.header.stamp)
         period = self._scan_period_ns(self.info, scan)
@@ -550,6 +599,16 @@ class SliceConverter:
                                f"{self._info_stamp} (the converter's LidarInfo; pass the new "
                                "info to convert(scan, info))")
 
+    def _add_holes(self, best: np.ndarray[Any, Any], r: np.ndarray[Any, Any],
+                   tables: _Tables) -> None:
+        """Fuse the hole edges of this scan into the reduction array ``best`` (in place; the
+        same numpy code after every backend's band fusion)."""
+        for i, edges in tables.holes:
+            hit = _grid.hole_hits(r[edges.index], edges)
+            pixels = edges.index[hit]
+            _grid.merge_min(best, edges.bins[hit] + self._offsets[i], edges.codes[hit],
+                            tables.key(pixels))
+
     def _fuse(self, r: np.ndarray[Any, Any], tables: _Tables) -> np.ndarray[Any, Any]:
         """One reduction array (all slices back to back) from the flat range image."""
         best = np.full(self._size, _grid.EMPTY, np.int64)
@@ -619,6 +678,8 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
                  range_max: float | None = None,
                  intensity_channel: str | None = IfPresent("intensity"),
                  use_inf: bool = True, inf_epsilon: float = 1.0, fill: float | None = None,
+                 holes: bool = False, floor_height: float = 0.0, hole_depth: float = 0.05,
+                 hole_range_max: float | None = None, hole_no_return: bool = True,
                  range_channel: str = "range", backend: str = "auto") -> Any:
     """One height slice of a LidarScan as a ``sensor_msgs.msg.LaserScan``.
 
@@ -635,8 +696,10 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
               "angle_max": angle_max, "angle_increment": angle_increment,
               "range_min": range_min, "range_max": range_max,
               "intensity_channel": intensity_channel, "use_inf": use_inf,
-              "inf_epsilon": inf_epsilon, "fill": fill, "range_channel": range_channel,
-              "backend": backend}
+              "inf_epsilon": inf_epsilon, "fill": fill, "holes": holes,
+              "floor_height": floor_height, "hole_depth": hole_depth,
+              "hole_range_max": hole_range_max, "hole_no_return": hole_no_return,
+              "range_channel": range_channel, "backend": backend}
     spec = SliceSpec(min_height, max_height)
     options.slice_options({"slice": spec}, kwargs)      # before any use of the values
     ext = None if extrinsics is None else check_extrinsics(extrinsics).tobytes()

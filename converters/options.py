@@ -6,7 +6,8 @@ the parameter (``"range_min"``, ``"slices['floor'].max_height"``,
 ``"inputs['front'].timeout_ns"``), never later with a bare ``TypeError`` inside the algorithm.
 
 * :func:`slice_options`: the keyword options of :class:`converters.laserscan.SliceConverter` and
-  :func:`converters.laserscan.to_laserscan` (also used by the nodes' helpers);
+  :func:`converters.laserscan.to_laserscan` (also used by the nodes' helpers), including the
+  hole-detection options (:data:`HOLE_DEFAULTS`; a caller that has none gets their defaults);
 * :func:`merger_options` and :func:`merger_input`: :class:`converters.merger.LaserScanMerger` and
   one :class:`converters.merger.MergerInput`;
 * small checkers (:func:`number`, :func:`integer`, :func:`flag`, :func:`name`, :func:`choice`)
@@ -31,10 +32,16 @@ import numpy as np
 from converters.frames import check_extrinsics
 from lidarscan.errors import ConfigError
 
-__all__ = ["IfPresent", "choice", "flag", "integer", "merger_input", "merger_options", "name",
-           "number", "resolve_channel", "slice_options"]
+__all__ = ["HOLE_DEFAULTS", "HOLE_KEYS", "IfPresent", "choice", "flag", "integer",
+           "merger_input", "merger_options", "name", "number", "resolve_channel",
+           "slice_options"]
 
 BACKENDS = ("auto", "numba", "numpy")
+#: The hole-detection options of a slice and their defaults
+#: (:class:`converters.laserscan.SliceConverter`: holes off).
+HOLE_DEFAULTS: dict[str, Any] = {"holes": False, "floor_height": 0.0, "hole_depth": 0.05,
+                                 "hole_range_max": None, "hole_no_return": True}
+HOLE_KEYS = tuple(HOLE_DEFAULTS)
 
 
 class IfPresent(str):
@@ -143,6 +150,17 @@ def _grid_and_output(prefix: str, values: Mapping[str, Any], optional: bool) -> 
     number(prefix + "fill", values["fill"], allow_inf=True, allow_nan=True, allow_none=True)
 
 
+def _holes(prefix: str, values: Mapping[str, Any], optional: bool) -> None:
+    """Checks of the hole options (:data:`HOLE_KEYS`); ``optional``: None = not overridden."""
+    for key in ("holes", "hole_no_return"):
+        if values[key] is not None or not optional:
+            flag(prefix + key, values[key])
+    number(prefix + "floor_height", values["floor_height"], allow_none=optional)
+    number(prefix + "hole_depth", values["hole_depth"], positive=True, allow_none=optional)
+    number(prefix + "hole_range_max", values["hole_range_max"], positive=True, allow_inf=True,
+           allow_none=True)
+
+
 def slice_options(slices: Any, options: Mapping[str, Any]) -> None:
     """Check the configuration of a :class:`converters.laserscan.SliceConverter`.
 
@@ -171,7 +189,9 @@ def slice_options(slices: Any, options: Mapping[str, Any]) -> None:
                               f">= min_height ({spec.min_height}): the band is inclusive "
                               "[min_height, max_height]")
         _grid_and_output(prefix, {k: getattr(spec, k) for k in _OUTPUT_KEYS}, optional=True)
+        _holes(prefix, {k: getattr(spec, k) for k in HOLE_KEYS}, optional=True)
     _grid_and_output("", {k: options[k] for k in _OUTPUT_KEYS}, optional=True)
+    _holes("", {k: options.get(k, v) for k, v in HOLE_DEFAULTS.items()}, optional=False)
     flag("use_inf", options["use_inf"])
     number("inf_epsilon", options["inf_epsilon"], minimum=0.0)
     check_extrinsics(options["extrinsics"])
@@ -185,8 +205,8 @@ def slice_options(slices: Any, options: Mapping[str, Any]) -> None:
 
 _OUTPUT_KEYS = ("angle_min", "angle_max", "angle_increment", "range_min", "range_max",
                 "use_inf", "inf_epsilon", "fill")
-_SLICE_KEYS = {*_OUTPUT_KEYS, "extrinsics", "frame_id", "intensity_channel", "range_channel",
-               "backend"}
+_SLICE_KEYS = {*_OUTPUT_KEYS, *HOLE_KEYS, "extrinsics", "frame_id", "intensity_channel",
+               "range_channel", "backend"}
 
 
 def merger_input(key: str, cfg: Any) -> None:

@@ -1,5 +1,6 @@
 """``lidarscan demo``: the simulated scene is exact, the recording complete, the views drawn, and
-the demo shows what it claims (the table top that the plain 2D lidar misses)."""
+the demo shows what it claims (the table top that the plain 2D lidar misses, the staircase down
+that only the depth camera's slice with hole detection reports)."""
 
 from __future__ import annotations
 
@@ -50,11 +51,12 @@ def test_demo_writes_recording_views_and_summary(demo_run: tuple[Path, str]) -> 
     topics = by_topic(out / "demo.mcap")
     for topic in ("/lidar/scan", "/lidar/points", "/lidar/slices/floor_to_knee",
                   "/lidar/slices/table", "/lidar/slices/full", "/laser/scan", "/scan_merged",
-                  "/tf", "/odom"):
+                  "/tf", "/odom", "/camera/depth/image_rect_raw", "/camera/depth/camera_info",
+                  "/camera/slice"):
         assert len(topics[topic]) == FRAMES, topic
     assert len(topics["/lidar/info"]) == 1 and len(topics["/tf_static"]) == 1
     for name in ("range_image.png", "birdseye_slices.png", "merged_scan.png",
-                 "pointcloud_topview.png"):
+                 "depth_camera.png", "pointcloud_topview.png"):
         assert (out / name).read_bytes()[:8] == PNG, name
     scan_bytes = len(topics["/lidar/scan"][0].payload)
     cloud_bytes = len(topics["/lidar/points"][0].payload)
@@ -62,6 +64,19 @@ def test_demo_writes_recording_views_and_summary(demo_run: tuple[Path, str]) -> 
     assert re.search(rf"PointCloud2\s+{cloud_bytes:,d}", stdout)
     assert "timings per frame" in stdout and "x LidarScan)" in stdout
     assert cloud_bytes > scan_bytes  # the compact message is the point of the project
+
+
+def recording(demo_run: tuple[Path, str]) -> tuple[dict[str, list[Any]], Any]:
+    """(messages by topic, a TransformBuffer filled from /tf_static and /tf) of the demo run."""
+    from converters.nodes.tf import TransformBuffer
+
+    out, _ = demo_run
+    topics = by_topic(out / "demo.mcap")
+    tf = TransformBuffer()
+    tf.add_message(topics["/tf_static"][0].decode(), static=True)
+    for item in topics["/tf"]:
+        tf.add_message(item.decode())
+    return topics, tf
 
 
 def _box_distance(points: np.ndarray[Any, Any], box: demo.Box) -> np.ndarray[Any, Any]:
@@ -74,14 +89,7 @@ def _box_distance(points: np.ndarray[Any, Any], box: demo.Box) -> np.ndarray[Any
 
 
 def test_simulated_scan_lands_exactly_on_the_scene(demo_run: tuple[Path, str]) -> None:
-    from converters.nodes.tf import TransformBuffer
-
-    out, _ = demo_run
-    topics = by_topic(out / "demo.mcap")
-    tf = TransformBuffer()
-    tf.add_message(topics["/tf_static"][0].decode(), static=True)
-    for item in topics["/tf"]:
-        tf.add_message(item.decode())
+    topics, tf = recording(demo_run)
     info = topics["/lidar/info"][0].decode()
     scan = topics["/lidar/scan"][-1].decode()
     points = lidarscan.make_projector(info).project(scan, info).reshape(-1, 3)
@@ -130,14 +138,7 @@ def test_ray_casting_matches_a_loop_reference() -> None:
 def test_the_table_top_is_missed_by_the_2d_lidar_and_seen_by_the_slices(
         demo_run: tuple[Path, str]) -> None:
     from converters import viz
-    from converters.nodes.tf import TransformBuffer
-
-    out, _ = demo_run
-    topics = by_topic(out / "demo.mcap")
-    tf = TransformBuffer()
-    tf.add_message(topics["/tf_static"][0].decode(), static=True)
-    for item in topics["/tf"]:
-        tf.add_message(item.decode())
+    topics, tf = recording(demo_run)
     scene = demo.room_scene()
     top = next(b for b in scene.boxes if b.name == "table" and b.lo[2] > 0.5)
     legs = [b for b in scene.boxes if b.name == "table" and b.lo[2] == 0.0]
@@ -162,6 +163,46 @@ def test_the_table_top_is_missed_by_the_2d_lidar_and_seen_by_the_slices(
     assert (on_top(table) & ~near_leg(table)).sum() > 20      # the table top's edge
     assert np.all(near_leg(low[on_top(low)]))                  # below 0.5 m: legs only
     assert (on_top(merged) & ~near_leg(merged)).sum() > 20
+
+
+def test_the_depth_camera_reports_the_stair_edge_that_no_band_sees(
+        demo_run: tuple[Path, str]) -> None:
+    """The recorded depth image (with its CameraInfo) converts to the LidarScan the camera slice
+    was cut from; the slice's hole edges lie on the stairwell's rim (at most a few cm beyond it,
+    never in front of it), the same slice without holes sees only farther things there, and the
+    merged scan carries the edge too."""
+    from converters import viz
+    from converters.depth import from_depth_image
+    topics, tf = recording(demo_run)
+    image = topics["/camera/depth/image_rect_raw"][-1].decode()
+    scan, info = from_depth_image(image, topics["/camera/depth/camera_info"][-1].decode())
+    stamp = lidarscan.to_ns(scan.header.stamp)
+    optical = tf.lookup("base_link", info.header.frame_id, stamp)
+    config = demo.DemoConfig()
+    with_holes = topics["/camera/slice"][-1].decode()
+    again = demo._camera_slicer(info, optical, config, holes=True).convert(scan)["camera"]
+    np.testing.assert_array_equal(np.asarray(again.ranges), np.asarray(with_holes.ranges))
+    plain = demo._camera_slicer(info, optical, config, holes=False).convert(scan)["camera"]
+    edge = demo.hole_bins(with_holes, plain)
+    assert edge.sum() > 40
+    ranges = np.asarray(with_holes.ranges, np.float64)
+    angles = with_holes.angle_min + with_holes.angle_increment * np.arange(ranges.size)
+    xy = np.stack([ranges * np.cos(angles), ranges * np.sin(angles), np.zeros_like(ranges),
+                   np.ones_like(ranges)], 1)[edge]
+    odom = (xy @ tf.lookup("odom", "base_link", stamp).T)[:, :2]
+    x0, y0, x1, y1 = demo.STAIRWELL
+    tol = 0.01              # drawn at the bin's centre angle: up to half a bin (4 mm at 2 m) off
+    inside = (odom[:, 0] >= x0 - tol) & (odom[:, 0] <= x1) & (odom[:, 1] >= y0) & \
+        (odom[:, 1] <= y1 + tol)
+    assert np.all(inside), odom[~inside]                     # on or beyond the rim, never before
+    rim = np.minimum(odom[:, 0] - x0, y1 - odom[:, 1])       # the two rims the camera faces
+    assert np.all(rim < 0.05), rim.max()
+    behind = np.asarray(plain.ranges, np.float64)[edge]      # what the band alone sees there
+    assert np.all(behind > ranges[edge] + 0.2)                # walls and table, well behind
+    merged = viz.laserscan_xy(topics["/scan_merged"][-1].decode(),
+                              tf.lookup("odom", "base_link", stamp))
+    on_rim = (np.abs(merged[:, 0] - x0) < 0.05) & (merged[:, 1] > y0) & (merged[:, 1] < y1)
+    assert on_rim.sum() > 10
 
 
 def test_demo_ships_its_metadata_with_provenance() -> None:

@@ -37,7 +37,11 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
   ``target_frame``, inclusive), ``slices.NAME.topic`` [``slices/NAME``], and optional
   ``slices.NAME.angle_min`` / ``angle_max`` / ``angle_increment`` (radians; default a full
   circle from -pi at the sensor's column resolution 2 pi / W) and ``range_min`` /
-  ``range_max`` (metres, planar; default the LidarInfo's limits);
+  ``range_max`` (metres, planar; default the LidarInfo's limits); hole detection (negative
+  obstacles, :mod:`converters.laserscan`): ``slices.NAME.holes`` [false],
+  ``floor_height`` [0.0] (metres in ``target_frame``), ``hole_depth`` [0.05],
+  ``hole_range_max`` (metres, planar; default the slice's ``range_max``) and
+  ``hole_no_return`` [true];
 * ``slice_intensity_channel`` [``intensity``]: channel copied into the slices' intensities
   ("" = none; a scan without that channel gets empty intensities);
 * ``slices_file`` [""]: a YAML file of more slices (``config/slices.yaml``);
@@ -102,6 +106,7 @@ import numpy as np
 
 from converters.nodes.common import entry_points
 from converters.nodes.params import SliceConfig, parse_extrinsics
+from converters.options import HOLE_KEYS
 from lidarscan.errors import ConfigError, LidarScanError
 
 __all__ = ["ConverterCore", "ConverterStats", "main"]  # + ConverterNode (lazy, imports rclpy)
@@ -436,6 +441,16 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
           "LidarInfo's)", kind="float", low=0.0),
         S("slices.NAME.range_max", None, "slice NAME: planar range max, metres (default the "
           "LidarInfo's)", kind="float", low=0.0),
+        S("slices.NAME.holes", False, "slice NAME: report holes (a drop below the floor) as "
+          "obstacles at their edge"),
+        S("slices.NAME.floor_height", None, "slice NAME: z of the floor in target_frame, "
+          "metres (default 0)", kind="float"),
+        S("slices.NAME.hole_depth", None, "slice NAME: a point this far below the floor or "
+          "more is in a hole, metres > 0 (default 0.05)", kind="float", low=0.0),
+        S("slices.NAME.hole_range_max", None, "slice NAME: farthest hole edge reported, "
+          "metres, planar (default the slice's range_max)", kind="float", low=0.0),
+        S("slices.NAME.hole_no_return", True, "slice NAME: a ray with no return that crosses "
+          "the floor is a hole too"),
     )
     return node, per_slice
 
@@ -527,7 +542,9 @@ def settings(values: Mapping[str, Any], extra_slices: Sequence[SliceConfig] = ()
         for key in ("min_height", "max_height"):
             if kw[key] is None:
                 raise ConfigError(prefix + key, None, "a height in metres (required)")
-        specs.append(SliceConfig(str(name), topic=values.get(prefix + "topic", ""), **kw))
+        holes = {k: values.get(prefix + k) for k in HOLE_KEYS}
+        specs.append(SliceConfig(str(name), topic=values.get(prefix + "topic", ""),
+                                 extra={k: v for k, v in holes.items() if v is not None}, **kw))
     specs.extend(extra_slices)
     seen: set[str] = set()
     for spec in specs:
