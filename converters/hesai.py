@@ -144,6 +144,7 @@ RETURN_MODES: dict[int, tuple[str, ...]] = {
     0x39: ("last", "strongest"),
     0x3B: ("first", "last"),
     0x3C: ("first", "strongest"),
+    0x3D: ("first", "last", "strongest"),
 }
 
 # Firing-time tables (ns; sources in the module docstring). Pandar40P: time of each laser id
@@ -205,7 +206,9 @@ class HesaiFormat:
     channel_ns: tuple[float, ...]
     dis_unit_at: int | None   # header byte holding the distance unit (mm), None: fixed 4 mm
     range_limits: tuple[float, float]
-    dual_orders: tuple[tuple[int, tuple[str, str]], ...]   # mode -> what blocks 1, 2 hold
+    dual_orders: tuple[tuple[int, tuple[str, ...]], ...]   # mode -> what blocks 1, 2(, 3) hold
+    sizes: tuple[int, ...] = ()       # accepted payload sizes; () = (size, size + 4)
+    channel_timing: str = "beam"      # "beam": channel_ns per beam; else why it is not applied
 
     def block_start_ns(self, firing: np.ndarray[Any, Any], firings: int) -> np.ndarray[Any, Any]:
         """Start of each firing (index ``firing`` of ``firings`` per packet) relative to t0."""
@@ -249,8 +252,74 @@ FORMATS: dict[str, HesaiFormat] = {
         range_limits=(0.1, 60.0), dual_orders=((0x3B, ("first", "last")),)),
 }
 
-_UNCONFIRMED = ("its layout or firing-time table is not confirmed from public material "
-                "(supported: Pandar40P, Pandar64, PandarXT32, PandarQT64)")
+#: dual/triple block orders of the formats with a 12-byte header ("First Block Return" field
+#: of the manuals' header tables: block 1 holds the last return in modes 0x39 and 0x3B, the
+#: first in 0x3C; 0x39 and 0x3C confirmed on the XT16, XT32M and QT128 recordings)
+_ORDERS_12B = ((0x39, ("last", "strongest")), (0x3B, ("last", "first")),
+               (0x3C, ("first", "strongest")))
+_NOT_PER_BEAM = ("not applied: the firing time of a channel changes from firing to firing "
+                 "({}), which per-beam LidarInfo.beam_time_offsets cannot express; column "
+                 "times are the firings' trigger times and beam_time_offsets are 0")
+
+
+def _xt_format(model: str, lasers: int, blocks: int, channel_ns: tuple[float, ...],
+               limits: tuple[float, float], orders: tuple[tuple[int, tuple[str, ...]], ...]
+               ) -> HesaiFormat:
+    """A PandarXT-family format (protocol 6.1): 12-byte header, blocks of an azimuth and
+    4-byte units, 24-byte tail (+ optional 4-byte UDP sequence); firing k of a packet starts
+    at t0 + 5.632 us - 50 us per later firing (PandarXT manuals, Appendix "Absolute Time and
+    Laser Firing Time")."""
+    tail = 12 + blocks * (2 + 4 * lasers)
+    return HesaiFormat(
+        model=model, lasers=lasers, blocks=blocks, body=12, block_size=2 + 4 * lasers,
+        azimuth_at=0, unit_size=4, size=tail + 24, return_mode_at=tail + 10,
+        motor_speed_at=tail + 11, timestamp_at=tail + 19, datetime_at=tail + 13,
+        firing_period_ns=50000.0, block_base_ns=5632.0, block_ref_last=True,
+        channel_ns=channel_ns, dis_unit_at=9, range_limits=limits, dual_orders=orders)
+
+
+@functools.lru_cache(maxsize=None)
+def _format_v1(model: str, major: int, lasers: int, blocks: int, flags: int) -> HesaiFormat:
+    """Pandar128E3X/E4X/OT128 (protocol 1.4) and PandarQT128 (3.2): 12-byte header whose Flags
+    byte says which optional parts the packet has (bit 0 UDP sequence, 1 IMU, 2 functional
+    safety, 3 digital signature, 4 confidence byte per unit); body = blocks of an azimuth and
+    3-byte (4 with confidence) units, then a 4-byte CRC; functional safety 17 bytes; tail:
+    reserved, (128: azimuth state u16 at +9, operational state at +11; QT128: mode flag at
+    +5), return mode +12, motor speed +13, date-time +15, timestamp +21, factory +25, UDP
+    sequence (4), IMU (22), CRC (4); signature (32)."""
+    unit = 4 if flags & 0x10 else 3
+    block_size = 2 + unit * lasers
+    tail = 12 + blocks * block_size + 4 + (17 if flags & 0x04 else 0)
+    size = (tail + 26 + (4 if flags & 0x01 else 0) + (22 if flags & 0x02 else 0) + 4
+            + (32 if flags & 0x08 else 0))
+    if major == 3:       # QT128: 2 firings of 111.11 us, last one triggered at t0 + 9 us
+        period, base = 111110.0, 9000.0
+        why = "two firing loops with different channel sets and delays, chosen per block"
+        limits = (0.05, 50.0)
+    else:                # 128E3X/E4X: 2 firings of 55.56 us, the last one triggered at t0
+        period, base = 55556.0, 0.0
+        why = ("azimuth state and operational state of the tail, near/far-field firing on "
+               "the 128E3X; the packet does not tell 128E3X and 128E4X apart")
+        limits = (0.1, 230.0)
+    return HesaiFormat(
+        model=model, lasers=lasers, blocks=blocks, body=12, block_size=block_size,
+        azimuth_at=0, unit_size=unit, size=size, return_mode_at=tail + 12,
+        motor_speed_at=tail + 13, timestamp_at=tail + 21, datetime_at=tail + 15,
+        firing_period_ns=period, block_base_ns=base, block_ref_last=True,
+        channel_ns=(0.0,) * lasers, dis_unit_at=9, range_limits=limits,
+        dual_orders=_ORDERS_12B, sizes=(size,), channel_timing=_NOT_PER_BEAM.format(why))
+
+
+FORMATS["PandarXT16"] = _xt_format(
+    "PandarXT16", 16, 8, tuple(368.0 + 3024.0 * k for k in range(16)), (0.05, 120.0),
+    _ORDERS_12B)
+# XT32M2X: channels 1-16 and 17-32 fire in pairs, 2.888 us apart; 6 blocks (triple: 2 firings)
+FORMATS["PandarXT32M"] = _xt_format(
+    "PandarXT32M", 32, 6, tuple(368.0 + 2888.0 * (k % 16) for k in range(32)), (0.5, 300.0),
+    _ORDERS_12B + ((0x3D, ("first", "last", "strongest")),))
+
+_SUPPORTED = ("supported: Pandar40P, Pandar64, PandarXT16/XT32/XT32M (protocol 6.1), PandarQT64 "
+              "(3.1), PandarQT128 (3.2), Pandar128E3X/E4X/OT128 (1.4)")
 
 
 def detect_format(packet: bytes) -> HesaiFormat:
@@ -280,18 +349,39 @@ def detect_format(packet: bytes) -> HesaiFormat:
     if packet[2] == 64 and packet[3] == 6:        # Pandar64: 8-byte header, laser num first
         fmt = FORMATS["Pandar64"]
     else:
-        major, minor, lasers, blocks = packet[2], packet[3], packet[6], packet[7]
-        if (major, minor, lasers, blocks) == (6, 1, 32, 8):
-            fmt = FORMATS["PandarXT32"]
-        elif (major, minor, lasers, blocks) == (3, 1, 64, 4):
-            fmt = FORMATS["PandarQT64"]
-        else:
+        major, minor, lasers, blocks, flags = (packet[2], packet[3], packet[6], packet[7],
+                                               packet[11])
+        key = (major, minor, lasers, blocks)
+        model = _MODELS_12B.get(key)
+        if model is None:
+            names = {(6, 1): "PandarXT (6.1): 16 or 32 lasers, 8 blocks; 32 lasers, 6 blocks",
+                     (3, 1): "PandarQT64 (3.1): 64 lasers, 4 blocks",
+                     (3, 2): "PandarQT128 (3.2): 128 lasers, 2 blocks",
+                     (1, 4): "Pandar128E3X/E4X/OT128 (1.4): 128 lasers, 2 blocks"}
+            expected = names.get((major, minor))
             raise DecodeError("hesai header (protocol major.minor, laser num, block num)",
-                              f"{major}.{minor}, {lasers}, {blocks}", _UNCONFIRMED)
-    if n not in (fmt.size, fmt.size + 4):
-        raise DecodeError("hesai packet size", n,
-                          f"{fmt.size} or {fmt.size + 4} bytes for a {fmt.model} packet")
+                              f"{major}.{minor}, {lasers}, {blocks}",
+                              expected or f"a known protocol version ({_SUPPORTED})")
+        if model in FORMATS:
+            fmt = FORMATS[model]
+        else:
+            if flags & 0xE0:
+                raise DecodeError(f"{model} header flags", hex(flags), "bits 7..5 clear (bits "
+                                  "4..0: confidence, signature, functional safety, IMU, UDP "
+                                  "sequence)")
+            fmt = _format_v1(model, major, lasers, blocks, flags)
+    sizes = fmt.sizes or (fmt.size, fmt.size + 4)
+    if n not in sizes:
+        raise DecodeError("hesai packet size", n, " or ".join(map(str, sizes))
+                          + f" bytes for a {fmt.model} packet" + (
+                              f" with header flags {packet[11]:#04x}" if fmt.sizes else ""))
     return fmt
+
+
+#: (protocol major, minor, laser num, block num) of the 12-byte header -> model
+_MODELS_12B = {(6, 1, 32, 8): "PandarXT32", (6, 1, 16, 8): "PandarXT16",
+               (6, 1, 32, 6): "PandarXT32M", (3, 1, 64, 4): "PandarQT64",
+               (3, 2, 128, 2): "PandarQT128", (1, 4, 128, 2): "Pandar128E3X/E4X"}
 
 
 # ------------------------------------------------------------------------------- calibration
@@ -481,7 +571,7 @@ class PacketDecoder:
                 out = self.flush()
             self._stream, self._key = new, data[:max(2, fmt.body)]
             self._fast = (new.packet_size, self._key, fmt.return_mode_at, new.mode,
-                          struct.Struct(f"<H{new.last_firing_at - 2}xH"), at, fmt.datetime_at)
+                          _first_last(new.last_firing_at), at, fmt.datetime_at)
         wrapped = first < self._last_az - 18000 or last < first - 18000
         self._packets.append(data)
         self._stamps.append(stamp_ns)
@@ -783,7 +873,8 @@ class PacketDecoder:
         nominal_width = 60e9 / (stream.rpm * fmt.firing_period_ns)
         meta = {"format": fmt.model, "return_mode": "+".join(RETURN_MODES[stream.mode]),
                 "return_mode_byte": stream.mode, "rpm": stream.rpm,
-                "dis_unit_m": stream.dis_unit_m, "firing_rotation": self.firing_rotation}
+                "dis_unit_m": stream.dis_unit_m, "firing_rotation": self.firing_rotation,
+                "channel_timing": fmt.channel_timing}
         info = make_info(
             stamp_ns=stamp, frame_id=self.frame_id,
             vertical_angles=np.deg2rad(calib.elevation_deg[order]),
@@ -801,6 +892,22 @@ class PacketDecoder:
 
 
 _U16 = struct.Struct("<H")
+
+
+class _OneFiring:
+    """unpack_from() -> (azimuth, azimuth) for packets of one firing (e.g. 2 blocks, dual)."""
+
+    @staticmethod
+    def unpack_from(data: bytes, at: int) -> tuple[int, int]:
+        az = _U16.unpack_from(data, at)[0]
+        return az, az
+
+
+def _first_last(last_firing_at: int) -> Any:
+    """A struct reading the azimuths of a packet's first and last firing (``unpack_from``)."""
+    if last_firing_at == 0:
+        return _OneFiring
+    return struct.Struct(f"<H{last_firing_at - 2}xH")
 
 
 def _date_seconds(date: bytes) -> int:
@@ -935,17 +1042,24 @@ def _block_kinds(fmt: HesaiFormat, mode: int) -> tuple[str, ...]:
 
 
 def _channel_names(kinds: tuple[str, ...]) -> list[tuple[str, str]]:
-    """(range, intensity) channel names of each block of a firing, in block order."""
+    """(range, intensity) channel names of each block of a firing, in block order.
+
+    The strongest return (else the last) is ``range``/``intensity``; the other returns are
+    ``range2``/``intensity2`` and (triple) ``range3``/``intensity3`` in block order.
+    """
     if len(kinds) == 1:
         return [("range", "intensity")]
     primary = kinds.index("strongest") if "strongest" in kinds else kinds.index("last")
-    return [("range", "intensity") if r == primary else ("range2", "intensity2")
-            for r in range(len(kinds))]
+    others = iter(range(2, len(kinds) + 1))
+    return [("range", "intensity") if r == primary else
+            (f"range{(n := next(others))}", f"intensity{n}") for r in range(len(kinds))]
 
 
 def _channel_rank(name: str) -> tuple[int, int]:
-    order = {"range": (0, 0), "intensity": (0, 1), "range2": (1, 0), "intensity2": (1, 1)}
-    return order[name]
+    """Channel order in the scan: range, intensity, range2, intensity2, range3, intensity3."""
+    if name.startswith("range"):
+        return (int(name[5:] or 1), 0)
+    return (int(name[9:] or 1), 1)
 
 
 
