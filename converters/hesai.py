@@ -12,16 +12,37 @@ Pandar40P      no pre-header; every block starts with  40      10      1262 (+4 
 Pandar64       header 0xEE 0xFF, laser num 64,         64      6       1194 (+4 UDP seq)
                block num 6 (8-byte header)
 PandarXT32     0xEE 0xFF, protocol 6.1, laser num 32   32      8       1076 (+4 UDP seq)
+PandarXT16     protocol 6.1, laser num 16, 8 blocks    16      8       556 (+4 UDP seq)
+PandarXT32M    protocol 6.1, laser num 32, 6 blocks    32      6       816 (+4 UDP seq)
 PandarQT64     0xEE 0xFF, protocol 3.1, laser num 64   64      4       1068 (+4 UDP seq)
+PandarQT128    protocol 3.2, laser num 128, 2 blocks   128     2       from the Flags byte
+                                                                       (1095 with UDP seq,
+                                                                       FS, confidence; +32
+                                                                       with signature)
+Pandar128E3X,  protocol 1.4, laser num 128, 2 blocks   128     2       from the Flags byte
+Pandar128E4X                                                           (861 with UDP seq,
+(OT128)                                                                FS, IMU; +32 signed)
 =============  ======================================  ======  ======  ====================
 
-The model is detected from the packet's own bytes (pre-header, protocol version, laser and block
-counts, payload size), never from file names. Formats whose layout or firing-time table could
-not be confirmed from public material raise a :class:`~lidarscan.errors.DecodeError` naming the
-detected header instead of being guessed: PandarXT16 and PandarXT32M (protocol 6.x with another
-laser or block count), PandarQT128 (protocol 3.2: per-firing channel-enable tables),
-Pandar128E3X/E4X and OT128 (protocol 1.x: fine azimuth, CRCs, firetime-correction files). None
-of the four supported formats has a triple-return mode.
+The model is detected from the packet's own bytes (pre-header, protocol version major.minor,
+laser and block num, the header's Flags byte, payload size), never from file names; the return
+mode, motor speed and date-time come from the tail, the distance unit from the header's Dis Unit
+byte (the XT32M recording has 5 mm). A packet no format fits raises a
+:class:`~lidarscan.errors.DecodeError` naming the field and value (unknown protocol version,
+laser/block num, reserved flag bits, size, return mode byte).
+
+Layouts (manuals, chapter "Data Structure" / "Point Cloud Data Packet"): pre-header 0xEE 0xFF,
+protocol major, minor, 2 reserved; header laser num, block num, first block return, dis unit,
+return num, flags. PandarXT (6.1): blocks of azimuth u16 (0.01 deg) + 4-byte units (distance
+u16, reflectivity, reserved); tail 10 reserved, return mode, motor speed u16, date-time (year -
+1900, month, day, hour, minute, second), timestamp u32 us, factory info; UDP sequence u32.
+PandarQT128 (3.2) and Pandar128E3X/E4X/OT128 (1.4): the Flags byte says which optional parts
+are present (bit 0 UDP sequence, 1 IMU, 2 functional safety, 3 digital signature, 4 a confidence
+byte after each unit's reflectivity: 4-byte instead of 3-byte units); body = 2 blocks + CRC u32;
+functional safety 17 bytes; tail: QT128 5 reserved, mode flag, 6 reserved; 128 series 9
+reserved, azimuth state u16, operational state; then both: return mode, motor speed, date-time,
+timestamp, factory info, UDP sequence, (128: IMU 22 bytes), CRC u32; then the 32-byte signature.
+No "fine azimuth" byte exists in these formats (that is the AT128's, not decoded here).
 
 Sources of the timing tables: Pandar40P, its manual's Table II.4 (time of each laser before its
 block's end) and block end times; Pandar64, its manual's block end times (t0 - 42.58 us - 55.56 us
@@ -30,14 +51,30 @@ lasers the public excerpt lists), the full 64-entry table as tabulated in the Ne
 PandarXT32 (5.632 us - 50 us per later firing, then 0.368 us + 1.512 us per channel) and
 PandarQT64 (25.71 us + 166.67 us per firing, then its 64-entry table) as tabulated in Nebula
 (one QT64 entry there, 12960 ns for channel 56, is a typo of the 129600 its 2.06 us step gives).
+PandarXT16: the XT block times, 0.368 us + 3.024 us per channel; PandarXT32M: the XT block
+times, channels 1-16 and 17-32 fired in pairs, 0.368 us + 2.888 us per pair (as tabulated in
+Nebula). PandarQT128 and the 128 series fire a channel at a time that changes from firing to
+firing (QT128: two firing loops with different channel sets, chosen per block or by the tail's
+mode flag; 128E3X/E4X: per the tail's azimuth state and operational state, and on the 128E3X
+near/far-field firing by distance; the packet does not say whether it is a 128E3X or a 128E4X,
+whose tables differ). Per-beam ``beam_time_offsets`` cannot express that, so for these models
+they are 0 and ``column_time_offsets`` are the firings' trigger times (QT128: t0 + 9 us -
+111.11 us per later firing; 128 series: t0 - 55.56 us per later firing, the manual's "absolute
+time is the trigger time of the firing in the last block"); ``vendor_metadata``'s
+``channel_timing`` says so. The channel delays (up to ~0.1 ms) are not applied.
 
 Dual-return block order (what blocks 1 and 2 of a firing hold): Pandar40P and Pandar64 0x39: last,
 strongest (manuals; confirmed on the Pandar64 recording: block 1 is never nearer than block 2);
 PandarXT32 0x39: strongest, last (its recording: block 2 is never nearer, and it is the stronger
 one where the two differ in distance, i.e. the "last = strongest, second strongest in the other
 block" case; the manual's text says the opposite); PandarQT64 0x3B: first, last (its
-recording). Other dual modes of these models are not confirmed and raise a DecodeError. Single
-modes (0x33 first, 0x37 strongest, 0x38 last) are accepted for every model.
+recording). PandarXT16, PandarXT32M, PandarQT128, Pandar128E3X/E4X: the header table's "First
+Block Return" (block 1 holds the last return in 0x39 and 0x3B, the first in 0x3C): 0x39 last,
+strongest; 0x3B last, first; 0x3C first, strongest (0x39 confirmed on the XT16 and QT128
+recordings, 0x3C on the XT32M one: block 1 is never farther). Triple return 0x3D (PandarXT32M
+only, 6 blocks = 2 firings of 3 blocks): first, last, strongest, as the mode's name orders them
+(not confirmed on a recording). Other multi-return modes of a model raise a DecodeError naming
+the byte. Single modes (0x33 first, 0x37 strongest, 0x38 last) are accepted for every model.
 
 Conventions
 -----------
@@ -66,7 +103,10 @@ Conventions
   dis unit in metres, raw 0 = no return) and ``intensity`` (UINT8 reflectivity). Dual return
   adds ``range2``/``intensity2``: ``range`` holds the strongest return where the mode reports
   one (0x39 last+strongest, 0x3C first+strongest), otherwise the last (0x3B first+last);
-  ``range2`` the other one. Both exactly as sent (no de-duplication).
+  ``range2`` the other one. Triple return (0x3D) adds ``range3``/``intensity3``: ``range`` =
+  strongest, ``range2`` = first, ``range3`` = last (the other returns in block order). All
+  exactly as sent (no de-duplication). The confidence byte of QT128/128-series units is not
+  carried.
 * Time: int64 ns. The packet's absolute time ``t0`` is the tail's UTC date-time (year - 1900,
   month, day, hour, minute, second) plus its microsecond timestamp. Per the firing-time
   appendices, firing ``k`` of a packet starts at ``t0 + block_offset(k)`` and channel ``l``
@@ -85,9 +125,12 @@ Conventions
   (XT32, 46.9 us), 0.483 deg (QT64, 134 us), i.e. 32 / 29 / 84 mm at 10 m; on the recordings it
   drops the 2 mm agreement with the reference from 100 % to 76 % (XT32), 16 % (Pandar64) and
   7 % (QT64), so it is off by default.
-* The beam model of LidarInfo expresses these sensors exactly (no beam origins, range offsets
-  or per-pixel angles needed): measured agreement with the reference decoder is 4 um at most,
-  float32 rounding (tests/test_hesai.py).
+* The beam model of LidarInfo expresses these sensors' geometry exactly (no beam origins, range
+  offsets or per-pixel angles needed): measured agreement with the reference decoder is 4 um at
+  most, float32 rounding (tests/test_hesai.py); for the XT16, XT32M and QT128 (Nebula's test
+  recordings, checked outside the test suite, which does not ship them) 11 um at most, every
+  ground-truth point matched. Not expressible: the QT128/128-series per-firing channel delays
+  (see above; not applied, stated in vendor_metadata).
 
 * Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
   (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
