@@ -125,8 +125,8 @@ def _decoded(results: list[tuple[Any, Any]]) -> list[tuple[int, int, str, float,
         stamp = lidarscan.stamps.to_ns(scan.header.stamp)
         times = proj.pixel_times(scan) + stamp
         ids = np.asarray(info.beam_ids)
-        for name in ("range", "range2"):
-            if name not in lidarscan.scan.channel_names(scan):
+        for name in lidarscan.scan.channel_names(scan):
+            if not name.startswith("range"):
                 continue
             raw = lidarscan.scan.channel(scan, name)
             xyz = proj.project(scan, channel=name)
