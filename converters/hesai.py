@@ -54,14 +54,19 @@ PandarQT64 (25.71 us + 166.67 us per firing, then its 64-entry table) as tabulat
 PandarXT16: the XT block times, 0.368 us + 3.024 us per channel; PandarXT32M: the XT block
 times, channels 1-16 and 17-32 fired in pairs, 0.368 us + 2.888 us per pair (as tabulated in
 Nebula). PandarQT128 and the 128 series fire a channel at a time that changes from firing to
-firing (QT128: two firing loops with different channel sets, chosen per block or by the tail's
-mode flag; 128E3X/E4X: per the tail's azimuth state and operational state, and on the 128E3X
-near/far-field firing by distance; the packet does not say whether it is a 128E3X or a 128E4X,
-whose tables differ). Per-beam ``beam_time_offsets`` cannot express that, so for these models
-they are 0 and ``column_time_offsets`` are the firings' trigger times (QT128: t0 + 9 us -
-111.11 us per later firing; 128 series: t0 - 55.56 us per later firing, the manual's "absolute
-time is the trigger time of the firing in the last block"); ``vendor_metadata``'s
-``channel_timing`` says so. The channel delays (up to ~0.1 ms) are not applied.
+firing, which per-beam ``beam_time_offsets`` cannot express; for these models they are 0 and
+``column_time_offsets`` are the firings' trigger times (QT128: t0 + 9 us - 111.11 us per later
+firing; 128 series: t0 - 55.56 us per later firing, the manual's "absolute time is the trigger
+time of the firing in the last block"). The QT128 has two firing loops with different channel
+sets and delays (``_QT128_LOOPS``; single return: block 1 loop 1, block 2 loop 2; dual: the
+tail's mode flag): its scans carry an extra channel ``t`` (INT32 ns, the delay of each pixel's
+channel after its column's time, 0 where the channel does not fire), so a pixel's time is
+``stamp + column_time_offsets[c] + beam_time_offsets[u] + t[u, c]`` (the msgs README's "a
+sensor with irregular pixel timing can add a ``t`` channel"; ``lidarscan``'s projector does
+not add it yet). The 128E3X/E4X delays depend on the tail's azimuth and operational states
+(and, on the 128E3X, on near/far-field firing by distance), and the packet does not say
+whether it is a 128E3X or a 128E4X, whose tables differ: their channel delays (up to 55 us)
+are not applied. ``vendor_metadata``'s ``channel_timing`` says which case a scan is.
 
 Dual-return block order (what blocks 1 and 2 of a firing hold): Pandar40P and Pandar64 0x39: last,
 strongest (manuals; confirmed on the Pandar64 recording: block 1 is never nearer than block 2);
@@ -129,8 +134,9 @@ Conventions
   offsets or per-pixel angles needed): measured agreement with the reference decoder is 4 um at
   most, float32 rounding (tests/test_hesai.py); for the XT16, XT32M and QT128 (Nebula's test
   recordings, checked outside the test suite, which does not ship them) 11 um at most, every
-  ground-truth point matched. Not expressible: the QT128/128-series per-firing channel delays
-  (see above; not applied, stated in vendor_metadata).
+  ground-truth point matched. Not expressible in LidarInfo: the QT128/128-series per-firing
+  channel delays (QT128: the ``t`` channel; 128 series: not applied, stated in
+  vendor_metadata).
 
 * Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
   (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
@@ -218,6 +224,34 @@ _QT64_AFTER_START_NS = (
     142340, 144390, 146450,
 )
 
+# PandarQT128 firing loops (delay of each channel after its firing's trigger, ns; -1: the
+# channel does not fire in that loop: channels 1-32 in loop 1, 33-64 in loop 2), as tabulated in
+# Nebula. Loop of a firing: single return, block 1 loop 1 and block 2 loop 2; dual return, the
+# tail's mode flag (bit 0 set: loop 1). Confirmed on the QT128 recording: in packets of mode
+# flag 0 channels 33-64 never return, with flag 1 channels 1-32 never do.
+_QT128_LOOPS = (
+    (-1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 27656, 53000, 2312, 78344, 81512, 5480,
+     56168, 30824, 33992, 59336, 8648, 84680, 87848, 11816, 62504, 37160, 40328, 65672,
+     14984, 91016, 94184, 18152, 68840, 43496, 46664, 72008, 21320, 97352, 100520, 24488,
+     75176, 49832, 1456, 77488, 26800, 52144, 55312, 29968, 80656, 4624, 7792, 83824,
+     33136, 58480, 61648, 36304, 86992, 10960, 14128, 90160, 39472, 64816, 67984, 42640,
+     93328, 17296, 20464, 96496, 45808, 71152, 74320, 48976, 99664, 23632, 25944, 51288,
+     600, 76632, 79800, 3768, 54456, 29112, 32280, 57624, 6936, 82968, 86136, 10104,
+     60792, 35448, 38616, 63960, 13272, 89304, 92472, 16440, 67128, 41784, 44952, 70296,
+     19608, 95640, 98808, 22776, 73464, 48120),
+    (2312, 78344, 27656, 53000, 56168, 30824, 81512, 5480, 8648, 84680, 33992, 59336, 62504,
+     37160, 87848, 11816, 14984, 91016, 40328, 65672, 68840, 43496, 94184, 18152, 21320,
+     97352, 46664, 72008, 75176, 49832, 100520, 24488, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, 600, 76632, 25944, 51288, 54456, 29112, 79800, 3768, 6936, 82968, 32280,
+     57624, 60792, 35448, 86136, 10104, 13272, 89304, 38616, 63960, 67128, 41784, 92472,
+     16440, 19608, 95640, 44952, 70296, 73464, 48120, 98808, 22776, 26800, 52144, 1456,
+     77488, 80656, 4624, 55312, 29968, 33136, 58480, 7792, 83824, 86992, 10960, 61648,
+     36304, 39472, 64816, 14128, 90160, 93328, 17296, 67984, 42640, 45808, 71152, 20464,
+     96496, 99664, 23632, 74320, 48976),
+)
+
 
 @dataclass(frozen=True)
 class HesaiFormat:
@@ -251,7 +285,11 @@ class HesaiFormat:
     range_limits: tuple[float, float]
     dual_orders: tuple[tuple[int, tuple[str, ...]], ...]   # mode -> what blocks 1, 2(, 3) hold
     sizes: tuple[int, ...] = ()       # accepted payload sizes; () = (size, size + 4)
-    channel_timing: str = "beam"      # "beam": channel_ns per beam; else why it is not applied
+    channel_timing: str = "beam"      # "beam": channel_ns per beam; else how it is carried
+    mode_flag_at: int | None = None   # QT128 tail mode flag (which firing loop a packet holds)
+    #: per firing state (QT128: loop 1, loop 2): delay (ns) of each channel after the firing's
+    #: trigger, -1 = the channel does not fire; () = channel_ns per beam
+    pixel_tables: tuple[tuple[int, ...], ...] = ()
 
     def block_start_ns(self, firing: np.ndarray[Any, Any], firings: int) -> np.ndarray[Any, Any]:
         """Start of each firing (index ``firing`` of ``firings`` per packet) relative to t0."""
@@ -300,6 +338,8 @@ FORMATS: dict[str, HesaiFormat] = {
 #: first in 0x3C; 0x39 and 0x3C confirmed on the XT16, XT32M and QT128 recordings)
 _ORDERS_12B = ((0x39, ("last", "strongest")), (0x3B, ("last", "first")),
                (0x3C, ("first", "strongest")))
+_PER_PIXEL = ("per pixel: channel 't' (INT32 ns) = the pixel's firing time after its column's "
+              "time (the firing's trigger); beam_time_offsets are 0")
 _NOT_PER_BEAM = ("not applied: the firing time of a channel changes from firing to firing "
                  "({}), which per-beam LidarInfo.beam_time_offsets cannot express; column "
                  "times are the firings' trigger times and beam_time_offsets are 0")
@@ -335,22 +375,25 @@ def _format_v1(model: str, major: int, lasers: int, blocks: int, flags: int) -> 
     tail = 12 + blocks * block_size + 4 + (17 if flags & 0x04 else 0)
     size = (tail + 26 + (4 if flags & 0x01 else 0) + (22 if flags & 0x02 else 0) + 4
             + (32 if flags & 0x08 else 0))
+    extra: dict[str, Any] = {}
     if major == 3:       # QT128: 2 firings of 111.11 us, last one triggered at t0 + 9 us
         period, base = 111110.0, 9000.0
-        why = "two firing loops with different channel sets and delays, chosen per block"
         limits = (0.05, 50.0)
+        extra = dict(mode_flag_at=tail + 5, pixel_tables=_QT128_LOOPS,
+                     channel_timing=_PER_PIXEL)
     else:                # 128E3X/E4X: 2 firings of 55.56 us, the last one triggered at t0
         period, base = 55556.0, 0.0
         why = ("azimuth state and operational state of the tail, near/far-field firing on "
                "the 128E3X; the packet does not tell 128E3X and 128E4X apart")
         limits = (0.1, 230.0)
+        extra = dict(channel_timing=_NOT_PER_BEAM.format(why))
     return HesaiFormat(
         model=model, lasers=lasers, blocks=blocks, body=12, block_size=block_size,
         azimuth_at=0, unit_size=unit, size=size, return_mode_at=tail + 12,
         motor_speed_at=tail + 13, timestamp_at=tail + 21, datetime_at=tail + 15,
         firing_period_ns=period, block_base_ns=base, block_ref_last=True,
         channel_ns=(0.0,) * lasers, dis_unit_at=9, range_limits=limits,
-        dual_orders=_ORDERS_12B, sizes=(size,), channel_timing=_NOT_PER_BEAM.format(why))
+        dual_orders=_ORDERS_12B, sizes=(size,), **extra)
 
 
 FORMATS["PandarXT16"] = _xt_format(
@@ -796,8 +839,11 @@ class PacketDecoder:
         secs = np.repeat(secs, np.diff(np.r_[starts, len(dates)]))
         t0 = secs * 1_000_000_000 + us * 1000
         times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
-        return {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
+        cols = {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
                 "t0": t0, "stamp": np.concatenate([seg[0] for seg in self._segs])}
+        if fmt.pixel_tables:
+            cols["state"] = _firing_states(fmt, stream.returns, recs)
+        return cols
 
     def _emit(self, final: bool, limit: int | None = None) -> list[tuple[Any, Any]]:
         """Scans of every rotation completed in the buffer (all that is left when ``final``).
@@ -860,14 +906,18 @@ class PacketDecoder:
                 pieces.append((seg[1], a - at, b - a, a - lo))
             at += n
         names = _channel_names(_block_kinds(fmt, stream.mode))
-        template, views = self._layout(info, names, width)
+        template, views, tview = self._layout(info, names, width, bool(fmt.pixel_tables))
         data = np.zeros(template.data.size, np.uint8)
         grids = [tuple(_channel_view(data, view) for view in pair) for pair in views]
         _units(pieces, stream, self._rows, grids)
+        if tview is not None:
+            _pixel_times(fmt, cols["state"][lo:hi], self._order, _channel_view(data, tview))
         angles = np.pi / 2 - np.deg2rad(az * 0.01)
         if not self.as_dataclass:
             channels = {name: _channel_view(data, views[r][k]) for r, pair in enumerate(names)
                         for k, name in enumerate(pair)}
+            if tview is not None:
+                channels["t"] = _channel_view(data, tview)
             channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
             return make_scan(info, channels, stamp, column_time_offsets=times - stamp,
                              column_azimuth_angles=angles, as_dataclass=False), info
@@ -879,24 +929,28 @@ class PacketDecoder:
             data=_readonly(data))
         return scan, info
 
-    def _layout(self, info: Any, names: list[tuple[str, str]], width: int
-                ) -> tuple[Any, list[tuple[tuple[int, int, int, int], ...]]]:
-        """A make_scan dataclass of this info version (its channel layout) and, per block of
-        a firing, the (offset, height, width, itemsize) of its range and intensity blocks."""
-        key = (info.header.stamp, info.width, tuple(names))
+    def _layout(self, info: Any, names: list[tuple[str, str]], width: int, pixel_times: bool
+                ) -> tuple[Any, list[tuple[tuple[int, int, int, int], ...]], Any]:
+        """A make_scan dataclass of this info version (its channel layout), per block of a
+        firing the (offset, height, width, itemsize) of its range and intensity blocks, and
+        that of the ``t`` channel (INT32) when ``pixel_times``, else None."""
+        key = (info.header.stamp, info.width, tuple(names), pixel_times)
         if self._template is not None and self._template[0] == key:
-            return self._template[1], self._template[2]
+            return self._template[1:]
         height = int(info.height)
         zeros = {name: np.zeros((height, width), np.uint16 if k == 0 else np.uint8)
                  for pair in names for k, name in enumerate(pair)}
+        if pixel_times:
+            zeros["t"] = np.zeros((height, width), np.int32)
         zeros = {k: zeros[k] for k in sorted(zeros, key=_channel_rank)}
         template = make_scan(info, zeros, 0, column_time_offsets=np.zeros(width, np.int64),
                              column_azimuth_angles=np.zeros(width), as_dataclass=True)
         offsets = {c.name: c.offset for c in template.channels}
         views = [tuple((offsets[name], height, width, 2 if k == 0 else 1)
                        for k, name in enumerate(pair)) for pair in names]
-        self._template = (key, template, views)
-        return template, views
+        tview = (offsets["t"], height, width, 4) if pixel_times else None
+        self._template = (key, template, views, tview)
+        return template, views, tview
 
     def _info_for(self, stream: _Stream, width: int, stamp: int) -> Any:
         key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
@@ -970,10 +1024,31 @@ def _packet_dtype(fmt: HesaiFormat, size: int) -> np.dtype[Any]:
     block = np.dtype({"names": ["az", "u"], "formats": ["<u2", (unit, (fmt.lasers,))],
                       "offsets": [fmt.azimuth_at, fmt.azimuth_at + 2],
                       "itemsize": fmt.block_size})
-    return np.dtype({"names": ["b", "us", "date"],
-                     "formats": [(block, (fmt.blocks,)), "<u4", ("u1", (6,))],
-                     "offsets": [fmt.body, fmt.timestamp_at, fmt.datetime_at],
-                     "itemsize": size})
+    names, formats = ["b", "us", "date"], [(block, (fmt.blocks,)), "<u4", ("u1", (6,))]
+    offsets = [fmt.body, fmt.timestamp_at, fmt.datetime_at]
+    if fmt.mode_flag_at is not None:
+        names, formats, offsets = names + ["flag"], formats + ["u1"], offsets + [fmt.mode_flag_at]
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": size})
+
+
+def _firing_states(fmt: HesaiFormat, returns: int, recs: list[np.ndarray[Any, Any]]
+                   ) -> np.ndarray[Any, Any]:
+    """(F,) index into ``fmt.pixel_tables`` of every buffered firing (PandarQT128: loop 1 = 0,
+    loop 2 = 1; single return: block 1 loop 1, block 2 loop 2; dual: the tail's mode flag,
+    bit 0 set = loop 1)."""
+    flags = np.concatenate([rec["flag"] for rec in recs]).astype(np.int64)
+    if returns == 1:
+        return np.tile(np.arange(fmt.blocks) % 2, flags.size)
+    return np.where(flags & 1, 0, 1)
+
+
+def _pixel_times(fmt: HesaiFormat, states: np.ndarray[Any, Any], order: np.ndarray[Any, Any],
+                 out: np.ndarray[Any, Any]) -> None:
+    """Write the per-pixel delays (ns after the column's time) of firings ``states`` (C,) into
+    the first C columns of ``out`` (H, W) int32, rows in ``order`` (laser index of each row);
+    channels that do not fire in a firing get 0."""
+    table = np.asarray(fmt.pixel_tables, np.int32)[:, order]        # (states, H)
+    out[:, :states.size] = np.maximum(table[states].T, 0)
 
 
 def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, Any]:
@@ -1037,7 +1112,7 @@ def _channel_view(data: np.ndarray[Any, Any], view: tuple[int, int, int, int]
     """(height, width) little-endian uint view of a channel block of the scan buffer."""
     offset, height, width, itemsize = view
     block = data[offset:offset + height * width * itemsize]
-    return block.view("<u2" if itemsize == 2 else np.uint8).reshape(height, width)
+    return block.view({1: np.uint8, 2: "<u2", 4: "<i4"}[itemsize]).reshape(height, width)
 
 
 def _readonly(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
@@ -1099,7 +1174,10 @@ def _channel_names(kinds: tuple[str, ...]) -> list[tuple[str, str]]:
 
 
 def _channel_rank(name: str) -> tuple[int, int]:
-    """Channel order in the scan: range, intensity, range2, intensity2, range3, intensity3."""
+    """Channel order in the scan: range, intensity, range2, intensity2, range3, intensity3,
+    then t."""
+    if name == "t":
+        return (9, 0)
     if name.startswith("range"):
         return (int(name[5:] or 1), 0)
     return (int(name[9:] or 1), 1)

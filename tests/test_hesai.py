@@ -124,6 +124,8 @@ def _decoded(results: list[tuple[Any, Any]]) -> list[tuple[int, int, str, float,
         proj = lidarscan.make_projector(info)
         stamp = lidarscan.stamps.to_ns(scan.header.stamp)
         times = proj.pixel_times(scan) + stamp
+        if "t" in lidarscan.scan.channel_names(scan):   # per-pixel firing delays (QT128)
+            times = times + lidarscan.scan.channel(scan, "t")
         ids = np.asarray(info.beam_ids)
         for name in lidarscan.scan.channel_names(scan):
             if not name.startswith("range"):

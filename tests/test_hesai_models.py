@@ -114,14 +114,15 @@ def build_packet(model: str, mode: int, azimuths: list[int], dist: np.ndarray,
 
 
 # ------------------------------------------------------------------------ the loop oracle
-def _firing_ns(model: str, k: int, firings: int, ch: int) -> int:
-    """Firing time of channel index ``ch`` in firing ``k`` of a packet, relative to t0."""
+def _firing_ns(model: str, k: int, firings: int, ch: int, loop: int = 0) -> int:
+    """Firing time of channel index ``ch`` in firing ``k`` of a packet, relative to t0
+    (``loop``: the QT128 firing loop 0 or 1 of that firing)."""
     if model == "PandarXT16":      # last firing t0 + 5.632 us, 50 us apart; 3.024 us/channel
         return 5632 - 50000 * (firings - 1 - k) + 368 + 3024 * ch
     if model == "PandarXT32M":     # channels 1-16 / 17-32 in pairs, 2.888 us apart
         return 5632 - 50000 * (firings - 1 - k) + 368 + 2888 * (ch % 16)
-    if model == "PandarQT128":     # trigger times only (channel delays not per-beam)
-        return 9000 - 111110 * (firings - 1 - k)
+    if model == "PandarQT128":     # trigger + the channel's delay in its firing loop
+        return 9000 - 111110 * (firings - 1 - k) + max(0, hesai._QT128_LOOPS[loop][ch])
     return -55556 * (firings - 1 - k)
 
 
@@ -142,6 +143,7 @@ def oracle(packets: list[bytes], csv: str) -> list[tuple[int, int, str, float, f
             tail += 4 + (17 if flags & 0x04 else 0)
         at = tail + (10 if fam == "xt" else 12)
         mode = pk[at]
+        mode_flag = pk[tail + 5] if fam == "qt128" else 0
         y, mo, d, h, mi, s = pk[at + 3:at + 9]
         t0 = (calendar.timegm((1900 + y, mo, d, h, mi, s, 0, 0, 0)) * 10**9
               + struct.unpack_from("<I", pk, at + 9)[0] * 1000)
@@ -157,6 +159,8 @@ def oracle(packets: list[bytes], csv: str) -> list[tuple[int, int, str, float, f
         firings = blocks // returns
         for b in range(blocks):
             k, r = divmod(b, returns)
+            # QT128 loop: single return block 1 -> loop 1, block 2 -> loop 2; dual: mode flag
+            loop = b % 2 if returns == 1 else (0 if mode_flag & 1 else 1)
             base = 12 + b * block
             az = struct.unpack_from("<H", pk, base)[0] / 100.0
             for ch in range(lasers):
@@ -166,7 +170,7 @@ def oracle(packets: list[bytes], csv: str) -> list[tuple[int, int, str, float, f
                 dist = raw * dis_mm * 1e-3
                 a = math.radians(az + cal.azimuth_deg[ch])
                 e = math.radians(cal.elevation_deg[ch])
-                out.append((t0 + _firing_ns(model, k, firings, ch), ch + 1, names[r],
+                out.append((t0 + _firing_ns(model, k, firings, ch, loop), ch + 1, names[r],
                             dist * math.cos(e) * math.sin(a), dist * math.cos(e) * math.cos(a),
                             dist * math.sin(e)))
     return out
@@ -186,6 +190,11 @@ def _stream(model: str, mode: int, packets: int = 30, seed: int = 3, step: int =
         dist = rng.integers(1, 65536, (m["blocks"], m["lasers"]))
         dist[rng.random(dist.shape) < 0.25] = 0
         refl = rng.integers(0, 256, dist.shape)
+        if model == "PandarQT128":       # channels 1-32 / 33-64 do not fire in loop 1 / 2
+            for b in range(m["blocks"]):
+                loop = b % 2 if returns == 1 else 1 - p % 2
+                dist[b, 32 * (1 - loop):32 * (2 - loop)] = 0
+            kw = {"mode_flag": p % 2} | kw
         us = US + p * 200
         out.append((us * 1000, build_packet(model, mode, az, dist, refl, us=us, **kw)))
     return out
@@ -205,7 +214,7 @@ def test_every_return_mode_against_the_loop_oracle(model: str, mode: int) -> Non
     returns = len(_modes(model)[mode])
     names = lidarscan.scan.channel_names(results[0][0])
     assert names == ["range", "intensity", "range2", "intensity2", "range3",
-                     "intensity3"][:2 * returns]
+                     "intensity3"][:2 * returns] + (["t"] if model == "PandarQT128" else [])
     for scan, info in results:
         lidarscan.scan.validate(scan, info)
         meta = json.loads(info.vendor_metadata)
@@ -275,8 +284,12 @@ def test_golden_qt128_packet_with_confidence_and_signature() -> None:
     np.testing.assert_array_equal(rng2[rows, 0], dist[0])
     np.testing.assert_array_equal(lidarscan.scan.channel(scan, "intensity")[rows, 0], refl[1])
     meta = json.loads(info.vendor_metadata)
-    assert meta["channel_timing"].startswith("not applied")
+    assert meta["channel_timing"].startswith("per pixel")
     assert not np.any(np.asarray(info.beam_time_offsets))
+    # mode flag 0 -> firing loop 2 (channels 33-64 do not fire): channel 1 fires 2.312 us after
+    # the trigger, channel 33 not at all (t = 0), channel 65 after 0.600 us
+    t = lidarscan.scan.channel(scan, "t")
+    assert (t[rows[0], 0], t[rows[32], 0], t[rows[64], 0]) == (2312, 0, 600)
 
 
 def _one(model: str, flags: int = 0x01) -> bytes:
