@@ -25,7 +25,7 @@ import pytest
 import lidarscan
 from converters import hesai
 from lidarscan.errors import DecodeError
-from test_hesai import _calibration_csv, _compare, _decoded
+from test_hesai import _calibration_csv, _compare, _decoded, _one_by_one, _rows, _same
 
 DATE = (124, 11, 25, 12, 30, 15)        # 2024-11-25 12:30:15 UTC (year - 1900)
 US = 250_000
@@ -361,3 +361,23 @@ def test_header_dis_unit_is_used() -> None:
         (scan, info), = hesai.decode_packets(packets, csv, as_dataclass=True)
         assert info.range_multiplier == pytest.approx(dis * 1e-3)
         _compare(oracle([p for _, p in packets], csv), _decoded([(scan, info)]))
+
+
+@pytest.mark.parametrize("model,mode", [("PandarXT32M", 0x3D), ("PandarQT128", 0x37),
+                                        ("PandarQT128", 0x39), ("Pandar128E3X/E4X", 0x3C)])
+def test_push_many_and_messages_equal_push(model: str, mode: int) -> None:
+    csv = _calibration_csv(MODELS[model]["lasers"], seed=4)
+    packets = _stream(model, mode, packets=150, step=500)       # 2-4 turns: several wraps
+    ref = _one_by_one(packets, csv)
+    assert len(ref) >= 3
+    stamps, rows = _rows(packets, stride=1500)
+    for chunk in (7, 150):
+        dec = hesai.PacketDecoder(csv, as_dataclass=True)
+        out = []
+        for i in range(0, len(packets), chunk):
+            out += dec.push_many(stamps[i:i + chunk], rows[i:i + chunk])
+        _same(ref, out + dec.flush())
+    msgs = list(hesai.decode_packets(packets, csv))                # rclpy messages
+    for (a, _), (b, _) in zip(ref, msgs):
+        assert bytes(a.data) == bytes(b.data)
+        assert [c.name for c in a.channels] == [c.name for c in b.channels]
