@@ -155,7 +155,6 @@ model, vendor_metadata (a JSON line with the detected format, return mode and rp
 from __future__ import annotations
 
 import calendar
-import dataclasses
 import functools
 import io
 import json
@@ -169,10 +168,8 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan import types
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError
-from lidarscan.scan import make_info, make_scan
-from lidarscan.stamps import split_ns
+from lidarscan.scan import ScanBuffer, make_info
 from converters._packets import payload_bytes
 
 __all__ = [
@@ -607,7 +604,6 @@ class PacketDecoder:
         self._info: Any = None
         self._info_key: tuple[Any, ...] | None = None
         self._last_info_stamp: int | None = None
-        self._template: tuple[Any, ...] | None = None   # (key, scan, channel views) of _layout
 
     # -------------------------------------------------------------------------- packet intake
     def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
@@ -906,51 +902,19 @@ class PacketDecoder:
                 pieces.append((seg[1], a - at, b - a, a - lo))
             at += n
         names = _channel_names(_block_kinds(fmt, stream.mode))
-        template, views, tview = self._layout(info, names, width, bool(fmt.pixel_tables))
-        data = np.zeros(template.data.size, np.uint8)
-        grids = [tuple(_channel_view(data, view) for view in pair) for pair in views]
+        specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
+                 for k, name in enumerate(pair)}
+        if fmt.pixel_tables:
+            specs["t"] = np.int32
+        buf = ScanBuffer(info, {k: specs[k] for k in sorted(specs, key=_channel_rank)},
+                         as_dataclass=self.as_dataclass)
+        grids = [tuple(buf.views[name] for name in pair) for pair in names]
         _units(pieces, stream, self._rows, grids)
-        if tview is not None:
-            _pixel_times(fmt, cols["state"][lo:hi], self._order, _channel_view(data, tview))
+        if fmt.pixel_tables:
+            _pixel_times(fmt, cols["state"][lo:hi], self._order, buf.views["t"])
         angles = np.pi / 2 - np.deg2rad(az * 0.01)
-        if not self.as_dataclass:
-            channels = {name: _channel_view(data, views[r][k]) for r, pair in enumerate(names)
-                        for k, name in enumerate(pair)}
-            if tview is not None:
-                channels["t"] = _channel_view(data, tview)
-            channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
-            return make_scan(info, channels, stamp, column_time_offsets=times - stamp,
-                             column_azimuth_angles=angles, as_dataclass=False), info
-        # the dataclass: make_scan's layout (from the template), this rotation's buffer as data
-        sec, nanosec = split_ns(stamp)
-        scan = dataclasses.replace(
-            template, header=types.Header(types.Time(sec, nanosec), template.header.frame_id),
-            column_time_offsets=_readonly(times - stamp), column_azimuth_angles=_readonly(angles),
-            data=_readonly(data))
-        return scan, info
-
-    def _layout(self, info: Any, names: list[tuple[str, str]], width: int, pixel_times: bool
-                ) -> tuple[Any, list[tuple[tuple[int, int, int, int], ...]], Any]:
-        """A make_scan dataclass of this info version (its channel layout), per block of a
-        firing the (offset, height, width, itemsize) of its range and intensity blocks, and
-        that of the ``t`` channel (INT32) when ``pixel_times``, else None."""
-        key = (info.header.stamp, info.width, tuple(names), pixel_times)
-        if self._template is not None and self._template[0] == key:
-            return self._template[1:]
-        height = int(info.height)
-        zeros = {name: np.zeros((height, width), np.uint16 if k == 0 else np.uint8)
-                 for pair in names for k, name in enumerate(pair)}
-        if pixel_times:
-            zeros["t"] = np.zeros((height, width), np.int32)
-        zeros = {k: zeros[k] for k in sorted(zeros, key=_channel_rank)}
-        template = make_scan(info, zeros, 0, column_time_offsets=np.zeros(width, np.int64),
-                             column_azimuth_angles=np.zeros(width), as_dataclass=True)
-        offsets = {c.name: c.offset for c in template.channels}
-        views = [tuple((offsets[name], height, width, 2 if k == 0 else 1)
-                       for k, name in enumerate(pair)) for pair in names]
-        tview = (offsets["t"], height, width, 4) if pixel_times else None
-        self._template = (key, template, views, tview)
-        return template, views, tview
+        return buf.build(stamp, column_time_offsets=times - stamp,
+                         column_azimuth_angles=angles), info
 
     def _info_for(self, stream: _Stream, width: int, stamp: int) -> Any:
         key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
@@ -1105,19 +1069,6 @@ def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], strea
                 part = np.ascontiguousarray(values[:, :, r].transpose(2, 0, 1))
                 part = part.reshape(fmt.lasers, -1)[order, skip:skip + count]
                 grids[r][k][:, col:col + count] = part
-
-
-def _channel_view(data: np.ndarray[Any, Any], view: tuple[int, int, int, int]
-                  ) -> np.ndarray[Any, Any]:
-    """(height, width) little-endian uint view of a channel block of the scan buffer."""
-    offset, height, width, itemsize = view
-    block = data[offset:offset + height * width * itemsize]
-    return block.view({1: np.uint8, 2: "<u2", 4: "<i4"}[itemsize]).reshape(height, width)
-
-
-def _readonly(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    arr.flags.writeable = False
-    return arr
 
 
 _KERNEL: Any = False
