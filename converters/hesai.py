@@ -12,7 +12,7 @@ Pandar40P      no pre-header; every block starts with  40      10      1262 (+4 
 Pandar64       header 0xEE 0xFF, laser num 64,         64      6       1194 (+4 UDP seq)
                block num 6 (8-byte header)
 PandarXT32     0xEE 0xFF, protocol 6.1, laser num 32   32      8       1076 (+4 UDP seq)
-PandarXT16     protocol 6.1, laser num 16, 8 blocks    16      8       556 (+4 UDP seq)
+PandarXT16     protocol 6.1, laser num 16, 8 blocks    16      8       564 (+4 UDP seq)
 PandarXT32M    protocol 6.1, laser num 32, 6 blocks    32      6       816 (+4 UDP seq)
 PandarQT64     0xEE 0xFF, protocol 3.1, laser num 64   64      4       1068 (+4 UDP seq)
 PandarQT128    protocol 3.2, laser num 128, 2 blocks   128     2       from the Flags byte
