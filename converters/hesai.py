@@ -12,16 +12,37 @@ Pandar40P      no pre-header; every block starts with  40      10      1262 (+4 
 Pandar64       header 0xEE 0xFF, laser num 64,         64      6       1194 (+4 UDP seq)
                block num 6 (8-byte header)
 PandarXT32     0xEE 0xFF, protocol 6.1, laser num 32   32      8       1076 (+4 UDP seq)
+PandarXT16     protocol 6.1, laser num 16, 8 blocks    16      8       564 (+4 UDP seq)
+PandarXT32M    protocol 6.1, laser num 32, 6 blocks    32      6       816 (+4 UDP seq)
 PandarQT64     0xEE 0xFF, protocol 3.1, laser num 64   64      4       1068 (+4 UDP seq)
+PandarQT128    protocol 3.2, laser num 128, 2 blocks   128     2       from the Flags byte
+                                                                       (1095 with UDP seq,
+                                                                       FS, confidence; +32
+                                                                       with signature)
+Pandar128E3X,  protocol 1.4, laser num 128, 2 blocks   128     2       from the Flags byte
+Pandar128E4X                                                           (861 with UDP seq,
+(OT128)                                                                FS, IMU; +32 signed)
 =============  ======================================  ======  ======  ====================
 
-The model is detected from the packet's own bytes (pre-header, protocol version, laser and block
-counts, payload size), never from file names. Formats whose layout or firing-time table could
-not be confirmed from public material raise a :class:`~lidarscan.errors.DecodeError` naming the
-detected header instead of being guessed: PandarXT16 and PandarXT32M (protocol 6.x with another
-laser or block count), PandarQT128 (protocol 3.2: per-firing channel-enable tables),
-Pandar128E3X/E4X and OT128 (protocol 1.x: fine azimuth, CRCs, firetime-correction files). None
-of the four supported formats has a triple-return mode.
+The model is detected from the packet's own bytes (pre-header, protocol version major.minor,
+laser and block num, the header's Flags byte, payload size), never from file names; the return
+mode, motor speed and date-time come from the tail, the distance unit from the header's Dis Unit
+byte (the XT32M recording has 5 mm). A packet no format fits raises a
+:class:`~lidarscan.errors.DecodeError` naming the field and value (unknown protocol version,
+laser/block num, reserved flag bits, size, return mode byte).
+
+Layouts (manuals, chapter "Data Structure" / "Point Cloud Data Packet"): pre-header 0xEE 0xFF,
+protocol major, minor, 2 reserved; header laser num, block num, first block return, dis unit,
+return num, flags. PandarXT (6.1): blocks of azimuth u16 (0.01 deg) + 4-byte units (distance
+u16, reflectivity, reserved); tail 10 reserved, return mode, motor speed u16, date-time (year -
+1900, month, day, hour, minute, second), timestamp u32 us, factory info; UDP sequence u32.
+PandarQT128 (3.2) and Pandar128E3X/E4X/OT128 (1.4): the Flags byte says which optional parts
+are present (bit 0 UDP sequence, 1 IMU, 2 functional safety, 3 digital signature, 4 a confidence
+byte after each unit's reflectivity: 4-byte instead of 3-byte units); body = 2 blocks + CRC u32;
+functional safety 17 bytes; tail: QT128 5 reserved, mode flag, 6 reserved; 128 series 9
+reserved, azimuth state u16, operational state; then both: return mode, motor speed, date-time,
+timestamp, factory info, UDP sequence, (128: IMU 22 bytes), CRC u32; then the 32-byte signature.
+No "fine azimuth" byte exists in these formats (that is the AT128's, not decoded here).
 
 Sources of the timing tables: Pandar40P, its manual's Table II.4 (time of each laser before its
 block's end) and block end times; Pandar64, its manual's block end times (t0 - 42.58 us - 55.56 us
@@ -30,14 +51,35 @@ lasers the public excerpt lists), the full 64-entry table as tabulated in the Ne
 PandarXT32 (5.632 us - 50 us per later firing, then 0.368 us + 1.512 us per channel) and
 PandarQT64 (25.71 us + 166.67 us per firing, then its 64-entry table) as tabulated in Nebula
 (one QT64 entry there, 12960 ns for channel 56, is a typo of the 129600 its 2.06 us step gives).
+PandarXT16: the XT block times, 0.368 us + 3.024 us per channel; PandarXT32M: the XT block
+times, channels 1-16 and 17-32 fired in pairs, 0.368 us + 2.888 us per pair (as tabulated in
+Nebula). PandarQT128 and the 128 series fire a channel at a time that changes from firing to
+firing, which per-beam ``beam_time_offsets`` cannot express; for these models they are 0 and
+``column_time_offsets`` are the firings' trigger times (QT128: t0 + 9 us - 111.11 us per later
+firing; 128 series: t0 - 55.56 us per later firing, the manual's "absolute time is the trigger
+time of the firing in the last block"). The QT128 has two firing loops with different channel
+sets and delays (``_QT128_LOOPS``; single return: block 1 loop 1, block 2 loop 2; dual: the
+tail's mode flag): its scans carry an extra channel ``t`` (INT32 ns, the delay of each pixel's
+channel after its column's time, 0 where the channel does not fire), so a pixel's time is
+``stamp + column_time_offsets[c] + beam_time_offsets[u] + t[u, c]`` (the msgs README's "a
+sensor with irregular pixel timing can add a ``t`` channel"; ``lidarscan``'s projector does
+not add it yet). The 128E3X/E4X delays depend on the tail's azimuth and operational states
+(and, on the 128E3X, on near/far-field firing by distance), and the packet does not say
+whether it is a 128E3X or a 128E4X, whose tables differ: their channel delays (up to 55 us)
+are not applied. ``vendor_metadata``'s ``channel_timing`` says which case a scan is.
 
 Dual-return block order (what blocks 1 and 2 of a firing hold): Pandar40P and Pandar64 0x39: last,
 strongest (manuals; confirmed on the Pandar64 recording: block 1 is never nearer than block 2);
 PandarXT32 0x39: strongest, last (its recording: block 2 is never nearer, and it is the stronger
 one where the two differ in distance, i.e. the "last = strongest, second strongest in the other
 block" case; the manual's text says the opposite); PandarQT64 0x3B: first, last (its
-recording). Other dual modes of these models are not confirmed and raise a DecodeError. Single
-modes (0x33 first, 0x37 strongest, 0x38 last) are accepted for every model.
+recording). PandarXT16, PandarXT32M, PandarQT128, Pandar128E3X/E4X: the header table's "First
+Block Return" (block 1 holds the last return in 0x39 and 0x3B, the first in 0x3C): 0x39 last,
+strongest; 0x3B last, first; 0x3C first, strongest (0x39 confirmed on the XT16 and QT128
+recordings, 0x3C on the XT32M one: block 1 is never farther). Triple return 0x3D (PandarXT32M
+only, 6 blocks = 2 firings of 3 blocks): first, last, strongest, as the mode's name orders them
+(not confirmed on a recording). Other multi-return modes of a model raise a DecodeError naming
+the byte. Single modes (0x33 first, 0x37 strongest, 0x38 last) are accepted for every model.
 
 Conventions
 -----------
@@ -66,7 +108,10 @@ Conventions
   dis unit in metres, raw 0 = no return) and ``intensity`` (UINT8 reflectivity). Dual return
   adds ``range2``/``intensity2``: ``range`` holds the strongest return where the mode reports
   one (0x39 last+strongest, 0x3C first+strongest), otherwise the last (0x3B first+last);
-  ``range2`` the other one. Both exactly as sent (no de-duplication).
+  ``range2`` the other one. Triple return (0x3D) adds ``range3``/``intensity3``: ``range`` =
+  strongest, ``range2`` = first, ``range3`` = last (the other returns in block order). All
+  exactly as sent (no de-duplication). The confidence byte of QT128/128-series units is not
+  carried.
 * Time: int64 ns. The packet's absolute time ``t0`` is the tail's UTC date-time (year - 1900,
   month, day, hour, minute, second) plus its microsecond timestamp. Per the firing-time
   appendices, firing ``k`` of a packet starts at ``t0 + block_offset(k)`` and channel ``l``
@@ -85,9 +130,13 @@ Conventions
   (XT32, 46.9 us), 0.483 deg (QT64, 134 us), i.e. 32 / 29 / 84 mm at 10 m; on the recordings it
   drops the 2 mm agreement with the reference from 100 % to 76 % (XT32), 16 % (Pandar64) and
   7 % (QT64), so it is off by default.
-* The beam model of LidarInfo expresses these sensors exactly (no beam origins, range offsets
-  or per-pixel angles needed): measured agreement with the reference decoder is 4 um at most,
-  float32 rounding (tests/test_hesai.py).
+* The beam model of LidarInfo expresses these sensors' geometry exactly (no beam origins, range
+  offsets or per-pixel angles needed): measured agreement with the reference decoder is 4 um at
+  most, float32 rounding (tests/test_hesai.py); for the XT16, XT32M and QT128 (Nebula's test
+  recordings, checked outside the test suite, which does not ship them) 11 um at most, every
+  ground-truth point matched. Not expressible in LidarInfo: the QT128/128-series per-firing
+  channel delays (QT128: the ``t`` channel; 128 series: not applied, stated in
+  vendor_metadata).
 
 * Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
   (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
@@ -106,7 +155,6 @@ model, vendor_metadata (a JSON line with the detected format, return mode and rp
 from __future__ import annotations
 
 import calendar
-import dataclasses
 import functools
 import io
 import json
@@ -120,10 +168,8 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan import types
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError
-from lidarscan.scan import make_info, make_scan
-from lidarscan.stamps import split_ns
+from lidarscan.scan import ScanBuffer, make_info
 from converters._packets import payload_bytes
 
 __all__ = [
@@ -144,6 +190,7 @@ RETURN_MODES: dict[int, tuple[str, ...]] = {
     0x39: ("last", "strongest"),
     0x3B: ("first", "last"),
     0x3C: ("first", "strongest"),
+    0x3D: ("first", "last", "strongest"),
 }
 
 # Firing-time tables (ns; sources in the module docstring). Pandar40P: time of each laser id
@@ -172,6 +219,34 @@ _QT64_AFTER_START_NS = (
     95300, 97750, 99820, 101870, 103930, 105980, 108040, 110100, 112150, 115200, 117260,
     119320, 121380, 123430, 125490, 127540, 129600, 132050, 134110, 136170, 138220, 140280,
     142340, 144390, 146450,
+)
+
+# PandarQT128 firing loops (delay of each channel after its firing's trigger, ns; -1: the
+# channel does not fire in that loop: channels 1-32 in loop 1, 33-64 in loop 2), as tabulated in
+# Nebula. Loop of a firing: single return, block 1 loop 1 and block 2 loop 2; dual return, the
+# tail's mode flag (bit 0 set: loop 1). Confirmed on the QT128 recording: in packets of mode
+# flag 0 channels 33-64 never return, with flag 1 channels 1-32 never do.
+_QT128_LOOPS = (
+    (-1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 27656, 53000, 2312, 78344, 81512, 5480,
+     56168, 30824, 33992, 59336, 8648, 84680, 87848, 11816, 62504, 37160, 40328, 65672,
+     14984, 91016, 94184, 18152, 68840, 43496, 46664, 72008, 21320, 97352, 100520, 24488,
+     75176, 49832, 1456, 77488, 26800, 52144, 55312, 29968, 80656, 4624, 7792, 83824,
+     33136, 58480, 61648, 36304, 86992, 10960, 14128, 90160, 39472, 64816, 67984, 42640,
+     93328, 17296, 20464, 96496, 45808, 71152, 74320, 48976, 99664, 23632, 25944, 51288,
+     600, 76632, 79800, 3768, 54456, 29112, 32280, 57624, 6936, 82968, 86136, 10104,
+     60792, 35448, 38616, 63960, 13272, 89304, 92472, 16440, 67128, 41784, 44952, 70296,
+     19608, 95640, 98808, 22776, 73464, 48120),
+    (2312, 78344, 27656, 53000, 56168, 30824, 81512, 5480, 8648, 84680, 33992, 59336, 62504,
+     37160, 87848, 11816, 14984, 91016, 40328, 65672, 68840, 43496, 94184, 18152, 21320,
+     97352, 46664, 72008, 75176, 49832, 100520, 24488, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, 600, 76632, 25944, 51288, 54456, 29112, 79800, 3768, 6936, 82968, 32280,
+     57624, 60792, 35448, 86136, 10104, 13272, 89304, 38616, 63960, 67128, 41784, 92472,
+     16440, 19608, 95640, 44952, 70296, 73464, 48120, 98808, 22776, 26800, 52144, 1456,
+     77488, 80656, 4624, 55312, 29968, 33136, 58480, 7792, 83824, 86992, 10960, 61648,
+     36304, 39472, 64816, 14128, 90160, 93328, 17296, 67984, 42640, 45808, 71152, 20464,
+     96496, 99664, 23632, 74320, 48976),
 )
 
 
@@ -205,7 +280,13 @@ class HesaiFormat:
     channel_ns: tuple[float, ...]
     dis_unit_at: int | None   # header byte holding the distance unit (mm), None: fixed 4 mm
     range_limits: tuple[float, float]
-    dual_orders: tuple[tuple[int, tuple[str, str]], ...]   # mode -> what blocks 1, 2 hold
+    dual_orders: tuple[tuple[int, tuple[str, ...]], ...]   # mode -> what blocks 1, 2(, 3) hold
+    sizes: tuple[int, ...] = ()       # accepted payload sizes; () = (size, size + 4)
+    channel_timing: str = "beam"      # "beam": channel_ns per beam; else how it is carried
+    mode_flag_at: int | None = None   # QT128 tail mode flag (which firing loop a packet holds)
+    #: per firing state (QT128: loop 1, loop 2): delay (ns) of each channel after the firing's
+    #: trigger, -1 = the channel does not fire; () = channel_ns per beam
+    pixel_tables: tuple[tuple[int, ...], ...] = ()
 
     def block_start_ns(self, firing: np.ndarray[Any, Any], firings: int) -> np.ndarray[Any, Any]:
         """Start of each firing (index ``firing`` of ``firings`` per packet) relative to t0."""
@@ -249,8 +330,79 @@ FORMATS: dict[str, HesaiFormat] = {
         range_limits=(0.1, 60.0), dual_orders=((0x3B, ("first", "last")),)),
 }
 
-_UNCONFIRMED = ("its layout or firing-time table is not confirmed from public material "
-                "(supported: Pandar40P, Pandar64, PandarXT32, PandarQT64)")
+#: dual/triple block orders of the formats with a 12-byte header ("First Block Return" field
+#: of the manuals' header tables: block 1 holds the last return in modes 0x39 and 0x3B, the
+#: first in 0x3C; 0x39 and 0x3C confirmed on the XT16, XT32M and QT128 recordings)
+_ORDERS_12B = ((0x39, ("last", "strongest")), (0x3B, ("last", "first")),
+               (0x3C, ("first", "strongest")))
+_PER_PIXEL = ("per pixel: channel 't' (INT32 ns) = the pixel's firing time after its column's "
+              "time (the firing's trigger); beam_time_offsets are 0")
+_NOT_PER_BEAM = ("not applied: the firing time of a channel changes from firing to firing "
+                 "({}), which per-beam LidarInfo.beam_time_offsets cannot express; column "
+                 "times are the firings' trigger times and beam_time_offsets are 0")
+
+
+def _xt_format(model: str, lasers: int, blocks: int, channel_ns: tuple[float, ...],
+               limits: tuple[float, float], orders: tuple[tuple[int, tuple[str, ...]], ...]
+               ) -> HesaiFormat:
+    """A PandarXT-family format (protocol 6.1): 12-byte header, blocks of an azimuth and
+    4-byte units, 24-byte tail (+ optional 4-byte UDP sequence); firing k of a packet starts
+    at t0 + 5.632 us - 50 us per later firing (PandarXT manuals, Appendix "Absolute Time and
+    Laser Firing Time")."""
+    tail = 12 + blocks * (2 + 4 * lasers)
+    return HesaiFormat(
+        model=model, lasers=lasers, blocks=blocks, body=12, block_size=2 + 4 * lasers,
+        azimuth_at=0, unit_size=4, size=tail + 24, return_mode_at=tail + 10,
+        motor_speed_at=tail + 11, timestamp_at=tail + 19, datetime_at=tail + 13,
+        firing_period_ns=50000.0, block_base_ns=5632.0, block_ref_last=True,
+        channel_ns=channel_ns, dis_unit_at=9, range_limits=limits, dual_orders=orders)
+
+
+@functools.lru_cache(maxsize=None)
+def _format_v1(model: str, major: int, lasers: int, blocks: int, flags: int) -> HesaiFormat:
+    """Pandar128E3X/E4X/OT128 (protocol 1.4) and PandarQT128 (3.2): 12-byte header whose Flags
+    byte says which optional parts the packet has (bit 0 UDP sequence, 1 IMU, 2 functional
+    safety, 3 digital signature, 4 confidence byte per unit); body = blocks of an azimuth and
+    3-byte (4 with confidence) units, then a 4-byte CRC; functional safety 17 bytes; tail:
+    reserved, (128: azimuth state u16 at +9, operational state at +11; QT128: mode flag at
+    +5), return mode +12, motor speed +13, date-time +15, timestamp +21, factory +25, UDP
+    sequence (4), IMU (22), CRC (4); signature (32)."""
+    unit = 4 if flags & 0x10 else 3
+    block_size = 2 + unit * lasers
+    tail = 12 + blocks * block_size + 4 + (17 if flags & 0x04 else 0)
+    size = (tail + 26 + (4 if flags & 0x01 else 0) + (22 if flags & 0x02 else 0) + 4
+            + (32 if flags & 0x08 else 0))
+    extra: dict[str, Any] = {}
+    if major == 3:       # QT128: 2 firings of 111.11 us, last one triggered at t0 + 9 us
+        period, base = 111110.0, 9000.0
+        limits = (0.05, 50.0)
+        extra = dict(mode_flag_at=tail + 5, pixel_tables=_QT128_LOOPS,
+                     channel_timing=_PER_PIXEL)
+    else:                # 128E3X/E4X: 2 firings of 55.56 us, the last one triggered at t0
+        period, base = 55556.0, 0.0
+        why = ("azimuth state and operational state of the tail, near/far-field firing on "
+               "the 128E3X; the packet does not tell 128E3X and 128E4X apart")
+        limits = (0.1, 230.0)
+        extra = dict(channel_timing=_NOT_PER_BEAM.format(why))
+    return HesaiFormat(
+        model=model, lasers=lasers, blocks=blocks, body=12, block_size=block_size,
+        azimuth_at=0, unit_size=unit, size=size, return_mode_at=tail + 12,
+        motor_speed_at=tail + 13, timestamp_at=tail + 21, datetime_at=tail + 15,
+        firing_period_ns=period, block_base_ns=base, block_ref_last=True,
+        channel_ns=(0.0,) * lasers, dis_unit_at=9, range_limits=limits,
+        dual_orders=_ORDERS_12B, sizes=(size,), **extra)
+
+
+FORMATS["PandarXT16"] = _xt_format(
+    "PandarXT16", 16, 8, tuple(368.0 + 3024.0 * k for k in range(16)), (0.05, 120.0),
+    _ORDERS_12B)
+# XT32M2X: channels 1-16 and 17-32 fire in pairs, 2.888 us apart; 6 blocks (triple: 2 firings)
+FORMATS["PandarXT32M"] = _xt_format(
+    "PandarXT32M", 32, 6, tuple(368.0 + 2888.0 * (k % 16) for k in range(32)), (0.5, 300.0),
+    _ORDERS_12B + ((0x3D, ("first", "last", "strongest")),))
+
+_SUPPORTED = ("supported: Pandar40P, Pandar64, PandarXT16/XT32/XT32M (protocol 6.1), PandarQT64 "
+              "(3.1), PandarQT128 (3.2), Pandar128E3X/E4X/OT128 (1.4)")
 
 
 def detect_format(packet: bytes) -> HesaiFormat:
@@ -280,18 +432,39 @@ def detect_format(packet: bytes) -> HesaiFormat:
     if packet[2] == 64 and packet[3] == 6:        # Pandar64: 8-byte header, laser num first
         fmt = FORMATS["Pandar64"]
     else:
-        major, minor, lasers, blocks = packet[2], packet[3], packet[6], packet[7]
-        if (major, minor, lasers, blocks) == (6, 1, 32, 8):
-            fmt = FORMATS["PandarXT32"]
-        elif (major, minor, lasers, blocks) == (3, 1, 64, 4):
-            fmt = FORMATS["PandarQT64"]
-        else:
+        major, minor, lasers, blocks, flags = (packet[2], packet[3], packet[6], packet[7],
+                                               packet[11])
+        key = (major, minor, lasers, blocks)
+        model = _MODELS_12B.get(key)
+        if model is None:
+            names = {(6, 1): "PandarXT (6.1): 16 or 32 lasers, 8 blocks; 32 lasers, 6 blocks",
+                     (3, 1): "PandarQT64 (3.1): 64 lasers, 4 blocks",
+                     (3, 2): "PandarQT128 (3.2): 128 lasers, 2 blocks",
+                     (1, 4): "Pandar128E3X/E4X/OT128 (1.4): 128 lasers, 2 blocks"}
+            expected = names.get((major, minor))
             raise DecodeError("hesai header (protocol major.minor, laser num, block num)",
-                              f"{major}.{minor}, {lasers}, {blocks}", _UNCONFIRMED)
-    if n not in (fmt.size, fmt.size + 4):
-        raise DecodeError("hesai packet size", n,
-                          f"{fmt.size} or {fmt.size + 4} bytes for a {fmt.model} packet")
+                              f"{major}.{minor}, {lasers}, {blocks}",
+                              expected or f"a known protocol version ({_SUPPORTED})")
+        if model in FORMATS:
+            fmt = FORMATS[model]
+        else:
+            if flags & 0xE0:
+                raise DecodeError(f"{model} header flags", hex(flags), "bits 7..5 clear (bits "
+                                  "4..0: confidence, signature, functional safety, IMU, UDP "
+                                  "sequence)")
+            fmt = _format_v1(model, major, lasers, blocks, flags)
+    sizes = fmt.sizes or (fmt.size, fmt.size + 4)
+    if n not in sizes:
+        raise DecodeError("hesai packet size", n, " or ".join(map(str, sizes))
+                          + f" bytes for a {fmt.model} packet" + (
+                              f" with header flags {packet[11]:#04x}" if fmt.sizes else ""))
     return fmt
+
+
+#: (protocol major, minor, laser num, block num) of the 12-byte header -> model
+_MODELS_12B = {(6, 1, 32, 8): "PandarXT32", (6, 1, 16, 8): "PandarXT16",
+               (6, 1, 32, 6): "PandarXT32M", (3, 1, 64, 4): "PandarQT64",
+               (3, 2, 128, 2): "PandarQT128", (1, 4, 128, 2): "Pandar128E3X/E4X"}
 
 
 # ------------------------------------------------------------------------------- calibration
@@ -431,7 +604,6 @@ class PacketDecoder:
         self._info: Any = None
         self._info_key: tuple[Any, ...] | None = None
         self._last_info_stamp: int | None = None
-        self._template: tuple[Any, ...] | None = None   # (key, scan, channel views) of _layout
 
     # -------------------------------------------------------------------------- packet intake
     def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
@@ -481,7 +653,7 @@ class PacketDecoder:
                 out = self.flush()
             self._stream, self._key = new, data[:max(2, fmt.body)]
             self._fast = (new.packet_size, self._key, fmt.return_mode_at, new.mode,
-                          struct.Struct(f"<H{new.last_firing_at - 2}xH"), at, fmt.datetime_at)
+                          _first_last(new.last_firing_at), at, fmt.datetime_at)
         wrapped = first < self._last_az - 18000 or last < first - 18000
         self._packets.append(data)
         self._stamps.append(stamp_ns)
@@ -663,8 +835,11 @@ class PacketDecoder:
         secs = np.repeat(secs, np.diff(np.r_[starts, len(dates)]))
         t0 = secs * 1_000_000_000 + us * 1000
         times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
-        return {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
+        cols = {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
                 "t0": t0, "stamp": np.concatenate([seg[0] for seg in self._segs])}
+        if fmt.pixel_tables:
+            cols["state"] = _firing_states(fmt, stream.returns, recs)
+        return cols
 
     def _emit(self, final: bool, limit: int | None = None) -> list[tuple[Any, Any]]:
         """Scans of every rotation completed in the buffer (all that is left when ``final``).
@@ -727,43 +902,19 @@ class PacketDecoder:
                 pieces.append((seg[1], a - at, b - a, a - lo))
             at += n
         names = _channel_names(_block_kinds(fmt, stream.mode))
-        template, views = self._layout(info, names, width)
-        data = np.zeros(template.data.size, np.uint8)
-        grids = [tuple(_channel_view(data, view) for view in pair) for pair in views]
+        specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
+                 for k, name in enumerate(pair)}
+        if fmt.pixel_tables:
+            specs["t"] = np.int32
+        buf = ScanBuffer(info, {k: specs[k] for k in sorted(specs, key=_channel_rank)},
+                         as_dataclass=self.as_dataclass)
+        grids = [tuple(buf.views[name] for name in pair) for pair in names]
         _units(pieces, stream, self._rows, grids)
+        if fmt.pixel_tables:
+            _pixel_times(fmt, cols["state"][lo:hi], self._order, buf.views["t"])
         angles = np.pi / 2 - np.deg2rad(az * 0.01)
-        if not self.as_dataclass:
-            channels = {name: _channel_view(data, views[r][k]) for r, pair in enumerate(names)
-                        for k, name in enumerate(pair)}
-            channels = {k: channels[k] for k in sorted(channels, key=_channel_rank)}
-            return make_scan(info, channels, stamp, column_time_offsets=times - stamp,
-                             column_azimuth_angles=angles, as_dataclass=False), info
-        # the dataclass: make_scan's layout (from the template), this rotation's buffer as data
-        sec, nanosec = split_ns(stamp)
-        scan = dataclasses.replace(
-            template, header=types.Header(types.Time(sec, nanosec), template.header.frame_id),
-            column_time_offsets=_readonly(times - stamp), column_azimuth_angles=_readonly(angles),
-            data=_readonly(data))
-        return scan, info
-
-    def _layout(self, info: Any, names: list[tuple[str, str]], width: int
-                ) -> tuple[Any, list[tuple[tuple[int, int, int, int], ...]]]:
-        """A make_scan dataclass of this info version (its channel layout) and, per block of
-        a firing, the (offset, height, width, itemsize) of its range and intensity blocks."""
-        key = (info.header.stamp, info.width, tuple(names))
-        if self._template is not None and self._template[0] == key:
-            return self._template[1], self._template[2]
-        height = int(info.height)
-        zeros = {name: np.zeros((height, width), np.uint16 if k == 0 else np.uint8)
-                 for pair in names for k, name in enumerate(pair)}
-        zeros = {k: zeros[k] for k in sorted(zeros, key=_channel_rank)}
-        template = make_scan(info, zeros, 0, column_time_offsets=np.zeros(width, np.int64),
-                             column_azimuth_angles=np.zeros(width), as_dataclass=True)
-        offsets = {c.name: c.offset for c in template.channels}
-        views = [tuple((offsets[name], height, width, 2 if k == 0 else 1)
-                       for k, name in enumerate(pair)) for pair in names]
-        self._template = (key, template, views)
-        return template, views
+        return buf.build(stamp, column_time_offsets=times - stamp,
+                         column_azimuth_angles=angles), info
 
     def _info_for(self, stream: _Stream, width: int, stamp: int) -> Any:
         key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
@@ -783,7 +934,8 @@ class PacketDecoder:
         nominal_width = 60e9 / (stream.rpm * fmt.firing_period_ns)
         meta = {"format": fmt.model, "return_mode": "+".join(RETURN_MODES[stream.mode]),
                 "return_mode_byte": stream.mode, "rpm": stream.rpm,
-                "dis_unit_m": stream.dis_unit_m, "firing_rotation": self.firing_rotation}
+                "dis_unit_m": stream.dis_unit_m, "firing_rotation": self.firing_rotation,
+                "channel_timing": fmt.channel_timing}
         info = make_info(
             stamp_ns=stamp, frame_id=self.frame_id,
             vertical_angles=np.deg2rad(calib.elevation_deg[order]),
@@ -803,6 +955,22 @@ class PacketDecoder:
 _U16 = struct.Struct("<H")
 
 
+class _OneFiring:
+    """unpack_from() -> (azimuth, azimuth) for packets of one firing (e.g. 2 blocks, dual)."""
+
+    @staticmethod
+    def unpack_from(data: bytes, at: int) -> tuple[int, int]:
+        az = _U16.unpack_from(data, at)[0]
+        return az, az
+
+
+def _first_last(last_firing_at: int) -> Any:
+    """A struct reading the azimuths of a packet's first and last firing (``unpack_from``)."""
+    if last_firing_at == 0:
+        return _OneFiring
+    return struct.Struct(f"<H{last_firing_at - 2}xH")
+
+
 def _date_seconds(date: bytes) -> int:
     """POSIX seconds of a tail date-time (year - 1900, month, day, hour, minute, second; UTC)."""
     y, mo, d, h, mi, s = date
@@ -820,10 +988,31 @@ def _packet_dtype(fmt: HesaiFormat, size: int) -> np.dtype[Any]:
     block = np.dtype({"names": ["az", "u"], "formats": ["<u2", (unit, (fmt.lasers,))],
                       "offsets": [fmt.azimuth_at, fmt.azimuth_at + 2],
                       "itemsize": fmt.block_size})
-    return np.dtype({"names": ["b", "us", "date"],
-                     "formats": [(block, (fmt.blocks,)), "<u4", ("u1", (6,))],
-                     "offsets": [fmt.body, fmt.timestamp_at, fmt.datetime_at],
-                     "itemsize": size})
+    names, formats = ["b", "us", "date"], [(block, (fmt.blocks,)), "<u4", ("u1", (6,))]
+    offsets = [fmt.body, fmt.timestamp_at, fmt.datetime_at]
+    if fmt.mode_flag_at is not None:
+        names, formats, offsets = names + ["flag"], formats + ["u1"], offsets + [fmt.mode_flag_at]
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": size})
+
+
+def _firing_states(fmt: HesaiFormat, returns: int, recs: list[np.ndarray[Any, Any]]
+                   ) -> np.ndarray[Any, Any]:
+    """(F,) index into ``fmt.pixel_tables`` of every buffered firing (PandarQT128: loop 1 = 0,
+    loop 2 = 1; single return: block 1 loop 1, block 2 loop 2; dual: the tail's mode flag,
+    bit 0 set = loop 1)."""
+    flags = np.concatenate([rec["flag"] for rec in recs]).astype(np.int64)
+    if returns == 1:
+        return np.tile(np.arange(fmt.blocks) % 2, flags.size)
+    return np.where(flags & 1, 0, 1)
+
+
+def _pixel_times(fmt: HesaiFormat, states: np.ndarray[Any, Any], order: np.ndarray[Any, Any],
+                 out: np.ndarray[Any, Any]) -> None:
+    """Write the per-pixel delays (ns after the column's time) of firings ``states`` (C,) into
+    the first C columns of ``out`` (H, W) int32, rows in ``order`` (laser index of each row);
+    channels that do not fire in a firing get 0."""
+    table = np.asarray(fmt.pixel_tables, np.int32)[:, order]        # (states, H)
+    out[:, :states.size] = np.maximum(table[states].T, 0)
 
 
 def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, Any]:
@@ -882,19 +1071,6 @@ def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], strea
                 grids[r][k][:, col:col + count] = part
 
 
-def _channel_view(data: np.ndarray[Any, Any], view: tuple[int, int, int, int]
-                  ) -> np.ndarray[Any, Any]:
-    """(height, width) little-endian uint view of a channel block of the scan buffer."""
-    offset, height, width, itemsize = view
-    block = data[offset:offset + height * width * itemsize]
-    return block.view("<u2" if itemsize == 2 else np.uint8).reshape(height, width)
-
-
-def _readonly(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    arr.flags.writeable = False
-    return arr
-
-
 _KERNEL: Any = False
 
 
@@ -935,17 +1111,27 @@ def _block_kinds(fmt: HesaiFormat, mode: int) -> tuple[str, ...]:
 
 
 def _channel_names(kinds: tuple[str, ...]) -> list[tuple[str, str]]:
-    """(range, intensity) channel names of each block of a firing, in block order."""
+    """(range, intensity) channel names of each block of a firing, in block order.
+
+    The strongest return (else the last) is ``range``/``intensity``; the other returns are
+    ``range2``/``intensity2`` and (triple) ``range3``/``intensity3`` in block order.
+    """
     if len(kinds) == 1:
         return [("range", "intensity")]
     primary = kinds.index("strongest") if "strongest" in kinds else kinds.index("last")
-    return [("range", "intensity") if r == primary else ("range2", "intensity2")
-            for r in range(len(kinds))]
+    others = iter(range(2, len(kinds) + 1))
+    return [("range", "intensity") if r == primary else
+            (f"range{(n := next(others))}", f"intensity{n}") for r in range(len(kinds))]
 
 
 def _channel_rank(name: str) -> tuple[int, int]:
-    order = {"range": (0, 0), "intensity": (0, 1), "range2": (1, 0), "intensity2": (1, 1)}
-    return order[name]
+    """Channel order in the scan: range, intensity, range2, intensity2, range3, intensity3,
+    then t."""
+    if name == "t":
+        return (9, 0)
+    if name.startswith("range"):
+        return (int(name[5:] or 1), 0)
+    return (int(name[9:] or 1), 1)
 
 
 

@@ -28,6 +28,7 @@ from lidarscan.stamps import split_ns, to_ns
 __all__ = [
     "as_array",
     "make_scan",
+    "ScanBuffer",
     "make_info",
     "channel",
     "channel_names",
@@ -209,7 +210,16 @@ def make_scan(info: Any, channels: Mapping[str, Any], stamp_ns: int, *,
         descs.append((name, offset, datatype, count))
         pieces.append(raw)
         offset += len(raw)
-    data = b"".join(pieces)
+    return _assemble(info, descs, b"".join(pieces), stamp_ns, frame_id, is_destaggered,
+                     column_time_offsets, column_azimuth_angles, is_bigendian, as_dataclass)
+
+
+def _assemble(info: Any, descs: list[tuple[str, int, int, int]], data: Any, stamp_ns: int,
+              frame_id: str | None, is_destaggered: bool, column_time_offsets: Any,
+              column_azimuth_angles: Any, is_bigendian: bool, as_dataclass: bool) -> Any:
+    """The scan (message or dataclass) around ``data``: bytes, or an ``array.array('B')`` /
+    uint8 ndarray that becomes the scan's buffer without a copy."""
+    height, width = int(info.height), int(info.width)
     times = _column_array(column_time_offsets, width, np.int64, "column_time_offsets")
     azimuths = _column_array(column_azimuth_angles, width, np.float64, "column_azimuth_angles")
     sec, nanosec = split_ns(stamp_ns)
@@ -218,7 +228,7 @@ def make_scan(info: Any, channels: Mapping[str, Any], stamp_ns: int, *,
         frame_id = info.header.frame_id
     if as_dataclass or not have_messages():
         from lidarscan import types
-        data_arr = np.frombuffer(data, np.uint8)
+        data_arr = data if isinstance(data, np.ndarray) else np.frombuffer(data, np.uint8)
         return types.LidarScan(
             header=types.Header(types.Time(sec, nanosec), frame_id),
             lidar_info_time=types.Time(int(info_stamp.sec), int(info_stamp.nanosec)),
@@ -245,6 +255,67 @@ def make_scan(info: Any, channels: Mapping[str, Any], stamp_ns: int, *,
 def _readonly(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     arr.flags.writeable = False
     return arr
+
+
+class ScanBuffer:
+    """Fast path of :func:`make_scan` for producers that fill channels in place.
+
+    Allocates one zeroed ``data`` block laid out exactly as :func:`make_scan` lays out channels
+    of these dtypes (mapping order, blocks at multiples of 8 bytes), exposes a writable view of
+    each channel to fill, and :meth:`build` wraps the block into the scan **without copying
+    it** (an rclpy message gets the ``array.array('B')`` the views write into; a dataclass a
+    read-only ndarray over it). make_scan copies each channel out, joins them, and rclpy copies
+    again. One buffer makes one scan: after :meth:`build` the views must not be written.
+
+    Args:
+        info: the LidarInfo (height, width, header).
+        channels: name -> numpy dtype of its elements, or (dtype, count) for ``count`` elements
+            per pixel (int8..uint32, float32, float64).
+        is_bigendian: byte order of the blocks (the views are in that order).
+        as_dataclass: build :mod:`lidarscan.types` dataclasses instead of rclpy messages.
+
+    Attributes:
+        views: name -> writable (H, W) or (H, W, count) ndarray over the block, zero-filled.
+    """
+
+    def __init__(self, info: Any, channels: Mapping[str, Any], *, is_bigendian: bool = False,
+                 as_dataclass: bool = False) -> None:
+        self.info, self.is_bigendian, self.as_dataclass = info, bool(is_bigendian), as_dataclass
+        height, width = int(info.height), int(info.width)
+        layout = []
+        offset = 0
+        for name, spec in channels.items():
+            if not isinstance(name, str) or not name:
+                raise ValidationError("channels", name, "non-empty str channel names")
+            dtype, count = spec if isinstance(spec, tuple) else (spec, 1)
+            if int(count) < 1:
+                raise ValidationError(f"channels[{name!r}] count", count, "count >= 1")
+            datatype = datatype_of(np.dtype(dtype), field=f"channels[{name!r}].dtype")
+            target = dtype_of(datatype, self.is_bigendian)
+            offset += -offset % _ALIGN
+            layout.append((name, offset, datatype, int(count), target))
+            offset += height * width * int(count) * target.itemsize
+        self._descs = [entry[:4] for entry in layout]
+        # rclpy keeps an array.array('B') as the message's buffer (no conversion)
+        self._data: Any = (np.zeros(offset, np.uint8) if as_dataclass
+                           else array.array("B", bytes(offset)))
+        block = np.frombuffer(self._data, np.uint8) if not as_dataclass else self._data
+        shape = (height, width)
+        self.views: dict[str, np.ndarray[Any, Any]] = {
+            name: block[o:o + height * width * c * t.itemsize].view(t).reshape(
+                shape if c == 1 else (*shape, c))
+            for name, o, _, c, t in layout}
+
+    def build(self, stamp_ns: int, *, frame_id: str | None = None,
+              is_destaggered: bool = False, column_time_offsets: Any = None,
+              column_azimuth_angles: Any = None) -> Any:
+        """The LidarScan around the filled block (arguments as in :func:`make_scan`)."""
+        data = self._data
+        if self.as_dataclass:
+            data = _readonly(data)
+        return _assemble(self.info, self._descs, data, stamp_ns, frame_id, is_destaggered,
+                         column_time_offsets, column_azimuth_angles, self.is_bigendian,
+                         self.as_dataclass)
 
 
 def _column_array(values: Any, width: int, dtype: Any, field: str) -> np.ndarray[Any, Any]:

@@ -124,9 +124,11 @@ def _decoded(results: list[tuple[Any, Any]]) -> list[tuple[int, int, str, float,
         proj = lidarscan.make_projector(info)
         stamp = lidarscan.stamps.to_ns(scan.header.stamp)
         times = proj.pixel_times(scan) + stamp
+        if "t" in lidarscan.scan.channel_names(scan):   # per-pixel firing delays (QT128)
+            times = times + lidarscan.scan.channel(scan, "t")
         ids = np.asarray(info.beam_ids)
-        for name in ("range", "range2"):
-            if name not in lidarscan.scan.channel_names(scan):
+        for name in lidarscan.scan.channel_names(scan):
+            if not name.startswith("range"):
                 continue
             raw = lidarscan.scan.channel(scan, name)
             xyz = proj.project(scan, channel=name)
@@ -499,7 +501,7 @@ def test_malformed_packets_raise_and_the_decoder_continues() -> None:
     good = packets[5][1]
     bad = [good[:500], good + bytes(1500 - len(good)), b"\x00" * 1080, b"",
            bytes([0xEE, 0xFF, 6, 1, 0, 0, 40, 8]) + good[8:],          # laser num 40
-           bytes([0xEE, 0xFF, 3, 2, 0, 0, 128, 2]) + good[8:],         # QT128: unconfirmed
+           bytes([0xEE, 0xFF, 3, 2, 0, 0, 128, 2]) + good[8:],         # QT128 header, XT32 size
            good[:1062] + b"\x3d" + good[1063:],                          # unknown mode
            good[:1062] + b"\x3b" + good[1063:],                          # unconfirmed dual
            good[:12] + struct.pack("<H", 36000) + good[14:],             # azimuth 360.00
