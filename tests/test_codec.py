@@ -1,7 +1,8 @@
 """lidarscan.codec: the compressed LidarScan format restores every byte of the scan.
 
-Layers: golden bytes of the format (decoded, and re-encoded with the zstd library they were made
-with), loop-based oracles of the predictors and zigzag, round trips on hypothesis scans (shapes,
+Layers: golden bytes of the format (version 2 decoded, and re-encoded with the zstd library they
+were made with; version 1 still decoded), loop-based oracles of the predictors, zigzag, masked
+pixels' fill and the bit-length coding, round trips on hypothesis scans (shapes,
 every datatype, counts, both byte orders, arbitrary bytes including NaN payloads, +-Inf, -0,
 padding bytes and trailing bytes), round trips of the real Ouster frames, and damaged buffers.
 """
@@ -21,8 +22,9 @@ from lidarscan import codec
 from lidarscan.errors import DecodeError
 from lidarscan.types import LidarChannel, LidarScan
 
-# compress_scan(_golden_scan()) with zstandard 0.25.0 (libzstd 1.5.7), level 3
-GOLDEN = bytes.fromhex(
+# version 1: compress_scan(_golden_scan()) of the version 1 encoder, zstandard 0.25.0 (libzstd
+# 1.5.7), level 3; it must stay decodable
+GOLDEN_V1 = bytes.fromhex(
     "4c53435a010002006700000028b52ffd248cd5020042840e1ac03573ef023affff9d0b242e9d6cc8adeb3f69"
     "dd9d254e92c814277e3cf018a0add7d88df4c534e5120115a20fc860756a61cd8b44a0fcf90c0c00df206c0a"
     "49684c176c319501ce023030180832af981d2a7097cd26e2be558b2400000000000000180000000201000425"
@@ -47,35 +49,85 @@ def _same(a: Any, b: Any) -> None:
 
 # ----------------------------------------------------------------------------- golden
 
-def test_golden_bytes_decode_to_the_golden_scan() -> None:
-    back = codec.decompress_scan(GOLDEN)
+# version 2: compress_scan(_golden_scan_v2()) with zstandard 0.25.0 (libzstd 1.5.7), level 3
+GOLDEN_V2 = bytes.fromhex(
+    "4c53435a02000200d100000028b52ffd6474001d0600a40700010000010000000046c323060000006c696461"
+    "720065cd1d040000002000e803d007b80ba00f88137017581b401f28231027f82ae02ec832b036983a803e68"
+    "425046384a204e0852f055d859c05da86190657869606d4871307518790200000072616e6700070a00000069"
+    "6e74656e7369740200000400000029209083a419035749c4d24d3b29636193cc48232c38f0c0031f7860030f"
+    "3cf0810736f0c0031f7860030f3cf0810736f0c0031f7860030f3cf08107365064de9b1d2d7097d926b908b1"
+    "5e000300000000000000020000061a00070004000000200000000100000003000201fca9f1d24d62503fb000"
+    "00001d00000028b52ffd2410810000ffffffffeffffffffbfffffffefffffff54a4c893c00000028b52ffd24"
+    "7d7d0100682f2020202525202527002720200f00301780859402204fa7056821e70060d72202e602ce021d21"
+    "2063cb0e124e0ba31813322e00000028b52ffd243c0d0100b8d6b5ad6b5a68637df7df7df7df7f6e7ae7aeb9"
+    "eb9e9d000300801874ff83285a4daf3f301900000028b52ffd240c6100000000807f0000c07f00000080d86d"
+    "3d830002000000010000051200040004000000200000000100000003000201830000001700000028b52ffd24"
+    "10550000206db6db6d0100738e086b0763753e00000028b52ffd24548d0100d81c1c201c231c202520231c17"
+    "002626000000002526000000262600090020009c45799ac099412501b0816b1808fe7247ea46c78d22000000"
+    "28b52ffd2415a90000faaaaaaaaaa6e94a5374dd051503d03d03f03d03c0e950c78a")
+
+
+def _golden_scan_v2() -> Any:
+    """4 x 32: range on the mm grid with +Inf, NaN and -0 exceptions (QUANT2, masked),
+    intensity with a zero every third column (PREDICT2, zeros masked)."""
+    h, w = 4, 32
+    info = ls.make_info(stamp_ns=1_500_000_000, frame_id="lidar",
+                        vertical_angles=np.radians(np.linspace(5, -5, h)),
+                        horizontal_angles=2 * np.pi * (1 - np.arange(w) / w), as_dataclass=True)
+    mm = 1000 + 7 * np.arange(h * w).reshape(h, w) % 23 * 11
+    rng = (mm * 0.001).astype(np.float32)
+    rng[1, 3], rng[2, 5], rng[3, 7] = np.inf, np.nan, -0.0
+    inten = (np.arange(h * w).reshape(h, w) * 37 % 200).astype(np.uint16)
+    inten[:, ::3] = 0
+    return ls.make_scan(info, {"range": rng, "intensity": inten}, 1_600_000_000,
+                        column_time_offsets=np.arange(w) * 1000, as_dataclass=True)
+
+
+def test_golden_v1_bytes_still_decode_to_the_golden_scan() -> None:
+    back = codec.decompress_scan(GOLDEN_V1)
     _same(back, _golden_scan())
     r = ls.channel(back, "range")
     assert np.signbit(r[1, 0]) and r[1, 0] == 0 and np.isnan(r[1, 1]) and np.isposinf(r[0, 2])
-
-
-def test_golden_layout_magic_version_and_methods() -> None:
-    assert GOLDEN[:8] == b"LSCZ" + bytes([1, 0]) + struct.pack("<H", 2)
-    segs = codec.segments(GOLDEN)
-    assert [(s["offset"], s["length"], s["method"]) for s in segs] == [
+    assert [(s["offset"], s["length"], s["method"]) for s in codec.segments(GOLDEN_V1)] == [
         (0, 24, "shuffle"), (24, 12, "predict")]
-    # six floats, four of them exceptions: byte planes are smaller than the grid
-    assert segs[0]["params"] == bytes([4])
-    # PREDICT params: UINT16, little-endian, 2 x 3 x 1, a predictor 0..3
-    assert segs[1]["params"][:14] == struct.pack("<BBIII", 4, 0, 2, 3, 1)
-    assert segs[1]["params"][14] in (0, 1, 2, 3)
-    assert segs[1]["params"][15:] == b"\x00"  # not rolled: no row shifts
+
+
+def test_golden_v2_bytes_decode_to_the_golden_scan() -> None:
+    back = codec.decompress_scan(GOLDEN_V2)
+    _same(back, _golden_scan_v2())
+    r = ls.channel(back, "range")
+    assert np.isposinf(r[1, 3]) and np.isnan(r[2, 5]) and np.signbit(r[3, 7]) and r[3, 7] == 0
+
+
+def test_golden_v2_layout_magic_version_and_methods() -> None:
+    assert GOLDEN_V2[:8] == b"LSCZ" + bytes([2, 0]) + struct.pack("<H", 2)
+    segs = codec.segments(GOLDEN_V2)
+    assert [(s["offset"], s["length"], s["method"]) for s in segs] == [
+        (0, 512, "quant2"), (512, 256, "predict2")]
+    # QUANT2: FLOAT32, little-endian, 4 x 32 x 1, predictor, not rolled, extra, masked, step
+    q = segs[0]["params"]
+    assert q[:14] == struct.pack("<BBIII", 7, 0, 4, 32, 1)
+    assert q[14] in (0, 1, 2, 3) and q[15] == 0 and q[16] in (1, 2) and q[17] == 1
+    assert struct.unpack("<d", q[18:]) == (0.001,)
+    p = segs[1]["params"]
+    assert p[:14] == struct.pack("<BBIII", 4, 0, 4, 32, 1) and p[17] == 1 and len(p) == 18
 
 
 def test_golden_bytes_are_what_the_encoder_writes() -> None:
     import zstandard
-    out = codec.compress_scan(_golden_scan())
-    assert out[:8] == GOLDEN[:8]
+    out = codec.compress_scan(_golden_scan_v2())
+    assert out[:8] == GOLDEN_V2[:8]
     assert [(s["offset"], s["length"], s["method"], s["params"]) for s in codec.segments(out)] \
         == [(s["offset"], s["length"], s["method"], s["params"])
-            for s in codec.segments(GOLDEN)]
+            for s in codec.segments(GOLDEN_V2)]
     if zstandard.backend_features is not None and zstandard.__version__ == "0.25.0":
-        assert out == GOLDEN
+        assert out == GOLDEN_V2
+
+
+def test_a_version_1_buffer_may_not_hold_version_2_methods() -> None:
+    bad = GOLDEN_V2[:4] + bytes([1]) + GOLDEN_V2[5:]
+    with pytest.raises(DecodeError, match="method"):
+        codec.decompress_scan(bad)
 
 
 # ------------------------------------------------------------------------------ oracles
@@ -118,8 +170,70 @@ def test_quant_keeps_grid_values_and_marks_everything_else_as_exception() -> Non
     assert q.reshape(-1).tolist() == [1000, 1, 1, 1, 1, 1, -2500]  # exceptions: left neighbour
 
 
+def _loop_symbols(z: list[int], extra: int) -> tuple[list[int], str]:
+    """Symbols and the low-bit stream (a '0'/'1' string) of the version 2 coding, by the
+    definition in the module docstring."""
+    symbols, groups = [], {}
+    for v in z:
+        b = v.bit_length()
+        e = min(max(b - 1, 0), extra)
+        k = max(b - 1 - e, 0)
+        top = (v >> k) & ((1 << e) - 1)
+        symbols.append(b << extra | top)
+        groups.setdefault(k, []).append(format(v & ((1 << k) - 1), f"0{k}b") if k else "")
+    return symbols, "".join("".join(groups[k]) for k in sorted(groups))
+
+
+@given(st.lists(st.integers(0, 2**32 - 1) | st.integers(0, 40), max_size=60))
+def test_bit_length_coding_matches_the_definition_and_inverts(values: list[int]) -> None:
+    import zstandard
+    z = np.array(values, np.uint32)
+    extra, frame, low = codec._pack_residuals(z, 3)
+    symbols, bits = _loop_symbols(values, extra)
+    assert list(zstandard.ZstdDecompressor().decompress(frame)) == symbols
+    stream = zstandard.ZstdDecompressor().decompress(low)
+    assert "".join(format(x, "08b") for x in stream) == bits + "0" * (-len(bits) % 8)
+    back = codec._unpack_residuals(frame, low, len(values), 4, extra, "test")
+    assert back.tolist() == values
+
+
+def _loop_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int
+               ) -> np.ndarray[Any, Any]:
+    """Invalid pixels take their own prediction, in row-major order (Python ints, wrapping)."""
+    h, w, c = x.shape
+    mod = 1 << (8 * x.dtype.itemsize)
+    f = [[[0] * c for _ in range(w)] for _ in range(h)]
+    for r in range(h):
+        for col in range(w):
+            for k in range(c):
+                if valid[r, col, k]:
+                    f[r][col][k] = int(x[r, col, k])
+                    continue
+                left = f[r][col - 1][k] if col else 0
+                up = f[r - 1][col][k] if r else 0
+                ul = f[r - 1][col - 1][k] if r and col else 0
+                f[r][col][k] = {0: 0, 1: left, 2: up, 3: left + up - ul}[predictor] % mod
+    return np.array(f, x.dtype)
+
+
+@pytest.mark.parametrize("predictor", [0, 1, 2, 3])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.uint32])
+def test_masked_pixels_hold_their_prediction_and_cost_no_residual(
+        predictor: int, dtype: Any, rng: np.random.Generator) -> None:
+    x = rng.integers(0, np.iinfo(dtype).max, (5, 7, 2), dtype=dtype, endpoint=True)
+    valid = rng.random(x.shape) < 0.6
+    f = codec._predicted_fill(x, valid, predictor)
+    assert np.array_equal(f, _loop_fill(x, valid, predictor))
+    assert not codec._residual(f, predictor)[~valid].any()
+    z = codec._masked_residuals(x, valid, predictor)
+    assert z.size == valid.sum()
+    back = codec._unmask_residuals(z, valid, x.shape, predictor)
+    assert np.array_equal(back[valid], x[valid])
+
+
 # ---------------------------------------------------------------------------- round trips
 
+_INT = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
 _FLOAT_SPECIALS = [np.inf, -np.inf, np.nan, -0.0, 0.0, 1.0, 65.535, 1e-40, 3e38]
 
 
@@ -146,6 +260,10 @@ def _scans(draw: Any) -> Any:
                           st.sampled_from(_FLOAT_SPECIALS)), min_size=k, max_size=k)))
             block = values.astype((">" if big else "<") + ("f4" if size == 4 else "f8"))
             block = block.tobytes()
+        elif datatype <= 6 and draw(st.booleans()):  # small integers, many zeros (masked)
+            values = np.array(draw(st.lists(st.sampled_from([0, 0, 0, 1, 2, 7, 100]),
+                                            min_size=k, max_size=k)))
+            block = values.astype((">" if big else "<") + _INT[datatype]).tobytes()
         else:
             block = draw(st.binary(min_size=k * size, max_size=k * size))
         channels.append(LidarChannel(f"c{i}", offset, datatype, count))
@@ -209,40 +327,41 @@ def test_real_frames_roundtrip_and_beat_zstd_of_the_buffer(range_encoding: str,
                                range_encoding=range_encoding, destagger=destagger)
         buf = codec.compress_scan(scan, ouster_info(meta))
         _same(codec.decompress_scan(buf), scan)
-        rolled = [s["params"][15] for s in codec.segments(buf) if s["method"] == "predict"]
+        rolled = [s["params"][15] for s in codec.segments(buf)
+                  if s["method"] in ("predict2", "quant2")]
         assert set(rolled) == {int(not destagger)}  # staggered scans predicted destaggered
         whole = zstandard.ZstdCompressor(level=3).compress(scan.data.tobytes())
         assert len(buf) < 0.8 * len(whole), meta.name
         methods = {s["method"] for s in codec.segments(buf) if s["length"]}
-        assert methods <= {"predict", "quant", "zstd"}
-        assert ("quant" in methods) == (range_encoding == "float32")
+        assert methods <= {"predict2", "quant2", "zstd"}
+        assert ("quant2" in methods) == (range_encoding == "float32")
 
 
 # ------------------------------------------------------------------------------ errors
 
 @pytest.mark.parametrize("mutate, match", [
     (lambda b: b"XXXX" + b[4:], "magic"),
-    (lambda b: b[:4] + bytes([2]) + b[5:], "version"),
+    (lambda b: b[:4] + bytes([3]) + b[5:], "version"),
     (lambda b: b[:20], "bytes"),
     (lambda b: b + b"\x00", "trailing"),
     (lambda b: b[:6] + struct.pack("<H", 3) + b[8:], "bytes"),
 ])
 def test_damaged_buffers_raise_decode_error(mutate: Any, match: str) -> None:
     with pytest.raises(DecodeError, match=match):
-        codec.decompress_scan(mutate(GOLDEN))
+        codec.decompress_scan(mutate(GOLDEN_V2))
 
 
 def test_a_corrupt_payload_raises_decode_error() -> None:
-    bad = bytearray(GOLDEN)
-    bad[-8] ^= 0xFF  # a literal of the last zstd frame: its checksum fails
+    bad = bytearray(GOLDEN_V2)
+    bad[-8] ^= 0xFF  # a byte of the last zstd frame (low bits): its checksum fails
     with pytest.raises(DecodeError):
         codec.decompress_scan(bytes(bad))
 
 
 def test_a_hand_built_raw_segment_decodes() -> None:
     """RAW (method 0) is never chosen by the encoder but is part of the format."""
-    skeleton_len = struct.unpack_from("<I", GOLDEN, 8)[0]
-    head = GOLDEN[:12 + skeleton_len]                      # magic .. skeleton
+    skeleton_len = struct.unpack_from("<I", GOLDEN_V1, 8)[0]
+    head = GOLDEN_V1[:12 + skeleton_len]                      # magic .. skeleton
     data = _golden_scan().data.tobytes()
     buf = (head[:6] + struct.pack("<H", 1) + head[8:] + struct.pack("<I", len(data))
            + struct.pack("<IIBH", 0, len(data), codec.RAW, 0) + struct.pack("<I", len(data))
