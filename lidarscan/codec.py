@@ -11,8 +11,10 @@ methods 0..4 only: this module still decodes it, and writes version 2)::
 
     "LSCZ"  u8 version=2  u8 flags=0  u16 n_segments
     u32 skeleton_len  skeleton          zstd frame of the CDR (lidarscan.encode) of the scan with
-                                        empty ``data``: header, info stamp, sizes, byte order,
-                                        stagger flag, per-column arrays, channel descriptors
+                                        empty ``data`` and empty per-column arrays: header, info
+                                        stamp, sizes, byte order, stagger flag, channel
+                                        descriptors (version 1: with the per-column arrays)
+    u32 columns_len  columns            (version 2 only) the per-column arrays, see below
     u32 data_len                        len(scan.data)
     n_segments x segment                contiguous, in order, covering data[0:data_len] exactly
 
@@ -62,6 +64,12 @@ computed and inverted with wrapping integer arithmetic (decoding: cumulative sum
 (c + s_r) mod W): a staggered scan is predicted in destaggered order, where the row above sees
 the same azimuth; the decoder rotates back.
 
+Version 2 per-column arrays: ``u32 n_time  u32 n_azimuth``, then two parts ``u32 n + n
+bytes``: the zstd frame of the byte planes (as SHUFFLE, itemsize 8) of zigzag(first
+difference) of ``column_time_offsets`` (int64, wrapping, the first value against 0), and the
+same of ``column_azimuth_angles`` read as the uint64 bit patterns of the float64 values
+(regular azimuths and firing times make the differences repeat).
+
 Version 2 residual coding (methods 5, 6). Pixels left out by the mask hold their own
 prediction (residual 0, not stored), so the decoder fills the grid with zero residuals and
 inverts the predictor; the valid pixels' residuals r become z = zigzag(r) (0, -1, 1, -2 ->
@@ -98,6 +106,7 @@ __all__ = [
     "QUANT",
     "PREDICT2",
     "QUANT2",
+    "REF",
     "compress_scan",
     "decompress_scan",
     "segments",
@@ -108,7 +117,7 @@ VERSION = 2
 RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2 = 0, 1, 2, 3, 4, 5, 6
 _METHOD_NAMES = {RAW: "raw", ZSTD: "zstd", SHUFFLE: "shuffle", PREDICT: "predict",
                  QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2"}
-NONE, LEFT, UP, PLANAR = 0, 1, 2, 3
+NONE, LEFT, UP, PLANAR, REF = 0, 1, 2, 3, 4
 
 _INT_CODES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
 _FLOAT32, _FLOAT64 = 7, 8
@@ -156,8 +165,12 @@ def _unplanes(buf: bytes, itemsize: int, n: int, what: str) -> np.ndarray[Any, A
     return out.view(np.uint8)
 
 
-def _residual(x: np.ndarray[Any, Any], predictor: int) -> np.ndarray[Any, Any]:
-    """x - prediction in x's (unsigned, native) dtype, wrapping; x is (H, W, C)."""
+def _residual(x: np.ndarray[Any, Any], predictor: int,
+              ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    """x - prediction in x's (unsigned, native) dtype, wrapping; x (and ref, the grid REF
+    predicts from) is (H, W, C)."""
+    if predictor == REF:
+        return x - ref
     r = x.copy()
     if predictor in (UP, PLANAR):
         r[1:] -= x[:-1]
@@ -166,7 +179,10 @@ def _residual(x: np.ndarray[Any, Any], predictor: int) -> np.ndarray[Any, Any]:
     return r
 
 
-def _unresidual(r: np.ndarray[Any, Any], predictor: int) -> np.ndarray[Any, Any]:
+def _unresidual(r: np.ndarray[Any, Any], predictor: int,
+                ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    if predictor == REF:
+        return r + ref
     x = r
     if predictor in (LEFT, PLANAR):
         x = np.cumsum(x, axis=1, dtype=r.dtype)
@@ -406,11 +422,14 @@ def _fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any]) -> np.ndarray[An
     return np.where(index >= 0, got, x.dtype.type(0))
 
 
-def _predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int
-                    ) -> np.ndarray[Any, Any]:
+def _predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int,
+                    ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
     """The grid f (H, W, C) equal to x at valid pixels and to its own prediction at invalid
     ones (their residual is 0): NONE 0, LEFT the last valid value to the left, UP the last
-    valid value above, PLANAR the row above plus the last valid (x - row above) to the left."""
+    valid value above, PLANAR the row above plus the last valid (x - row above) to the left,
+    REF the reference grid's value."""
+    if predictor == REF:
+        return np.where(valid, x, ref)
     if predictor == NONE:
         return np.where(valid, x, x.dtype.type(0))
     if predictor == LEFT:
@@ -431,33 +450,37 @@ def _predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predic
 
 
 def _masked_residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                      predictor: int) -> np.ndarray[Any, Any]:
+                      predictor: int, ref: np.ndarray[Any, Any] | None = None
+                      ) -> np.ndarray[Any, Any]:
     """Zigzag residuals of the valid pixels of x (H, W, C), row-major; invalid pixels take
     their predicted value (:func:`_predicted_fill`)."""
     if valid is None:
-        return _zigzag(_residual(x, predictor)).reshape(-1)
-    return _zigzag(_residual(_predicted_fill(x, valid, predictor), predictor))[valid]
+        return _zigzag(_residual(x, predictor, ref)).reshape(-1)
+    return _zigzag(_residual(_predicted_fill(x, valid, predictor, ref), predictor, ref))[valid]
 
 
 def _unmask_residuals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                      shape: tuple[int, int, int], predictor: int) -> np.ndarray[Any, Any]:
+                      shape: tuple[int, int, int], predictor: int,
+                      ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
     """The grid from the valid pixels' zigzag residuals, invalid pixels' residuals being 0
     (inverse of :func:`_masked_residuals`; invalid pixels hold their predicted value)."""
     if valid is None:
-        return _unresidual(_unzigzag(z).reshape(shape), predictor)
+        return _unresidual(_unzigzag(z).reshape(shape), predictor, ref)
     r = np.zeros(shape, z.dtype)
     r[valid] = _unzigzag(z)
-    return _unresidual(r, predictor)
+    return _unresidual(r, predictor, ref)
 
 
-def _choose_masked(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None
-                   ) -> tuple[int, int]:
+def _choose_masked(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
+                   ref: np.ndarray[Any, Any] | None = None) -> tuple[int, int]:
     """(predictor, its residual bits) with the fewest residual bits on a band of up to 32
-    rows (bits: the sum of the residuals' bit lengths on the band)."""
+    rows (bits: the sum of the residuals' bit lengths on the band); REF only with a ref."""
     start = max(0, x.shape[0] // 2 - 16)
     band = x[start:start + 32]
     vband = None if valid is None else valid[start:start + 32]
-    costs = {p: _bits_cost(_masked_residuals(band, vband, p)) for p in (UP, LEFT, PLANAR, NONE)}
+    rband = None if ref is None else ref[start:start + 32]
+    costs = {p: _bits_cost(_masked_residuals(band, vband, p, rband))
+             for p in (UP, LEFT, PLANAR, NONE) + ((REF,) if ref is not None else ())}
     best = min(costs, key=lambda p: costs[p])
     return best, costs[best]
 
@@ -482,11 +505,12 @@ def _split(payload: bytes, count: int, what: str) -> list[bytes]:
 
 
 def _code_grid(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, level: int,
-               predictor: int | None = None) -> tuple[int, int, list[bytes]]:
+               predictor: int | None = None, ref: np.ndarray[Any, Any] | None = None
+               ) -> tuple[int, int, list[bytes]]:
     """(predictor, extra, [symbols frame, low bits]) of the valid pixels of grid x."""
     if predictor is None:
-        predictor = _choose_masked(x, valid)[0]
-    extra, frame, low = _pack_residuals(_masked_residuals(x, valid, predictor), level)
+        predictor = _choose_masked(x, valid, ref)[0]
+    extra, frame, low = _pack_residuals(_masked_residuals(x, valid, predictor, ref), level)
     return predictor, extra, [frame, low]
 
 
@@ -501,15 +525,17 @@ def _unmask_frame(frame: bytes, n: int, what: str) -> np.ndarray[Any, Any]:
     return np.unpackbits(np.frombuffer(packed, np.uint8), count=n).astype(bool)
 
 
-def _encode_int2(u: np.ndarray[Any, Any], level: int) -> tuple[int, int, bool, bytes]:
-    """(predictor, extra, masked, payload) of an unsigned (H, W, C) grid: zero values are
-    masked (not coded) when that looks smaller."""
+def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None
+                 ) -> tuple[int, int, bool, bytes]:
+    """(predictor, extra, masked, payload) of an unsigned (H, W, C) grid (ref: an earlier
+    channel's grid REF may predict from): zero values are masked (not coded) when that looks
+    smaller."""
     valid, predictor = None, None
     zeros = int(np.count_nonzero(u == 0))
     if 0.02 * u.size <= zeros < u.size:
         nz = u != 0
-        p_all, c_all = _choose_masked(u, None)
-        p_nz, c_nz = _choose_masked(u, nz)
+        p_all, c_all = _choose_masked(u, None, ref)
+        p_nz, c_nz = _choose_masked(u, nz, ref)
         # on the band: residual bits + about one symbol bit per coded value + the mask bits
         frac = zeros / u.size
         mask_bits = -(frac * np.log2(frac) + (1 - frac) * np.log2(1 - frac))
@@ -519,20 +545,21 @@ def _encode_int2(u: np.ndarray[Any, Any], level: int) -> tuple[int, int, bool, b
         else:
             predictor = p_all
     if valid is None:
-        predictor, extra, parts = _code_grid(u, None, level, predictor)
+        predictor, extra, parts = _code_grid(u, None, level, predictor, ref)
         return predictor, extra, False, _parts(*parts)
-    predictor, extra, parts = _code_grid(u, valid, level, predictor)
+    predictor, extra, parts = _code_grid(u, valid, level, predictor, ref)
     return predictor, extra, True, _parts(_mask_frame(valid, level), *parts)
 
 
 def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
-                 extra: int, masked: bool, what: str) -> np.ndarray[Any, Any]:
+                 extra: int, masked: bool, what: str, ref: np.ndarray[Any, Any] | None = None
+                 ) -> np.ndarray[Any, Any]:
     n = shape[0] * shape[1] * shape[2]
     parts = _split(payload, 3 if masked else 2, what)
     valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
     count = n if valid is None else int(valid.sum())
     z = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what)
-    f = _unmask_residuals(z, valid, shape, predictor)
+    f = _unmask_residuals(z, valid, shape, predictor, ref)
     return f if valid is None else np.where(valid, f, f.dtype.type(0))
 
 
@@ -590,8 +617,11 @@ def _layout(scan: Any, data_len: int) -> list[tuple[int, int, Any]] | None:
 
 
 def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: float | None,
-                  shifts: np.ndarray[Any, Any] | None) -> tuple[int, bytes, bytes]:
-    """(method, params, payload) of one channel block (the version 2 methods)."""
+                  shifts: np.ndarray[Any, Any] | None,
+                  refs: dict[int, np.ndarray[Any, Any]]) -> tuple[int, bytes, bytes]:
+    """(method, params, payload) of one channel block (the version 2 methods). ``refs``:
+    offset -> rolled unsigned grid of the earlier integer blocks; this block's grid is added
+    when it is an integer block."""
     datatype, big = int(desc.datatype), bool(scan.is_bigendian)
     shape = (int(scan.height), int(scan.width), int(desc.count))
     size = _SIZES[datatype]
@@ -599,9 +629,17 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
     if datatype in _INT_CODES:
         u = np.frombuffer(block, np.dtype((">" if big else "<") + f"u{size}")).reshape(shape)
         u = _roll(_as_unsigned(u), shifts, 1)
-        predictor, extra, masked, payload = _encode_int2(u, level)
+        same = {off: g for off, g in refs.items() if g.dtype == u.dtype and g.shape == u.shape}
+        ref_offset = None
+        if same:  # the earlier grid closest to this one (a second return's first return)
+            ref_offset = min(same, key=lambda off: _bits_cost(
+                _zigzag(_residual(u[::8], REF, same[off][::8]))))
+        refs[int(desc.offset)] = u
+        predictor, extra, masked, payload = _encode_int2(
+            u, level, None if ref_offset is None else same[ref_offset])
+        ref_param = struct.pack("<I", ref_offset) if predictor == REF else b""
         return (PREDICT2, _GRID2.pack(datatype, big, *shape, predictor, rolled, extra, masked)
-                + _shift_params(shifts), payload)
+                + ref_param + _shift_params(shifts), payload)
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
         native = _roll(raw.astype(np.float32), shifts, 1)
@@ -650,10 +688,11 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         header=scan.header, lidar_info_time=scan.lidar_info_time, height=int(scan.height),
         width=int(scan.width), is_bigendian=bool(scan.is_bigendian),
         is_destaggered=bool(scan.is_destaggered),
-        column_time_offsets=np.asarray(scan.column_time_offsets, np.int64),
-        column_azimuth_angles=np.asarray(scan.column_azimuth_angles, np.float64),
+        column_time_offsets=np.zeros(0, np.int64), column_azimuth_angles=np.zeros(0, np.float64),
         channels=tuple(scan.channels), data=np.zeros(0, np.uint8))
     skeleton = _zc(level).compress(encode(skeleton_scan))
+    columns = _encode_columns(np.asarray(scan.column_time_offsets, np.int64),
+                              np.asarray(scan.column_azimuth_angles, np.float64), level)
     if data_len >= 2**32:
         raise EncodeError("scan.data", data_len, "fewer than 2**32 bytes")
     raw = data.tobytes()
@@ -671,6 +710,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
                 and 4 * found.size + 32 < 2**16):
             shifts = found % int(scan.width)
     layout = _layout(scan, data_len)
+    refs: dict[int, np.ndarray[Any, Any]] = {}
     if layout is None:
         gap(0, data_len)
     else:
@@ -678,14 +718,14 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         for offset, length, desc in layout:
             gap(pos, offset)
             method, params, payload = _encode_block(raw[offset:offset + length], desc, scan,
-                                                    level, float_step, shifts)
+                                                    level, float_step, shifts, refs)
             segs.append((offset, length, method, params, payload))
             pos = offset + length
         gap(pos, data_len)
     if len(segs) >= 2**16:
         raise EncodeError("scan.channels", len(scan.channels), "fewer than 32768 channels")
     out = [_HEAD.pack(MAGIC, VERSION, 0, len(segs)), struct.pack("<I", len(skeleton)), skeleton,
-           struct.pack("<I", data_len)]
+           struct.pack("<I", len(columns)), columns, struct.pack("<I", data_len)]
     for offset, length, method, params, payload in segs:
         out += [_SEG.pack(offset, length, method, len(params)), params,
                 struct.pack("<I", len(payload)), payload]
@@ -700,7 +740,7 @@ def segments(buf: bytes) -> list[dict[str, Any]]:
     """
     return [{"offset": o, "length": n, "method": _METHOD_NAMES.get(m, str(m)),
              "payload_bytes": len(p), "params": prm}
-            for o, n, m, prm, p in _parse(buf)[2]]
+            for o, n, m, prm, p in _parse(buf)[3]]
 
 
 def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, bytes]]]:
@@ -724,6 +764,10 @@ def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, byt
 
     (skel_len,) = struct.unpack("<I", take(4, "skeleton length"))
     skeleton = take(skel_len, "skeleton")
+    columns = None
+    if version >= 2:
+        (col_len,) = struct.unpack("<I", take(4, "columns length"))
+        columns = take(col_len, "columns")
     (data_len,) = struct.unpack("<I", take(4, "data length"))
     segs = []
     expect = 0
@@ -744,10 +788,35 @@ def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, byt
     if version == 1 and any(seg[2] > QUANT for seg in segs):
         raise DecodeError("compressed scan method", max(seg[2] for seg in segs),
                           "0..4 in a version 1 buffer")
-    return skeleton, data_len, segs
+    return skeleton, columns, data_len, segs
 
 
-def _decode_segment(i: int, length: int, method: int, params: bytes, payload: bytes) -> bytes:
+def _encode_columns(times: np.ndarray[Any, Any], azimuths: np.ndarray[Any, Any], level: int
+                    ) -> bytes:
+    """The version 2 per-column part (format above)."""
+    def delta(words: np.ndarray[Any, Any]) -> bytes:
+        r = words.copy()
+        r[1:] -= words[:-1]
+        return _zc(level).compress(_planes(_zigzag(r)))
+    head = struct.pack("<II", times.size, azimuths.size)
+    return head + _parts(delta(times.view(np.uint64)), delta(azimuths.view(np.uint64)))
+
+
+def _decode_columns(buf: bytes) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """(column_time_offsets int64, column_azimuth_angles float64) of the per-column part."""
+    if len(buf) < 8:
+        raise DecodeError("columns", len(buf), "at least 8 bytes")
+    n_time, n_az = struct.unpack_from("<II", buf)
+    out = []
+    for n, part in zip((n_time, n_az), _split(buf[8:], 2, "columns"), strict=True):
+        z = _unplanes(_zd(part, 8 * n, "columns"), 8, n, "columns").view(np.uint64)
+        out.append(np.cumsum(_unzigzag(z), dtype=np.uint64))
+    return out[0].view(np.int64), out[1].view(np.float64)
+
+
+def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes,
+                    payload: bytes, data: np.ndarray[Any, Any]) -> bytes:
+    """The bytes of segment i; ``data``: the scan's data, decoded up to ``offset``."""
     what = f"segment {i}"
     if method == RAW:
         out = payload
@@ -780,7 +849,7 @@ def _decode_segment(i: int, length: int, method: int, params: bytes, payload: by
             bits = _unquant(payload, (h, w, c), predictor, step, bool(big), what)
             out = _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
     elif method in (PREDICT2, QUANT2):
-        out = _decode_v2(what, length, method, params, payload)
+        out = _decode_v2(what, offset, length, method, params, payload, data)
     else:
         raise DecodeError(f"{what} method", method,
                           "0..6 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2)")
@@ -789,23 +858,34 @@ def _decode_segment(i: int, length: int, method: int, params: bytes, payload: by
     return out
 
 
-def _decode_v2(what: str, length: int, method: int, params: bytes, payload: bytes) -> bytes:
+def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
+               data: np.ndarray[Any, Any]) -> bytes:
     if len(params) < _GRID2.size:
         raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
     datatype, big, h, w, c, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
-    base = _GRID2.size + (8 if method == QUANT2 else 0)
+    base = _GRID2.size + (8 if method == QUANT2 else 0) + (4 if predictor == REF else 0)
     want = base + (4 * h if rolled else 0)
     if len(params) != want:
         raise DecodeError(f"{what} params", len(params), f"{want} bytes")
     ok_type = datatype in _INT_CODES if method == PREDICT2 else datatype == _FLOAT32
-    if (not ok_type or predictor > PLANAR or extra > 2 or masked > 1
+    top = REF if method == PREDICT2 else PLANAR
+    if (not ok_type or predictor > top or extra > 2 or masked > 1
             or h * w * c * _SIZES.get(datatype, 0) != length):
         raise DecodeError(f"{what} params", (datatype, h, w, c, predictor, extra, masked),
                           f"a grid of {length} bytes with a known datatype and predictor")
     shifts = np.frombuffer(params, "<i4", h, base).astype(np.int64) if rolled else None
     if method == PREDICT2:
-        u = _decode_int2(payload, (h, w, c), _SIZES[datatype], predictor, extra, bool(masked),
-                         what)
+        size = _SIZES[datatype]
+        ref = None
+        if predictor == REF:
+            (ref_offset,) = struct.unpack_from("<I", params, _GRID2.size)
+            if ref_offset + length > offset:
+                raise DecodeError(f"{what} reference offset", ref_offset,
+                                  f"a block of {length} bytes decoded before offset {offset}")
+            grid = np.frombuffer(data[ref_offset:ref_offset + length].tobytes(),
+                                 (">" if big else "<") + f"u{size}").reshape(h, w, c)
+            ref = _roll(_as_unsigned(grid), shifts, 1)
+        u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref)
         u = _roll(u, shifts, -1)
         return u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
     (step,) = struct.unpack_from("<d", params, _GRID2.size)
@@ -822,7 +902,7 @@ def decompress_scan(buf: bytes) -> Any:
         DecodeError: not this format, another version, or a damaged buffer.
     """
     from lidarscan.cdr import decode_scan
-    skeleton, data_len, segs = _parse(buf)
+    skeleton, columns, data_len, segs = _parse(buf)
     try:
         skel = decode_scan(_zd(skeleton, 1 << 30, "skeleton"))
     except DecodeError:
@@ -832,6 +912,10 @@ def decompress_scan(buf: bytes) -> Any:
     data = np.empty(data_len, np.uint8)
     for i, (offset, length, method, params, payload) in enumerate(segs):
         data[offset:offset + length] = np.frombuffer(
-            _decode_segment(i, length, method, params, payload), np.uint8)
+            _decode_segment(i, offset, length, method, params, payload, data), np.uint8)
     data.flags.writeable = False
-    return dataclasses.replace(skel, data=data)
+    if columns is None:
+        return dataclasses.replace(skel, data=data)
+    times, azimuths = _decode_columns(columns)
+    return dataclasses.replace(skel, data=data, column_time_offsets=times,
+                               column_azimuth_angles=azimuths)

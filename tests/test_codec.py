@@ -51,25 +51,27 @@ def _same(a: Any, b: Any) -> None:
 
 # version 2: compress_scan(_golden_scan_v2()) with zstandard 0.25.0 (libzstd 1.5.7), level 3
 GOLDEN_V2 = bytes.fromhex(
-    "4c53435a02000200d100000028b52ffd6474001d0600a40700010000010000000046c323060000006c696461"
-    "720065cd1d040000002000e803d007b80ba00f88137017581b401f28231027f82ae02ec832b036983a803e68"
-    "425046384a204e0852f055d859c05da86190657869606d4871307518790200000072616e6700070a00000069"
-    "6e74656e7369740200000400000029209083a419035749c4d24d3b29636193cc48232c38f0c0031f7860030f"
-    "3cf0810736f0c0031f7860030f3cf0810736f0c0031f7860030f3cf08107365064de9b1d2d7097d926b908b1"
-    "5e000300000000000000020000061a00070004000000200000000100000003000201fca9f1d24d62503fb000"
-    "00001d00000028b52ffd2410810000ffffffffeffffffffbfffffffefffffff54a4c893c00000028b52ffd24"
-    "7d7d0100682f2020202525202527002720200f00301780859402204fa7056821e70060d72202e602ce021d21"
-    "2063cb0e124e0ba31813322e00000028b52ffd243c0d0100b8d6b5ad6b5a68637df7df7df7df7f6e7ae7aeb9"
-    "eb9e9d000300801874ff83285a4daf3f301900000028b52ffd240c6100000000807f0000c07f00000080d86d"
-    "3d830002000000010000051200040004000000200000000100000003000201830000001700000028b52ffd24"
-    "10550000206db6db6d0100738e086b0763753e00000028b52ffd24548d0100d81c1c201c231c202520231c17"
-    "002626000000002526000000262600090020009c45799ac099412501b0816b1808fe7247ea46c78d22000000"
-    "28b52ffd2415a90000faaaaaaaaaa6e94a5374dd051503d03d03f03d03c0e950c78a")
+    "4c53435a020003006a00000028b52ffd248ced0200f40300010000010000000046c323060000006c69646172"
+    "0065cd1d0400000020000300000072616e6765070a000000696e74656e736974790200000b32000000000b00"
+    "408009c3fd304f68f6c03600fb5765d633df5356c6c9e3dcd904b6edd04c3a00000020000000000000001d00"
+    "000028b52ffd6400007d00002800d00007000310003c4a8858c4020e0748d60d00000028b52ffd2400010000"
+    "99e9d851000400000000000000020000061a00070004000000200000000100000003000201fca9f1d24d6250"
+    "3fb00000001d00000028b52ffd2410810000ffffffffeffffffffbfffffffefffffff54a4c893c00000028b5"
+    "2ffd247d7d0100682f2020202525202527002720200f00301780859402204fa7056821e70060d72202e602ce"
+    "021d212063cb0e124e0ba31813322e00000028b52ffd243c0d0100b8d6b5ad6b5a68637df7df7df7df7f6e7a"
+    "e7aeb9eb9e9d000300801874ff83285a4daf3f301900000028b52ffd240c6100000000807f0000c07f000000"
+    "80d86d3d830002000000010000051200040004000000200000000100000003000201830000001700000028b5"
+    "2ffd2410550000206db6db6d0100738e086b0763753e00000028b52ffd24548d0100d81c1c201c231c202520"
+    "231c17002626000000002526000000262600090020009c45799ac099412501b0816b1808fe7247ea46c78d22"
+    "00000028b52ffd2415a90000faaaaaaaaaa6e94a5374dd051503d03d03f03d03c0e950c78a00030000000100"
+    "00051600040004000000200000000100000004000100000200002e0000001800000028b52ffd24805d000028"
+    "000d0002000100380543802cf3900e00000028b52ffd2401090000b07dad4d1c")
 
 
 def _golden_scan_v2() -> Any:
     """4 x 32: range on the mm grid with +Inf, NaN and -0 exceptions (QUANT2, masked),
-    intensity with a zero every third column (PREDICT2, zeros masked)."""
+    intensity with a zero every third column (PREDICT2, zeros masked), intensity2 predicted
+    from intensity (PREDICT2, REF)."""
     h, w = 4, 32
     info = ls.make_info(stamp_ns=1_500_000_000, frame_id="lidar",
                         vertical_angles=np.radians(np.linspace(5, -5, h)),
@@ -79,8 +81,11 @@ def _golden_scan_v2() -> Any:
     rng[1, 3], rng[2, 5], rng[3, 7] = np.inf, np.nan, -0.0
     inten = (np.arange(h * w).reshape(h, w) * 37 % 200).astype(np.uint16)
     inten[:, ::3] = 0
-    return ls.make_scan(info, {"range": rng, "intensity": inten}, 1_600_000_000,
-                        column_time_offsets=np.arange(w) * 1000, as_dataclass=True)
+    second = inten.copy()  # a second return: mostly the first (REF predictor)
+    second[0, 1], second[2, 9], second[3, 30] = 7, 0, 65535
+    return ls.make_scan(info, {"range": rng, "intensity": inten, "intensity2": second},
+                        1_600_000_000, column_time_offsets=np.arange(w) * 1000,
+                        as_dataclass=True)
 
 
 def test_golden_v1_bytes_still_decode_to_the_golden_scan() -> None:
@@ -100,10 +105,10 @@ def test_golden_v2_bytes_decode_to_the_golden_scan() -> None:
 
 
 def test_golden_v2_layout_magic_version_and_methods() -> None:
-    assert GOLDEN_V2[:8] == b"LSCZ" + bytes([2, 0]) + struct.pack("<H", 2)
+    assert GOLDEN_V2[:8] == b"LSCZ" + bytes([2, 0]) + struct.pack("<H", 3)
     segs = codec.segments(GOLDEN_V2)
     assert [(s["offset"], s["length"], s["method"]) for s in segs] == [
-        (0, 512, "quant2"), (512, 256, "predict2")]
+        (0, 512, "quant2"), (512, 256, "predict2"), (768, 256, "predict2")]
     # QUANT2: FLOAT32, little-endian, 4 x 32 x 1, predictor, not rolled, extra, masked, step
     q = segs[0]["params"]
     assert q[:14] == struct.pack("<BBIII", 7, 0, 4, 32, 1)
@@ -111,6 +116,32 @@ def test_golden_v2_layout_magic_version_and_methods() -> None:
     assert struct.unpack("<d", q[18:]) == (0.001,)
     p = segs[1]["params"]
     assert p[:14] == struct.pack("<BBIII", 4, 0, 4, 32, 1) and p[17] == 1 and len(p) == 18
+    # intensity2: predictor 4 (REF) from the block at byte offset 512 (intensity)
+    r = segs[2]["params"]
+    assert r[14] == codec.REF and len(r) == 22 and struct.unpack("<I", r[18:]) == (512,)
+
+
+def test_a_reference_after_its_block_raises_decode_error() -> None:
+    params = codec.segments(GOLDEN_V2)[2]["params"]
+    at = GOLDEN_V2.index(params) + 18  # intensity2's reference offset
+    buf = bytearray(GOLDEN_V2)
+    buf[at:at + 4] = struct.pack("<I", 768)  # itself: not decoded yet
+    with pytest.raises(DecodeError, match="reference"):
+        codec.decompress_scan(bytes(buf))
+
+
+@pytest.mark.parametrize("shifts", [None, [3, 1, 0, 2]])
+def test_second_returns_are_predicted_from_the_first_and_roundtrip(
+        shifts: list[int] | None, rng: np.random.Generator) -> None:
+    from types import SimpleNamespace
+    first = rng.integers(0, 5000, (4, 64), dtype=np.uint16)
+    second = np.where(rng.random(first.shape) < 0.9, first, rng.integers(0, 5000, first.shape))
+    scan = ls.make_scan(_info(4, 64), {"range": first, "range2": second.astype(np.uint16)}, 5,
+                        as_dataclass=True)
+    buf = codec.compress_scan(scan, SimpleNamespace(pixel_shift_by_row=shifts)
+                              if shifts else None)
+    assert [s["params"][14] for s in codec.segments(buf)][1] == codec.REF
+    _same(codec.decompress_scan(buf), scan)
 
 
 def test_golden_bytes_are_what_the_encoder_writes() -> None:
@@ -125,7 +156,9 @@ def test_golden_bytes_are_what_the_encoder_writes() -> None:
 
 
 def test_a_version_1_buffer_may_not_hold_version_2_methods() -> None:
-    bad = GOLDEN_V2[:4] + bytes([1]) + GOLDEN_V2[5:]
+    head = struct.pack("<IIB", 24, 12, codec.PREDICT)  # the PREDICT segment of GOLDEN_V1
+    bad = GOLDEN_V1.replace(head, struct.pack("<IIB", 24, 12, codec.PREDICT2))
+    assert bad != GOLDEN_V1
     with pytest.raises(DecodeError, match="method"):
         codec.decompress_scan(bad)
 
@@ -344,7 +377,7 @@ def test_real_frames_roundtrip_and_beat_zstd_of_the_buffer(range_encoding: str,
     (lambda b: b[:4] + bytes([3]) + b[5:], "version"),
     (lambda b: b[:20], "bytes"),
     (lambda b: b + b"\x00", "trailing"),
-    (lambda b: b[:6] + struct.pack("<H", 3) + b[8:], "bytes"),
+    (lambda b: b[:6] + struct.pack("<H", 4) + b[8:], "bytes"),
 ])
 def test_damaged_buffers_raise_decode_error(mutate: Any, match: str) -> None:
     with pytest.raises(DecodeError, match=match):
