@@ -564,21 +564,28 @@ def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, pre
 
 
 def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], step: float,
-                   level: int) -> tuple[int, int, bool, bytes] | None:
-    """(predictor, extra, masked, payload) of a native float32 (H, W, C) grid, or None when
-    it does not fit the int32 grid; exceptions are masked and kept bit for bit."""
+                   level: int) -> tuple[int, int, bool, float, bytes] | None:
+    """(predictor, extra, masked, step, payload) of a native float32 (H, W, C) grid, or None
+    when it does not fit the int32 grid; exceptions are masked and kept bit for bit. The step
+    is ``step`` times the greatest common divisor of the grid values when that coarser grid
+    has no more exceptions."""
     got = _quantise(v, step)
     if got is None:
         return None
     q, exc = got
+    common = int(np.gcd.reduce(np.abs(q[~exc]).astype(np.int64))) if (~exc).any() else 0
+    if common > 1:  # e.g. 4 mm units in metres: the coarser grid, if it is as exact
+        coarse = _quantise(v, step * common)
+        if coarse is not None and int(coarse[1].sum()) <= int(exc.sum()):
+            step, (q, exc) = step * common, coarse
     u = q.view(np.uint32)
     if not exc.any():
         predictor, extra, parts = _code_grid(u, None, level)
-        return predictor, extra, False, _parts(*parts)
+        return predictor, extra, False, step, _parts(*parts)
     valid = ~exc
     predictor, extra, parts = _code_grid(u, valid, level)
     words = _zc(level).compress(raw_words[exc].tobytes())
-    return predictor, extra, True, _parts(_mask_frame(valid, level), *parts, words)
+    return predictor, extra, True, step, _parts(_mask_frame(valid, level), *parts, words)
 
 
 def _decode_quant2(payload: bytes, shape: tuple[int, int, int], predictor: int, extra: int,
@@ -646,14 +653,14 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
         words = _roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
         got = _encode_quant2(native, words, float_step, level)
         if got is not None:
-            predictor, extra, masked, payload = got
+            predictor, extra, masked, step, payload = got
             shuffled = None
             if len(payload) > len(block) // 2:  # mostly off-grid: compare with SHUFFLE
                 shuffled = _zc(level).compress(_planes(np.frombuffer(block, f"<u{size}")))
             if shuffled is None or len(payload) <= len(shuffled):
                 return (QUANT2, _GRID2.pack(datatype, big, *shape, predictor, rolled, extra,
                                             masked)
-                        + struct.pack("<d", float_step) + _shift_params(shifts), payload)
+                        + struct.pack("<d", step) + _shift_params(shifts), payload)
             return SHUFFLE, bytes([size]), shuffled
     return SHUFFLE, bytes([size]), _zc(level).compress(_planes(
         np.frombuffer(block, f"<u{size}")))
@@ -669,8 +676,9 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         info: its LidarInfo, optional: a staggered scan is then predicted in destaggered order
             (``pixel_shift_by_row``; the shifts travel in the format, decoding needs no info).
         level: zstd level of every part (1..22; 3 is the measured speed/size balance).
-        float_step: grid of float32 channels in their unit (0.001: metres from millimetres);
-            None codes float32 channels by byte shuffle only.
+        float_step: grid of float32 channels in their unit (0.001: metres from millimetres;
+            a multiple of it when every value is on that coarser grid, e.g. 0.004 for 4 mm
+            units); None codes float32 channels by byte shuffle only.
 
     Returns:
         The compressed bytes; :func:`decompress_scan` restores the scan bit for bit.

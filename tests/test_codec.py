@@ -400,3 +400,17 @@ def test_a_hand_built_raw_segment_decodes() -> None:
            + struct.pack("<IIBH", 0, len(data), codec.RAW, 0) + struct.pack("<I", len(data))
            + data)
     _same(codec.decompress_scan(buf), _golden_scan())
+
+
+def test_float_metres_of_coarser_units_use_the_coarser_grid(rng: np.random.Generator) -> None:
+    """float32 metres of 4 mm units (Velodyne, Hesai) are coded on the 4 mm grid."""
+    units = np.cumsum(rng.integers(-3, 4, (4, 64)), axis=1) + 2500
+    units[:, ::7] = 0
+    metres = np.where(units > 0, (units * 0.004).astype(np.float32), np.float32(np.inf))
+    scan = ls.make_scan(_info(4, 64), {"range": metres.astype(np.float32)}, 5,
+                        as_dataclass=True)
+    buf = codec.compress_scan(scan)
+    seg = codec.segments(buf)[0]
+    assert seg["method"] == "quant2"
+    assert struct.unpack_from("<d", seg["params"], 18)[0] == pytest.approx(0.004, abs=1e-15)
+    _same(codec.decompress_scan(buf), scan)
