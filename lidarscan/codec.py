@@ -528,27 +528,18 @@ def _unmask_frame(frame: bytes, n: int, what: str) -> np.ndarray[Any, Any]:
 def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None
                  ) -> tuple[int, int, bool, bytes]:
     """(predictor, extra, masked, payload) of an unsigned (H, W, C) grid (ref: an earlier
-    channel's grid REF may predict from): zero values are masked (not coded) when that looks
-    smaller."""
-    valid, predictor = None, None
+    channel's grid REF may predict from). With at least 2 % zero values the grid is also
+    coded with the zeros masked (not coded); the smaller coding wins."""
+    predictor, extra, parts = _code_grid(u, None, level, None, ref)
+    best = (predictor, extra, False, _parts(*parts))
     zeros = int(np.count_nonzero(u == 0))
     if 0.02 * u.size <= zeros < u.size:
-        nz = u != 0
-        p_all, c_all = _choose_masked(u, None, ref)
-        p_nz, c_nz = _choose_masked(u, nz, ref)
-        # on the band: residual bits + about one symbol bit per coded value + the mask bits
-        frac = zeros / u.size
-        mask_bits = -(frac * np.log2(frac) + (1 - frac) * np.log2(1 - frac))
-        band = min(32, u.shape[0]) * u.shape[1] * u.shape[2]
-        if c_nz + band * ((1 - frac) + mask_bits) < c_all + band:
-            valid, predictor = nz, p_nz
-        else:
-            predictor = p_all
-    if valid is None:
-        predictor, extra, parts = _code_grid(u, None, level, predictor, ref)
-        return predictor, extra, False, _parts(*parts)
-    predictor, extra, parts = _code_grid(u, valid, level, predictor, ref)
-    return predictor, extra, True, _parts(_mask_frame(valid, level), *parts)
+        valid = u != 0
+        predictor, extra, parts = _code_grid(u, valid, level, None, ref)
+        masked = _parts(_mask_frame(valid, level), *parts)
+        if len(masked) < len(best[3]):
+            best = (predictor, extra, True, masked)
+    return best
 
 
 def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
