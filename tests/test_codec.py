@@ -416,3 +416,65 @@ def test_float_metres_of_coarser_units_use_the_coarser_grid(rng: np.random.Gener
     assert seg["method"] == "quant2"
     assert struct.unpack_from("<d", seg["params"], 18)[0] == pytest.approx(0.004, abs=1e-15)
     _same(codec.decompress_scan(buf), scan)
+
+
+# ------------------------------------------------------------- MCAP channel and the CLI
+
+def _ouster_pair() -> tuple[Any, Any]:
+    from converters.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.ouster import scan_from_frame
+    meta, path = next((m, p) for m, p in ouster_files() if p is not None)
+    info = ouster_info(meta)
+    return info, scan_from_frame(load_frame(path), info, as_dataclass=True)
+
+
+def test_mcap_writer_compresses_scans_and_the_reader_decompresses(tmp_path: Any) -> None:
+    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter, read_messages, read_scans
+    info, scan = _ouster_pair()
+    path = tmp_path / "z.mcap"
+    with McapWriter(path, scan_encoding=CODEC_ENCODING) as writer:
+        writer.write("/info", info)
+        writer.write("/scan", scan)
+        writer.write("/scan", ls.encode(scan), msgtype=SCAN_TYPE)  # CDR bytes: compressed too
+    items = list(read_messages(path))
+    scans = [m for m in items if m.msgtype == SCAN_TYPE]
+    assert [m.encoding for m in scans] == [CODEC_ENCODING] * 2
+    assert all(m.payload[:5] == b"LSCZ" + bytes([codec.VERSION]) for m in scans)
+    assert scans[0].metadata["lidarscan.codec.version"] == str(codec.VERSION)
+    assert all(ls.encode(m.decode()) == ls.encode(scan) for m in scans)
+    assert [ls.encode(s) for s, _ in read_scans(path)] == [ls.encode(scan)] * 2
+
+
+def test_mcap_writer_refuses_another_encoding_or_a_compressed_non_scan(tmp_path: Any) -> None:
+    from lidarscan.errors import ConfigError, SchemaError
+    from lidarscan.mcap import CODEC_ENCODING, INFO_TYPE, McapWriter
+    with pytest.raises(ConfigError, match="scan_encoding"):
+        McapWriter(tmp_path / "a.mcap", scan_encoding="zstd")
+    with McapWriter(tmp_path / "b.mcap") as writer, pytest.raises(SchemaError, match="encoding"):
+        writer.write("/info", b"LSCZ", msgtype=INFO_TYPE, encoding=CODEC_ENCODING)
+
+
+def test_cli_convert_compress_and_back_is_bit_exact(tmp_path: Any,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    from converters import cli
+    from lidarscan.mcap import CODEC_ENCODING, McapWriter, read_messages
+    info, scan = _ouster_pair()
+    plain = tmp_path / "plain.mcap"
+    with McapWriter(plain) as writer:
+        writer.write("/os/lidar_info", info)
+        writer.write("/os/lidar_scan", scan)
+    packed, back = tmp_path / "packed.mcap", tmp_path / "back.mcap"
+    assert cli.main(["convert", str(plain), str(packed), "--compress", "-q"]) == 0
+    assert cli.main(["convert", str(packed), str(back), "-q", "--chunk-compression", "lz4"]) == 0
+    assert packed.stat().st_size < 0.8 * plain.stat().st_size
+    originals, compressed, restored = (list(read_messages(p)) for p in (plain, packed, back))
+    assert [m.encoding for m in compressed] == ["cdr", CODEC_ENCODING]
+    assert [m.encoding for m in restored] == ["cdr", "cdr"]
+    assert [(m.topic, m.log_time_ns, m.payload) for m in restored] == \
+        [(m.topic, m.log_time_ns, m.payload) for m in originals]
+    capsys.readouterr()
+    assert cli.main(["info", str(packed)]) == 0
+    out = capsys.readouterr().out
+    assert f"(compressed: {CODEC_ENCODING})" in out and "no problems found" in out
+    assert cli.main(["view", str(packed), "--out", str(tmp_path / "views")]) == 0
+    assert list((tmp_path / "views").glob("range_image_*.png"))
