@@ -89,6 +89,7 @@ not encode), :class:`lidarscan.errors.DecodeError` (a buffer that is not this fo
 from __future__ import annotations
 
 import dataclasses
+import functools
 import struct
 from typing import Any
 
@@ -244,8 +245,8 @@ def _shift_params(shifts: np.ndarray[Any, Any] | None) -> bytes:
 
 def _quantise(v: np.ndarray[Any, Any], step: float
               ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
-    """(int32 grid q with exceptions filled from the left, exception mask) or None when the
-    grid does not fit int32. v: native float32 (H, W, C)."""
+    """(int32 grid q, 0 at exceptions; exception mask) or None when no value is on the grid.
+    v: native float32 (H, W, C)."""
     with np.errstate(invalid="ignore", over="ignore"):
         qf = np.rint(v.astype(np.float64) / step)
         fits = np.abs(qf) < 2**31
@@ -255,11 +256,7 @@ def _quantise(v: np.ndarray[Any, Any], step: float
     exc = back.view(np.uint32) != v.view(np.uint32)
     if exc.all() and v.size:
         return None
-    if exc.any():
-        q[exc] = 0
-        cols = np.arange(q.shape[1]).reshape(1, -1, 1)
-        idx = np.maximum.accumulate(np.where(exc, 0, cols), axis=1)
-        q = np.take_along_axis(q, idx, axis=1)
+    q[exc] = 0
     return q, exc
 
 
@@ -304,19 +301,20 @@ def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
 
 # ------------------------------------------------------------ version 2: bit-length coding
 
-_BITLEN16 = None
+@functools.lru_cache(maxsize=1)
+def _bitlen_table() -> np.ndarray[Any, Any]:
+    """Bit length of 0 .. 65535 (uint8)."""
+    return np.frexp(np.arange(1 << 16, dtype=np.float64))[1].astype(np.uint8)
 
 
 def _bitlen(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     """Bit length of every value of an unsigned array of at most 32 bits (0 for 0), as uint8."""
-    global _BITLEN16
-    if _BITLEN16 is None:
-        _BITLEN16 = np.frexp(np.arange(1 << 16, dtype=np.float64))[1].astype(np.uint8)
+    table = _bitlen_table()
     if z.dtype.itemsize <= 2:
-        return _BITLEN16[z]
+        return table[z]
     hi = (z >> z.dtype.type(16)).astype(np.uint16)
     lo = (z & z.dtype.type(0xFFFF)).astype(np.uint16)
-    return np.where(hi > 0, _BITLEN16[hi] + np.uint8(16), _BITLEN16[lo])
+    return np.where(hi > 0, table[hi] + np.uint8(16), table[lo])
 
 
 def _bits_cost(z: np.ndarray[Any, Any]) -> int:
@@ -351,14 +349,11 @@ def _pack_residuals(z: np.ndarray[Any, Any], level: int) -> tuple[int, bytes, by
     last byte padded with zeros.
     """
     z = z.astype(np.uint32, copy=False)
-    best = None
+    options = []
     for extra, (sym, k) in _symbols(z).items():
         frame = _zc(level).compress(sym.tobytes())
-        size = len(frame) + (int(k.sum(dtype=np.int64)) + 7) // 8
-        if best is None or size < best[0]:
-            best = (size, extra, frame, k)
-    assert best is not None
-    _, extra, frame, k = best
+        options.append((len(frame) + (int(k.sum(dtype=np.int64)) + 7) // 8, extra, frame, k))
+    _, extra, frame, k = min(options, key=lambda option: option[0])
     order = np.argsort(k, kind="stable")
     counts = np.bincount(k, minlength=33)
     low = z[order] & ((np.uint32(1) << k[order].astype(np.uint32)) - np.uint32(1))

@@ -202,7 +202,7 @@ def test_quant_keeps_grid_values_and_marks_everything_else_as_exception() -> Non
     v = np.array([[[1.0], [0.001], [np.inf], [-0.0], [np.nan], [1.0004], [-2.5]]], np.float32)
     q, exc = codec._quantise(v, 0.001)
     assert exc.reshape(-1).tolist() == [False, False, True, True, True, True, False]
-    assert q.reshape(-1).tolist() == [1000, 1, 1, 1, 1, 1, -2500]  # exceptions: left neighbour
+    assert q.reshape(-1).tolist() == [1000, 1, 0, 0, 0, 0, -2500]  # exceptions: 0
 
 
 def _loop_symbols(z: list[int], extra: int) -> tuple[list[int], str]:
