@@ -478,3 +478,16 @@ def test_cli_convert_compress_and_back_is_bit_exact(tmp_path: Any,
     assert f"(compressed: {CODEC_ENCODING})" in out and "no problems found" in out
     assert cli.main(["view", str(packed), "--out", str(tmp_path / "views")]) == 0
     assert list((tmp_path / "views").glob("range_image_*.png"))
+
+
+def test_a_rosbag2_directory_keeps_the_encoding(tmp_path: Any) -> None:
+    from converters.bags import open_bag
+    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter
+    info, scan = _ouster_pair()
+    (tmp_path / "bag").mkdir()
+    with McapWriter(tmp_path / "bag" / "bag_0.mcap", scan_encoding=CODEC_ENCODING) as writer:
+        writer.write("/info", info)
+        writer.write("/scan", scan)
+    items = [m for m in open_bag(tmp_path / "bag").messages() if m.msgtype == SCAN_TYPE]
+    assert [m.encoding for m in items] == [CODEC_ENCODING]
+    assert ls.encode(items[0].decode()) == ls.encode(scan)
