@@ -77,7 +77,8 @@ class McapWriter:
         chunk_size: bytes per chunk; a smaller chunk loses less when a run is interrupted.
         scan_encoding: message encoding of the LidarScan channels: "cdr" (default) or
             :data:`CODEC_ENCODING` (every scan compressed by :func:`lidarscan.codec.compress_scan`
-            with its default settings, channel metadata ``lidarscan.codec.version``). Scans given
+            with its default settings and the LidarInfo its ``lidar_info_time`` names when that
+            was written before it; channel metadata ``lidarscan.codec.version``). Scans given
             in the other encoding are converted; ``ros2 bag play`` and CDR-only readers cannot
             read a :data:`CODEC_ENCODING` channel (``lidarscan convert`` back to CDR first).
         qos: recorded QoS per topic: a name of :data:`lidarscan.rosbag2.QOS_PROFILES`
@@ -103,6 +104,7 @@ class McapWriter:
         if scan_encoding not in ("cdr", CODEC_ENCODING):
             raise ConfigError("scan_encoding", scan_encoding, f"'cdr' or {CODEC_ENCODING!r}")
         self.scan_encoding = scan_encoding
+        self._infos: dict[int, Any] = {}  # info stamp ns -> LidarInfo, for compress_scan
         self._own = not hasattr(output, "write")
         target: Any = output
         self._stream: Any = open(target, "wb") if self._own else target  # noqa: SIM115
@@ -167,12 +169,19 @@ class McapWriter:
         if encoding not in ("cdr", CODEC_ENCODING) or (encoding != "cdr" and full != SCAN_TYPE):
             raise SchemaError("encoding", encoding,
                               f"'cdr', or {CODEC_ENCODING!r} for a {SCAN_TYPE}")
+        if full == INFO_TYPE and self.scan_encoding == CODEC_ENCODING:
+            info = msg if not isinstance(msg, (bytes, bytearray, memoryview)) else \
+                decode(payload, full)
+            self._infos[to_ns(info.header.stamp)] = info
+            while len(self._infos) > 64:
+                del self._infos[next(iter(self._infos))]
         if full == SCAN_TYPE and encoding != self.scan_encoding:
             from lidarscan import codec
             if encoding == "cdr":
                 source = msg if not isinstance(msg, (bytes, bytearray, memoryview)) else \
                     decode(payload, full)
-                payload = codec.compress_scan(source)
+                payload = codec.compress_scan(
+                    source, self._infos.get(to_ns(source.lidar_info_time)))
             else:
                 payload = encode(codec.decompress_scan(payload), full)
             encoding = self.scan_encoding

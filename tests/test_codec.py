@@ -441,6 +441,9 @@ def test_mcap_writer_compresses_scans_and_the_reader_decompresses(tmp_path: Any)
     assert [m.encoding for m in scans] == [CODEC_ENCODING] * 2
     assert all(m.payload[:5] == b"LSCZ" + bytes([codec.VERSION]) for m in scans)
     assert scans[0].metadata["lidarscan.codec.version"] == str(codec.VERSION)
+    # the info written before the scans gives the destaggered prediction (rolled segments)
+    assert {s["params"][15] for s in codec.segments(scans[0].payload)
+            if s["method"] in ("predict2", "quant2")} == {1}
     assert all(ls.encode(m.decode()) == ls.encode(scan) for m in scans)
     assert [ls.encode(s) for s, _ in read_scans(path)] == [ls.encode(scan)] * 2
 
