@@ -1,10 +1,11 @@
 """A lossless, versioned compressed form of a LidarScan (``compress_scan`` / ``decompress_scan``).
 
 The message itself stays uncompressed (receivers get zero-copy views); this module is for storage
-and transports that compress (an MCAP channel with a custom encoding, a ``--compress`` option of
-the CLI). It beats compressing the whole CDR buffer with zstd (what MCAP's chunk compression does)
-because it knows the channel layout: every channel block is coded on its own, integer blocks by
-prediction, float32 blocks in metres through the integer grid they come from.
+and transports that compress: MCAP channels with the message encoding
+:data:`lidarscan.mcap.CODEC_ENCODING` (``lidarscan convert --compress``; documented in
+``msgs/README.md``). It beats compressing the whole CDR buffer with zstd (what MCAP's chunk
+compression does) because it knows the channel layout: every channel block is coded on its own,
+integer blocks by prediction, float32 blocks in metres through the integer grid they come from.
 
 Byte format, version 2 (every integer little-endian; version 1 is the same container with
 methods 0..4 only: this module still decodes it, and writes version 2)::
