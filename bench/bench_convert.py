@@ -18,9 +18,11 @@ both).
 
 Candidates (the bag already on disk, page cache warm):
 
-- ``convert``: ``converters.cli.main(["convert", BAG, OUT.mcap, "--calibration", FILE, "-q"])``
-  in this process (no interpreter start-up): read the .db3, parse the packet messages, decode
-  every rotation to LidarScan + LidarInfo, write the MCAP file (zstd chunks).
+- ``convert zstd``: ``converters.cli.main(["convert", BAG, OUT.mcap, "--calibration", FILE,
+  "-q"])`` in this process (no interpreter start-up): read the .db3, parse the packet messages,
+  decode every rotation to LidarScan + LidarInfo, write the MCAP file (zstd chunks, the default).
+- ``convert lz4`` / ``convert none``: the same with ``--chunk-compression lz4`` / ``none`` (the
+  output size is printed beside each).
 - ``rosbags``: read the same bag with rosbags and deserialise every message into Python objects
   (what a Python tool does before any decoding): no decode, no output.
 """
@@ -150,10 +152,11 @@ def build_bag(name: str, seconds: float, where: Path) -> tuple[Path, float, int,
     return bag, total / 1e9, count, packets
 
 
-def run_convert(bag: Path, calibration: Path, out: Path) -> None:
+def run_convert(bag: Path, calibration: Path, out: Path, chunks: str = "zstd") -> None:
     from converters import cli
     out.unlink(missing_ok=True)
-    status = cli.main(["convert", str(bag), str(out), "--calibration", str(calibration), "-q"])
+    status = cli.main(["convert", str(bag), str(out), "--calibration", str(calibration), "-q",
+                       "--chunk-compression", chunks])
     if status != 0:
         raise RuntimeError(f"lidarscan convert {bag} exited with {status}")
 
@@ -197,23 +200,33 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name}: {sensor_s:.1f} s of sensor time, {messages} messages, {packets} "
                   f"packets, {mb:.0f} MB bag (built in {time.perf_counter() - start:.1f} s)")
             out = where / f"{folder}.mcap"
-            times: dict[str, list[float]] = {"convert": [], "rosbags": []}
-            cpu: dict[str, list[float]] = {"convert": [], "rosbags": []}
-            for _ in range(args.repeat):
-                for label, fn in (("convert", lambda: run_convert(bag, DATA / folder / calib,
-                                                                   out)),
-                                  ("rosbags", lambda: run_rosbags(bag))):
+            chunks = ("zstd", "lz4", "none")
+            labels = [f"convert {c}" for c in chunks] + ["rosbags"]
+            times: dict[str, list[float]] = {label: [] for label in labels}
+            cpu: dict[str, list[float]] = {label: [] for label in labels}
+            sizes: dict[str, int] = {}
+
+            def convert(c: str) -> None:
+                run_convert(bag, DATA / folder / calib, out, c)
+                sizes[f"convert {c}"] = out.stat().st_size
+
+            for _ in range(args.repeat):  # interleaved: the machine's load hits all alike
+                for label, fn in [(f"convert {c}", lambda c=c: convert(c)) for c in chunks] + \
+                        [("rosbags", lambda: run_rosbags(bag))]:
                     c0, t0 = time.process_time(), time.perf_counter()
                     fn()
                     times[label].append(time.perf_counter() - t0)
                     cpu[label].append(time.process_time() - c0)
-            for label in times:
+            base_wall, base_cpu = min(times["convert zstd"]), min(cpu["convert zstd"])
+            for label in labels:
                 wall, proc = min(times[label]), min(cpu[label])
-                print(f"  {label:8s} best wall {wall:6.2f} s = {sensor_s / wall:5.1f}x real time"
-                      f" (CPU {proc:6.2f} s = {sensor_s / proc:5.1f}x)")
-            ratio = min(times["rosbags"]) / min(times["convert"])
-            print(f"  convert vs rosbags read+deserialise: {ratio:.2f}x; output "
-                  f"{out.stat().st_size / 1e6:.0f} MB")
+                size = f"; output {sizes[label] / 1e6:6.1f} MB" if label in sizes else ""
+                print(f"  {label:13s} best wall {wall:6.2f} s = {sensor_s / wall:5.1f}x real "
+                      f"time (CPU {proc:6.2f} s = {sensor_s / proc:5.1f}x; "
+                      f"÷ convert zstd: wall {wall / base_wall:4.2f}, CPU "
+                      f"{proc / base_cpu:4.2f}){size}")
+            ratio = min(times["rosbags"]) / base_wall
+            print(f"  convert (zstd) vs rosbags read+deserialise: {ratio:.2f}x")
             if args.profile:
                 prof = cProfile.Profile()
                 prof.runcall(run_convert, bag, DATA / folder / calib, out)

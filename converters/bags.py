@@ -170,7 +170,7 @@ class Bag:
             if isinstance(item, McapMessage):
                 item = McapMessage(index, item.topic, item.msgtype, item.log_time_ns,
                                    item.publish_time_ns, item.sequence, item.payload,
-                                   item.metadata)
+                                   item.metadata, item.encoding)
             elif item.index >= 0:
                 item = BadMessage(index, item.topic, item.log_time_ns, item.reason, item.error,
                                   item.offset, item.end_time_ns)
@@ -192,7 +192,8 @@ class Bag:
                     if known is not None and known.metadata:
                         item = McapMessage(item.index, item.topic, item.msgtype,
                                            item.log_time_ns, item.publish_time_ns,
-                                           item.sequence, item.payload, known.metadata)
+                                           item.sequence, item.payload, known.metadata,
+                                           item.encoding)
                 yield item
         else:
             err = McapFormatError(str(path), describe_bytes(head),

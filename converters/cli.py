@@ -255,12 +255,15 @@ def cmd_info(args: argparse.Namespace) -> int:
     bad: list[BadMessage] = []
     versions: dict[tuple[str, int], dict[str, Any]] = {}
     packets: dict[str, int] = {}
+    encodings: dict[str, str] = {}  # topic -> a message encoding other than CDR
     total = 0
     for item in source.items():
         if isinstance(item, BadMessage):
             bad.append(item)
             continue
         total += 1
+        if getattr(item, "encoding", "cdr") != "cdr":
+            encodings[item.topic] = item.encoding
         stats = topics.setdefault(item.topic, _TopicStats(item.msgtype))
         stats.count += 1
         stats.types.add(item.msgtype)
@@ -296,6 +299,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         span = (f"{_fmt_stamp(stats.first_ns or 0)} .. {_fmt_stamp(stats.last_ns or 0)}"
                 if stats.count else "")
         extra = f"  ({packets[topic]} packets)" if topic in packets else ""
+        extra += f"  (compressed: {encodings[topic]})" if topic in encodings else ""
         print(f"  {topic:<{width}}  {stats.msgtype:<32} {stats.count:>7}  {span}{extra}")
     problems = len(bad)
     topic_problems = []
@@ -481,7 +485,7 @@ def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any
 
 def cmd_convert(args: argparse.Namespace) -> int:
     from lidarscan.errors import ConfigError, McapFormatError
-    from lidarscan.mcap import SCAN_TYPE, McapWriter
+    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter
 
     source = _open_input(args.input, "IN", ouster=True)
     src, dst = source.path, Path(args.output)
@@ -523,7 +527,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
     report = ConvertReport()
     emit = _err  # bad messages are always reported, also with --quiet
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
-    writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20)
+    writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20,
+                        scan_encoding=CODEC_ENCODING if args.compress else "cdr")
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
     progress = Progress(size, f"converting {src.name}",
                         enabled=True if args.progress else (None if not args.quiet else False))
@@ -688,7 +693,8 @@ def _copy(writer: Any, item: Any, plan: _Plan, report: ConvertReport) -> None:
     if item.topic in plan.excluded:
         return
     writer.write(item.topic, item.payload, msgtype=item.msgtype, log_time_ns=item.log_time_ns,
-                 publish_time_ns=item.publish_time_ns, metadata=dict(item.metadata) or None)
+                 publish_time_ns=item.publish_time_ns, metadata=dict(item.metadata) or None,
+                 encoding=getattr(item, "encoding", "cdr"))
     report.written += 1
 
 
@@ -1138,7 +1144,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--metadata", default=None, help="Ouster metadata JSON for a .pcap")
     p.add_argument("--max-pending", type=_positive_int, default=64,
                    help="scans held while waiting for their LidarInfo (64)")
-    p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
+    p.add_argument("--compress", action="store_true",
+                   help="write every LidarScan compressed by lidarscan.codec (MCAP message "
+                        "encoding 'lidarscan.codec', lossless; readable by lidarscan, not by "
+                        "ros2 bag play: convert again without --compress to get CDR back)")
+    p.add_argument("--chunk-compression", "--compression", dest="compression",
+                   choices=("zstd", "lz4", "none"), default="zstd",
+                   help="compression of the output MCAP's chunks (zstd; lz4 is faster to "
+                        "write and larger, see bench/README.md)")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar, notes or summary (bad messages are still listed)")
     p.set_defaults(func=cmd_convert)

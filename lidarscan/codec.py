@@ -1,24 +1,29 @@
 """A lossless, versioned compressed form of a LidarScan (``compress_scan`` / ``decompress_scan``).
 
 The message itself stays uncompressed (receivers get zero-copy views); this module is for storage
-and transports that compress (an MCAP channel with a custom encoding, a ``--compress`` option of
-the CLI). It beats compressing the whole CDR buffer with zstd (what MCAP's chunk compression does)
-because it knows the channel layout: every channel block is coded on its own, integer blocks by
-prediction, float32 blocks in metres through the integer grid they come from.
+and transports that compress: MCAP channels with the message encoding
+:data:`lidarscan.mcap.CODEC_ENCODING` (``lidarscan convert --compress``; documented in
+``msgs/README.md``). It beats compressing the whole CDR buffer with zstd (what MCAP's chunk
+compression does) because it knows the channel layout: every channel block is coded on its own,
+integer blocks by prediction, float32 blocks in metres through the integer grid they come from.
 
-Byte format, version 1 (every integer little-endian)::
+Byte format, version 2 (every integer little-endian; version 1 is the same container with
+methods 0..4 only: this module still decodes it, and writes version 2)::
 
-    "LSCZ"  u8 version=1  u8 flags=0  u16 n_segments
+    "LSCZ"  u8 version=2  u8 flags=0  u16 n_segments
     u32 skeleton_len  skeleton          zstd frame of the CDR (lidarscan.encode) of the scan with
-                                        empty ``data``: header, info stamp, sizes, byte order,
-                                        stagger flag, per-column arrays, channel descriptors
+                                        empty ``data`` and empty per-column arrays: header, info
+                                        stamp, sizes, byte order, stagger flag, channel
+                                        descriptors (version 1: with the per-column arrays)
+    u32 columns_len  columns            (version 2 only) the per-column arrays, see below
     u32 data_len                        len(scan.data)
     n_segments x segment                contiguous, in order, covering data[0:data_len] exactly
 
     segment := u32 offset  u32 length  u8 method  u16 params_len  params  u32 payload_len  payload
 
 Every zstd frame carries its content checksum (a damaged payload raises, never decodes to
-other values). Methods (a segment is a channel block, or the bytes between/after blocks):
+other values). Methods (a segment is a channel block, or the bytes between/after blocks);
+the encoder writes 1, 2, 5 and 6:
 
 ====  =========  ==========================================================================
 id    name       params / payload
@@ -28,37 +33,64 @@ id    name       params / payload
 2     SHUFFLE    u8 itemsize / zstd frame of the byte planes: the least significant byte
                  of every value (little-endian reading of the block), then every second
                  byte, ...
-3     PREDICT    u8 datatype, u8 bigendian, u32 H, u32 W, u32 count, u8 predictor,
-                 u8 rolled [, H x i32 row shifts when rolled] / zstd frame of the byte
-                 planes of zigzag(residual), residuals in the unsigned type of the
+3     PREDICT    (version 1) u8 datatype, u8 bigendian, u32 H, u32 W, u32 count,
+                 u8 predictor, u8 rolled [, H x i32 row shifts when rolled] / zstd frame of
+                 the byte planes of zigzag(residual), residuals in the unsigned type of the
                  channel's size (wrapping: every value is exact)
-4     QUANT      u8 datatype (FLOAT32), u8 bigendian, u32 H, u32 W, u32 count,
+4     QUANT      (version 1) u8 datatype (FLOAT32), u8 bigendian, u32 H, u32 W, u32 count,
                  u8 predictor, u8 rolled, f64 step [, H x i32 row shifts] /
                  u32 n + the PREDICT payload of the int32 grid q (n bytes),
                  u32 n + zstd frame of the packed exception mask (n bytes, row-major,
                  numpy packbits order), zstd frame of the exceptions' original 4 bytes.
-                 A value v is coded as q = rint(v / step) when float32(float64(q) * step)
-                 has v's exact bits (the decode rule of :func:`lidarscan.range_m`); every
-                 other value (NaN, +-Inf, -0, off-grid) is an exception kept bit for bit.
-                 Exceptions take their left neighbour's q (0 at a row start) so they cost
-                 no residual.
+                 Exceptions take their left neighbour's q (0 at a row start).
+5     PREDICT2   u8 datatype (an integer type), u8 bigendian, u32 H, u32 W, u32 count,
+                 u8 predictor, u8 rolled, u8 extra (1 or 2), u8 masked [, H x i32 row
+                 shifts] / parts, each ``u32 n + n bytes``: [mask,] symbols, low bits.
+                 masked = 1: pixels whose value is 0 are not coded (mask: zstd frame of the
+                 packed "value != 0" bits, row-major over (H, W, count), numpy packbits
+                 order); they decode to 0.
+6     QUANT2     u8 datatype (FLOAT32), u8 bigendian, u32 H, u32 W, u32 count, u8 predictor,
+                 u8 rolled, u8 extra, u8 masked, f64 step [, H x i32 row shifts] / parts:
+                 [mask,] symbols, low bits [, exception words]. A value v is coded as the
+                 int32 q = rint(v / step) when float32(float64(q) * step) has v's exact bits
+                 (the decode rule of :func:`lidarscan.range_m`); every other value (NaN,
+                 +-Inf, -0, off-grid) is an exception: masked = 1, mask bit 0, its original 4
+                 bytes in the zstd frame of exception words (row-major order).
 ====  =========  ==========================================================================
 
-Predictors (on the (H, W, count) array, per count index): 0 none, 1 left (x[r, c-1]), 2 up
+Predictors (on the (H, W, C) array, per count index): 0 none, 1 left (x[r, c-1]), 2 up
 (x[r-1, c]), 3 planar (left + up - up-left); out-of-grid neighbours are 0. Residuals are
 computed and inverted with wrapping integer arithmetic (decoding: cumulative sums).
 "Rolled": before prediction row r was rotated right by its shift s_r (element c moved to
 (c + s_r) mod W): a staggered scan is predicted in destaggered order, where the row above sees
 the same azimuth; the decoder rotates back.
 
+Version 2 per-column arrays: ``u32 n_time  u32 n_azimuth``, then two parts ``u32 n + n
+bytes``: the zstd frame of the byte planes (as SHUFFLE, itemsize 8) of zigzag(first
+difference) of ``column_time_offsets`` (int64, wrapping, the first value against 0), and the
+same of ``column_azimuth_angles`` read as the uint64 bit patterns of the float64 values
+(regular azimuths and firing times make the differences repeat).
+
+Version 2 residual coding (methods 5, 6). Pixels left out by the mask hold their own
+prediction (residual 0, not stored), so the decoder fills the grid with zero residuals and
+inverts the predictor; the valid pixels' residuals r become z = zigzag(r) (0, -1, 1, -2 ->
+0, 1, 2, 3) in the unsigned type of the grid. A value z of bit length b (0 for z = 0) is the
+symbol ``b << extra | t`` (one byte; t: the e = min(b - 1, extra) bits below the leading one,
+none when b <= 1) and k = b - 1 - e raw low bits. Symbols: zstd frame of one byte per valid
+pixel, row-major. Low bits: zstd frame of one bit stream in which the values are grouped by k
+ascending (pixel order inside a group), each value's k bits most significant first, packed
+most significant bit first, the last byte padded with zeros. The sizes of the symbols are
+what zstd's entropy coder sees; the low bits are close to uniform and cost about k bits.
+
 ``decompress_scan`` returns a :class:`lidarscan.types.LidarScan` whose CDR (``lidarscan.encode``)
-is byte-identical to the input's. Errors: :class:`lidarscan.errors.EncodeError` (a scan that does
+is byte-identical to the input's (any version). Errors: :class:`lidarscan.errors.EncodeError` (a scan that does
 not encode), :class:`lidarscan.errors.DecodeError` (a buffer that is not this format).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import struct
 from typing import Any
 
@@ -74,22 +106,26 @@ __all__ = [
     "SHUFFLE",
     "PREDICT",
     "QUANT",
+    "PREDICT2",
+    "QUANT2",
+    "REF",
     "compress_scan",
     "decompress_scan",
     "segments",
 ]
 
 MAGIC = b"LSCZ"
-VERSION = 1
-RAW, ZSTD, SHUFFLE, PREDICT, QUANT = 0, 1, 2, 3, 4
+VERSION = 2
+RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2 = 0, 1, 2, 3, 4, 5, 6
 _METHOD_NAMES = {RAW: "raw", ZSTD: "zstd", SHUFFLE: "shuffle", PREDICT: "predict",
-                 QUANT: "quant"}
-NONE, LEFT, UP, PLANAR = 0, 1, 2, 3
+                 QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2"}
+NONE, LEFT, UP, PLANAR, REF = 0, 1, 2, 3, 4
 
 _INT_CODES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
 _FLOAT32, _FLOAT64 = 7, 8
 _SIZES = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 8: 8}
 _GRID = struct.Struct("<BBIIIBB")  # datatype, bigendian, H, W, count, predictor, rolled
+_GRID2 = struct.Struct("<BBIIIBBBB")  # ... + extra (symbol bits), masked
 _SEG = struct.Struct("<IIBH")       # offset, length, method, params_len
 _HEAD = struct.Struct("<4sBBH")
 
@@ -131,8 +167,12 @@ def _unplanes(buf: bytes, itemsize: int, n: int, what: str) -> np.ndarray[Any, A
     return out.view(np.uint8)
 
 
-def _residual(x: np.ndarray[Any, Any], predictor: int) -> np.ndarray[Any, Any]:
-    """x - prediction in x's (unsigned, native) dtype, wrapping; x is (H, W, C)."""
+def _residual(x: np.ndarray[Any, Any], predictor: int,
+              ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    """x - prediction in x's (unsigned, native) dtype, wrapping; x (and ref, the grid REF
+    predicts from) is (H, W, C)."""
+    if predictor == REF:
+        return x - ref
     r = x.copy()
     if predictor in (UP, PLANAR):
         r[1:] -= x[:-1]
@@ -141,7 +181,10 @@ def _residual(x: np.ndarray[Any, Any], predictor: int) -> np.ndarray[Any, Any]:
     return r
 
 
-def _unresidual(r: np.ndarray[Any, Any], predictor: int) -> np.ndarray[Any, Any]:
+def _unresidual(r: np.ndarray[Any, Any], predictor: int,
+                ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    if predictor == REF:
+        return r + ref
     x = r
     if predictor in (LEFT, PLANAR):
         x = np.cumsum(x, axis=1, dtype=r.dtype)
@@ -165,26 +208,10 @@ def _unzigzag(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     return (z >> one) ^ (np.zeros_like(z) - (z & one))
 
 
-def _cost(r: np.ndarray[Any, Any]) -> int:
-    """Size proxy of residuals: the sum of their magnitudes (zigzag values)."""
-    return int(_zigzag(r).sum(dtype=np.uint64))
-
-
-def _choose(x: np.ndarray[Any, Any]) -> int:
-    """The predictor with the smallest estimated residuals on a band of up to 32 rows."""
-    start = max(0, x.shape[0] // 2 - 16)
-    band = x[start:start + 32]
-    return min((LEFT, UP, PLANAR, NONE), key=lambda p: _cost(_residual(band, p)))
-
-
 def _as_unsigned(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     """Native-order unsigned view/copy of an integer or float array (same bytes per value)."""
     native = arr.astype(arr.dtype.newbyteorder("="), copy=False)
     return native.view(f"u{arr.dtype.itemsize}")
-
-
-def _predict_payload(u: np.ndarray[Any, Any], predictor: int, level: int) -> bytes:
-    return _zc(level).compress(_planes(_zigzag(_residual(u, predictor))))
 
 
 def _unpredict(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
@@ -219,8 +246,8 @@ def _shift_params(shifts: np.ndarray[Any, Any] | None) -> bytes:
 
 def _quantise(v: np.ndarray[Any, Any], step: float
               ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
-    """(int32 grid q with exceptions filled from the left, exception mask) or None when the
-    grid does not fit int32. v: native float32 (H, W, C)."""
+    """(int32 grid q, 0 at exceptions; exception mask) or None when no value is on the grid.
+    v: native float32 (H, W, C)."""
     with np.errstate(invalid="ignore", over="ignore"):
         qf = np.rint(v.astype(np.float64) / step)
         fits = np.abs(qf) < 2**31
@@ -230,27 +257,8 @@ def _quantise(v: np.ndarray[Any, Any], step: float
     exc = back.view(np.uint32) != v.view(np.uint32)
     if exc.all() and v.size:
         return None
-    if exc.any():
-        q[exc] = 0
-        cols = np.arange(q.shape[1]).reshape(1, -1, 1)
-        idx = np.maximum.accumulate(np.where(exc, 0, cols), axis=1)
-        q = np.take_along_axis(q, idx, axis=1)
+    q[exc] = 0
     return q, exc
-
-
-def _quant_payload(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], step: float,
-                   level: int) -> tuple[bytes, int] | None:
-    got = _quantise(v, step)
-    if got is None:
-        return None
-    q, exc = got
-    u = q.view(np.uint32)
-    predictor = _choose(u)
-    grid = _predict_payload(u, predictor, level)
-    mask = _zc(level).compress(np.packbits(exc.reshape(-1)).tobytes())
-    words = _zc(level).compress(raw_words.reshape(-1)[exc.reshape(-1)].tobytes())
-    return (struct.pack("<I", len(grid)) + grid + struct.pack("<I", len(mask)) + mask + words,
-            predictor)
 
 
 def _unquant(payload: bytes, shape: tuple[int, int, int], predictor: int, step: float,
@@ -270,19 +278,314 @@ def _unquant(payload: bytes, shape: tuple[int, int, int], predictor: int, step: 
         return part
 
     q = _unpredict(take(), shape, 4, predictor, what).view(np.int32)
-    mask_bytes = _zd(take(), (n + 7) // 8, what)
-    if len(mask_bytes) != (n + 7) // 8:
-        raise DecodeError(what, len(mask_bytes), f"{(n + 7) // 8} bytes of exception mask")
-    exc = np.unpackbits(np.frombuffer(mask_bytes, np.uint8), count=n).astype(bool)
-    words = np.frombuffer(_zd(payload[pos:], 4 * n, what), np.uint32)
-    if words.size != int(exc.sum()):
-        raise DecodeError(what, words.size, f"{int(exc.sum())} exception words")
+    exc = _unmask_frame(take(), n, what)
+    return _float_bits(q, step, bigendian, exc, payload[pos:], what)
+
+
+def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
+                exc: np.ndarray[Any, Any] | None, words_frame: bytes, what: str) -> bytes:
+    """The float32 bytes of the int32 grid q (value ``float32(float64(q) * step)``) with the
+    exception pixels (mask ``exc``) replaced by the words of the zstd frame ``words_frame``."""
     out = (q.astype(np.float64) * step).astype(np.float32).reshape(-1)
     if bigendian:
         out = out.astype(">f4")
+    if exc is None:
+        return out.tobytes()
+    exc = exc.reshape(-1)
+    words = np.frombuffer(_zd(words_frame, 4 * exc.size, what), np.uint32)
+    if words.size != int(exc.sum()):
+        raise DecodeError(what, words.size, f"{int(exc.sum())} exception words")
     bits = out.view(np.uint32).copy()
     bits[exc] = words
     return bits.tobytes()
+
+
+# ------------------------------------------------------------ version 2: bit-length coding
+
+@functools.lru_cache(maxsize=1)
+def _bitlen_table() -> np.ndarray[Any, Any]:
+    """Bit length of 0 .. 65535 (uint8)."""
+    return np.frexp(np.arange(1 << 16, dtype=np.float64))[1].astype(np.uint8)
+
+
+def _bitlen(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Bit length of every value of an unsigned array of at most 32 bits (0 for 0), as uint8."""
+    table = _bitlen_table()
+    if z.dtype.itemsize <= 2:
+        return table[z]
+    hi = (z >> z.dtype.type(16)).astype(np.uint16)
+    lo = (z & z.dtype.type(0xFFFF)).astype(np.uint16)
+    return np.where(hi > 0, table[hi] + np.uint8(16), table[lo])
+
+
+def _bits_cost(z: np.ndarray[Any, Any]) -> int:
+    """Size proxy of zigzag residuals for the bit-length coding: the sum of bit lengths."""
+    return int(_bitlen(z).sum(dtype=np.int64))
+
+
+def _symbols(z: np.ndarray[Any, Any]) -> dict[int, tuple[np.ndarray[Any, Any],
+                                                          np.ndarray[Any, Any]]]:
+    """extra -> (symbols uint8, number k of raw low bits per value uint8), extra 1 and 2, of
+    uint32 zigzag residuals z."""
+    b = _bitlen(z)
+    b1 = np.maximum(b, np.uint8(1)) - np.uint8(1)            # bits below the leading one
+    e2 = np.minimum(b1, np.uint8(2))
+    k2 = b1 - e2
+    top2 = ((z >> k2.astype(np.uint32)) & np.uint32(3)).astype(np.uint8)
+    top2 &= (np.uint8(1) << e2) - np.uint8(1)
+    wide = b1 >= 2                                           # e = 2 -> e = 1 drops a bit
+    top1 = np.where(wide, top2 >> np.uint8(1), top2)
+    k1 = k2 + wide.astype(np.uint8)
+    return {1: ((b << np.uint8(1)) | top1, k1), 2: ((b << np.uint8(2)) | top2, k2)}
+
+
+def _pack_residuals(z: np.ndarray[Any, Any], level: int) -> tuple[int, bytes, bytes]:
+    """(extra, zstd frame of the symbols, zstd frame of the low bits) of zigzag residuals
+    ``z`` (1-D unsigned, at most 32 bits); extra 1 or 2, whichever is smaller.
+
+    Symbol of a value of bit length b: ``b << extra | t`` where t holds the ``e = min(b - 1,
+    extra)`` bits below the leading one (0 when b <= 1). The remaining ``k = b - 1 - e`` low
+    bits of every value are one bit stream: values grouped by k ascending (value order inside a
+    group), each value's k bits most significant first, packed MSB first (numpy packbits), the
+    last byte padded with zeros.
+    """
+    z = z.astype(np.uint32, copy=False)
+    options = []
+    for extra, (sym, k) in _symbols(z).items():
+        frame = _zc(level).compress(sym.tobytes())
+        options.append((len(frame) + (int(k.sum(dtype=np.int64)) + 7) // 8, extra, frame, k))
+    _, extra, frame, k = min(options, key=lambda option: option[0])
+    order = np.argsort(k, kind="stable")
+    counts = np.bincount(k, minlength=33)
+    low = z[order] & ((np.uint32(1) << k[order].astype(np.uint32)) - np.uint32(1))
+    pieces, pos = [], int(counts[0])
+    for width in range(1, 33):
+        n = int(counts[width])
+        if n:
+            nbytes = (width + 7) // 8
+            words = low[pos:pos + n].astype(">u4").view(np.uint8).reshape(n, 4)[:, 4 - nbytes:]
+            bits = np.unpackbits(np.ascontiguousarray(words).reshape(-1))  # whole rows of 8
+            pieces.append(bits.reshape(n, 8 * nbytes)[:, 8 * nbytes - width:].reshape(-1))
+            pos += n
+    bits = np.concatenate(pieces) if pieces else np.zeros(0, np.uint8)
+    return extra, frame, _zc(level).compress(np.packbits(bits).tobytes())
+
+
+def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
+                      what: str) -> np.ndarray[Any, Any]:
+    """Inverse of :func:`_pack_residuals`: n zigzag residuals as unsigned ``itemsize`` ints."""
+    symbols = np.frombuffer(_zd(frame, n, what), np.uint8)
+    if symbols.size != n:
+        raise DecodeError(what, symbols.size, f"{n} residual symbols")
+    b = symbols >> np.uint8(extra)
+    if b.size and int(b.max()) > 8 * itemsize:
+        raise DecodeError(what, int(b.max()), f"bit lengths of at most {8 * itemsize}")
+    e = np.minimum(np.maximum(b, 1) - 1, extra).astype(np.uint8)
+    k = (np.maximum(b, 1) - 1 - e).astype(np.uint8)
+    top = (symbols & ((np.uint8(1) << e) - np.uint8(1))).astype(np.uint32)
+    z = np.where(b > 0, np.uint32(1) << (np.maximum(b, 1) - 1).astype(np.uint32), np.uint32(0))
+    z |= top << k.astype(np.uint32)
+    counts = np.bincount(k, minlength=33)
+    total = int((counts * np.arange(counts.size)).sum())
+    raw = _zd(raw, (total + 7) // 8, what)
+    if len(raw) != (total + 7) // 8:
+        raise DecodeError(what, len(raw), f"{(total + 7) // 8} bytes of low bits")
+    bits = np.unpackbits(np.frombuffer(raw, np.uint8), count=total)
+    order = np.argsort(k, kind="stable")
+    low = np.zeros(n, np.uint32)
+    pos, start = int(counts[0]), 0
+    for width in range(1, 33):
+        m = int(counts[width])
+        if m:
+            nbytes = (width + 7) // 8
+            grid = np.zeros((m, 8 * nbytes), np.uint8)
+            grid[:, 8 * nbytes - width:] = bits[start:start + m * width].reshape(m, width)
+            packed = np.zeros((m, 4), np.uint8)
+            packed[:, 4 - nbytes:] = np.packbits(grid.reshape(-1)).reshape(m, nbytes)
+            low[pos:pos + m] = packed.view(">u4").reshape(-1)
+            pos += m
+            start += m * width
+    z[order] |= low
+    return z.astype(f"u{itemsize}")
+
+
+def _fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """x (H, W, C) with every invalid pixel replaced by the last valid value to its left in
+    its row (0 if none)."""
+    cols = np.arange(valid.shape[1]).reshape(1, -1, 1)
+    index = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
+    got = np.take_along_axis(x, np.maximum(index, 0), axis=1)
+    return np.where(index >= 0, got, x.dtype.type(0))
+
+
+def _predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int,
+                    ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    """The grid f (H, W, C) equal to x at valid pixels and to its own prediction at invalid
+    ones (their residual is 0): NONE 0, LEFT the last valid value to the left, UP the last
+    valid value above, PLANAR the row above plus the last valid (x - row above) to the left,
+    REF the reference grid's value."""
+    if predictor == REF:
+        return np.where(valid, x, ref)
+    if predictor == NONE:
+        return np.where(valid, x, x.dtype.type(0))
+    if predictor == LEFT:
+        return _fill(x, valid)
+    if predictor == UP:  # row by row: faster than gathering along the outer axis
+        out = np.empty_like(x)
+        prev = np.zeros(x.shape[1:], x.dtype)
+        for row in range(x.shape[0]):
+            prev = np.where(valid[row], x[row], prev)
+            out[row] = prev
+        return out
+    out = np.empty_like(x)
+    prev = np.zeros(x.shape[1:], x.dtype)
+    for row in range(x.shape[0]):
+        prev = prev + _fill((x[row] - prev)[None], valid[row][None])[0]
+        out[row] = prev
+    return out
+
+
+def _masked_residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
+                      predictor: int, ref: np.ndarray[Any, Any] | None = None
+                      ) -> np.ndarray[Any, Any]:
+    """Zigzag residuals of the valid pixels of x (H, W, C), row-major; invalid pixels take
+    their predicted value (:func:`_predicted_fill`)."""
+    if valid is None:
+        return _zigzag(_residual(x, predictor, ref)).reshape(-1)
+    return _zigzag(_residual(_predicted_fill(x, valid, predictor, ref), predictor, ref))[valid]
+
+
+def _unmask_residuals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
+                      shape: tuple[int, int, int], predictor: int,
+                      ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    """The grid from the valid pixels' zigzag residuals, invalid pixels' residuals being 0
+    (inverse of :func:`_masked_residuals`; invalid pixels hold their predicted value)."""
+    if valid is None:
+        return _unresidual(_unzigzag(z).reshape(shape), predictor, ref)
+    r = np.zeros(shape, z.dtype)
+    r[valid] = _unzigzag(z)
+    return _unresidual(r, predictor, ref)
+
+
+def _choose_masked(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
+                   ref: np.ndarray[Any, Any] | None = None) -> tuple[int, int]:
+    """(predictor, its residual bits) with the fewest residual bits on a band of up to 32
+    rows (bits: the sum of the residuals' bit lengths on the band); REF only with a ref."""
+    start = max(0, x.shape[0] // 2 - 16)
+    band = x[start:start + 32]
+    vband = None if valid is None else valid[start:start + 32]
+    rband = None if ref is None else ref[start:start + 32]
+    costs = {p: _bits_cost(_masked_residuals(band, vband, p, rband))
+             for p in (UP, LEFT, PLANAR, NONE) + ((REF,) if ref is not None else ())}
+    best = min(costs, key=lambda p: costs[p])
+    return best, costs[best]
+
+
+def _parts(*parts: bytes) -> bytes:
+    return b"".join(struct.pack("<I", len(p)) + p for p in parts)
+
+
+def _split(payload: bytes, count: int, what: str) -> list[bytes]:
+    out, pos = [], 0
+    for _ in range(count):
+        if pos + 4 > len(payload):
+            raise DecodeError(what, len(payload), f"{count} length-prefixed parts")
+        (k,) = struct.unpack_from("<I", payload, pos)
+        if pos + 4 + k > len(payload):
+            raise DecodeError(what, k, f"at most {len(payload) - pos - 4} bytes")
+        out.append(payload[pos + 4:pos + 4 + k])
+        pos += 4 + k
+    if pos != len(payload):
+        raise DecodeError(what, len(payload), f"{pos} bytes ({count} parts)")
+    return out
+
+
+def _code_grid(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, level: int,
+               predictor: int | None = None, ref: np.ndarray[Any, Any] | None = None
+               ) -> tuple[int, int, list[bytes]]:
+    """(predictor, extra, [symbols frame, low bits]) of the valid pixels of grid x."""
+    if predictor is None:
+        predictor = _choose_masked(x, valid, ref)[0]
+    extra, frame, low = _pack_residuals(_masked_residuals(x, valid, predictor, ref), level)
+    return predictor, extra, [frame, low]
+
+
+def _mask_frame(valid: np.ndarray[Any, Any], level: int) -> bytes:
+    return _zc(level).compress(np.packbits(valid.reshape(-1)).tobytes())
+
+
+def _unmask_frame(frame: bytes, n: int, what: str) -> np.ndarray[Any, Any]:
+    packed = _zd(frame, (n + 7) // 8, what)
+    if len(packed) != (n + 7) // 8:
+        raise DecodeError(what, len(packed), f"{(n + 7) // 8} bytes of pixel mask")
+    return np.unpackbits(np.frombuffer(packed, np.uint8), count=n).astype(bool)
+
+
+def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None
+                 ) -> tuple[int, int, bool, bytes]:
+    """(predictor, extra, masked, payload) of an unsigned (H, W, C) grid (ref: an earlier
+    channel's grid REF may predict from). With at least 2 % zero values the grid is also
+    coded with the zeros masked (not coded); the smaller coding wins."""
+    predictor, extra, parts = _code_grid(u, None, level, None, ref)
+    best = (predictor, extra, False, _parts(*parts))
+    zeros = int(np.count_nonzero(u == 0))
+    if 0.02 * u.size <= zeros < u.size:
+        valid = u != 0
+        predictor, extra, parts = _code_grid(u, valid, level, None, ref)
+        masked = _parts(_mask_frame(valid, level), *parts)
+        if len(masked) < len(best[3]):
+            best = (predictor, extra, True, masked)
+    return best
+
+
+def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
+                 extra: int, masked: bool, what: str, ref: np.ndarray[Any, Any] | None = None
+                 ) -> np.ndarray[Any, Any]:
+    n = shape[0] * shape[1] * shape[2]
+    parts = _split(payload, 3 if masked else 2, what)
+    valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
+    count = n if valid is None else int(valid.sum())
+    z = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what)
+    f = _unmask_residuals(z, valid, shape, predictor, ref)
+    return f if valid is None else np.where(valid, f, f.dtype.type(0))
+
+
+def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], step: float,
+                   level: int) -> tuple[int, int, bool, float, bytes] | None:
+    """(predictor, extra, masked, step, payload) of a native float32 (H, W, C) grid, or None
+    when it does not fit the int32 grid; exceptions are masked and kept bit for bit. The step
+    is ``step`` times the greatest common divisor of the grid values when that coarser grid
+    has no more exceptions."""
+    got = _quantise(v, step)
+    if got is None:
+        return None
+    q, exc = got
+    common = int(np.gcd.reduce(np.abs(q[~exc]).astype(np.int64))) if (~exc).any() else 0
+    if common > 1:  # e.g. 4 mm units in metres: the coarser grid, if it is as exact
+        coarse = _quantise(v, step * common)
+        if coarse is not None and int(coarse[1].sum()) <= int(exc.sum()):
+            step, (q, exc) = step * common, coarse
+    u = q.view(np.uint32)
+    if not exc.any():
+        predictor, extra, parts = _code_grid(u, None, level)
+        return predictor, extra, False, step, _parts(*parts)
+    valid = ~exc
+    predictor, extra, parts = _code_grid(u, valid, level)
+    words = _zc(level).compress(raw_words[exc].tobytes())
+    return predictor, extra, True, step, _parts(_mask_frame(valid, level), *parts, words)
+
+
+def _decode_quant2(payload: bytes, shape: tuple[int, int, int], predictor: int, extra: int,
+                   masked: bool, step: float, bigendian: bool, what: str) -> bytes:
+    n = shape[0] * shape[1] * shape[2]
+    parts = _split(payload, 4 if masked else 2, what)
+    valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
+    count = n if valid is None else int(valid.sum())
+    sym, low = (parts[1], parts[2]) if masked else (parts[0], parts[1])
+    z = _unpack_residuals(sym, low, count, 4, extra, what)
+    q = _unmask_residuals(z, valid, shape, predictor).view(np.int32)
+    return _float_bits(q, step, bigendian, None if valid is None else ~valid,
+                       parts[3] if masked else b"", what)
 
 
 # --------------------------------------------------------------------- segmentation
@@ -308,8 +611,11 @@ def _layout(scan: Any, data_len: int) -> list[tuple[int, int, Any]] | None:
 
 
 def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: float | None,
-                  shifts: np.ndarray[Any, Any] | None) -> tuple[int, bytes, bytes]:
-    """(method, params, payload) of one channel block."""
+                  shifts: np.ndarray[Any, Any] | None,
+                  refs: dict[int, np.ndarray[Any, Any]]) -> tuple[int, bytes, bytes]:
+    """(method, params, payload) of one channel block (the version 2 methods). ``refs``:
+    offset -> rolled unsigned grid of the earlier integer blocks; this block's grid is added
+    when it is an integer block."""
     datatype, big = int(desc.datatype), bool(scan.is_bigendian)
     shape = (int(scan.height), int(scan.width), int(desc.count))
     size = _SIZES[datatype]
@@ -317,22 +623,31 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
     if datatype in _INT_CODES:
         u = np.frombuffer(block, np.dtype((">" if big else "<") + f"u{size}")).reshape(shape)
         u = _roll(_as_unsigned(u), shifts, 1)
-        predictor = _choose(u)
-        return (PREDICT, _GRID.pack(datatype, big, *shape, predictor, rolled)
-                + _shift_params(shifts), _predict_payload(u, predictor, level))
+        same = {off: g for off, g in refs.items() if g.dtype == u.dtype and g.shape == u.shape}
+        ref_offset = None
+        if same:  # the earlier grid closest to this one (a second return's first return)
+            ref_offset = min(same, key=lambda off: _bits_cost(
+                _zigzag(_residual(u[::8], REF, same[off][::8]))))
+        refs[int(desc.offset)] = u
+        predictor, extra, masked, payload = _encode_int2(
+            u, level, None if ref_offset is None else same[ref_offset])
+        ref_param = struct.pack("<I", ref_offset) if predictor == REF else b""
+        return (PREDICT2, _GRID2.pack(datatype, big, *shape, predictor, rolled, extra, masked)
+                + ref_param + _shift_params(shifts), payload)
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
         native = _roll(raw.astype(np.float32), shifts, 1)
         words = _roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
-        got = _quant_payload(native, words, float_step, level)
+        got = _encode_quant2(native, words, float_step, level)
         if got is not None:
-            payload, predictor = got
+            predictor, extra, masked, step, payload = got
             shuffled = None
             if len(payload) > len(block) // 2:  # mostly off-grid: compare with SHUFFLE
                 shuffled = _zc(level).compress(_planes(np.frombuffer(block, f"<u{size}")))
             if shuffled is None or len(payload) <= len(shuffled):
-                return (QUANT, _GRID.pack(datatype, big, *shape, predictor, rolled)
-                        + struct.pack("<d", float_step) + _shift_params(shifts), payload)
+                return (QUANT2, _GRID2.pack(datatype, big, *shape, predictor, rolled, extra,
+                                            masked)
+                        + struct.pack("<d", step) + _shift_params(shifts), payload)
             return SHUFFLE, bytes([size]), shuffled
     return SHUFFLE, bytes([size]), _zc(level).compress(_planes(
         np.frombuffer(block, f"<u{size}")))
@@ -348,8 +663,9 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         info: its LidarInfo, optional: a staggered scan is then predicted in destaggered order
             (``pixel_shift_by_row``; the shifts travel in the format, decoding needs no info).
         level: zstd level of every part (1..22; 3 is the measured speed/size balance).
-        float_step: grid of float32 channels in their unit (0.001: metres from millimetres);
-            None codes float32 channels by byte shuffle only.
+        float_step: grid of float32 channels in their unit (0.001: metres from millimetres;
+            a multiple of it when every value is on that coarser grid, e.g. 0.004 for 4 mm
+            units); None codes float32 channels by byte shuffle only.
 
     Returns:
         The compressed bytes; :func:`decompress_scan` restores the scan bit for bit.
@@ -367,10 +683,11 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         header=scan.header, lidar_info_time=scan.lidar_info_time, height=int(scan.height),
         width=int(scan.width), is_bigendian=bool(scan.is_bigendian),
         is_destaggered=bool(scan.is_destaggered),
-        column_time_offsets=np.asarray(scan.column_time_offsets, np.int64),
-        column_azimuth_angles=np.asarray(scan.column_azimuth_angles, np.float64),
+        column_time_offsets=np.zeros(0, np.int64), column_azimuth_angles=np.zeros(0, np.float64),
         channels=tuple(scan.channels), data=np.zeros(0, np.uint8))
     skeleton = _zc(level).compress(encode(skeleton_scan))
+    columns = _encode_columns(np.asarray(scan.column_time_offsets, np.int64),
+                              np.asarray(scan.column_azimuth_angles, np.float64), level)
     if data_len >= 2**32:
         raise EncodeError("scan.data", data_len, "fewer than 2**32 bytes")
     raw = data.tobytes()
@@ -388,6 +705,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
                 and 4 * found.size + 32 < 2**16):
             shifts = found % int(scan.width)
     layout = _layout(scan, data_len)
+    refs: dict[int, np.ndarray[Any, Any]] = {}
     if layout is None:
         gap(0, data_len)
     else:
@@ -395,14 +713,14 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         for offset, length, desc in layout:
             gap(pos, offset)
             method, params, payload = _encode_block(raw[offset:offset + length], desc, scan,
-                                                    level, float_step, shifts)
+                                                    level, float_step, shifts, refs)
             segs.append((offset, length, method, params, payload))
             pos = offset + length
         gap(pos, data_len)
     if len(segs) >= 2**16:
         raise EncodeError("scan.channels", len(scan.channels), "fewer than 32768 channels")
     out = [_HEAD.pack(MAGIC, VERSION, 0, len(segs)), struct.pack("<I", len(skeleton)), skeleton,
-           struct.pack("<I", data_len)]
+           struct.pack("<I", len(columns)), columns, struct.pack("<I", data_len)]
     for offset, length, method, params, payload in segs:
         out += [_SEG.pack(offset, length, method, len(params)), params,
                 struct.pack("<I", len(payload)), payload]
@@ -417,7 +735,7 @@ def segments(buf: bytes) -> list[dict[str, Any]]:
     """
     return [{"offset": o, "length": n, "method": _METHOD_NAMES.get(m, str(m)),
              "payload_bytes": len(p), "params": prm}
-            for o, n, m, prm, p in _parse(buf)[2]]
+            for o, n, m, prm, p in _parse(buf)[3]]
 
 
 def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, bytes]]]:
@@ -427,8 +745,8 @@ def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, byt
     magic, version, _flags, nseg = _HEAD.unpack_from(mv, 0)
     if magic != MAGIC:
         raise DecodeError("compressed scan magic", bytes(magic), f"{MAGIC!r}")
-    if version != VERSION:
-        raise DecodeError("compressed scan version", version, f"{VERSION} (this library)")
+    if version not in (1, VERSION):
+        raise DecodeError("compressed scan version", version, f"1 or {VERSION} (this library)")
     pos = _HEAD.size
 
     def take(n: int, what: str) -> bytes:
@@ -441,6 +759,10 @@ def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, byt
 
     (skel_len,) = struct.unpack("<I", take(4, "skeleton length"))
     skeleton = take(skel_len, "skeleton")
+    columns = None
+    if version >= 2:
+        (col_len,) = struct.unpack("<I", take(4, "columns length"))
+        columns = take(col_len, "columns")
     (data_len,) = struct.unpack("<I", take(4, "data length"))
     segs = []
     expect = 0
@@ -458,10 +780,38 @@ def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, byt
         raise DecodeError("segments", expect, f"to cover all {data_len} data bytes")
     if pos != len(mv):
         raise DecodeError("compressed scan", len(mv), f"{pos} bytes (trailing bytes)")
-    return skeleton, data_len, segs
+    if version == 1 and any(seg[2] > QUANT for seg in segs):
+        raise DecodeError("compressed scan method", max(seg[2] for seg in segs),
+                          "0..4 in a version 1 buffer")
+    return skeleton, columns, data_len, segs
 
 
-def _decode_segment(i: int, length: int, method: int, params: bytes, payload: bytes) -> bytes:
+def _encode_columns(times: np.ndarray[Any, Any], azimuths: np.ndarray[Any, Any], level: int
+                    ) -> bytes:
+    """The version 2 per-column part (format above)."""
+    def delta(words: np.ndarray[Any, Any]) -> bytes:
+        r = words.copy()
+        r[1:] -= words[:-1]
+        return _zc(level).compress(_planes(_zigzag(r)))
+    head = struct.pack("<II", times.size, azimuths.size)
+    return head + _parts(delta(times.view(np.uint64)), delta(azimuths.view(np.uint64)))
+
+
+def _decode_columns(buf: bytes) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """(column_time_offsets int64, column_azimuth_angles float64) of the per-column part."""
+    if len(buf) < 8:
+        raise DecodeError("columns", len(buf), "at least 8 bytes")
+    n_time, n_az = struct.unpack_from("<II", buf)
+    out = []
+    for n, part in zip((n_time, n_az), _split(buf[8:], 2, "columns"), strict=True):
+        z = _unplanes(_zd(part, 8 * n, "columns"), 8, n, "columns").view(np.uint64)
+        out.append(np.cumsum(_unzigzag(z), dtype=np.uint64))
+    return out[0].view(np.int64), out[1].view(np.float64)
+
+
+def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes,
+                    payload: bytes, data: np.ndarray[Any, Any]) -> bytes:
+    """The bytes of segment i; ``data``: the scan's data, decoded up to ``offset``."""
     what = f"segment {i}"
     if method == RAW:
         out = payload
@@ -493,11 +843,50 @@ def _decode_segment(i: int, length: int, method: int, params: bytes, payload: by
             (step,) = struct.unpack_from("<d", params, _GRID.size)
             bits = _unquant(payload, (h, w, c), predictor, step, bool(big), what)
             out = _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
+    elif method in (PREDICT2, QUANT2):
+        out = _decode_v2(what, offset, length, method, params, payload, data)
     else:
-        raise DecodeError(f"{what} method", method, "0..4 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT)")
+        raise DecodeError(f"{what} method", method,
+                          "0..6 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2)")
     if len(out) != length:
         raise DecodeError(f"{what} length", len(out), f"{length} bytes")
     return out
+
+
+def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
+               data: np.ndarray[Any, Any]) -> bytes:
+    if len(params) < _GRID2.size:
+        raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
+    datatype, big, h, w, c, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
+    base = _GRID2.size + (8 if method == QUANT2 else 0) + (4 if predictor == REF else 0)
+    want = base + (4 * h if rolled else 0)
+    if len(params) != want:
+        raise DecodeError(f"{what} params", len(params), f"{want} bytes")
+    ok_type = datatype in _INT_CODES if method == PREDICT2 else datatype == _FLOAT32
+    top = REF if method == PREDICT2 else PLANAR
+    if (not ok_type or predictor > top or extra > 2 or masked > 1
+            or h * w * c * _SIZES.get(datatype, 0) != length):
+        raise DecodeError(f"{what} params", (datatype, h, w, c, predictor, extra, masked),
+                          f"a grid of {length} bytes with a known datatype and predictor")
+    shifts = np.frombuffer(params, "<i4", h, base).astype(np.int64) if rolled else None
+    if method == PREDICT2:
+        size = _SIZES[datatype]
+        ref = None
+        if predictor == REF:
+            (ref_offset,) = struct.unpack_from("<I", params, _GRID2.size)
+            if ref_offset + length > offset:
+                raise DecodeError(f"{what} reference offset", ref_offset,
+                                  f"a block of {length} bytes decoded before offset {offset}")
+            grid = np.frombuffer(data[ref_offset:ref_offset + length].tobytes(),
+                                 (">" if big else "<") + f"u{size}").reshape(h, w, c)
+            ref = _roll(_as_unsigned(grid), shifts, 1)
+        u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref)
+        u = _roll(u, shifts, -1)
+        return u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
+    (step,) = struct.unpack_from("<d", params, _GRID2.size)
+    bits = _decode_quant2(payload, (h, w, c), predictor, extra, bool(masked), step, bool(big),
+                          what)
+    return _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
 
 
 def decompress_scan(buf: bytes) -> Any:
@@ -508,7 +897,7 @@ def decompress_scan(buf: bytes) -> Any:
         DecodeError: not this format, another version, or a damaged buffer.
     """
     from lidarscan.cdr import decode_scan
-    skeleton, data_len, segs = _parse(buf)
+    skeleton, columns, data_len, segs = _parse(buf)
     try:
         skel = decode_scan(_zd(skeleton, 1 << 30, "skeleton"))
     except DecodeError:
@@ -518,6 +907,10 @@ def decompress_scan(buf: bytes) -> Any:
     data = np.empty(data_len, np.uint8)
     for i, (offset, length, method, params, payload) in enumerate(segs):
         data[offset:offset + length] = np.frombuffer(
-            _decode_segment(i, length, method, params, payload), np.uint8)
+            _decode_segment(i, offset, length, method, params, payload, data), np.uint8)
     data.flags.writeable = False
-    return dataclasses.replace(skel, data=data)
+    if columns is None:
+        return dataclasses.replace(skel, data=data)
+    times, azimuths = _decode_columns(columns)
+    return dataclasses.replace(skel, data=data, column_time_offsets=times,
+                               column_azimuth_angles=azimuths)

@@ -47,9 +47,13 @@ __all__ = [
     "describe_bytes",
     "SCAN_TYPE",
     "INFO_TYPE",
+    "CODEC_ENCODING",
 ]
 
 SCAN_TYPE = "lidarscan_msgs/msg/LidarScan"
+#: MCAP message encoding of a LidarScan channel whose messages are :mod:`lidarscan.codec`
+#: buffers (magic "LSCZ" + format version) instead of CDR; the schema stays the LidarScan's.
+CODEC_ENCODING = "lidarscan.codec"
 INFO_TYPE = "lidarscan_msgs/msg/LidarInfo"
 
 
@@ -71,13 +75,20 @@ class McapWriter:
         output: path or binary stream.
         compression: "zstd" (default), "lz4" or "none".
         chunk_size: bytes per chunk; a smaller chunk loses less when a run is interrupted.
+        scan_encoding: message encoding of the LidarScan channels: "cdr" (default) or
+            :data:`CODEC_ENCODING` (every scan compressed by :func:`lidarscan.codec.compress_scan`
+            with its default settings and the LidarInfo its ``lidar_info_time`` names when that
+            was written before it; channel metadata ``lidarscan.codec.version``). Scans given
+            in the other encoding are converted; ``ros2 bag play`` and CDR-only readers cannot
+            read a :data:`CODEC_ENCODING` channel (``lidarscan convert`` back to CDR first).
         qos: recorded QoS per topic: a name of :data:`lidarscan.rosbag2.QOS_PROFILES`
             ("sensor_data", "best_effort", "reliable", "latched"), a
             :class:`lidarscan.rosbag2.QosProfile`, rosbag2's dict form, or a list of these.
     """
 
     def __init__(self, output: str | os.PathLike[str] | IO[bytes], *, compression: str = "zstd",
-                 chunk_size: int = 4 * 1024 * 1024, qos: dict[str, Any] | None = None) -> None:
+                 chunk_size: int = 4 * 1024 * 1024, qos: dict[str, Any] | None = None,
+                 scan_encoding: str = "cdr") -> None:
         from mcap.writer import CompressionType, Writer
 
         from lidarscan.rosbag2 import qos_profile
@@ -87,24 +98,29 @@ class McapWriter:
             for topic, value in (qos or {}).items()}
         kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                  "none": CompressionType.NONE}
+        from lidarscan.errors import ConfigError
         if compression not in kinds:
-            from lidarscan.errors import ConfigError
             raise ConfigError("compression", compression, "one of 'zstd', 'lz4', 'none'")
+        if scan_encoding not in ("cdr", CODEC_ENCODING):
+            raise ConfigError("scan_encoding", scan_encoding, f"'cdr' or {CODEC_ENCODING!r}")
+        self.scan_encoding = scan_encoding
+        self._infos: dict[int, Any] = {}  # info stamp ns -> LidarInfo, for compress_scan
         self._own = not hasattr(output, "write")
         target: Any = output
         self._stream: Any = open(target, "wb") if self._own else target  # noqa: SIM115
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=kinds[compression])
         self._writer.start(profile="ros2", library="lidarscan")
         self._schemas: dict[str, int] = {}
-        self._channels: dict[tuple[str, str], int] = {}
+        self._channels: dict[tuple[str, str, str], int] = {}
         self._sequence: dict[int, int] = {}
-        self._topics: dict[int, tuple[str, str, tuple[Any, ...]]] = {}
+        self._topics: dict[int, tuple[str, str, tuple[Any, ...], str]] = {}
         self._times: list[int] = []  # first and last log time
         self.count = 0
         self._closed = False
 
-    def _channel(self, topic: str, msgtype: str, metadata: dict[str, str] | None) -> int:
-        key = (topic, msgtype)
+    def _channel(self, topic: str, msgtype: str, metadata: dict[str, str] | None,
+                 encoding: str = "cdr") -> int:
+        key = (topic, msgtype, encoding)
         if key not in self._channels:
             from lidarscan.rosbag2 import default_qos, dump_qos, parse_qos
 
@@ -116,21 +132,27 @@ class McapWriter:
             if not offered:   # a caller's own profiles are kept verbatim, else ours are written
                 offered = self._qos.get(topic) or (default_qos(topic, msgtype),)
                 given["offered_qos_profiles"] = dump_qos(offered)
+            if encoding == CODEC_ENCODING:
+                from lidarscan import codec
+                given["lidarscan.codec.version"] = str(codec.VERSION)
+            else:
+                given.pop("lidarscan.codec.version", None)
             self._channels[key] = self._writer.register_channel(
-                topic=topic, message_encoding="cdr", schema_id=self._schemas[msgtype],
+                topic=topic, message_encoding=encoding, schema_id=self._schemas[msgtype],
                 metadata=given)
-            self._topics[self._channels[key]] = (topic, msgtype, offered)
+            self._topics[self._channels[key]] = (topic, msgtype, offered, encoding)
         return self._channels[key]
 
     def write(self, topic: str, msg: Any, *, log_time_ns: int | None = None,
               publish_time_ns: int | None = None, msgtype: str | None = None,
-              metadata: dict[str, str] | None = None) -> None:
+              metadata: dict[str, str] | None = None, encoding: str = "cdr") -> None:
         """Append one message.
 
         Args:
             topic: topic name.
-            msg: an rclpy message, a lidarscan dataclass, or CDR ``bytes`` (then ``msgtype`` is
-                required).
+            msg: an rclpy message, a lidarscan dataclass, or encoded ``bytes`` (then ``msgtype``
+                is required and ``encoding`` names their encoding: "cdr", or
+                :data:`CODEC_ENCODING` for a compressed LidarScan).
             log_time_ns: record time; default the message's ``header.stamp`` (0 if it has none).
             publish_time_ns: default ``log_time_ns``.
             msgtype: ``pkg/msg/Name``; default from the message.
@@ -143,11 +165,30 @@ class McapWriter:
             full, payload = normalize_type(msgtype), bytes(msg)
         else:
             full = normalize_type(msgtype) if msgtype else msgtype_of(msg)
-            payload = encode(msg, full)
+            payload, encoding = encode(msg, full), "cdr"
+        if encoding not in ("cdr", CODEC_ENCODING) or (encoding != "cdr" and full != SCAN_TYPE):
+            raise SchemaError("encoding", encoding,
+                              f"'cdr', or {CODEC_ENCODING!r} for a {SCAN_TYPE}")
+        if full == INFO_TYPE and self.scan_encoding == CODEC_ENCODING:
+            info = msg if not isinstance(msg, (bytes, bytearray, memoryview)) else \
+                decode(payload, full)
+            self._infos[to_ns(info.header.stamp)] = info
+            while len(self._infos) > 64:
+                del self._infos[next(iter(self._infos))]
+        if full == SCAN_TYPE and encoding != self.scan_encoding:
+            from lidarscan import codec
+            if encoding == "cdr":
+                source = msg if not isinstance(msg, (bytes, bytearray, memoryview)) else \
+                    decode(payload, full)
+                payload = codec.compress_scan(
+                    source, self._infos.get(to_ns(source.lidar_info_time)))
+            else:
+                payload = encode(codec.decompress_scan(payload), full)
+            encoding = self.scan_encoding
         if log_time_ns is None:
             header = getattr(msg, "header", None)
             log_time_ns = to_ns(header.stamp) if header is not None else 0
-        channel_id = self._channel(topic, full, metadata)
+        channel_id = self._channel(topic, full, metadata, encoding)
         sequence = self._sequence.get(channel_id, 0)
         self._sequence[channel_id] = sequence + 1
         self._writer.add_message(channel_id=channel_id, log_time=int(log_time_ns), data=payload,
@@ -162,8 +203,9 @@ class McapWriter:
         from lidarscan.rosbag2 import TopicRecord, bag_metadata
 
         name = getattr(self._stream, "name", "")
-        topics = [TopicRecord(topic, msgtype, offered, self._sequence.get(channel_id, 0))
-                  for channel_id, (topic, msgtype, offered) in self._topics.items()]
+        topics = [TopicRecord(topic, msgtype, offered, self._sequence.get(channel_id, 0),
+                              serialization_format=encoding)
+                  for channel_id, (topic, msgtype, offered, encoding) in self._topics.items()]
         start, end = self._times or [0, 0]
         return bag_metadata(topics, file_name=os.path.basename(name) if isinstance(name, str)
                             else "", start_ns=start, end_ns=end)
@@ -199,9 +241,11 @@ class McapMessage:
         index: position of the message in the file (0-based, over all topics).
         topic, msgtype: channel topic and ``pkg/msg/Name``.
         log_time_ns, publish_time_ns, sequence: record fields.
-        payload: the CDR bytes.
+        payload: the encoded bytes: CDR, or a :mod:`lidarscan.codec` buffer when
+            ``encoding`` is :data:`CODEC_ENCODING`.
         metadata: the channel's metadata (e.g. ``offered_qos_profiles``), shared by the
             messages of a channel.
+        encoding: the channel's message encoding ("cdr" or :data:`CODEC_ENCODING`).
     """
 
     index: int
@@ -212,9 +256,14 @@ class McapMessage:
     sequence: int
     payload: bytes
     metadata: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
+    encoding: str = "cdr"
 
     def decode(self) -> Any:
-        """Decode the payload into a :mod:`lidarscan.types` dataclass (raises DecodeError)."""
+        """Decode the payload into a :mod:`lidarscan.types` dataclass (raises DecodeError);
+        a compressed LidarScan is decompressed."""
+        if self.encoding == CODEC_ENCODING:
+            from lidarscan import codec
+            return codec.decompress_scan(self.payload)
         return decode(self.payload, self.msgtype)
 
 
@@ -414,7 +463,7 @@ class _Reader:
     def __init__(self, stream: IO[bytes], wanted: set[str] | None) -> None:
         self.stream, self.wanted = stream, wanted
         self.schemas: dict[int, tuple[str, Exception | None]] = {}
-        self.channels: dict[int, tuple[str, str, Exception | None, dict[str, str]]] = {}
+        self.channels: dict[int, tuple[str, str, Exception | None, dict[str, str], str]] = {}
         self.index = 0
         self.pos = 0
         self.crc = 0
@@ -566,22 +615,24 @@ class _Reader:
         metadata = body.string_map()
         name, err = self.schemas.get(schema_id, ("", McapFormatError(
             f"channel {topic}", schema_id, "a known schema id")))
-        if err is None and encoding != "cdr":
-            err = McapFormatError(f"channel {topic}", encoding, "message encoding 'cdr'")
-        self.channels[cid] = (topic, name, err, metadata)
+        if err is None and encoding != "cdr" and not (encoding == CODEC_ENCODING
+                                                        and name == SCAN_TYPE):
+            err = McapFormatError(f"channel {topic}", encoding,
+                                  f"message encoding 'cdr' ({CODEC_ENCODING!r}: {SCAN_TYPE})")
+        self.channels[cid] = (topic, name, err, metadata, encoding)
 
     def message(self, data: bytes | memoryview) -> Iterator[McapMessage | BadMessage]:
         if len(data) < 22:
             raise McapFormatError("message record", len(data), "at least 22 bytes")
         cid, sequence, log_time, publish_time = struct.unpack_from("<HIQQ", data)
-        topic, name, err, metadata = self.channels.get(cid, ("", "", McapFormatError(
-            "message.channel_id", cid, "a channel defined before it"), {}))
+        topic, name, err, metadata, encoding = self.channels.get(cid, ("", "", McapFormatError(
+            "message.channel_id", cid, "a channel defined before it"), {}, "cdr"))
         if self.wanted is None or topic in self.wanted:
             if err is not None:
                 yield BadMessage(self.index, topic, log_time, str(err), err)
             else:
                 yield McapMessage(self.index, topic, name, log_time, publish_time, sequence,
-                                  bytes(data[22:]), metadata)
+                                  bytes(data[22:]), metadata, encoding)
         self.index += 1
 
     def definitions_and_messages(self, op: int, body: bytes | memoryview

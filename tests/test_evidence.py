@@ -278,12 +278,100 @@ def test_images_carry_exactly_the_channel_bytes() -> None:
 
 def test_units_precision_against_a_struct_loop() -> None:
     import lidarscan as ls
-    for label, _, scans in units._scans():
-        mm = ls.channel(scans["uint32 mm (range_multiplier 0.001)"], "range").reshape(-1)
+    for label, info, scans, _ in units._scans():
+        int_form = next(f for f in scans if f != units.FLOAT_FORM)
+        mult = float(info.range_multiplier)
+        mm = ls.channel(scans[int_form], "range").reshape(-1)
         worst = 0.0
         for raw in mm[mm > 0][::97].tolist():
-            back = struct.unpack("<f", struct.pack("<f", raw * 0.001))[0]
-            worst = max(worst, abs(back - raw / 1000.0))
-            assert round(back * 1000) == raw
+            back = struct.unpack("<f", struct.pack("<f", raw * mult))[0]
+            worst = max(worst, abs(back - raw * mult))
+            assert round(back / mult) == raw
         rec = next(r for r in units.measure() if r["label"] == label and r["form"] == "float32 m")
         assert worst * 1e6 <= rec["err_um"] + 1e-9 and rec["exact"]
+
+
+# --------------------------------------------- codec study: Velodyne / Hesai and the prose
+
+NEBULA_SENSORS = ("Velodyne VLP-32C", "Velodyne VLS-128", "Hesai PandarXT32", "Hesai Pandar64",
+                  "Hesai PandarQT64")
+
+
+def test_codec_study_has_every_real_sensor_and_every_driver_layout() -> None:
+    records = {r["label"]: r for r in codec_study.measure(False)}
+    assert set(NEBULA_SENSORS) <= set(records)
+    for label in NEBULA_SENSORS:
+        rec = records[label]
+        nebula = {k: v for k, v in rec["cloud"].items()
+                  if k.startswith(codec_study.NEBULA_CLOUD)}
+        assert set(nebula) == {f"{codec_study.NEBULA_CLOUD} {c}"
+                               for c in ("raw", "lz4", "zstd-3", "zstd-19")}
+        assert not rec["organized"]
+        assert rec["driver"] == ("velodyne_pointcloud XYZIRT" if label.startswith("Velodyne")
+                                 else "HesaiLidar_ROS_2.0")
+        # the baseline is the smallest lossless coding over both layouts
+        best = codec_study._best_cloud(rec)[1]
+        assert best == min(v for k, v in rec["cloud"].items() if "lossy" not in k)
+
+
+def test_nebula_cloud_is_32_bytes_per_return_with_our_points() -> None:
+    import lidarscan as ls
+    from converters.evidence import sensors
+    rec = next(r for r in sensors.measure() if r["sensor"] == "Hesai PandarQT64")
+    scan, info = rec["scan"], rec["info"]
+    raw = codec_study.nebula_cloud(scan, info)
+    returns = sum(int(np.isfinite(ls.range_m(scan, info, n)).sum()) for n in ("range", "range2"))
+    assert len(raw) == 32 * returns
+    pts = np.frombuffer(raw, np.dtype({"names": ["x", "y", "z", "rt", "ch", "dist"],
+                                       "formats": ["<f4", "<f4", "<f4", "u1", "<u2", "<f4"],
+                                       "offsets": [0, 4, 8, 13, 14, 24], "itemsize": 32}))
+    first = pts[pts["rt"] == 1]
+    xyz = ls.make_projector(info).project(scan, info)
+    row = xyz[int(first["ch"][0])]
+    c = int(np.nanargmin(np.abs(row[:, 0] - first["x"][0]) + np.abs(row[:, 1] - first["y"][0])))
+    assert np.allclose(row[c], [first["x"][0], first["y"][0], first["z"][0]], atol=1e-6)
+    assert set(np.unique(pts["rt"])) == {1, 2}
+
+
+def test_the_compression_prose_matches_the_codec_facts() -> None:
+    text = evidence.DOC.read_text(encoding="utf-8")
+    facts = {f["label"]: f for f in summary_codec_facts()}
+    off = [1 - f["codec_vs_zstd"] for f in facts.values()]
+    assert (f"takes a further {round(min(off) * 100)}–{round(max(off) * 100)} % off zstd-3"
+            in " ".join(text.split()))
+    nebula = [facts[s]["all_ratio"] for s in NEBULA_SENSORS]
+    assert f"all channels take {min(nebula):.2f}–{max(nebula):.2f}× the best lossless" in \
+        " ".join(text.split())
+    assert all(facts[s]["all_met"] for s in NEBULA_SENSORS)
+    assert not any(f["all_met"] for label, f in facts.items() if label.startswith("OS-"))
+    assert all(f["range_met"] for f in facts.values())
+    assert "the range channel meets ≤ 0.4× Draco on every sensor" in " ".join(text.split())
+    # the version 2 figures quoted in the format paragraph
+    os2 = next(r for r in codec_study.measure(False) if r["label"] == "OS-2-128 1024x10")
+    p64 = next(r for r in codec_study.measure(False) if r["label"] == "Hesai Pandar64")
+    flat = " ".join(text.split())
+    assert f"to {fmt(os2['scan']['lidarscan.codec'])} B and the range from 162 340 to " \
+           f"{fmt(os2['range']['lidarscan.codec'])} B" in flat
+    assert f"from 200 697 to {fmt(p64['scan']['lidarscan.codec'])} B" in flat
+
+
+def test_units_cover_every_real_sensor_and_recover_every_integer() -> None:
+    records = units.measure()
+    labels = {r["label"] for r in records}
+    assert set(NEBULA_SENSORS) <= labels
+    for label in NEBULA_SENSORS:
+        forms = {r["form"]: r for r in records if r["label"] == label}
+        assert set(forms) == {"float32 m", "uint16 native units (range_multiplier 0.004)"}
+        assert all(r["exact"] for r in forms.values())
+        assert forms["float32 m"]["raw"] == 2 * forms[
+            "uint16 native units (range_multiplier 0.004)"]["raw"]
+
+
+def summary_codec_facts() -> list[dict[str, Any]]:
+    from converters.evidence import summary
+    return summary.codec_facts()
+
+
+def fmt(n: int) -> str:
+    from converters.evidence._common import fmt_int
+    return fmt_int(n)

@@ -1,20 +1,28 @@
 """Question 1c: compressed against compressed, real frames: driver's PointCloud2 vs LidarScan.
 
-For every real frame (:data:`SOURCES`: the Ouster fixtures; another sensor is one more line
-there, once its decoder exists) the driver's cloud (``converters.to_pointcloud2`` with the
-driver's preset, organized, as the driver publishes it) and the LidarScan (canonical float32
-range, staggered as published) are coded with:
+For every real frame (:data:`SOURCES`: the Ouster fixtures, and one rotation of each Velodyne
+and Hesai packet recording of ``tests/data/nebula``, decoded by :mod:`converters.velodyne` /
+:mod:`converters.hesai`, the rotation the sensor-accuracy study matches with Nebula's cloud) the
+driver's cloud (``converters.to_pointcloud2`` with the driver's preset, as the driver publishes
+it: ouster-ros organized; velodyne_pointcloud XYZIRT and HesaiLidar_ROS_2.0 unorganized, returns
+only) and the LidarScan (as the decoder makes it: Ouster float32 range staggered; Velodyne /
+Hesai integer range units, every return of a dual sensor in its own channel) are coded with:
 
-* cloud: raw, lz4, zstd-3, zstd-19 (lossless; the best of them is the baseline "best lossless
-  cloud"), Draco with a 1 mm quantisation grid on x, y, z only (lossy; points without a return
-  dropped, order not kept: Draco cannot hold NaN points);
+* cloud: raw, lz4, zstd-3, zstd-19 (lossless; the best of them, over every driver layout of the
+  sensor, is the baseline "best lossless cloud"), Draco with a 1 mm quantisation grid on x, y, z
+  only (lossy; points without a return dropped, order not kept: Draco cannot hold NaN points);
+  for Velodyne and Hesai also Nebula's cloud (the Autoware driver's PointXYZIRCAEDT, 32 bytes a
+  point, every return of every firing: x y z from our decoder, the other fields computed the way
+  Nebula fills them) raw, lz4, zstd-3 and zstd-19;
 * LidarScan: raw, lz4 / zstd-3 / zstd-19 of the whole ``data`` buffer (what an MCAP chunk
   compressor does), byte shuffle + zstd-3 per block, the project's codec
   (:mod:`lidarscan.codec`, zstd level 3), and the image codecs of ``imagecodecs``: 16-bit PNG
   and lossless JPEG-XL of every 8/16-bit channel and of the range in integer millimetres (split
   into its low and high 16-bit words when it exceeds 65.535 m, so the images stay lossless).
 
-Every lossless coding is decoded and compared byte for byte before its size is reported. Sizes
+Every lossless coding is decoded and compared byte for byte before its size is reported. The
+codec's size is the whole message but its header (channel descriptors and per-column arrays
+included); the other LidarScan rows code the ``data`` buffer only. Sizes
 are deterministic for given library versions (named in the block's first line); encode/decode
 times (one thread) go to ``timing-codec``.
 """
@@ -55,10 +63,71 @@ def sources() -> list[tuple[str, str, Callable[[], tuple[Any, Any]]]]:
     return out
 
 
-#: Producers of real frames; add a sensor here, e.g. a ``_velodyne_sources`` returning
-#: ``[("VLP-16 <fixture>", "velodyne", lambda: (info, scan))]``.
+def _nebula_sources() -> list[tuple[str, str, Callable[[], tuple[Any, Any]]]]:
+    """One decoded rotation per Velodyne / Hesai recording (the one ``sensors`` compares with
+    Nebula's cloud)."""
+    from converters.evidence import sensors
+    out, seen = [], set()
+    for rec in sensors.measure():
+        if rec["sensor"].startswith("Ouster") or rec["sensor"] in seen:
+            continue
+        seen.add(rec["sensor"])
+        preset = "velodyne" if rec["sensor"].startswith("Velodyne") else "hesai"
+        out.append((rec["sensor"], preset,
+                    (lambda r=rec: (r["info"], r["scan"]))))
+    return out
+
+
+#: Producers of real frames; add a sensor here (a function returning
+#: ``[(label, driver's PointCloud2 preset, lambda: (info, scan))]``).
 SOURCES: list[Callable[[], list[tuple[str, str, Callable[[], tuple[Any, Any]]]]]] = [
-    _ouster_sources]
+    _ouster_sources, _nebula_sources]
+
+#: the driver each PointCloud2 preset stands for (table labels)
+DRIVERS = {"ouster": "ouster-ros", "velodyne": "velodyne_pointcloud XYZIRT",
+           "hesai": "HesaiLidar_ROS_2.0"}
+NEBULA_CLOUD = "Nebula PointXYZIRCAEDT"
+
+
+def nebula_cloud(scan: Any, info: Any) -> bytes:
+    """The bytes of Nebula's cloud of one scan: every return of every firing (firing order,
+    then channel, then return), 32-byte PointXYZIRCAEDT points (layout
+    :data:`converters.evidence.sensors.NEBULA_FIELDS`): x, y, z, intensity (uint8),
+    return_type (1 first, 2 second return), channel (the row), azimuth and elevation of the
+    point (rad), distance (m), time_stamp (uint32 ns from the scan stamp)."""
+    import lidarscan as ls
+    from converters.evidence.sensors import NEBULA_FIELDS, NEBULA_STEP
+    names = ls.scan.channel_names(scan)
+    projector = ls.make_projector(info)
+    times = np.asarray(scan.column_time_offsets, np.int64)
+    parts = []
+    for k, name in enumerate(n for n in ("range", "range2") if n in names):
+        inten_name = "intensity" if k == 0 else "intensity2"
+        metres = ls.range_m(scan, info, name)
+        xyz = projector.project(scan, info, name)
+        keep = np.isfinite(metres) & np.isfinite(xyz).all(-1)
+        rows, cols = np.nonzero(keep.T)[1], np.nonzero(keep.T)[0]   # firing order
+        p = xyz[rows, cols].astype(np.float64)
+        pt = np.zeros(len(rows), np.dtype({
+            "names": [f[0] for f in NEBULA_FIELDS],
+            "formats": ["<f4", "<f4", "<f4", "u1", "u1", "<u2", "<f4", "<f4", "<f4", "<u4"],
+            "offsets": [f[1] for f in NEBULA_FIELDS], "itemsize": NEBULA_STEP}))
+        pt["x"], pt["y"], pt["z"] = p[:, 0], p[:, 1], p[:, 2]
+        if inten_name in names:
+            pt["intensity"] = np.clip(ls.channel(scan, inten_name)[rows, cols], 0, 255)
+        pt["return_type"] = k + 1
+        pt["channel"] = rows
+        dist = np.linalg.norm(p, axis=1)
+        pt["azimuth"] = np.mod(np.arctan2(p[:, 1], p[:, 0]), 2 * np.pi)
+        pt["elevation"] = np.arcsin(np.clip(p[:, 2] / np.maximum(dist, 1e-9), -1, 1))
+        pt["distance"] = metres[rows, cols]
+        pt["time_stamp"] = times[cols] if times.size else 0
+        parts.append((cols, rows, pt))
+    cols = np.concatenate([c for c, _, _ in parts])
+    rows = np.concatenate([r for _, r, _ in parts])
+    ret = np.concatenate([np.full(len(c), k) for k, (c, _, _) in enumerate(parts)])
+    order = np.lexsort((ret, rows, cols))
+    return np.concatenate([pt for _, _, pt in parts])[order].tobytes()
 
 
 def _versions() -> str:
@@ -113,12 +182,19 @@ def _mm_words(scan: Any) -> list[np.ndarray[Any, Any]]:
 
 
 def _image_planes(scan: Any) -> dict[str, list[np.ndarray[Any, Any]]]:
-    """channel name -> the 2-D uint8/uint16 images that hold it losslessly."""
+    """channel name -> the 2-D uint8/uint16 images that hold it losslessly (integer range
+    units as they are, a uint32 channel as its low and high 16-bit words)."""
     from lidarscan import channel
     out: dict[str, list[np.ndarray[Any, Any]]] = {}
     for desc in scan.channels:
         arr = np.asarray(channel(scan, desc.name))
-        if desc.name.startswith("range"):
+        if arr.dtype.kind == "u" and arr.dtype.itemsize == 4 and arr.ndim == 2:
+            native = arr.astype(np.uint32)
+            words = [(native & 0xFFFF).astype(np.uint16)]
+            if native.max(initial=0) > 0xFFFF:
+                words.append((native >> 16).astype(np.uint16))
+            out[desc.name] = words
+        elif desc.name.startswith("range") and arr.dtype.kind == "f":
             if desc.name == "range":
                 out[desc.name] = _mm_words(scan)
             else:  # second returns: same rule, via a scan view of that channel
@@ -192,6 +268,7 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
     Record keys: label, pixels, cloud {coding: bytes}, scan {coding: bytes}, range {coding:
     bytes}, draco_step_m, times {coding: (encode s, decode s)}.
     """
+    from lidarscan import channel as ls_channel
     from lidarscan import codec
     from lidarscan.scan import data_view
     from converters.pointcloud2 import to_pointcloud2
@@ -204,15 +281,22 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
         cloud_raw = bytes(np.frombuffer(cloud.data, np.uint8))
         data = data_view(scan).tobytes()
         codings = {"lz4": _lz4(), "zstd-3": _zstd(3), "zstd-19": _zstd(19)}
+        rec["driver"] = DRIVERS.get(preset, preset)
+        rec["organized"] = int(cloud.height) > 1
         rec["cloud"]["raw"] = len(cloud_raw)
         rec["scan"]["raw"] = len(data)
+        inputs = [("cloud", "", cloud_raw), ("scan", "", data)]
+        if preset != "ouster":  # Nebula's layout: a second driver cloud, its keys prefixed
+            nebula = nebula_cloud(scan, info)
+            rec["cloud"][f"{NEBULA_CLOUD} raw"] = len(nebula)
+            inputs.append(("cloud", f"{NEBULA_CLOUD} ", nebula))
         for name, (enc, dec) in codings.items():
-            for key, buf in (("cloud", cloud_raw), ("scan", data)):
+            for key, prefix, buf in inputs:
                 packed = enc(buf)
                 if dec(packed) != buf:
                     raise AssertionError(f"{label}: {name} of the {key} is not lossless")
-                rec[key][name] = len(packed)
-                if timing and name != "zstd-19":
+                rec[key][prefix + name] = len(packed)
+                if timing and name != "zstd-19" and not prefix:
                     rec["times"][f"{key} {name}"] = (time_call(lambda: enc(buf), repeat=3),
                                                      time_call(lambda: dec(packed), repeat=3))
         # per-block byte shuffle, and the project's codec
@@ -268,7 +352,10 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
                 rec["times"]["cloud Draco 1 mm"] = (time_call(enc_d, repeat=3, min_time=0),
                                                     time_call(lambda: dec_d(blob), repeat=3,
                                                               min_time=0))
-        rec["range"]["raw"] = rec["pixels"] * 4  # float32
+        rec["range"]["raw"] = int(np.asarray(ls_channel(scan, "range")).nbytes)
+        # the driver's layout first, Nebula's after it (stable)
+        rec["cloud"] = dict(sorted(rec["cloud"].items(),
+                                   key=lambda kv: kv[0].startswith(NEBULA_CLOUD)))
         out.append(rec)
     return out
 
@@ -306,12 +393,19 @@ def _size_table(records: list[dict[str, Any]]) -> str:
     rows = []
     for rec in records:
         best_name, best = _best_cloud(rec)
-        for key, what in (("cloud", "PointCloud2 (driver's preset, organized)"),
-                          ("scan", "LidarScan data (all channels)")):
-            raw = rec[key]["raw"]
+        cloud_what = (f"PointCloud2, {rec['driver']} "
+                      f"({'organized' if rec['organized'] else 'returns only'})")
+        for key, what in (("cloud", cloud_what), ("scan", "LidarScan (all channels)")):
             for coding, size in rec[key].items():
+                shown, raw = coding, rec[key]["raw"]
+                if coding.startswith(NEBULA_CLOUD):
+                    what_row, shown = f"PointCloud2, {NEBULA_CLOUD} (every return)", \
+                        coding[len(NEBULA_CLOUD) + 1:]
+                    raw = rec[key][f"{NEBULA_CLOUD} raw"]
+                else:
+                    what_row = what
                 rng = rec["range"].get(coding) if key == "scan" else None
-                rows.append([rec["label"], what, coding, fmt_int(size), f"{raw / size:.2f}",
+                rows.append([rec["label"], what_row, shown, fmt_int(size), f"{raw / size:.2f}",
                              f"{size / best:.3f}", "—" if rng is None else fmt_int(rng)])
     return table(["frame", "message", "coding", "bytes", "ratio to raw",
                   "÷ best lossless cloud", "range channel bytes"], rows,

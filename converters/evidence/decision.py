@@ -239,9 +239,10 @@ def _compression() -> list[str]:
     for r in units.measure():
         per.setdefault(r["label"], {})[r["form"]] = r
     for label, forms in per.items():
-        f32, mm = forms["float32 m"], forms["uint32 mm (range_multiplier 0.001)"]
+        f32 = forms[units.FLOAT_FORM]
+        int_form, mm = next((k, v) for k, v in forms.items() if k != units.FLOAT_FORM)
         out.append(
-            f"**float32 m vs uint32 mm, {label}, range block.** shuffle+zstd-3: "
+            f"**float32 m vs {int_form.split(' (')[0]}, {label}, range block.** shuffle+zstd-3: "
             f"{fmt_int(f32['shuffle+zstd-3'])} vs {fmt_int(mm['shuffle+zstd-3'])} B "
             f"(integers {mm['shuffle+zstd-3'] / f32['shuffle+zstd-3']:.2f}×); `lidarscan.codec`: "
             f"{fmt_int(f32['codec'])} vs {fmt_int(mm['codec'])} B "
