@@ -402,6 +402,8 @@ class VelodyneModel:
             (single return); ``last_firing_stamp``: the timestamp marks the packet's last firing.
         nominal: public nominal calibration (elevations only), or None when the model needs
             its calibration file.
+        nebula: which of Nebula's decoders handles the model ("vlp16", "vlp32", "vls128"):
+            the per-pixel azimuth of the default ``azimuth_model`` (:func:`_nebula_azimuths`).
     """
 
     name: str
@@ -412,6 +414,7 @@ class VelodyneModel:
     first_firing_ns: float = 0.0
     last_firing_stamp: bool = False
     nominal: Mapping[str, Any] | None = None
+    nebula: str = "vlp32"
 
 
 def _nominal(elevations_deg: Any, resolution: float) -> dict[str, Any]:
@@ -432,26 +435,20 @@ _VLP16_TIMES = tuple(2304 * k for k in range(16))
 #: Alpha Prime) reports 0xA1 (0x63 in some manual tables, accepted too).
 MODELS: dict[int, VelodyneModel] = {
     0x22: VelodyneModel("VLP-16", 16, 0.002, 55296.0, _VLP16_TIMES,
-                        nominal=VLP16_CALIBRATION),
+                        nominal=VLP16_CALIBRATION, nebula="vlp16"),
     0x24: VelodyneModel("Puck Hi-Res", 16, 0.002, 55296.0, _VLP16_TIMES,
-                        nominal=_nominal(_fans(-10.0, 2.0 / 3.0, 16), 0.002)),
+                        nominal=_nominal(_fans(-10.0, 2.0 / 3.0, 16), 0.002), nebula="vlp16"),
     0x28: VelodyneModel("VLP-32C", 32, 0.004, 55296.0, tuple(2304 * (k // 2) for k in range(32))),
     0x21: VelodyneModel("HDL-32E", 32, 0.002, 46080.0, tuple(1152 * k for k in range(32)),
                         last_firing_stamp=True,
                         nominal=_nominal(_fans(-92.0 / 3.0, -28.0 / 3.0, 32), 0.002)),
     0xA1: VelodyneModel("VLS-128", 128, 0.004, 53300.0,
                         tuple(2665 * (k // 8 + k // 64) for k in range(128)),
-                        first_firing_ns=-8700.0),
+                        first_firing_ns=-8700.0, nebula="vls128"),
 }
 MODELS[0x63] = MODELS[0xA1]
 
-#: per-laser firing times (ns) by azimuth model and model name; missing: the manual's
-_AZIMUTH_MODELS: dict[str, dict[str, tuple[int, ...]]] = {
-    "manual": {},
-    "nebula": {"VLP-32C": tuple(2304 * k for k in range(32)),
-               "VLS-128": tuple(2665 * (k // 8 + k // 64) if k >= 96 else 0
-                                for k in range(128))},
-}
+_AZIMUTH_MODELS = ("nebula", "manual")
 
 
 @dataclass(frozen=True)
@@ -516,6 +513,75 @@ def _blocks_to_sequences(values: np.ndarray[Any, Any], layout: _Layout
     return values, None
 
 
+_F32 = np.float32
+
+
+def _nebula_rotation(calib: Mapping[str, Any], lasers: int) -> np.ndarray[Any, Any]:
+    """(L,) float64 ``rot_correction`` of each laser_id in hundredths of a degree, as Nebula
+    forms it: the float32 radians times 180 / pi * 100 in double precision."""
+    rot = _laser_values(calib)["rot_correction"][:lasers].astype(_F32).astype(np.float64)
+    return rot * 180.0 / math.pi * 100.0
+
+
+def _nebula_azimuths(rows: np.ndarray[Any, Any], layout: _Layout,
+                     rotation: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Nebula's azimuth of every point slot of m packets: (m, 12 * 32) int64, clockwise
+    hundredths of a degree in 0..35999 (slot ``32 * block + k``; blocks Nebula does not read
+    are 0).
+
+    Nebula's decoders (one per product line, ``VelodyneModel.nebula``) walk the blocks of a
+    packet keeping the azimuth of the block ``step`` ahead (step 2 in dual return), so block i
+    gets the base azimuth ``A_i`` (block 0: its own; later blocks: the azimuth read ahead by
+    the block before, i.e. block i + 1 in dual return) and the gap ``D_i`` to the block read
+    ahead (the last gap again, or 0 for the block before the unused ones and for the last
+    block, where nothing is read ahead). Slot k of block i then points at
+    ``round(A_i + D_i * f_k - rot_correction)`` in float32 arithmetic, with f_k: VLP-16
+    ``(2.304 us * (k % 16) + 55.296 us * (k // 16)) / 110.592 us``, VLP-32C/HDL-32E
+    ``2.304 / 55.296 * k``, VLS-128 ``2.665 / 53.3 * (g + g // 8)``, g = laser // 8.
+
+    Args: rows (m, 1206) uint8 packets of ``layout``; rotation (L,) from
+    :func:`_nebula_rotation`.
+    """
+    m = rows.shape[0]
+    family, dual = layout.model.nebula, layout.dual
+    count = 8 if family == "vls128" and dual else _BLOCKS
+    step = 2 if dual else 1
+    zero = _BLOCKS - (1 if family == "vlp16" else 4) * int(dual) - 1
+    heads = rows[:, :100 * _BLOCKS].reshape(m, _BLOCKS, 100)
+    block_az = heads[:, :, 2].astype(np.int64) | (heads[:, :, 3].astype(np.int64) << 8)
+    base = np.empty((m, count), np.int64)
+    gap = np.empty((m, count), _F32)
+    ahead = np.zeros(m, np.int64)
+    last = np.zeros(m, _F32)
+    for i in range(count):
+        base[:, i] = block_az[:, 0] if i == 0 else ahead
+        if i < _BLOCKS - step:
+            ahead = block_az[:, i + step]
+            last = np.fmod(36000 + ahead - base[:, i], 36000).astype(_F32)   # C's %
+            gap[:, i] = last
+        else:
+            gap[:, i] = 0 if i == zero else last
+    k = np.arange(32)
+    if family == "vlp16":
+        laser = np.broadcast_to(k % 16, (count, 32))
+        offset = (k % 16).astype(_F32) * _F32(2.304) + (k // 16).astype(_F32) * _F32(55.296)
+        term = gap[:, :, None] * offset / _F32(110.592)
+    elif family == "vlp32":
+        laser = np.broadcast_to(k, (count, 32))
+        term = ((gap * _F32(2.304)) / _F32(55.296))[:, :, None] * k.astype(_F32)
+    else:
+        bank = {0xEE: 0, 0xDD: 32, 0xCC: 64, 0xBB: 96}
+        laser = np.array([bank[f] for f in layout.flags[:count]])[:, None] + k
+        group = laser // 8
+        term = gap[:, :, None] * ((_F32(2.665) / _F32(53.3)) * (group + group // 8).astype(_F32))
+    total = (base.astype(_F32)[:, :, None] + term).astype(np.float64) - rotation[laser]
+    total = total.astype(_F32).astype(np.float64)
+    total = np.where(total < 0, (total + 36000.0).astype(_F32).astype(np.float64), total)
+    out = np.zeros((m, _BLOCKS, 32), np.int64)
+    out[:, :count] = (np.floor(total + 0.5).astype(np.int64) & 0xFFFF) % 36000
+    return out.reshape(m, _BLOCKS * 32)
+
+
 class PacketDecoder:
     """Velodyne packets -> one (LidarScan, LidarInfo) per rotation (the packet decoder contract).
 
@@ -557,10 +623,10 @@ class PacketDecoder:
     def __init__(self, calibration: Any = None, *, frame_id: str = "lidar",
                  cut_angle_deg: float = 0.0, time_source: str = "auto",
                  range_min: float | None = None, range_max: float | None = None,
-                 width_margin: float = 0.02, azimuth_model: str = "manual",
+                 width_margin: float = 0.02, azimuth_model: str = "nebula",
                  as_dataclass: bool = False) -> None:
         if azimuth_model not in _AZIMUTH_MODELS:
-            raise ConfigError("azimuth_model", azimuth_model, '"manual" or "nebula"')
+            raise ConfigError("azimuth_model", azimuth_model, '"nebula" or "manual"')
         if time_source not in ("auto", "sensor", "receive"):
             raise ConfigError("time_source", time_source, '"auto", "sensor" or "receive"')
         if not (math.isfinite(float(cut_angle_deg))):
@@ -590,6 +656,7 @@ class PacketDecoder:
         self._last_info_stamp: int | None = None
         self._offsets = np.zeros((0, 0, 0), np.int64)  # byte offsets, see _offsets()
         self._offsets_key: tuple[Any, ...] | None = None
+        self._rotation = np.zeros(0)                    # see _nebula_rotation
 
     # -------------------------------------------------------------------------------- public
 
@@ -887,11 +954,43 @@ class PacketDecoder:
         channels = {"range": ranges[0], "intensity": intensities[0]}
         if returns == 2:
             channels.update(range2=ranges[1], intensity2=intensities[1])
+        if self._azimuth_model == "nebula":
+            azimuths = self._pixel_azimuths(runs, begin, count, width)
+            if returns == 2:           # Nebula emits an identical pair once, at the last's angle
+                same = ranges[0] == ranges[1]
+                azimuths[0][same] = azimuths[1][same]
+            channels["azimuth"] = azimuths[0]
+            if returns == 2:
+                channels["azimuth2"] = azimuths[1]
         stamp = int(times[0])
         column_azimuth = -np.deg2rad(np.mod(azimuth, 36000.0) / 100.0)
         scan = make_scan(info, channels, stamp, column_azimuth_angles=column_azimuth,
                          column_time_offsets=times - stamp, as_dataclass=self._as_dataclass)
         return scan, info
+
+    def _pixel_azimuths(self, runs: list[np.ndarray[Any, Any]], begin: int, count: int,
+                        width: int) -> np.ndarray[Any, Any]:
+        """(R, H, W) uint16 ``azimuth`` channel(s): Nebula's azimuth of every pixel (see
+        :func:`_nebula_azimuths`) as counter-clockwise hundredths of a degree; padding 0."""
+        layout = self._layout
+        assert layout is not None
+        seqs = layout.sequences
+        slots = self._offsets // 100 * 32 + (self._offsets % 100 - 4) // 3     # (R, S, H)
+        out = np.zeros((slots.shape[0], slots.shape[2], width), np.uint16)
+        column, first = 0, begin
+        for run in runs:
+            have = run.shape[0] * seqs - first
+            if have > 0 and column < count:
+                take = min(have, count - column)
+                p0, p1 = first // seqs, (first + take - 1) // seqs + 1
+                cw = _nebula_azimuths(run[p0:p1], layout, self._rotation)
+                q = first + np.arange(take)
+                picked = cw[(q // seqs - p0)[None, None, :],
+                            slots[:, q % seqs, :].transpose(0, 2, 1)]
+                out[:, :, column:column + take] = (36000 - picked) % 36000
+                column += take
+            first = max(0, -have)
+        return out
 
     def _calib_for(self, model: VelodyneModel) -> Mapping[str, Any]:
         calib = self._calib if self._calib is not None else model.nominal
@@ -906,11 +1005,17 @@ class PacketDecoder:
         if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
             stamp = self._last_info_stamp + 1               # a new version needs a new stamp
         lo, hi = self._range
+        calib = self._calib_for(model)
+        if self._azimuth_model == "nebula":
+            self._rotation = _nebula_rotation(calib, model.lasers)
+            if model.nebula != "vlp32":      # Nebula's VLP-16 and VLS-128 formulas: no offsets
+                calib = {**calib, "lasers": [
+                    {**las, "vert_offset_correction": 0.0, "horiz_offset_correction": 0.0}
+                    for las in calib["lasers"]]}
         self._info = info_from_calibration(
-            self._calib_for(model), columns=width, stamp_ns=stamp, frame_id=self._frame_id,
+            calib, columns=width, stamp_ns=stamp, frame_id=self._frame_id,
             rpm=omega * 60.0 / (2.0 * math.pi),
-            beam_time_offsets=np.asarray(_AZIMUTH_MODELS[self._azimuth_model].get(
-                model.name, model.laser_ns), np.int64),
+            beam_time_offsets=np.asarray(model.laser_ns, np.int64),
             column_time_increment=int(round(period)),
             range_min=0.0 if lo is None else lo,
             range_max=65535 * model.distance_resolution if hi is None else hi,
