@@ -200,20 +200,68 @@ def test_real_packets_match_the_loop_oracle(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------ the loop oracle
 
+def _nebula_angles(data: bytes, family: str, dual: bool, rot: dict[int, float]
+                   ) -> list[list[int]]:
+    """[block][slot] Nebula's clockwise azimuth (0.01 deg) of each point slot of one packet,
+    with plain loops and float32 scalars, following Nebula's decoders step by step: block i
+    takes the azimuth its predecessor read ahead (block 0 its own) and the gap to the block
+    ``step`` ahead (the last gap again, 0 where the decoder says so), slot k interpolates a
+    fraction of the gap, rot_correction is subtracted and the sum rounded to 0.01 deg."""
+    f32 = np.float32
+    az = [struct.unpack_from("<H", data, 100 * b + 2)[0] for b in range(12)]
+    flags = [struct.unpack_from("<H", data, 100 * b)[0] for b in range(12)]
+    blocks = 8 if family == "vls128" and dual else 12
+    step = 2 if dual else 1
+    zero = 12 - (1 if family == "vlp16" else 4) * int(dual) - 1
+    out = [[0] * 32 for _ in range(12)]
+    ahead, last = 0, f32(0)
+    for i in range(blocks):
+        base = az[0] if i == 0 else ahead
+        if i < 12 - step:
+            ahead = az[i + step]
+            diff = 36000 + ahead - base
+            last = f32(math.fmod(diff, 36000))            # C's % keeps the sign
+            gap = last
+        else:
+            gap = f32(0) if i == zero else last
+        for k in range(32):
+            if family == "vlp16":
+                laser = k % 16
+                term = gap * (f32(k % 16) * f32(2.304) + f32(k // 16) * f32(55.296)) \
+                    / f32(110.592)
+            elif family == "vlp32":
+                laser = k
+                term = gap * f32(2.304) / f32(55.296) * f32(k)
+            else:
+                laser = {0xEEFF: 0, 0xDDFF: 32, 0xCCFF: 64, 0xBBFF: 96}[flags[i]] + k
+                group = laser // 8
+                term = gap * (f32(2.665) / f32(53.3) * f32(group + group // 8))
+            value = f32(f32(base) + term)
+            value = f32(float(value) - float(f32(rot[laser])) * 180.0 / math.pi * 100)
+            if value < 0:
+                value = f32(float(value) + 36000.0)
+            out[i][k] = int(math.floor(float(value) + 0.5)) % 36000
+    return out
+
+
 def _oracle(packets: list[tuple[int, bytes]], calib: dict[str, Any], cut: float
-            ) -> list[list[tuple[float, dict[tuple[int, int], tuple[int, int]]]]]:
-    """Rotations -> sequences (azimuth cw deg, {(laser, return): (raw distance, reflectivity)}),
-    decoded with plain loops from the manuals' layout (return 0 = strongest/only slot)."""
+            ) -> list[list[tuple[float, dict[tuple[int, int], tuple[int, int, int]]]]]:
+    """Rotations -> sequences (azimuth cw deg, {(laser, return): (raw distance, reflectivity,
+    Nebula's azimuth in cw 0.01 deg)}), decoded with plain loops from the manuals' layout
+    (return 0 = strongest/only slot)."""
+    rot = {las["laser_id"]: las.get("rot_correction", 0.0) for las in calib["lasers"]}
     rotations: list[list[Any]] = [[]]
     prev = -1
     for _, data in packets:
         mode, product = data[1204], data[1205]
         model = MODELS[product]
         dual = mode == 0x39
+        angles = _nebula_angles(data, model.nebula, dual, rot)
         blocks = []
         for b in range(12):
             flag, azimuth = struct.unpack_from("<HH", data, 100 * b)
-            points = [struct.unpack_from("<HB", data, 100 * b + 4 + 3 * k) for k in range(32)]
+            points = [struct.unpack_from("<HB", data, 100 * b + 4 + 3 * k) + (angles[b][k],)
+                      for k in range(32)]
             blocks.append((flag, azimuth, points))
         sequences = []                  # (azimuth, {(laser, return): point}, measured)
         if model.lasers == 128:
@@ -245,6 +293,11 @@ def _oracle(packets: list[tuple[int, bytes]], calib: dict[str, Any], cut: float
                         az += gap / 2
                     sequences.append((az, seq, h == 0))
         for az, seq, measured in sequences:
+            if dual:       # Nebula emits an identical pair once: at the last return's azimuth
+                for laser in range(model.lasers):
+                    strong, last = seq[(laser, 0)], seq[(laser, 1)]
+                    if strong[0] == last[0]:
+                        seq[(laser, 0)] = strong[:2] + last[2:]
             if measured:
                 rel = (int(az) - round(cut * 100)) % 36000
                 if rel < prev:
@@ -255,8 +308,9 @@ def _oracle(packets: list[tuple[int, bytes]], calib: dict[str, Any], cut: float
 
 
 def _compare_with_oracle(packets: list[tuple[int, bytes]], calib: dict[str, Any], cut: float,
-                         max_points: int = 4000) -> None:
-    results = list(decode_packets(packets, calib, cut_angle_deg=cut, as_dataclass=True))
+                         max_points: int = 4000, azimuth_model: str = "nebula") -> None:
+    results = list(decode_packets(packets, calib, cut_angle_deg=cut, as_dataclass=True,
+                                  azimuth_model=azimuth_model))
     rotations = _oracle(packets, calib, cut)
     assert len(results) == len(rotations)
     by_id = {las["laser_id"]: dict(las) for las in calib["lasers"]}
@@ -274,28 +328,43 @@ def _compare_with_oracle(packets: list[tuple[int, bytes]], calib: dict[str, Any]
         late = int(np.argmax(info.beam_time_offsets))
         omega = (by_id[int(info.beam_ids[late])]["rot_correction"]
                  - info.beam_azimuth_offsets[late]) / (info.beam_time_offsets[late] * 1e-9)
+        names = lidarscan.scan.channel_names(scan)
         channels = {name: lidarscan.channel(scan, name) for name in
-                    ("range", "intensity", "range2", "intensity2")
-                    if name in {c.name for c in scan.channels}}
+                    ("range", "intensity", "range2", "intensity2", "azimuth", "azimuth2")
+                    if name in names}
         assert ("range2" in channels) == any(ret for _, seq in rotation[:1] for _, ret in seq)
-        points = lidarscan.make_projector(info).project(scan, info).astype(np.float64)
+        assert ("azimuth" in channels) == (azimuth_model == "nebula")
+        assert ("azimuth2" in channels) == ("azimuth" in channels and "range2" in channels)
+        points = {name: lidarscan.make_projector(info).project(scan, info, name)
+                  .astype(np.float64) for name in ("range", "range2") if name in channels}
         np.testing.assert_allclose(-np.degrees(scan.column_azimuth_angles[:len(rotation)]) % 360,
                                    [az for az, _ in rotation], atol=1e-9)
         assert not np.any(channels["range"][:, len(rotation):])          # padding: no return
         rng = np.random.default_rng(0)
         for c, (az, seq) in enumerate(rotation):
-            for (laser, ret), (raw, refl) in seq.items():
+            for (laser, ret), (raw, refl, angle) in seq.items():
                 u = row_of[laser]
-                name = "range" if ret == 0 else "range2"
-                assert channels[name][u, c] == raw
-                assert channels["intensity" if ret == 0 else "intensity2"][u, c] == refl
-                returns += raw > 0 and ret == 0
-                if ret or raw == 0 or checked > max_points and rng.random() > 0.01:
+                suffix = "2" if ret else ""
+                assert channels["range" + suffix][u, c] == raw
+                assert channels["intensity" + suffix][u, c] == refl
+                if azimuth_model == "nebula":                 # counter-clockwise 0.01 deg
+                    assert channels["azimuth" + suffix][u, c] == (36000 - angle) % 36000
+                returns += raw > 0
+                if raw == 0 or checked > max_points and rng.random() > 0.01:
                     continue
-                t = model.laser_ns[laser] * 1e-9
-                expected = _rawdata_point(by_id[laser], raw, az + math.degrees(omega * t),
-                                          model.distance_resolution)
-                np.testing.assert_allclose(points[u, c], expected, atol=2e-4 + 2e-6 * raw)
+                if azimuth_model == "nebula":       # Nebula's formula at its own azimuth
+                    laser_calib = {**by_id[laser], "rot_correction": 0.0}
+                    if model.nebula != "vlp32":     # its VLP-16 / VLS-128 ignore the offsets
+                        laser_calib.update(vert_offset_correction=0.0,
+                                           horiz_offset_correction=0.0)
+                    expected = _rawdata_point(laser_calib, raw, angle / 100.0,
+                                              model.distance_resolution)
+                else:
+                    t = model.laser_ns[laser] * 1e-9
+                    expected = _rawdata_point(by_id[laser], raw, az + math.degrees(omega * t),
+                                              model.distance_resolution)
+                np.testing.assert_allclose(points["range" + suffix][u, c], expected,
+                                           atol=2e-4 + 2e-6 * raw)
                 checked += 1
     assert checked > 0 or returns == 0
 
@@ -374,6 +443,18 @@ def test_synthetic_packets_match_the_loop_oracle(name: str, mode: str) -> None:
     packets = synthetic_stream(product, MODES[mode], max(3, 500 // per_packet),
                                seed=product + MODES[mode])
     _compare_with_oracle(packets, _random_calibration(lasers, product), cut=0.0)
+
+
+@pytest.mark.parametrize("name", sorted(PRODUCTS))
+def test_manual_azimuth_model_matches_the_loop_oracle(name: str) -> None:
+    """azimuth_model="manual": no azimuth channel; each laser at the column azimuth plus the
+    rotation until its firing time in the manual's table."""
+    product = PRODUCTS[name]
+    mode = 0x39 if name == "VLS-128" else 0x37
+    per_packet = velodyne._layout(product, mode).sequences
+    packets = synthetic_stream(product, mode, max(3, 300 // per_packet), seed=product)
+    _compare_with_oracle(packets, _random_calibration(MODELS[product].lasers, product),
+                         cut=0.0, azimuth_model="manual")
 
 
 @settings(max_examples=15, deadline=None)
@@ -486,10 +567,16 @@ def test_all_zero_distances_and_dual_return_keeps_both() -> None:
     same = [(s, d[:100] + d[:100] + d[200:]) for s, d in stream]   # block 1 = block 0
     [(scan, info)] = list(decode_packets(same, calib, as_dataclass=True))
     names = [c.name for c in scan.channels]
-    assert names == ["range", "intensity", "range2", "intensity2"]
+    assert names == ["range", "intensity", "range2", "intensity2", "azimuth", "azimuth2"]
     r1, r2 = lidarscan.channel(scan, "range"), lidarscan.channel(scan, "range2")
     np.testing.assert_array_equal(r1[:, :2], r2[:, :2])                # identical pair kept
     assert np.any(r1[:, 2:12] != r2[:, 2:12])
+    # ... at the one azimuth Nebula emits it at (the last return's): the same point twice
+    a1, a2 = lidarscan.channel(scan, "azimuth"), lidarscan.channel(scan, "azimuth2")
+    np.testing.assert_array_equal(a1[:, :2], a2[:, :2])
+    projector = lidarscan.make_projector(info)
+    np.testing.assert_array_equal(projector.project(scan, info, "range")[:, :2],
+                                  projector.project(scan, info, "range2")[:, :2])
 
 
 def test_model_and_return_mode_change_make_a_new_info_version() -> None:
@@ -501,8 +588,9 @@ def test_model_and_return_mode_change_make_a_new_info_version() -> None:
     assert len(results) == 2
     (s1, i1), (s2, i2) = results
     assert lidarscan.stamps.to_ns(i1.header.stamp) != lidarscan.stamps.to_ns(i2.header.stamp)
-    assert [c.name for c in s1.channels] == ["range", "intensity"]
-    assert [c.name for c in s2.channels][2:] == ["range2", "intensity2"]
+    assert [c.name for c in s1.channels] == ["range", "intensity", "azimuth"]
+    assert [c.name for c in s2.channels][2:] == ["range2", "intensity2", "azimuth",
+                                                 "azimuth2"]
     # the same geometry keeps its version; a calibration for another model is refused
     again = list(decode_packets(first + synthetic_stream(0x28, 0x37, 10, start_deg=360.0,
                                                          deg_per_sequence=0.5),
