@@ -61,7 +61,10 @@ What the decoder produces (conventions):
 - Channels: ``range`` UINT16 raw distance (``range_multiplier`` = the model's unit, 0 = no
   return) and ``intensity`` UINT8 reflectivity; dual return adds ``range2``/``intensity2``:
   ``range`` is the strongest-return slot, ``range2`` the last-return slot, both exactly as sent
-  (identical pairs are kept).
+  (identical pairs are kept). The default ``azimuth_model="nebula"`` adds ``azimuth`` (and
+  ``azimuth2`` for ``range2``): UINT16, the pixel's azimuth in counter-clockwise hundredths of
+  a degree (``msgs/README.md``), which the projector uses instead of column azimuth + beam
+  offset (see "Point geometry" below).
 - Time: ``header.stamp`` = first firing of the rotation; ``column_time_offsets`` = each
   sequence's first firing (timestamp + the table above); ``beam_time_offsets`` = the firing
   offset of each laser; ``column_time_increment`` = the measured mean column period. Stamps come
@@ -73,22 +76,43 @@ What the decoder produces (conventions):
   (10 ms windows) stays within 0.23 % of omega, i.e. <= 0.6 mm at 100 m; between rotations
   0.01 %. A rotation whose rate differs by more than 1 % from the info's (measured over >= 100
   columns) starts a new info version.
-- Which firing times (measured, ``converters.evidence.velodyne_timing``): vertical depth edges
-  seen by elevation-adjacent beams of the real VLS-128 recording (45 296 matched edges, 125 row
-  pairs) line up to an RMS per-pair shift of 24.5 millidegrees under the manual's times, 42.6
-  under Nebula's and 67.8 with no intra-sequence timing (noise floor 10); with a roll and a
-  constant fitted out, 17.2 vs 40.2; fitting the untimed shifts with both models' predictions
-  at once gives the manual's a weight of 0.81 and Nebula's -0.14.
-  So the manual's times are the default. The VLP-32C recording (nominal calibration, half a
-  field of view, 2 388 edges) cannot tell: a 112 millidegree per-pair pattern that neither
-  model explains (the nominal ``rot_correction`` values, presumably) swamps the difference.
-  ``azimuth_model="nebula"`` reproduces Nebula's clouds where a per-beam offset can: on the
-  ground-truth rotations, of the decoder's points outside the part below, 97 % (VLP-32C,
-  ranges <= 50 m) and 76 % (VLS-128, up to 300 m) are then within 2 mm of Nebula's (the rest:
-  its rounding to 0.01 deg, up to 0.087 mm per metre of range); not expressible: the last
-  sequence of every packet, where Nebula interpolates nothing, for the lasers it shifts (8.0 %
-  of the VLP-32C points, median 8.6 mm, up to 89 mm; 8.4 % of the VLS-128 points, median
-  53 mm). With the default timing only 16-29 % of the points are within 2 mm of Nebula's.
+- Point geometry, default ``azimuth_model="nebula"``: the points of Nebula (tier4/nebula, the
+  production driver whose clouds are the ground truth in ``tests/data/nebula``), exactly.
+  Nebula interpolates each laser's azimuth from the gap to the block it reads ahead, which is
+  0 at a packet's last block and, on the VLS-128, for the first three banks of a sequence; in
+  dual return the second block of a pair takes the next pair's azimuth (no gap) and the
+  VLS-128's reads the unused blocks 8-9; and it rounds every point's azimuth, rot_correction
+  included, to 0.01 deg (:func:`_nebula_azimuths` follows its float32 arithmetic step by
+  step). That angle depends on the column *and* the beam and is quantised, so no column
+  azimuth + per-beam offset expresses it (the best such fit left 9 % of the VLP-32C and 30 % of
+  the VLS-128 points more than 2 mm off, up to 89 mm at 50 m). Other exact uses of existing
+  fields fail too: ``LidarInfo.pixel_azimuth_angles`` is latched but the angles change every
+  rotation, and per-bank column azimuths still miss the per-laser fraction and the rounding.
+  Hence one per-pixel UINT16 channel (2 bytes per pixel and return, the packets' own unit):
+  the decoder computes Nebula's angle from packet fields only (model from the product id,
+  return mode byte, calibration) and the projector, ``to_pointcloud2`` and the slicer use it
+  (``lidarscan.geometry.pixel_azimuths``). An identical dual pair (Nebula emits it once) gets
+  the last return's angle in both channels. Nebula's VLP-16 and VLS-128 formulas ignore
+  ``vert/horiz_offset_correction``: so does this model (``beam_origins`` zero); its VLP-32C
+  (also used for the HDL-32E) applies them, as the beam model does. Measured, compared directly
+  (``tests/test_velodyne_packets.py``, every return inside Nebula's range and azimuth limits):
+  VLP-32C 99.58 % of Nebula's points have one of ours within 2 mm and 100.00 % of ours one of
+  Nebula's; VLS-128 99.95 % and 99.31 % (the rest: Nebula cuts rotations per packet, this
+  decoder per firing sequence: the first and last 0.4 deg of a turn differ).
+- ``azimuth_model="manual"``: no azimuth channel; the manuals' firing times, folded into
+  ``beam_azimuth_offsets`` (above). Physically the better model (measured,
+  ``converters.evidence.velodyne_timing``): vertical depth edges seen by elevation-adjacent
+  beams of the real VLS-128 recording (45 296 matched edges, 125 row pairs) line up to an RMS
+  per-pair shift of 24.5 millidegrees under the manual's times, 42.6 under Nebula's and 67.8
+  with no intra-sequence timing (noise floor 10); with a roll and a constant fitted out, 17.2
+  vs 40.2; fitting the untimed shifts with both models' predictions at once gives the manual's
+  a weight of 0.81 and Nebula's -0.14. The VLP-32C recording (nominal calibration, half a field
+  of view, 2 388 edges) cannot tell: a 112 millidegree per-pair pattern that neither model
+  explains (the nominal ``rot_correction`` values, presumably) swamps the difference. Its
+  points are 15-28 % within 2 mm of Nebula's (the same ranges and elevations, other
+  azimuths). ``beam_time_offsets`` are the manual's in both models (Nebula's point times
+  agree), and ``beam_azimuth_offsets`` too (a consumer that ignores the azimuth channel gets
+  the manual geometry).
 - LidarInfo: ``vertical_angles`` = vert_correction, ``beam_origins`` from the vertical and
   horizontal offsets, ``beam_range_offsets`` = dist_correction, ``range_min``/``range_max`` =
   0 and 65535 units unless given; ``model`` = the product name. Not representable, so not
@@ -603,13 +627,10 @@ class PacketDecoder:
             format's maximum, 65535 raw units: nothing is hidden).
         width_margin: relative slack of the scan width over the measured columns per
             revolution (default 0.02).
-        azimuth_model: "manual" (default: the firing times of the user manuals, see the module
-            docstring; measured right on real data, ``converters.evidence.velodyne_timing``) or
-            "nebula": the per-laser times Nebula's decoder implies (VLP-32C ``2.304 us * k``;
-            VLS-128 0 for lasers 0-95 and the manual's time for 96-127), to reproduce that
-            driver's clouds. Nebula also drops the interpolation in the last sequence of every
-            packet and rounds azimuths to 0.01 deg; neither is a per-beam offset, so neither is
-            reproduced (the module docstring gives the size). Other models: the manual's times.
+        azimuth_model: "nebula" (default): Nebula's points exactly, through the per-pixel
+            ``azimuth`` channel(s) (module docstring, "Point geometry"); or "manual": no such
+            channel, the manuals' firing times as per-beam offsets (physically the better
+            timing on the real VLS-128 recording, ``converters.evidence.velodyne_timing``).
         as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
 
     Width: W = ceil((1 + width_margin) * 2 pi / (omega * T)), omega the rotation rate and T the
