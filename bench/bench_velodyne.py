@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import struct
 import time
 
 import numpy as np
 
-from converters._kernels import velodyne as kernels
 from converters.velodyne import MODELS, PacketDecoder, decode_packets
 
 SEQUENCE_S = 53.3e-6                                # one VLS-128 firing sequence
@@ -113,12 +113,15 @@ def main() -> None:
         return count + len(dec.flush())
 
     def numpy_batch() -> int:
-        saved = kernels._KERNEL, kernels._TRIED
-        kernels._KERNEL, kernels._TRIED = None, True           # = LIDARSCAN_NUMBA=0
+        saved = os.environ.get("LIDARSCAN_NUMBA")
+        os.environ["LIDARSCAN_NUMBA"] = "0"                      # the numpy reference path
         try:
             return batch()
         finally:
-            kernels._KERNEL, kernels._TRIED = saved
+            if saved is None:
+                del os.environ["LIDARSCAN_NUMBA"]
+            else:
+                os.environ["LIDARSCAN_NUMBA"] = saved
 
     def loop() -> int:
         return loop_baseline(subset, calib)

@@ -993,22 +993,42 @@ class PacketDecoder:
                         width: int) -> np.ndarray[Any, Any]:
         """(R, H, W) uint16 ``azimuth`` channel(s): Nebula's azimuth of every pixel (see
         :func:`_nebula_azimuths`) as counter-clockwise hundredths of a degree; padding 0."""
+        from converters._kernels import select
+        from converters._kernels import velodyne as compiled
+
         layout = self._layout
         assert layout is not None
         seqs = layout.sequences
         slots = self._offsets // 100 * 32 + (self._offsets % 100 - 4) // 3     # (R, S, H)
         out = np.zeros((slots.shape[0], slots.shape[2], width), np.uint16)
+        kernel = compiled.azimuth_kernel() if select("velodyne").numba is not None else None
+        if kernel is not None:
+            laser = np.zeros((_BLOCKS, 32), np.int64)
+            family = ("vlp16", "vlp32", "vls128").index(layout.model.nebula)
+            if family == 0:
+                laser[:] = np.arange(32) % 16
+            elif family == 1:
+                laser[:] = np.arange(32)
+            else:
+                bank = {0xEE: 0, 0xDD: 32, 0xCC: 64, 0xBB: 96}
+                used = len(layout.flags)
+                laser[:used] = np.array([bank[f] for f in layout.flags])[:, None] + np.arange(32)
         column, first = 0, begin
         for run in runs:
             have = run.shape[0] * seqs - first
             if have > 0 and column < count:
                 take = min(have, count - column)
-                p0, p1 = first // seqs, (first + take - 1) // seqs + 1
-                cw = _nebula_azimuths(run[p0:p1], layout, self._rotation)
-                q = first + np.arange(take)
-                picked = cw[(q // seqs - p0)[None, None, :],
-                            slots[:, q % seqs, :].transpose(0, 2, 1)]
-                out[:, :, column:column + take] = (36000 - picked) % 36000
+                if kernel is not None:
+                    kernel(run, first, take, slots, laser, family, layout.dual, self._rotation,
+                           out[:, :, column:])
+                else:                                   # the numpy reference
+                    p0, p1 = first // seqs, (first + take - 1) // seqs + 1
+                    ccw = (36000 - _nebula_azimuths(run[p0:p1], layout, self._rotation)) % 36000
+                    picked = np.take(ccw.astype(np.uint16), slots, axis=1)    # (m, R, S, H)
+                    picked = picked.transpose(1, 3, 0, 2).reshape(slots.shape[0],
+                                                                  slots.shape[2], -1)
+                    skip = first - p0 * seqs
+                    out[:, :, column:column + take] = picked[:, :, skip:skip + take]
                 column += take
             first = max(0, -have)
         return out
