@@ -725,3 +725,52 @@ def test_vls128_edges_favour_the_manual_firing_times() -> None:
     assert r["manual"][0] < r["nebula"][0] < r["none"][0]
     assert r["fit_manual"] < 0.7 * r["fit_nebula"]
     assert r["joint"][0] > 0.4 and abs(r["joint"][1]) < 0.3
+
+
+def test_azimuth_channel_drives_every_projection() -> None:
+    """The per-pixel azimuth channel replaces column azimuth + beam offset in the projector,
+    exact_xyz, to_pointcloud2 (kernel and numpy) and the LaserScan slicer: turning the channel
+    by 90 deg turns every point by 90 deg about z."""
+    from converters.laserscan import to_laserscan
+    from converters.pointcloud2 import PointCloud2Converter, read_points
+    from lidarscan.scan import make_scan
+
+    packets = synthetic_stream(0x22, 0x39, 60, deg_per_sequence=0.4, zero_fraction=0.1)
+    scan, info = list(decode_packets(packets, as_dataclass=True))[0]
+    names = lidarscan.scan.channel_names(scan)
+    channels = {n: np.array(lidarscan.channel(scan, n)) for n in names}
+    channels["azimuth"] = (channels["azimuth"] + 9000) % 36000
+    channels["azimuth2"] = (channels["azimuth2"] + 9000) % 36000
+    turned = make_scan(info, channels, lidarscan.stamps.to_ns(scan.header.stamp),
+                       column_azimuth_angles=scan.column_azimuth_angles,
+                       column_time_offsets=scan.column_time_offsets, as_dataclass=True)
+    projector = lidarscan.make_projector(info)
+    for name in ("range", "range2"):
+        before, after = projector.project(scan, info, name), projector.project(turned, info, name)
+        valid = np.isfinite(before).all(-1)
+        assert valid.sum() > 1000
+        np.testing.assert_allclose(after[valid][:, 0], -before[valid][:, 1], atol=1e-4)
+        np.testing.assert_allclose(after[valid][:, 1], before[valid][:, 0], atol=1e-4)
+        suffix = name[len("range"):]
+        exact = lidarscan.geometry.exact_xyz(
+            info, lidarscan.geometry.range_m(scan, info, name),
+            pixel_azimuths=lidarscan.geometry.pixel_azimuths(turned, name))
+        np.testing.assert_allclose(exact[valid], after[valid], atol=1e-4)
+        assert lidarscan.geometry.azimuth_channel(turned, name) == "azimuth" + suffix
+        for kernel in (None, False):
+            conv = PointCloud2Converter(info, fields=("x", "y", "z"), organized=True,
+                                        destagger=False, range_channel=name, kernel=kernel)
+            cloud = read_points(conv.convert(turned))
+            xyz = np.stack([cloud[k] for k in "xyz"], -1).reshape(after.shape)
+            np.testing.assert_allclose(xyz[valid], after[valid], atol=1e-4)
+    bins = {}
+    for key, s in (("before", scan), ("after", turned)):
+        msg = to_laserscan(s, info, min_height=-100.0, max_height=100.0, angle_min=-math.pi,
+                           angle_max=math.pi - math.radians(1.0),
+                           angle_increment=math.radians(1.0), range_max=1000.0,
+                           intensity_channel=None)
+        bins[key] = np.asarray(msg.ranges)
+    rolled = np.roll(bins["before"], 90)                         # +90 deg = 90 bins later
+    same = np.isclose(rolled, bins["after"], atol=1e-4) | (np.isinf(rolled)
+                                                           & np.isinf(bins["after"]))
+    assert same.mean() > 0.95 and not np.array_equal(bins["before"], bins["after"])
