@@ -547,6 +547,23 @@ def _nebula_rotation(calib: Mapping[str, Any], lasers: int) -> np.ndarray[Any, A
     return rot * 180.0 / math.pi * 100.0
 
 
+def _nebula_lasers(layout: _Layout) -> np.ndarray[Any, Any]:
+    """(12, 32) int64 laser id of each point slot as Nebula reads it: VLP-16 slot k % 16,
+    VLP-32C/HDL-32E slot k, VLS-128 the block's bank (from its flag) * 32 + k; 0 in blocks
+    a dual-return VLS-128 packet does not use."""
+    k = np.arange(32)
+    laser = np.zeros((_BLOCKS, 32), np.int64)
+    if layout.model.nebula == "vlp16":
+        laser[:] = k % 16
+    elif layout.model.nebula == "vlp32":
+        laser[:] = k
+    else:
+        bank = {0xEE: 0, 0xDD: 32, 0xCC: 64, 0xBB: 96}
+        used = len(layout.flags)
+        laser[:used] = np.array([bank[f] for f in layout.flags])[:, None] + k
+    return laser
+
+
 def _nebula_azimuths(rows: np.ndarray[Any, Any], layout: _Layout,
                      rotation: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     """Nebula's azimuth of every point slot of m packets: (m, 12 * 32) int64, clockwise
@@ -586,16 +603,13 @@ def _nebula_azimuths(rows: np.ndarray[Any, Any], layout: _Layout,
         else:
             gap[:, i] = 0 if i == zero else last
     k = np.arange(32)
+    laser = _nebula_lasers(layout)[:count]
     if family == "vlp16":
-        laser = np.broadcast_to(k % 16, (count, 32))
         offset = (k % 16).astype(_F32) * _F32(2.304) + (k // 16).astype(_F32) * _F32(55.296)
         term = gap[:, :, None] * offset / _F32(110.592)
     elif family == "vlp32":
-        laser = np.broadcast_to(k, (count, 32))
         term = ((gap * _F32(2.304)) / _F32(55.296))[:, :, None] * k.astype(_F32)
     else:
-        bank = {0xEE: 0, 0xDD: 32, 0xCC: 64, 0xBB: 96}
-        laser = np.array([bank[f] for f in layout.flags[:count]])[:, None] + k
         group = laser // 8
         term = gap[:, :, None] * ((_F32(2.665) / _F32(53.3)) * (group + group // 8).astype(_F32))
     total = (base.astype(_F32)[:, :, None] + term).astype(np.float64) - rotation[laser]
@@ -1002,17 +1016,8 @@ class PacketDecoder:
         slots = self._offsets // 100 * 32 + (self._offsets % 100 - 4) // 3     # (R, S, H)
         out = np.zeros((slots.shape[0], slots.shape[2], width), np.uint16)
         kernel = compiled.azimuth_kernel() if select("velodyne").numba is not None else None
-        if kernel is not None:
-            laser = np.zeros((_BLOCKS, 32), np.int64)
-            family = ("vlp16", "vlp32", "vls128").index(layout.model.nebula)
-            if family == 0:
-                laser[:] = np.arange(32) % 16
-            elif family == 1:
-                laser[:] = np.arange(32)
-            else:
-                bank = {0xEE: 0, 0xDD: 32, 0xCC: 64, 0xBB: 96}
-                used = len(layout.flags)
-                laser[:used] = np.array([bank[f] for f in layout.flags])[:, None] + np.arange(32)
+        laser = _nebula_lasers(layout)
+        family = ("vlp16", "vlp32", "vls128").index(layout.model.nebula)
         column, first = 0, begin
         for run in runs:
             have = run.shape[0] * seqs - first
