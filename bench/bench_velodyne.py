@@ -9,8 +9,9 @@ per packet, 18 761 packets per second of sensor time), random returns with 20 % 
 built in memory with numpy (the manual's layout). Candidates: the decoder (LidarScan + LidarInfo
 dataclasses, one per rotation) fed (stamp, bytes) pairs through ``decode_packets``; the batch
 API ``PacketDecoder.push_many`` fed (N, 1206) uint8 arrays of one rotation's packets (what a bag
-reader gives for a VelodyneScan message, zero-copy), with the compiled kernel (numba, extra
-``fast``) and with ``LIDARSCAN_NUMBA=0``'s numpy path; and a plain per-point Python loop that unpacks each point and
+reader gives for a VelodyneScan message, zero-copy), with the compiled kernels (numba, extra
+``fast``), with ``LIDARSCAN_NUMBA=0``'s numpy path, and with ``azimuth_model="manual"`` (no
+per-pixel azimuth channel: what the default's Nebula azimuths cost); and a plain per-point Python loop that unpacks each point and
 computes x, y, z with the manual's formula (measured on a slice of the packets in the same run,
 scaled to the same number of packets).
 """
@@ -19,13 +20,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import struct
 import time
 
 import numpy as np
 
-from converters._kernels import velodyne as kernels
 from converters.velodyne import MODELS, PacketDecoder, decode_packets
 
 SEQUENCE_S = 53.3e-6                                # one VLS-128 firing sequence
@@ -105,32 +106,40 @@ def main() -> None:
     def decoder() -> int:
         return sum(1 for _ in decode_packets(packets, calib, as_dataclass=True))
 
-    def batch() -> int:
-        dec = PacketDecoder(calib, as_dataclass=True)
+    def batch(azimuth_model: str = "nebula") -> int:
+        dec = PacketDecoder(calib, as_dataclass=True, azimuth_model=azimuth_model)
         count = 0
         for i in range(0, len(rows), per_message):
             count += len(dec.push_many(stamps[i:i + per_message], rows[i:i + per_message]))
         return count + len(dec.flush())
 
     def numpy_batch() -> int:
-        saved = kernels._KERNEL, kernels._TRIED
-        kernels._KERNEL, kernels._TRIED = None, True           # = LIDARSCAN_NUMBA=0
+        saved = os.environ.get("LIDARSCAN_NUMBA")
+        os.environ["LIDARSCAN_NUMBA"] = "0"                      # the numpy reference path
         try:
             return batch()
         finally:
-            kernels._KERNEL, kernels._TRIED = saved
+            if saved is None:
+                del os.environ["LIDARSCAN_NUMBA"]
+            else:
+                os.environ["LIDARSCAN_NUMBA"] = saved
 
     def loop() -> int:
         return loop_baseline(subset, calib)
 
     subset = packets[: max(1, len(packets) // 20)]
+    def manual_batch() -> int:
+        return batch("manual")
+
     candidates = {"decode_packets (bytes)": decoder, "push_many (arrays)": batch,
-                  "push_many, numpy path": numpy_batch, "per-point loop": loop}
+                  "push_many, numpy path": numpy_batch, "push_many, manual": manual_batch,
+                  "per-point loop": loop}
     wall: dict[str, list[float]] = {name: [] for name in candidates}
     cpu: dict[str, list[float]] = {name: [] for name in candidates}
     rotations = decoder()                                      # warm-up (and compile)
     batch()
     numpy_batch()
+    manual_batch()
     for _ in range(args.repeat):
         for name, run in candidates.items():
             scale = len(packets) / len(subset) if run is loop else 1.0
@@ -138,7 +147,9 @@ def main() -> None:
             run()
             wall[name].append((time.perf_counter() - start) * scale)
             cpu[name].append((time.process_time() - start_cpu) * scale)
-    print(f"{rotations} rotations; kernel: {'numba' if kernels.fill_kernel() else 'none'}")
+    from converters._kernels import select
+    kernel = select("velodyne").numba is not None
+    print(f"{rotations} rotations; kernel: {'numba' if kernel else 'none'}")
     loop_s = statistics.median(wall["per-point loop"])
     for name in candidates:
         med, low = statistics.median(wall[name]), min(wall[name])

@@ -35,7 +35,8 @@ far-field bin and the range ``r_thr`` above which the point's bin *is* the far-f
 precomputed (:func:`converters._grid.far_field`), so ``atan2`` runs only for in-band points
 closer than their ``r_thr`` (a sensor far off the target's z axis makes most points need it:
 prefer a target frame below the sensor); per slice, which pixels may report +Inf/NaN/-Inf.
-Scans carrying ``column_azimuth_angles`` rebuild the tables for every scan (correct, not fast).
+Scans carrying ``column_azimuth_angles`` or a per-pixel ``azimuth`` channel
+(:func:`lidarscan.geometry.pixel_azimuths`) rebuild the tables for every scan (correct, not fast).
 
 Backends (:func:`converters._kernels.select`, table in :mod:`converters._kernels`): the numpy
 reference here (:meth:`SliceConverter._fuse`, then :func:`converters._grid.decode`); the numba
@@ -78,7 +79,7 @@ from converters._grid import AngleGrid, HoleOptions, OutputOptions
 from converters.frames import check_extrinsics, transform_rays
 from converters.options import IfPresent, resolve_channel
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
-from lidarscan.geometry import info_key, make_projector
+from lidarscan.geometry import azimuth_channel, info_key, make_projector
 from lidarscan.scan import as_array, channel, channel_names, range_m
 from lidarscan.stamps import to_ns
 
@@ -470,10 +471,12 @@ class SliceConverter:
     def _tables_for(self, scan: Any) -> _Tables:
         measured = as_array(scan.column_azimuth_angles, np.float64)
         destaggered = bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
-        if measured.size:
-            key: Any = ("measured", destaggered,
-                        hashlib.blake2b(np.ascontiguousarray(measured).tobytes(),
-                                        digest_size=16).digest())
+        azimuths = azimuth_channel(scan, self.range_channel)     # per-pixel azimuths
+        if measured.size or azimuths is not None:
+            digest = hashlib.blake2b(np.ascontiguousarray(measured).tobytes(), digest_size=16)
+            if azimuths is not None:
+                digest.update(np.ascontiguousarray(channel(scan, azimuths)).tobytes())
+            key: Any = ("measured", destaggered, digest.digest())
         else:
             key = ("info", destaggered)
         tables = self._tables.get(key)
@@ -481,7 +484,7 @@ class SliceConverter:
             if measured.size:       # per-scan geometry: keep only the latest such table
                 for k in [k for k in self._tables if k[0] == "measured"]:
                     del self._tables[k]
-            d32, o32 = self.projector.tables_for(scan)
+            d32, o32 = self.projector.tables_for(scan, self.range_channel)
             d, o = transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), self.extrinsics)
             keys = None
             if destaggered:                  # tie key = measurement-order index u*W + c

@@ -50,8 +50,9 @@ from the projector's float32 tables ``r * D + O``: both are float32 evaluations 
 model, a few ulps apart (< 0.05 mm on a real OS-2 frame against the float64 model). Every other
 byte is identical, including the canonical quiet NaN (0x7fc00000) of every point without a
 return. Infos with per-pixel angles do not factor; the kernel then reads the tables,
-byte-identical to numpy. Layouts without padding reuse the buffer of the converter's previous
-message once that message was dropped. Rows can be split over threads (``threads=``).
+byte-identical to numpy; so do scans with a per-pixel azimuth channel (``azimuth``,
+:func:`lidarscan.geometry.pixel_azimuths`; tables rebuilt per scan). Layouts without padding
+reuse the buffer of the converter's previous message once that message was dropped. Rows can be split over threads (``threads=``).
 Reading clouds (:func:`read_points`) and estimating a LidarScan from one
 (:func:`from_pointcloud2`, :func:`estimation_error`) live in :mod:`converters.cloud_layout` and
 :mod:`converters.cloud_import`; they are re-exported here.
@@ -98,7 +99,7 @@ from lidarscan.errors import (
     UnknownChannelError,
     ValidationError,
 )
-from lidarscan.geometry import info_key, make_projector
+from lidarscan.geometry import azimuth_channel, info_key, make_projector
 from lidarscan.scan import as_array, channel
 from lidarscan.stamps import split_ns, to_ns
 
@@ -354,7 +355,8 @@ class PointCloud2Converter:
         self._offset = float(info.range_offset)
         self._ring_values = self._rings(info)
         self._planes: _Planes | None = None
-        self._scan_planes: tuple[np.ndarray[Any, Any], _Planes] | None = None
+        self._scan_planes: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None,
+                                 _Planes] | None = None
         self._scan_factors: tuple[np.ndarray[Any, Any], Any] | None = None
         self._static_args: tuple[Any, ...] | None = None      # see _kernel_job
         self._times_cache: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None = None
@@ -404,16 +406,28 @@ class PointCloud2Converter:
             self._layouts[key] = layout
         return layout
 
+    def _azimuths(self, scan: Any) -> np.ndarray[Any, Any] | None:
+        """The scan's per-pixel azimuth channel for the range channel (native view), or None."""
+        name = azimuth_channel(scan, self.range_channel)
+        return None if name is None else channel(scan, name, native=True)
+
     def _tables(self, scan: Any) -> _Planes:
         """Projection tables as contiguous float32 planes in grid order (cached)."""
         measured = as_array(scan.column_azimuth_angles, np.float64)
-        if measured.size:
+        azimuths = self._azimuths(scan)
+        if measured.size or azimuths is not None:
             cached = self._scan_planes
-            if cached is not None and np.array_equal(cached[0], measured):
-                return cached[1]
-            d, o = self.projector.tables_for(scan)
+            if cached is not None and np.array_equal(cached[0], measured) and (
+                    (cached[1] is None and azimuths is None) or (
+                        cached[1] is not None and azimuths is not None
+                        and cached[1].dtype == azimuths.dtype
+                        and np.array_equal(cached[1], azimuths))):
+                return cached[2]
+            d, o = self.projector.tables_for(scan, self.range_channel)
             planes = self._split(d, o, bool(scan.is_destaggered) and self._has_shift)
-            self._scan_planes = (np.array(measured, copy=True), planes)
+            self._scan_planes = (np.array(measured, copy=True),
+                                 None if azimuths is None else np.array(azimuths, copy=True),
+                                 planes)
             return planes
         if self._planes is None:
             d, o = self.projector.tables(self._grid_destaggered)
@@ -422,7 +436,10 @@ class PointCloud2Converter:
 
     def _factors(self, scan: Any) -> tuple[np.ndarray[Any, Any], ...] | None:
         """Factored beam model (float32 rows, columns, constant) for the scan's column
-        azimuths, or None (per-pixel angles in the info)."""
+        azimuths, or None (per-pixel angles in the info, or a per-pixel azimuth channel: the
+        kernel then projects from the per-pixel tables)."""
+        if self._azimuths(scan) is not None:
+            return None
         measured = as_array(scan.column_azimuth_angles, np.float64)
         if not measured.size:
             return self.projector.factors()

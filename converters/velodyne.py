@@ -61,7 +61,10 @@ What the decoder produces (conventions):
 - Channels: ``range`` UINT16 raw distance (``range_multiplier`` = the model's unit, 0 = no
   return) and ``intensity`` UINT8 reflectivity; dual return adds ``range2``/``intensity2``:
   ``range`` is the strongest-return slot, ``range2`` the last-return slot, both exactly as sent
-  (identical pairs are kept).
+  (identical pairs are kept). The default ``azimuth_model="nebula"`` adds ``azimuth`` (and
+  ``azimuth2`` for ``range2``): UINT16, the pixel's azimuth in counter-clockwise hundredths of
+  a degree (``msgs/README.md``), which the projector uses instead of column azimuth + beam
+  offset (see "Point geometry" below).
 - Time: ``header.stamp`` = first firing of the rotation; ``column_time_offsets`` = each
   sequence's first firing (timestamp + the table above); ``beam_time_offsets`` = the firing
   offset of each laser; ``column_time_increment`` = the measured mean column period. Stamps come
@@ -73,22 +76,43 @@ What the decoder produces (conventions):
   (10 ms windows) stays within 0.23 % of omega, i.e. <= 0.6 mm at 100 m; between rotations
   0.01 %. A rotation whose rate differs by more than 1 % from the info's (measured over >= 100
   columns) starts a new info version.
-- Which firing times (measured, ``converters.evidence.velodyne_timing``): vertical depth edges
-  seen by elevation-adjacent beams of the real VLS-128 recording (45 296 matched edges, 125 row
-  pairs) line up to an RMS per-pair shift of 24.5 millidegrees under the manual's times, 42.6
-  under Nebula's and 67.8 with no intra-sequence timing (noise floor 10); with a roll and a
-  constant fitted out, 17.2 vs 40.2; fitting the untimed shifts with both models' predictions
-  at once gives the manual's a weight of 0.81 and Nebula's -0.14.
-  So the manual's times are the default. The VLP-32C recording (nominal calibration, half a
-  field of view, 2 388 edges) cannot tell: a 112 millidegree per-pair pattern that neither
-  model explains (the nominal ``rot_correction`` values, presumably) swamps the difference.
-  ``azimuth_model="nebula"`` reproduces Nebula's clouds where a per-beam offset can: on the
-  ground-truth rotations, of the decoder's points outside the part below, 97 % (VLP-32C,
-  ranges <= 50 m) and 76 % (VLS-128, up to 300 m) are then within 2 mm of Nebula's (the rest:
-  its rounding to 0.01 deg, up to 0.087 mm per metre of range); not expressible: the last
-  sequence of every packet, where Nebula interpolates nothing, for the lasers it shifts (8.0 %
-  of the VLP-32C points, median 8.6 mm, up to 89 mm; 8.4 % of the VLS-128 points, median
-  53 mm). With the default timing only 16-29 % of the points are within 2 mm of Nebula's.
+- Point geometry, default ``azimuth_model="nebula"``: the points of Nebula (tier4/nebula, the
+  production driver whose clouds are the ground truth in ``tests/data/nebula``), exactly.
+  Nebula interpolates each laser's azimuth from the gap to the block it reads ahead, which is
+  0 at a packet's last block and, on the VLS-128, for the first three banks of a sequence; in
+  dual return the second block of a pair takes the next pair's azimuth (no gap) and the
+  VLS-128's reads the unused blocks 8-9; and it rounds every point's azimuth, rot_correction
+  included, to 0.01 deg (:func:`_nebula_azimuths` follows its float32 arithmetic step by
+  step). That angle depends on the column *and* the beam and is quantised, so no column
+  azimuth + per-beam offset expresses it (the best such fit left 9 % of the VLP-32C and 30 % of
+  the VLS-128 points more than 2 mm off, up to 89 mm at 50 m). Other exact uses of existing
+  fields fail too: ``LidarInfo.pixel_azimuth_angles`` is latched but the angles change every
+  rotation, and per-bank column azimuths still miss the per-laser fraction and the rounding.
+  Hence one per-pixel UINT16 channel (2 bytes per pixel and return, the packets' own unit):
+  the decoder computes Nebula's angle from packet fields only (model from the product id,
+  return mode byte, calibration) and the projector, ``to_pointcloud2`` and the slicer use it
+  (``lidarscan.geometry.pixel_azimuths``). An identical dual pair (Nebula emits it once) gets
+  the last return's angle in both channels. Nebula's VLP-16 and VLS-128 formulas ignore
+  ``vert/horiz_offset_correction``: so does this model (``beam_origins`` zero); its VLP-32C
+  (also used for the HDL-32E) applies them, as the beam model does. Measured, compared directly
+  (``tests/test_velodyne_packets.py``, every return inside Nebula's range and azimuth limits):
+  VLP-32C 99.58 % of Nebula's points have one of ours within 2 mm and 100.00 % of ours one of
+  Nebula's; VLS-128 99.95 % and 99.31 % (the rest: Nebula cuts rotations per packet, this
+  decoder per firing sequence: the first and last 0.4 deg of a turn differ).
+- ``azimuth_model="manual"``: no azimuth channel; the manuals' firing times, folded into
+  ``beam_azimuth_offsets`` (above). Physically the better model (measured,
+  ``converters.evidence.velodyne_timing``): vertical depth edges seen by elevation-adjacent
+  beams of the real VLS-128 recording (45 296 matched edges, 125 row pairs) line up to an RMS
+  per-pair shift of 24.5 millidegrees under the manual's times, 42.6 under Nebula's and 67.8
+  with no intra-sequence timing (noise floor 10); with a roll and a constant fitted out, 17.2
+  vs 40.2; fitting the untimed shifts with both models' predictions at once gives the manual's
+  a weight of 0.81 and Nebula's -0.14. The VLP-32C recording (nominal calibration, half a field
+  of view, 2 388 edges) cannot tell: a 112 millidegree per-pair pattern that neither model
+  explains (the nominal ``rot_correction`` values, presumably) swamps the difference. Its
+  points are 15-28 % within 2 mm of Nebula's (the same ranges and elevations, other
+  azimuths). ``beam_time_offsets`` are the manual's in both models (Nebula's point times
+  agree), and ``beam_azimuth_offsets`` too (a consumer that ignores the azimuth channel gets
+  the manual geometry).
 - LidarInfo: ``vertical_angles`` = vert_correction, ``beam_origins`` from the vertical and
   horizontal offsets, ``beam_range_offsets`` = dist_correction, ``range_min``/``range_max`` =
   0 and 65535 units unless given; ``model`` = the product name. Not representable, so not
@@ -402,6 +426,8 @@ class VelodyneModel:
             (single return); ``last_firing_stamp``: the timestamp marks the packet's last firing.
         nominal: public nominal calibration (elevations only), or None when the model needs
             its calibration file.
+        nebula: which of Nebula's decoders handles the model ("vlp16", "vlp32", "vls128"):
+            the per-pixel azimuth of the default ``azimuth_model`` (:func:`_nebula_azimuths`).
     """
 
     name: str
@@ -412,6 +438,7 @@ class VelodyneModel:
     first_firing_ns: float = 0.0
     last_firing_stamp: bool = False
     nominal: Mapping[str, Any] | None = None
+    nebula: str = "vlp32"
 
 
 def _nominal(elevations_deg: Any, resolution: float) -> dict[str, Any]:
@@ -432,26 +459,20 @@ _VLP16_TIMES = tuple(2304 * k for k in range(16))
 #: Alpha Prime) reports 0xA1 (0x63 in some manual tables, accepted too).
 MODELS: dict[int, VelodyneModel] = {
     0x22: VelodyneModel("VLP-16", 16, 0.002, 55296.0, _VLP16_TIMES,
-                        nominal=VLP16_CALIBRATION),
+                        nominal=VLP16_CALIBRATION, nebula="vlp16"),
     0x24: VelodyneModel("Puck Hi-Res", 16, 0.002, 55296.0, _VLP16_TIMES,
-                        nominal=_nominal(_fans(-10.0, 2.0 / 3.0, 16), 0.002)),
+                        nominal=_nominal(_fans(-10.0, 2.0 / 3.0, 16), 0.002), nebula="vlp16"),
     0x28: VelodyneModel("VLP-32C", 32, 0.004, 55296.0, tuple(2304 * (k // 2) for k in range(32))),
     0x21: VelodyneModel("HDL-32E", 32, 0.002, 46080.0, tuple(1152 * k for k in range(32)),
                         last_firing_stamp=True,
                         nominal=_nominal(_fans(-92.0 / 3.0, -28.0 / 3.0, 32), 0.002)),
     0xA1: VelodyneModel("VLS-128", 128, 0.004, 53300.0,
                         tuple(2665 * (k // 8 + k // 64) for k in range(128)),
-                        first_firing_ns=-8700.0),
+                        first_firing_ns=-8700.0, nebula="vls128"),
 }
 MODELS[0x63] = MODELS[0xA1]
 
-#: per-laser firing times (ns) by azimuth model and model name; missing: the manual's
-_AZIMUTH_MODELS: dict[str, dict[str, tuple[int, ...]]] = {
-    "manual": {},
-    "nebula": {"VLP-32C": tuple(2304 * k for k in range(32)),
-               "VLS-128": tuple(2665 * (k // 8 + k // 64) if k >= 96 else 0
-                                for k in range(128))},
-}
+_AZIMUTH_MODELS = ("nebula", "manual")
 
 
 @dataclass(frozen=True)
@@ -516,6 +537,89 @@ def _blocks_to_sequences(values: np.ndarray[Any, Any], layout: _Layout
     return values, None
 
 
+_F32 = np.float32
+
+
+def _nebula_rotation(calib: Mapping[str, Any], lasers: int) -> np.ndarray[Any, Any]:
+    """(L,) float64 ``rot_correction`` of each laser_id in hundredths of a degree, as Nebula
+    forms it: the float32 radians times 180 / pi * 100 in double precision."""
+    rot = _laser_values(calib)["rot_correction"][:lasers].astype(_F32).astype(np.float64)
+    return rot * 180.0 / math.pi * 100.0
+
+
+def _nebula_lasers(layout: _Layout) -> np.ndarray[Any, Any]:
+    """(12, 32) int64 laser id of each point slot as Nebula reads it: VLP-16 slot k % 16,
+    VLP-32C/HDL-32E slot k, VLS-128 the block's bank (from its flag) * 32 + k; 0 in blocks
+    a dual-return VLS-128 packet does not use."""
+    k = np.arange(32)
+    laser = np.zeros((_BLOCKS, 32), np.int64)
+    if layout.model.nebula == "vlp16":
+        laser[:] = k % 16
+    elif layout.model.nebula == "vlp32":
+        laser[:] = k
+    else:
+        bank = {0xEE: 0, 0xDD: 32, 0xCC: 64, 0xBB: 96}
+        used = len(layout.flags)
+        laser[:used] = np.array([bank[f] for f in layout.flags])[:, None] + k
+    return laser
+
+
+def _nebula_azimuths(rows: np.ndarray[Any, Any], layout: _Layout,
+                     rotation: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Nebula's azimuth of every point slot of m packets: (m, 12 * 32) int64, clockwise
+    hundredths of a degree in 0..35999 (slot ``32 * block + k``; blocks Nebula does not read
+    are 0).
+
+    Nebula's decoders (one per product line, ``VelodyneModel.nebula``) walk the blocks of a
+    packet keeping the azimuth of the block ``step`` ahead (step 2 in dual return), so block i
+    gets the base azimuth ``A_i`` (block 0: its own; later blocks: the azimuth read ahead by
+    the block before, i.e. block i + 1 in dual return) and the gap ``D_i`` to the block read
+    ahead (the last gap again, or 0 for the block before the unused ones and for the last
+    block, where nothing is read ahead). Slot k of block i then points at
+    ``round(A_i + D_i * f_k - rot_correction)`` in float32 arithmetic, with f_k: VLP-16
+    ``(2.304 us * (k % 16) + 55.296 us * (k // 16)) / 110.592 us``, VLP-32C/HDL-32E
+    ``2.304 / 55.296 * k``, VLS-128 ``2.665 / 53.3 * (g + g // 8)``, g = laser // 8.
+
+    Args: rows (m, 1206) uint8 packets of ``layout``; rotation (L,) from
+    :func:`_nebula_rotation`.
+    """
+    m = rows.shape[0]
+    family, dual = layout.model.nebula, layout.dual
+    count = 8 if family == "vls128" and dual else _BLOCKS
+    step = 2 if dual else 1
+    zero = _BLOCKS - (1 if family == "vlp16" else 4) * int(dual) - 1
+    heads = rows[:, :100 * _BLOCKS].reshape(m, _BLOCKS, 100)
+    block_az = heads[:, :, 2].astype(np.int64) | (heads[:, :, 3].astype(np.int64) << 8)
+    base = np.empty((m, count), np.int64)
+    gap = np.empty((m, count), _F32)
+    ahead = np.zeros(m, np.int64)
+    last = np.zeros(m, _F32)
+    for i in range(count):
+        base[:, i] = block_az[:, 0] if i == 0 else ahead
+        if i < _BLOCKS - step:
+            ahead = block_az[:, i + step]
+            last = np.fmod(36000 + ahead - base[:, i], 36000).astype(_F32)   # C's %
+            gap[:, i] = last
+        else:
+            gap[:, i] = 0 if i == zero else last
+    k = np.arange(32)
+    laser = _nebula_lasers(layout)[:count]
+    if family == "vlp16":
+        offset = (k % 16).astype(_F32) * _F32(2.304) + (k // 16).astype(_F32) * _F32(55.296)
+        term = gap[:, :, None] * offset / _F32(110.592)
+    elif family == "vlp32":
+        term = ((gap * _F32(2.304)) / _F32(55.296))[:, :, None] * k.astype(_F32)
+    else:
+        group = laser // 8
+        term = gap[:, :, None] * ((_F32(2.665) / _F32(53.3)) * (group + group // 8).astype(_F32))
+    total = (base.astype(_F32)[:, :, None] + term).astype(np.float64) - rotation[laser]
+    total = total.astype(_F32).astype(np.float64)
+    total = np.where(total < 0, (total + 36000.0).astype(_F32).astype(np.float64), total)
+    out = np.zeros((m, _BLOCKS, 32), np.int64)
+    out[:, :count] = (np.floor(total + 0.5).astype(np.int64) & 0xFFFF) % 36000
+    return out.reshape(m, _BLOCKS * 32)
+
+
 class PacketDecoder:
     """Velodyne packets -> one (LidarScan, LidarInfo) per rotation (the packet decoder contract).
 
@@ -537,13 +641,10 @@ class PacketDecoder:
             format's maximum, 65535 raw units: nothing is hidden).
         width_margin: relative slack of the scan width over the measured columns per
             revolution (default 0.02).
-        azimuth_model: "manual" (default: the firing times of the user manuals, see the module
-            docstring; measured right on real data, ``converters.evidence.velodyne_timing``) or
-            "nebula": the per-laser times Nebula's decoder implies (VLP-32C ``2.304 us * k``;
-            VLS-128 0 for lasers 0-95 and the manual's time for 96-127), to reproduce that
-            driver's clouds. Nebula also drops the interpolation in the last sequence of every
-            packet and rounds azimuths to 0.01 deg; neither is a per-beam offset, so neither is
-            reproduced (the module docstring gives the size). Other models: the manual's times.
+        azimuth_model: "nebula" (default): Nebula's points exactly, through the per-pixel
+            ``azimuth`` channel(s) (module docstring, "Point geometry"); or "manual": no such
+            channel, the manuals' firing times as per-beam offsets (physically the better
+            timing on the real VLS-128 recording, ``converters.evidence.velodyne_timing``).
         as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
 
     Width: W = ceil((1 + width_margin) * 2 pi / (omega * T)), omega the rotation rate and T the
@@ -557,10 +658,10 @@ class PacketDecoder:
     def __init__(self, calibration: Any = None, *, frame_id: str = "lidar",
                  cut_angle_deg: float = 0.0, time_source: str = "auto",
                  range_min: float | None = None, range_max: float | None = None,
-                 width_margin: float = 0.02, azimuth_model: str = "manual",
+                 width_margin: float = 0.02, azimuth_model: str = "nebula",
                  as_dataclass: bool = False) -> None:
         if azimuth_model not in _AZIMUTH_MODELS:
-            raise ConfigError("azimuth_model", azimuth_model, '"manual" or "nebula"')
+            raise ConfigError("azimuth_model", azimuth_model, '"nebula" or "manual"')
         if time_source not in ("auto", "sensor", "receive"):
             raise ConfigError("time_source", time_source, '"auto", "sensor" or "receive"')
         if not (math.isfinite(float(cut_angle_deg))):
@@ -590,6 +691,7 @@ class PacketDecoder:
         self._last_info_stamp: int | None = None
         self._offsets = np.zeros((0, 0, 0), np.int64)  # byte offsets, see _offsets()
         self._offsets_key: tuple[Any, ...] | None = None
+        self._rotation = np.zeros(0)                    # see _nebula_rotation
 
     # -------------------------------------------------------------------------------- public
 
@@ -887,11 +989,54 @@ class PacketDecoder:
         channels = {"range": ranges[0], "intensity": intensities[0]}
         if returns == 2:
             channels.update(range2=ranges[1], intensity2=intensities[1])
+        if self._azimuth_model == "nebula":
+            azimuths = self._pixel_azimuths(runs, begin, count, width)
+            if returns == 2:           # Nebula emits an identical pair once, at the last's angle
+                same = ranges[0] == ranges[1]
+                azimuths[0][same] = azimuths[1][same]
+            channels["azimuth"] = azimuths[0]
+            if returns == 2:
+                channels["azimuth2"] = azimuths[1]
         stamp = int(times[0])
         column_azimuth = -np.deg2rad(np.mod(azimuth, 36000.0) / 100.0)
         scan = make_scan(info, channels, stamp, column_azimuth_angles=column_azimuth,
                          column_time_offsets=times - stamp, as_dataclass=self._as_dataclass)
         return scan, info
+
+    def _pixel_azimuths(self, runs: list[np.ndarray[Any, Any]], begin: int, count: int,
+                        width: int) -> np.ndarray[Any, Any]:
+        """(R, H, W) uint16 ``azimuth`` channel(s): Nebula's azimuth of every pixel (see
+        :func:`_nebula_azimuths`) as counter-clockwise hundredths of a degree; padding 0."""
+        from converters._kernels import select
+        from converters._kernels import velodyne as compiled
+
+        layout = self._layout
+        assert layout is not None
+        seqs = layout.sequences
+        slots = self._offsets // 100 * 32 + (self._offsets % 100 - 4) // 3     # (R, S, H)
+        out = np.zeros((slots.shape[0], slots.shape[2], width), np.uint16)
+        kernel = compiled.azimuth_kernel() if select("velodyne").numba is not None else None
+        laser = _nebula_lasers(layout)
+        family = ("vlp16", "vlp32", "vls128").index(layout.model.nebula)
+        column, first = 0, begin
+        for run in runs:
+            have = run.shape[0] * seqs - first
+            if have > 0 and column < count:
+                take = min(have, count - column)
+                if kernel is not None:
+                    kernel(run, first, take, slots, laser, family, layout.dual, self._rotation,
+                           out[:, :, column:])
+                else:                                   # the numpy reference
+                    p0, p1 = first // seqs, (first + take - 1) // seqs + 1
+                    ccw = (36000 - _nebula_azimuths(run[p0:p1], layout, self._rotation)) % 36000
+                    picked = np.take(ccw.astype(np.uint16), slots, axis=1)    # (m, R, S, H)
+                    picked = picked.transpose(1, 3, 0, 2).reshape(slots.shape[0],
+                                                                  slots.shape[2], -1)
+                    skip = first - p0 * seqs
+                    out[:, :, column:column + take] = picked[:, :, skip:skip + take]
+                column += take
+            first = max(0, -have)
+        return out
 
     def _calib_for(self, model: VelodyneModel) -> Mapping[str, Any]:
         calib = self._calib if self._calib is not None else model.nominal
@@ -906,11 +1051,17 @@ class PacketDecoder:
         if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
             stamp = self._last_info_stamp + 1               # a new version needs a new stamp
         lo, hi = self._range
+        calib = self._calib_for(model)
+        if self._azimuth_model == "nebula":
+            self._rotation = _nebula_rotation(calib, model.lasers)
+            if model.nebula != "vlp32":      # Nebula's VLP-16 and VLS-128 formulas: no offsets
+                calib = {**calib, "lasers": [
+                    {**las, "vert_offset_correction": 0.0, "horiz_offset_correction": 0.0}
+                    for las in calib["lasers"]]}
         self._info = info_from_calibration(
-            self._calib_for(model), columns=width, stamp_ns=stamp, frame_id=self._frame_id,
+            calib, columns=width, stamp_ns=stamp, frame_id=self._frame_id,
             rpm=omega * 60.0 / (2.0 * math.pi),
-            beam_time_offsets=np.asarray(_AZIMUTH_MODELS[self._azimuth_model].get(
-                model.name, model.laser_ns), np.int64),
+            beam_time_offsets=np.asarray(model.laser_ns, np.int64),
             column_time_increment=int(round(period)),
             range_min=0.0 if lo is None else lo,
             range_max=65535 * model.distance_resolution if hi is None else hi,

@@ -26,6 +26,12 @@ and since the third column of ``Rz(alpha)`` is ``(0, 0, 1)``, coordinate k of a 
 (H x 6 + 6 x W + 6 numbers instead of two H x W x 3 tables); the compiled PointCloud2 kernel
 projects from them.
 
+Per-pixel azimuth channel: a scan may carry the measured azimuth of every pixel in a channel
+``azimuth`` (``azimuth2`` for ``range2``, ...; see ``msgs/README.md``): it replaces
+``theta = alpha_c + beta_u`` pixel by pixel (in ``d`` and in the rotation of ``o_u``), so the
+model no longer factors. :func:`pixel_azimuths` reads it; :meth:`Projector.tables_for` and
+:meth:`Projector.project` honour it.
+
 Column order: tables are indexed by measurement column; ``tables(destaggered=True)`` gives the
 same tables re-indexed to the destaggered image, where column v of row u holds measurement column
 ``c = (v - s_u) mod W``.
@@ -42,16 +48,18 @@ from typing import Any
 import numpy as np
 
 from lidarscan.errors import ValidationError
-from lidarscan.scan import as_array, range_m, validate_info
+from lidarscan.scan import as_array, channel, range_m, validate_info
 from lidarscan.stamps import to_ns
 
 __all__ = [
     "Projector",
+    "azimuth_channel",
     "beam_factors",
     "beam_tables",
     "exact_xyz",
     "info_key",
     "make_projector",
+    "pixel_azimuths",
     "transform_matrix",
 ]
 
@@ -113,7 +121,39 @@ def _angles(info: Any, column_azimuth_angles: Any) -> tuple[np.ndarray[Any, Any]
     return alpha, beta, phi
 
 
-def beam_tables(info: Any, column_azimuth_angles: Any = None
+def azimuth_channel(scan: Any, range_channel: str = "range") -> str | None:
+    """Name of the scan's per-pixel azimuth channel for ``range_channel``, or None.
+
+    ``azimuth`` followed by the return suffix of the range channel (``range2`` -> ``azimuth2``),
+    else ``azimuth`` itself (one azimuth for every return).
+    """
+    names = {c.name for c in scan.channels}
+    suffix = range_channel[len("range"):] if range_channel.startswith("range") else ""
+    for name in (f"azimuth{suffix}", "azimuth"):
+        if name in names:
+            return name
+    return None
+
+
+def pixel_azimuths(scan: Any, range_channel: str = "range"
+                   ) -> np.ndarray[Any, np.dtype[np.float64]] | None:
+    """(H, W) float64 radians (REP 103, counter-clockwise) of the scan's per-pixel azimuth
+    channel for ``range_channel`` (:func:`azimuth_channel`), in the scan's column order, or
+    None without one. Integer channels count hundredths of a degree, float ones radians
+    (``msgs/README.md``)."""
+    name = azimuth_channel(scan, range_channel)
+    if name is None:
+        return None
+    values = channel(scan, name, native=True)
+    if values.ndim == 3:
+        values = values[..., 0]
+    out = values.astype(np.float64)
+    if values.dtype.kind in "iu":
+        out *= np.pi / 18000.0
+    return out
+
+
+def beam_tables(info: Any, column_azimuth_angles: Any = None, pixel_azimuths: Any = None
                 ) -> tuple[np.ndarray[Any, np.dtype[np.float64]],
                            np.ndarray[Any, np.dtype[np.float64]]]:
     """Direction and offset tables of the beam model in float64 (measurement column order).
@@ -124,13 +164,21 @@ def beam_tables(info: Any, column_azimuth_angles: Any = None
         info: a LidarInfo (rclpy message or dataclass); not validated here.
         column_azimuth_angles: (W,) radians replacing ``info.horizontal_angles`` (a scan's
             measured azimuths), or None.
+        pixel_azimuths: (H, W) radians, measurement column order: theta of every pixel (a
+            scan's azimuth channel, :func:`pixel_azimuths`), replacing alpha_c + beta_u; or None.
 
     Returns:
         (D, O): each (H, W, 3) float64 in ``info.header.frame_id``; D unit vectors, O metres.
     """
     height, width = int(info.height), int(info.width)
     alpha, beta, phi = _angles(info, column_azimuth_angles)
-    theta = alpha[None, :] + beta[:, None]                                    # (H, W)
+    if pixel_azimuths is None:
+        theta = alpha[None, :] + beta[:, None]                                # (H, W)
+    else:
+        theta = np.asarray(pixel_azimuths, np.float64)
+        if theta.shape != (height, width):
+            raise ValidationError("pixel_azimuths.shape", theta.shape,
+                                  f"({height}, {width}) from the LidarInfo")
     pix_az = as_array(info.pixel_azimuth_angles, np.float64).astype(np.float64)
     if pix_az.size:
         theta_d = pix_az.reshape(height, width)
@@ -203,7 +251,8 @@ def beam_factors(info: Any, column_azimuth_angles: Any = None
 
 
 def exact_xyz(info: Any, ranges: Any, *, destaggered: bool = False,
-              column_azimuth_angles: Any = None) -> np.ndarray[Any, np.dtype[np.float64]]:
+              column_azimuth_angles: Any = None, pixel_azimuths: Any = None
+              ) -> np.ndarray[Any, np.dtype[np.float64]]:
     """Float64 projection straight from the beam model (no float32 tables, no cache).
 
     Slower than :meth:`Projector.xyz`; meant for verification and for users who need float64.
@@ -213,17 +262,22 @@ def exact_xyz(info: Any, ranges: Any, *, destaggered: bool = False,
         ranges: (H, W) metres; non-finite or <= 0 means no return (NaN point).
         destaggered: whether ``ranges`` is in destaggered column order.
         column_azimuth_angles: (W,) measured azimuths per measurement column, or None.
+        pixel_azimuths: (H, W) radians per pixel in the column order of ``ranges`` (a scan's
+            azimuth channel), or None.
 
     Returns:
         (H, W, 3) float64 points in ``info.header.frame_id``, in the column order of ``ranges``.
     """
-    d, o = beam_tables(info, column_azimuth_angles)
     r = np.array(ranges, dtype=np.float64)
     if r.shape != (int(info.height), int(info.width)):
         raise ValidationError("ranges.shape", r.shape,
                               f"({int(info.height)}, {int(info.width)}) from the LidarInfo")
+    shifts = _per_beam(info, "pixel_shift_by_row", int(info.height), np.int64)
+    if destaggered and pixel_azimuths is not None:      # to measurement order
+        index = (np.arange(r.shape[1])[None, :] + shifts[:, None]) % max(r.shape[1], 1)
+        pixel_azimuths = np.take_along_axis(np.asarray(pixel_azimuths, np.float64), index, 1)
+    d, o = beam_tables(info, column_azimuth_angles, pixel_azimuths)
     if destaggered:
-        shifts = _per_beam(info, "pixel_shift_by_row", int(info.height), np.int64)
         index = (np.arange(r.shape[1])[None, :] - shifts[:, None]) % max(r.shape[1], 1)
         d = np.take_along_axis(d, index[..., None], axis=1)
         o = np.take_along_axis(o, index[..., None], axis=1)
@@ -334,15 +388,24 @@ class Projector:
             self._destaggered = (self.destagger(self.directions), self.destagger(self.offsets))
         return self._destaggered
 
-    def tables_for(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        """Tables in the scan's column order, using the scan's measured column azimuths if any."""
+    def tables_for(self, scan: Any, range_channel: str = "range"
+                   ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """Tables in the scan's column order, using the scan's measured column azimuths if any,
+        and its per-pixel azimuth channel for ``range_channel`` if any (:func:`pixel_azimuths`:
+        it takes precedence over column azimuths + beam offsets)."""
         measured = as_array(scan.column_azimuth_angles, np.float64)
-        if measured.size:
-            if measured.size != self.width:
+        pixel = pixel_azimuths(scan, range_channel)
+        if measured.size or pixel is not None:
+            if measured.size and measured.size != self.width:
                 raise ValidationError("LidarScan.column_azimuth_angles", f"length {measured.size}",
                                       f"length {self.width} or 0")
-            d, o = self._tables(measured.astype(np.float64))
-            if bool(scan.is_destaggered) and np.any(self.shifts):
+            destaggered = bool(scan.is_destaggered) and bool(np.any(self.shifts))
+            if pixel is not None and destaggered:
+                pixel = self.restagger(pixel)
+            d, o = beam_tables(self._info, measured.astype(np.float64) if measured.size
+                               else None, pixel)
+            d, o = d.astype(np.float32), o.astype(np.float32)
+            if destaggered:
                 return self.destagger(d), self.destagger(o)
             return d, o
         return self.tables(bool(scan.is_destaggered))
@@ -403,7 +466,7 @@ class Projector:
                 ) -> np.ndarray[Any, np.dtype[np.float32]]:
         """Points of a scan's range channel: (H, W, 3) float32 in the scan's column order."""
         return self.xyz(range_m(scan, self._info if info is None else info, channel),
-                        tables=self.tables_for(scan))
+                        tables=self.tables_for(scan, channel))
 
     # ------------------------------------------------------------------------------- time
     def column_times(self, scan: Any) -> np.ndarray[Any, np.dtype[np.int64]]:

@@ -78,11 +78,11 @@ def test_the_readings_the_text_makes() -> None:
             assert r["o_within"] > 0.98
             assert 1.5 * r["n_truth"] < r["n_ours"]                  # both returns kept
         else:
-            exact, modelled = records
-            assert exact["variant"].startswith("exact")
-            assert modelled["t_within"] > 0.99 and modelled["o_within"] > 0.99
-            assert exact["t_within"] < 0.5 and exact["o_within"] < 0.5
-            assert 2e-3 < exact["t_median"] < 0.05                   # mm to cm, not metres
+            default, manual = records
+            assert default["variant"].startswith("default")
+            assert default["t_within"] > 0.99 and default["o_within"] > 0.99
+            assert manual["t_within"] < 0.5 and manual["o_within"] < 0.5
+            assert 2e-3 < manual["t_median"] < 0.05                  # mm to cm, not metres
 
 
 def test_nearest_equals_brute_force() -> None:

@@ -12,9 +12,9 @@ compared with the points of someone else's decoder:
   the point cloud Nebula (tier4/nebula, the Autoware driver) published for one rotation. The
   points do not correspond one to one, so the distance is the nearest-neighbour distance both
   ways (Nebula -> ours, ours -> Nebula), inside Nebula's range (and, VLP-32C, azimuth) limits.
-  Velodyne: Nebula interpolates each laser's azimuth differently from the manuals' firing
-  tables (``tests/test_velodyne_packets.py``); the table shows the exact decoder and, beside it,
-  our pixels rotated to Nebula's interpolation, which isolates that model difference. Hesai:
+  Velodyne: the default decoder (Nebula's per-pixel azimuths in the scan's ``azimuth``
+  channel, ``converters/velodyne.py``) and, beside it, ``azimuth_model="manual"`` (the manuals'
+  firing times as per-beam offsets: the same ranges and elevations, other azimuths). Hesai:
   Nebula cuts rotations by corrected azimuth, the decoder by firing, so Nebula's points are
   looked up in the matched rotation and its two neighbours (``tests/test_hesai.py``).
 
@@ -179,34 +179,6 @@ def _cloud_bytes(fields: list[tuple[str, int, int]], step: int, points: int) -> 
     return len(encode(empty)) + step * points
 
 
-def _velodyne_nebula_azimuths(scan: Any, info: Any, calib: dict[str, Any],
-                              points: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Our points rotated about z to the azimuth Nebula gives each laser (its interpolation:
-    VLP-32C laser j at j * 2.304 us of the gap to the next block, VLS-128 only the fourth bank
-    sees the gap, rounded to 0.01 deg); ranges and elevations are untouched."""
-    from converters.velodyne import MODELS
-    laser = np.asarray(info.beam_ids, np.int64)[:, None]
-    az = np.round(np.mod(-np.degrees(np.asarray(scan.column_azimuth_angles)), 360.0) * 100)
-    times = np.asarray(scan.column_time_offsets)
-    product = {"VLP-32C": 0x28, "VLS-128": 0xA1}[info.model]
-    last_in_packet = np.append(np.abs(np.diff(times) - MODELS[product].sequence_ns) > 1, True)
-    gap = np.where(last_in_packet, 0.0, np.mod(np.append(np.diff(az), 0.0), 36000.0))[None]
-    rot = np.array([las["rot_correction"] for las in
-                    sorted(calib["lasers"], key=lambda las: las["laser_id"])])[laser]
-    if info.model == "VLP-32C":
-        fraction = 2.304 / 55.296 * laser
-    else:
-        bank = laser // 8
-        fraction = np.where(laser >= 96, 2.665 / 53.3 * (bank + bank // 8), 0.0)
-    theirs = np.round(az[None] + gap * fraction - np.degrees(rot) * 100) / 100   # cw degrees
-    ours = np.asarray(scan.column_azimuth_angles)[None] + np.asarray(
-        info.beam_azimuth_offsets)[:, None]
-    delta = -np.radians(theirs) - ours
-    c, s = np.cos(delta), np.sin(delta)
-    x, y = points[..., 0].astype(np.float64), points[..., 1].astype(np.float64)
-    return np.stack([c * x - s * y, s * x + c * y, points[..., 2].astype(np.float64)], -1)
-
-
 def _both_ways(truth: np.ndarray[Any, Any], ours: np.ndarray[Any, Any],
                ours_wide: np.ndarray[Any, Any] | None = None) -> dict[str, float]:
     to_ours = nearest(truth, ours if ours_wide is None else ours_wide)
@@ -217,36 +189,48 @@ def _both_ways(truth: np.ndarray[Any, Any], ours: np.ndarray[Any, Any],
             "n_truth": len(truth), "n_ours": len(ours)}
 
 
+def _velodyne_points(scan: Any, info: Any, lo: float, hi: float,
+                     window: tuple[float, float] | None) -> np.ndarray[Any, Any]:
+    """(N, 3) float64 points of every return inside Nebula's limits: distance (with
+    dist_correction) in (lo, hi), block azimuth in the clockwise ``window``."""
+    import lidarscan
+    projector = lidarscan.make_projector(info)
+    clouds = []
+    for name in [n for n in ("range", "range2") if n in lidarscan.scan.channel_names(scan)]:
+        points = projector.project(scan, info, name)
+        rng = lidarscan.scan.range_m(scan, info, name).astype(np.float64) + np.asarray(
+            info.beam_range_offsets)[:, None]
+        keep = (rng > lo) & (rng < hi) & np.isfinite(points).all(-1)
+        if window is not None:
+            az = np.mod(-np.degrees(np.asarray(scan.column_azimuth_angles)), 360.0)
+            keep &= ((az >= window[0] - 1e-9) | (az <= window[1] + 1e-9))[None]
+        clouds.append(points[keep].astype(np.float64))
+    return np.concatenate(clouds)
+
+
 def _velodyne(folder: str) -> list[dict[str, Any]]:
     import lidarscan
-    import lidarscan.geometry
     import lidarscan.stamps
     from converters import velodyne
     label, calib_name, (lo, hi), window, cut = RECORDINGS[folder]
     packets, first = _packets(folder)
     stamp, truth = _truth(folder)
     calib = velodyne.load_calibration(NEBULA / folder / calib_name)
-    results = list(velodyne.decode_packets(packets, calib, cut_angle_deg=cut, as_dataclass=True))
-    scan, info = min(results, key=lambda r: abs(lidarscan.stamps.to_ns(r[0].header.stamp)
-                                                - first[stamp]))
-    lidarscan.validate(scan, info)
-    if np.any(info.beam_origins):
-        from lidarscan.errors import ValidationError
-        raise ValidationError(f"{folder} LidarInfo.beam_origins", "non-zero",
-                              "zeros (the Nebula interpolation model rotates about z only)")
-    points = lidarscan.make_projector(info).project(scan, info)
-    rng = lidarscan.geometry.range_m(scan, info).astype(np.float64) + np.asarray(
-        info.beam_range_offsets)[:, None]
-    keep = (rng > lo) & (rng < hi) & np.isfinite(points).all(-1)
-    if window is not None:
-        az = np.mod(-np.degrees(np.asarray(scan.column_azimuth_angles)), 360.0)
-        keep &= ((az >= window[0] - 1e-9) | (az <= window[1] + 1e-9))[None]
-    exact = points[keep].astype(np.float64)
-    modelled = _velodyne_nebula_azimuths(scan, info, calib, points)[keep]
-    common = {"sensor": label, "scan": scan, "info": info, "reference": "Nebula"}
-    return [{**common, "variant": "exact (manual firing times)", **_both_ways(truth, exact)},
-            {**common, "variant": "Nebula's azimuth interpolation re-applied",
-             **_both_ways(truth, modelled)}]
+    records = []
+    index = None
+    for variant, model in (("default: Nebula's azimuths (`azimuth` channel)", "nebula"),
+                           ("`azimuth_model=\"manual\"`: the manuals' firing times", "manual")):
+        results = list(velodyne.decode_packets(packets, calib, cut_angle_deg=cut,
+                                               azimuth_model=model, as_dataclass=True))
+        if index is None:
+            index = min(range(len(results)), key=lambda i: abs(
+                lidarscan.stamps.to_ns(results[i][0].header.stamp) - first[stamp]))
+        scan, info = results[index]
+        lidarscan.validate(scan, info)
+        records.append({"sensor": label, "scan": scan, "info": info, "reference": "Nebula",
+                        "variant": variant,
+                        **_both_ways(truth, _velodyne_points(scan, info, lo, hi, window))})
+    return records
 
 
 def _hesai_points(scan: Any, info: Any, lo: float, hi: float) -> np.ndarray[Any, Any]:
@@ -452,7 +436,7 @@ def claims(records: tuple[dict[str, Any], ...]) -> str:
                 and (variant is None or r["variant"].startswith(variant))]
 
     ouster, hesai = pick("Ouster"), pick("Hesai")
-    nebula, exact = pick("Velodyne", "Nebula"), pick("Velodyne", "exact")
+    default, manual = pick("Velodyne", "default"), pick("Velodyne", "`azimuth_model")
 
     def span(rs: list[dict[str, Any]]) -> str:
         values = [100 * r[k] for r in rs for k in ("t_within", "o_within")]
@@ -462,6 +446,6 @@ def claims(records: tuple[dict[str, Any], ...]) -> str:
             f"{_mm(max(r['t_max'] for r in ouster))} mm of the vendor formula; every Nebula "
             f"point of the {len(hesai)} Hesai models within "
             f"{_mm(max(r['t_max'] for r in hesai))} mm of one of ours, and "
-            f"{span(hesai)} of ours within 2 mm of Nebula's; Velodyne: {span(exact)} of the "
-            f"points within 2 mm (both ways) as decoded, {span(nebula)} with Nebula's "
-            "azimuth interpolation re-applied.")
+            f"{span(hesai)} of ours within 2 mm of Nebula's; Velodyne: {span(default)} of the "
+            f"points within 2 mm (both ways) as decoded by default, {span(manual)} with the "
+            "manuals' firing times.")

@@ -7,7 +7,7 @@ Within one firing sequence (one column) the lasers fire at different times ``t_u
 head turns at ``omega``, so laser u looks ``omega * t_u`` further along than the column's
 azimuth. The two candidate timings:
 
-* manual (the decoder's default): VLP-32C ``2.304 us * (k // 2)`` (lasers fire in pairs),
+* manual (the decoder's ``azimuth_model="manual"``): VLP-32C ``2.304 us * (k // 2)`` (lasers fire in pairs),
   VLS-128 ``2.665 us * (k // 8 + k // 64)`` (8 lasers at a time, a gap after group 7);
 * Nebula (its decoder, which made the ground truth): the azimuth interpolated towards the next
   block: VLP-32C ``2.304 us * k``; VLS-128 0 for lasers 0-95 (their blocks share the sequence's
