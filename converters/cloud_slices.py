@@ -63,6 +63,8 @@ __all__ = ["DEFAULT_ANGLE_INCREMENT", "CloudSliceConverter", "cloud_points",
 DEFAULT_ANGLE_INCREMENT = math.pi / 360.0
 _F32_MAX = float(np.finfo(np.float32).max)
 _MAX_POINTS = 1 << 32            # tie keys are 32 bits
+_NO_VALUES = np.zeros(0, np.float32)
+_NO_KEYS = np.zeros(0, np.int64)
 
 
 def cloud_points(cloud: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any],
@@ -76,7 +78,14 @@ def cloud_points(cloud: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]
         ConversionError: a missing x/y/z field, one that is not FLOAT32/FLOAT64 with count 1,
             or inconsistent sizes (:func:`converters.cloud_layout.read_points`).
     """
+    x, y, z = _xyz(cloud, read_points(cloud))
+    return x, y, z
+
+
+def _xyz(cloud: Any, points: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], ...]:
+    """:func:`cloud_points` from the cloud's :func:`read_points` view."""
     fields = {str(f.name): f for f in cloud.fields}
+    out = []
     for axis in "xyz":
         f = fields.get(axis)
         if f is None:
@@ -86,18 +95,19 @@ def cloud_points(cloud: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]
             raise ConversionError(f"PointCloud2 field '{axis}'",
                                   f"datatype {int(f.datatype)} count {int(f.count)}",
                                   f"FLOAT32 ({FLOAT32}) or FLOAT64 ({FLOAT64}), count 1")
-    points = read_points(cloud)
-    out = []
-    for axis in "xyz":
-        column = points[axis].reshape(-1)
-        if not column.dtype.isnative:
-            column = column.astype(column.dtype.newbyteorder("="))
-        out.append(column)
-    return out[0], out[1], out[2]
+        out.append(_native(points[axis].reshape(-1)))
+    return tuple(out)
 
 
-def _intensity(cloud: Any, wanted: str | None) -> np.ndarray[Any, Any] | None:
-    """(n,) values of the intensity field (first element of a counted field), or None."""
+def _native(values: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """``values`` in native byte order (a copy only when they are not)."""
+    return values if values.dtype.isnative else values.astype(values.dtype.newbyteorder("="))
+
+
+def _intensity(cloud: Any, points: np.ndarray[Any, Any], wanted: str | None
+               ) -> np.ndarray[Any, Any] | None:
+    """(n,) native values of the intensity field (first element of a counted field), or
+    None."""
     if wanted is None:
         return None
     names = [str(f.name) for f in cloud.fields]
@@ -106,10 +116,10 @@ def _intensity(cloud: Any, wanted: str | None) -> np.ndarray[Any, Any] | None:
     if wanted not in names:
         raise ConversionError("intensity_field", str(wanted),
                               f"a field of the cloud ({', '.join(names)}) or None")
-    values = read_points(cloud)[str(wanted)]
+    values = points[str(wanted)]
     if values.ndim == 3:
         values = values[..., 0]
-    return values.reshape(-1)
+    return _native(values.reshape(-1))
 
 
 def _transform(x: np.ndarray[Any, Any], y: np.ndarray[Any, Any], z: np.ndarray[Any, Any],
@@ -217,6 +227,10 @@ class CloudSliceConverter:
                 self._grids.append(s.grid)
             self._slice_grid.append(self._grids.index(s.grid))
         self._args = self._kernel_args()
+        self._decode_args = (np.asarray(self._offsets, np.int64),
+                             np.array([x.grid.size for x in self.slices], np.int64),
+                             np.array([x.options.inf_value for x in self.slices], np.float32),
+                             np.array([x.options.fill_value for x in self.slices], np.float32))
 
     @staticmethod
     def _build_slice(name: str, spec: SliceSpec, common: Mapping[str, Any]) -> _Slice:
@@ -254,7 +268,10 @@ class CloudSliceConverter:
         Raises:
             ConversionError: see :func:`cloud_points`; more than 2**32 points.
         """
-        x, y, z = cloud_points(cloud)
+        return self._fuse(*cloud_points(cloud))
+
+    def _fuse(self, x: np.ndarray[Any, Any], y: np.ndarray[Any, Any],
+              z: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.int64]]:
         if x.size >= _MAX_POINTS:
             raise ConversionError("PointCloud2 height * width", x.size, f"< {_MAX_POINTS}")
         if self._kernel is None:
@@ -280,21 +297,44 @@ class CloudSliceConverter:
                 intensity field that is missing.
         """
         stamp = to_ns(cloud.header.stamp, field="PointCloud2.header.stamp")
-        intensity = _intensity(cloud, self.intensity_field)
-        best = self.fuse(cloud)
+        points = read_points(cloud)
+        best = self._fuse(*_xyz(cloud, points))
+        intensity = _intensity(cloud, points, self.intensity_field)
         frame = self._frame_id or str(cloud.header.frame_id)
+        decoded = self._decode_all(best, intensity)
         out: dict[str, Any] = {}
         for s, off in zip(self.slices, self._offsets):
-            ranges, winners = _grid.decode(best[off:off + s.grid.size], s.options)
-            ints = None
-            if intensity is not None:
-                ints = np.zeros(s.grid.size, np.float32)
-                hit = winners >= 0
-                ints[hit] = intensity[winners[hit]].astype(np.float32)
+            if decoded is not None:
+                ranges = decoded[0][off:off + s.grid.size]
+                ints = None if intensity is None else decoded[1][off:off + s.grid.size]
+            else:
+                ranges, winners = _grid.decode(best[off:off + s.grid.size], s.options)
+                ints = None
+                if intensity is not None:
+                    ints = np.zeros(s.grid.size, np.float32)
+                    hit = winners >= 0
+                    ints[hit] = intensity[winners[hit]].astype(np.float32)
             out[s.name] = _grid.make_laserscan(stamp_ns=stamp, frame_id=frame, grid=s.grid,
                                                ranges=ranges, intensities=ints,
                                                options=s.options)
         return out
+
+    def _decode_all(self, best: np.ndarray[Any, Any], intensity: np.ndarray[Any, Any] | None
+                    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
+        """Ranges and intensities (float32, slices back to back) in one compiled call (the
+        slices' :func:`converters._kernels.slices_numba._decode_slices`); None without numba."""
+        if self._kernel is None:
+            return None
+        from converters._kernels import slices_numba
+        kernels = slices_numba.kernels()
+        if kernels is None:
+            return None
+        ranges = np.empty(self._size, np.float32)
+        ints = np.empty(self._size if intensity is not None else 0, np.float32)
+        kernels.decode_slices(best, *self._decode_args,
+                              _NO_VALUES if intensity is None else intensity, _NO_KEYS,
+                              ranges, ints)
+        return ranges, ints
 
 
 def cloud_to_laserscan(cloud: Any, *, min_height: float, max_height: float,
