@@ -330,7 +330,9 @@ class CloudSliceConverter:
         if kernels is None:
             return None
         ranges = np.empty(self._size, np.float32)
-        ints = np.empty(self._size if intensity is not None else 0, np.float32)
+        # an empty cloud's (empty) intensities are not read: every bin is empty, intensity 0
+        ints = (np.zeros if intensity is not None and intensity.size == 0 else np.empty)(
+            self._size if intensity is not None else 0, np.float32)
         kernels.decode_slices(best, *self._decode_args,
                               _NO_VALUES if intensity is None else intensity, _NO_KEYS,
                               ranges, ints)
