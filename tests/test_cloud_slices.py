@@ -462,3 +462,133 @@ def test_import_is_cheap() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.split()
     assert out == ["False", "False"]
+
+
+# ------------------------------------------------------------------- node core and CLI
+
+def test_cloud_slicer_of_the_node_parameters() -> None:
+    """The node's parameters -> CloudSlicer (per cloud frame and extrinsics), the same slices
+    as the library; a gridless cloud is no error for it."""
+    from converters.nodes import cloud_to_scan_node as c2s
+
+    node, per_slice = c2s._specs()
+    values = {s.name: s.default for s in node}
+    assert c2s.slicer(values) is None                          # no slices configured
+    values["slice_names"] = ["low"]
+    values.update({t.for_name("low").name: t.default for t in per_slice})
+    with pytest.raises(ConfigError, match="slices.low.min_height"):
+        c2s.slicer(values)
+    values["slices.low.min_height"], values["slices.low.max_height"] = 0.0, 1.0
+    values["slices.low.range_min"], values["slices.low.range_max"] = 3.0, 1.0
+    with pytest.raises(ConfigError, match="range_max"):         # the library's rule
+        c2s.slicer(values)
+    values["slices.low.range_min"], values["slices.low.range_max"] = None, None
+    values["target_frame"] = "base_link"
+    sl = c2s.slicer(values)
+    assert sl is not None and sl.slices[0].topic == "slices/low"
+    rng = np.random.default_rng(3)
+    xyz = random_points(rng, 400)
+    cloud = make_cloud(xyz, layout=LIVOX)
+    ext = pose(z=0.3, yaw=0.5)
+    out = sl.convert(cloud, ext)
+    assert out["low"].header.frame_id == "base_link"
+    assert_same(out["low"], ref_cloud_slice(xyz, np.arange(len(xyz)), zmin=0.0, zmax=1.0,
+                                            ext=ext))
+
+
+def _livox_mcap(path: Any, demo: Any) -> list[Any]:
+    """An MCAP with the demo's organized cloud (/lidar/points), its /tf_static, and a gridless
+    Livox cloud (/livox/points, frame os_sensor) per demo cloud. Returns the Livox clouds."""
+    from lidarscan.mcap import McapWriter, read_messages
+
+    rng = np.random.default_rng(5)
+    clouds = []
+    with McapWriter(path) as writer:
+        for item in read_messages(demo):
+            if item.topic not in ("/lidar/points", "/tf_static"):
+                continue
+            writer.write(item.topic, item.payload, msgtype=item.msgtype,
+                         log_time_ns=item.log_time_ns)
+            if item.topic == "/lidar/points":
+                cloud = make_cloud(random_points(rng, 2000), layout=LIVOX, frame="os_sensor",
+                                   stamp=(item.log_time_ns // 10**9, item.log_time_ns % 10**9))
+                writer.write("/livox/points", cloud, log_time_ns=item.log_time_ns)
+                clouds.append(cloud)
+    return clouds
+
+
+@pytest.fixture(scope="module")
+def demo_mcap(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    from converters.demo import run_demo
+
+    return run_demo(tmp_path_factory.mktemp("demo"), frames=2, images=False).mcap_path
+
+
+def test_convert_slices_clouds_without_a_grid(tmp_path: Any, demo_mcap: Any,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    from converters import cli
+    from converters.nodes.tf import TransformBuffer
+    from lidarscan.mcap import BadMessage, read_messages
+
+    src, dst = tmp_path / "in.mcap", tmp_path / "out.mcap"
+    livox = _livox_mcap(src, demo_mcap)
+    status = cli.main(["convert", str(src), str(dst), "--slice", "low:0.05:0.5",
+                       "--slice", "high:0.5:2.0", "--frame", "base_link"])
+    err = capsys.readouterr().err
+    assert status == 0, err
+    assert "/livox/points: no LidarScan from its clouds" in err and "slices only" in err
+    out: dict[str, list[Any]] = {}
+    tf = TransformBuffer()
+    for item in read_messages(dst):
+        assert not isinstance(item, BadMessage)
+        out.setdefault(item.topic, []).append(item)
+    # the organized cloud: LidarScan + info as before, and now its slices too
+    assert len(out["/lidar/lidar_scan"]) == 2 and len(out["/lidar/slices/low"]) == 2
+    # the gridless cloud: its slices instead of a failure
+    assert "/livox/lidar_scan" not in out
+    assert len(out["/livox/slices/low"]) == len(out["/livox/slices/high"]) == 2
+    tf.add_message(out["/tf_static"][0].decode(), static=True)
+    ext = tf.lookup("base_link", "os_sensor")
+    expected = CloudSliceConverter({"low": SliceSpec(0.05, 0.5)}, extrinsics=ext,
+                                   frame_id="base_link").convert(livox[0])["low"]
+    got = out["/livox/slices/low"][0].decode()
+    assert got.header.frame_id == "base_link"
+    assert_same(got, arrays(expected))
+    # without --slice such a cloud is still a bad message (nothing to make of it)
+    assert cli.main(["convert", str(src), str(tmp_path / "o2.mcap"), "-q"]) == 1
+
+
+@pytest.mark.ros
+def test_cloud_to_scan_node_publishes_slices_of_a_gridless_cloud(monkeypatch: Any) -> None:
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import LaserScan, PointCloud2
+
+    from converters.nodes.cloud_to_scan_node import CloudToScanNode
+    from test_nodes import DOMAIN, Graph
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=DOMAIN)
+    graph = None
+    try:
+        graph = Graph(context)
+        node = graph.add(CloudToScanNode(context=context, parameter_overrides=[
+            Parameter("slice_names", value=["low"]),
+            Parameter("slices.low.min_height", value=0.0),
+            Parameter("slices.low.max_height", value=1.0),
+            Parameter("target_frame", value="base_link"),
+            Parameter("extrinsics", value=[0.0, 0.0, 0.3, 0.0, 0.0, 0.0])]))
+        pub = graph.publisher(PointCloud2, "points", "sensor_data")
+        got = graph.collect(LaserScan, "slices/low")
+        xyz = random_points(np.random.default_rng(9), 1500)
+        cloud = make_cloud(xyz, layout=LIVOX)
+        assert graph.wait(lambda: bool(got), tick=lambda: pub.publish(cloud))
+        assert node.stats["bad"] == 0 and node.stats["no_grid"] >= 1
+        assert got[0].header.frame_id == "base_link"
+        assert_same(got[0], ref_cloud_slice(xyz, np.arange(len(xyz)), zmin=0.0, zmax=1.0,
+                                            ext=pose(z=0.3)))
+    finally:
+        if graph is not None:
+            graph.close()
+        rclpy.try_shutdown(context=context)
