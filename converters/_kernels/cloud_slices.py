@@ -88,15 +88,17 @@ def _approx_bins(px: Any, py: Any, count: int, amin: float, inc: float, inv: flo
     wrap point, or the point is at the origin (then the caller takes ``math.atan2``).
 
     Straight-line loops (no calls, no branches) so that the compiler vectorises them."""
+    fsize = float(size)
     if full:
         for j in range(count):
-            e = (atan2_approx(py[j], px[j]) - amin) * inv - 0.5
-            safe = (abs(e - math.floor(e + 0.5)) * inc > 2.0 * EPS) & (abs(e) < 1e9)  # NaN: no
-            k = np.int32(math.ceil(e if safe else 0.0))
-            k = k - size if k >= size else k
-            k = k + size if k < 0 else k
-            safe = safe & (k >= 0) & (k < size)
-            out[j] = k if safe else -2
+            e = (atan2_approx(py[j], px[j]) - amin) * inv - 0.5   # bin edges: integer e
+            kf = math.ceil(e)
+            edge = kf - e                                          # NaN at the origin
+            safe = (min(edge, 1.0 - edge) * inc > 2.0 * EPS) & (abs(e) < 1e9)
+            kf = kf - fsize if kf >= fsize else kf
+            kf = kf + fsize if kf < 0.0 else kf
+            safe = safe & (kf >= 0.0) & (kf < fsize)
+            out[j] = np.int32(kf if safe else -2.0)
         return
     half = 0.5 * inc
     inv_2pi = 1.0 / _TWO_PI
@@ -106,10 +108,11 @@ def _approx_bins(px: Any, py: Any, count: int, amin: float, inc: float, inv: flo
         fw = math.floor(w)
         wrap_far = min(w - fw, fw + 1.0 - w) * _TWO_PI > 2.0 * EPS
         e = (d - _TWO_PI * fw) * inv - 0.5
-        safe = (abs(e - math.floor(e + 0.5)) * inc > 2.0 * EPS) & (abs(e) < 1e9) & wrap_far
-        k = np.int32(math.ceil(e if safe else 0.0))
-        k = k if (k >= 0) & (k < size) else -1
-        out[j] = k if safe else -2
+        kf = math.ceil(e)
+        edge = kf - e
+        safe = (min(edge, 1.0 - edge) * inc > 2.0 * EPS) & (abs(e) < 1e9) & wrap_far
+        kf = kf if (kf >= 0.0) & (kf < fsize) else -1.0
+        out[j] = np.int32(kf if safe else -2.0)
 
 
 def _flush(bx: Any, by: Any, bz: Any, bi: Any, bk: Any, count: int, zlo: Any, zhi: Any,
