@@ -353,8 +353,9 @@ def cloud_to_laserscan(cloud: Any, *, min_height: float, max_height: float,
     ``(min_height, max_height)`` (inclusive, metres in the target frame); for several slices of
     the same cloud use :class:`CloudSliceConverter` (one pass).
     """
-    return CloudSliceConverter(
+    converter = CloudSliceConverter(
         {"slice": SliceSpec(min_height, max_height)}, extrinsics=extrinsics, frame_id=frame_id,
         angle_min=angle_min, angle_max=angle_max, angle_increment=angle_increment,
         range_min=range_min, range_max=range_max, intensity_field=intensity_field,
-        use_inf=use_inf, inf_epsilon=inf_epsilon, fill=fill, backend=backend).convert(cloud)["slice"]
+        use_inf=use_inf, inf_epsilon=inf_epsilon, fill=fill, backend=backend)
+    return converter.convert(cloud)["slice"]

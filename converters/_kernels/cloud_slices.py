@@ -5,18 +5,20 @@ One kernel, ``fuse_points``, doing exactly what ``converters.cloud_slices._fuse_
 (the reference): per point (x, y, z read as float64 from the cloud's own float32 / float64
 fields, native byte order), skip it unless all three are finite, transform it once into the
 target frame (``m``: rotation row-major then translation, evaluated in the same order as the
-reference), then for every slice whose inclusive band holds ``z``: the bin of its grid (computed
-once per point and grid), the code of its planar range (:mod:`converters._grid`) and the
-minimum of ``code << 32 | point index`` in the reduction array.
+reference) and keep it when its z lies in the hull of the bands. Kept points are buffered in
+chunks of ``_CHUNK``; per chunk: the bin of every point once per distinct grid (one vectorised
+loop), its planar range and float32 code once, then band by band the minimum of
+``code << 32 | point index`` in the reduction array for the points inside the band.
 
 Binning without libm's ``atan2`` for almost every point: an odd polynomial of ``atan`` on
-``[0, 1]`` (8 terms, error below 4e-8 rad, checked by a test) after the octant reduction,
-written with selects rather than branches, gives the azimuth within ``EPS`` = 1e-7 rad. The bin is a monotone
-function of the azimuth, so when the approximate azimuth is more than ``_EPS`` from every bin
-edge (and, for sectors, from the wrap point) the bin is the one of the exact ``atan2``; the
-other points (about ``4e-7 / increment`` of them: 7e-5 at 2*pi/1024) take ``math.atan2``. Results therefore equal
-the reference except for points within an ulp of a bin edge, where numpy's SIMD ``arctan2``
-and libm's may differ in the last bit (as for the structured slices).
+``[0, 1]`` (8 terms, error below 4e-8 rad, checked by a test) after the octant reduction
+(arithmetic blends, no branches, so the loop vectorises) gives the azimuth within ``EPS`` =
+1e-7 rad. The bin is a monotone function of the azimuth, so when the approximate azimuth is
+more than ``2 * EPS`` from every bin edge (and, for sectors, from the wrap point) the bin is
+the one of the exact ``atan2``; the other points (about ``4e-7 / increment`` of them: 7e-5 at
+2*pi/1024) and points at the origin take ``math.atan2``. Results therefore equal the reference
+except for points within an ulp of a bin edge, where numpy's SIMD ``arctan2`` and libm's may
+differ in the last bit (as for the structured slices).
 
 Chosen by :func:`converters._kernels.select` (``"cloud_slices"``), which reads the switches.
 """
@@ -115,33 +117,39 @@ def _approx_bins(px: Any, py: Any, count: int, amin: float, inc: float, inv: flo
         out[j] = np.int32(kf if safe else -2.0)
 
 
-def _flush(bx: Any, by: Any, bz: Any, bi: Any, bk: Any, count: int, zlo: Any, zhi: Any,
-           rlo: Any, rhi: Any, sgrid: Any, soff: Any, gmin: Any, ginc: Any, ginv: Any,
+def _flush(bx: Any, by: Any, bz: Any, bi: Any, bk: Any, brho: Any, bbits: Any, count: int,
+           zlo: Any, zhi: Any, rlo: Any, rhi: Any, sgrid: Any, soff: Any, gmin: Any, ginc: Any,
+           ginv: Any,
            gsize: Any, gfull: Any, best: Any) -> None:  # pragma: no cover - compiled
-    """Fuse ``count`` buffered points (target-frame x, y, z and cloud index) into ``best``."""
+    """Fuse ``count`` buffered points (target-frame x, y, z and cloud index) into ``best``:
+    bins per grid and planar ranges first, then band by band (the branches on the band
+    follow runs of points and are predicted; ``brho``, ``bbits``: scratch)."""
     n_s = zlo.shape[0]
     for g in range(gmin.shape[0]):
         _approx_bins(bx, by, count, gmin[g], ginc[g], ginv[g], gsize[g], gfull[g], bk[g])
-    for j in range(count):
-        px, py, pz = bx[j], by[j], bz[j]
-        rho = math.sqrt(px * px + py * py)
-        # float32 bit pattern of rho; beyond the float32 range: +Inf
-        bits = CODE_POS_INF if rho > _F32_MAX else np.int64(np.float32(rho).view(np.int32))
-        key = bi[j]
-        for s in range(n_s):
-            if pz < zlo[s] or pz > zhi[s]:
+    for j in range(count):                       # vectorised: planar range
+        brho[j] = math.sqrt(bx[j] * bx[j] + by[j] * by[j])
+    for j in range(count):                       # its float32 bits; beyond float32: +Inf
+        rho = brho[j]
+        bbits[j] = CODE_POS_INF if rho > _F32_MAX else np.int64(np.float32(rho).view(np.int32))
+    for s in range(n_s):
+        lo, hi, rl, rh, off = zlo[s], zhi[s], rlo[s], rhi[s], soff[s]
+        g = sgrid[s]
+        for j in range(count):
+            pz = bz[j]
+            if pz < lo or pz > hi:
                 continue
-            g = sgrid[s]
             b = np.int64(bk[g, j])
             if b == -2:                                  # rare: near a bin edge
-                b = _bin_exact(math.atan2(py, px), gmin[g], ginc[g], gsize[g], gfull[g])
+                b = _bin_exact(math.atan2(by[j], bx[j]), gmin[g], ginc[g], gsize[g], gfull[g])
                 bk[g, j] = b
             if b < 0:
                 continue
-            code = CODE_NEG_INF if rho < rlo[s] else bits
-            code = CODE_POS_INF if rho > rhi[s] else code
-            v = (code << 32) | key
-            t = soff[s] + b
+            rho = brho[j]
+            code = CODE_NEG_INF if rho < rl else bbits[j]
+            code = CODE_POS_INF if rho > rh else code
+            v = (code << 32) | bi[j]
+            t = off + b
             if v < best[t]:
                 best[t] = v
 
@@ -155,12 +163,14 @@ def _fuse_points(xs: Any, ys: Any, zs: Any, m: Any, zlo: Any, zhi: Any, rlo: Any
                  best: Any) -> None:  # pragma: no cover - compiled
     """See the module docstring; ``best``: (total bins,) int64 reduction array updated in
     place. Points inside the hull of the bands are buffered in chunks; each chunk's bins are
-    computed in one vectorised loop per grid, then fused into every band."""
+    computed in one vectorised loop per grid, then fused into every band it falls in."""
     bx = np.empty(_CHUNK)
     by = np.empty(_CHUNK)
     bz = np.empty(_CHUNK)
     bi = np.empty(_CHUNK, np.int64)
     bk = np.empty((gmin.shape[0], _CHUNK), np.int32)
+    brho = np.empty(_CHUNK)
+    bbits = np.empty(_CHUNK, np.int64)
     c = 0
     for i in range(xs.shape[0]):
         x = float(xs[i])
@@ -177,12 +187,12 @@ def _fuse_points(xs: Any, ys: Any, zs: Any, m: Any, zlo: Any, zhi: Any, rlo: Any
         bi[c] = i
         c += 1
         if c == _CHUNK:
-            _flush(bx, by, bz, bi, bk, c, zlo, zhi, rlo, rhi, sgrid, soff, gmin, ginc, ginv,
-                   gsize, gfull, best)
+            _flush(bx, by, bz, bi, bk, brho, bbits, c, zlo, zhi, rlo, rhi, sgrid, soff, gmin,
+                   ginc, ginv, gsize, gfull, best)
             c = 0
     if c:
-        _flush(bx, by, bz, bi, bk, c, zlo, zhi, rlo, rhi, sgrid, soff, gmin, ginc, ginv,
-               gsize, gfull, best)
+        _flush(bx, by, bz, bi, bk, brho, bbits, c, zlo, zhi, rlo, rhi, sgrid, soff, gmin,
+               ginc, ginv, gsize, gfull, best)
 
 
 def _load() -> Any:
