@@ -301,41 +301,37 @@ class CloudSliceConverter:
         best = self._fuse(*_xyz(cloud, points))
         intensity = _intensity(cloud, points, self.intensity_field)
         frame = self._frame_id or str(cloud.header.frame_id)
-        decoded = self._decode_all(best, intensity)
+        ranges, ints = self._decode(best, intensity)
         out: dict[str, Any] = {}
         for s, off in zip(self.slices, self._offsets):
-            if decoded is not None:
-                ranges = decoded[0][off:off + s.grid.size]
-                ints = None if intensity is None else decoded[1][off:off + s.grid.size]
-            else:
-                ranges, winners = _grid.decode(best[off:off + s.grid.size], s.options)
-                ints = None
-                if intensity is not None:
-                    ints = np.zeros(s.grid.size, np.float32)
-                    hit = winners >= 0
-                    ints[hit] = intensity[winners[hit]].astype(np.float32)
-            out[s.name] = _grid.make_laserscan(stamp_ns=stamp, frame_id=frame, grid=s.grid,
-                                               ranges=ranges, intensities=ints,
-                                               options=s.options)
+            part = slice(off, off + s.grid.size)
+            out[s.name] = _grid.make_laserscan(
+                stamp_ns=stamp, frame_id=frame, grid=s.grid, ranges=ranges[part],
+                intensities=None if ints is None else ints[part], options=s.options)
         return out
 
-    def _decode_all(self, best: np.ndarray[Any, Any], intensity: np.ndarray[Any, Any] | None
-                    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
-        """Ranges and intensities (float32, slices back to back) in one compiled call (the
-        slices' :func:`converters._kernels.slices_numba._decode_slices`); None without numba."""
-        if self._kernel is None:
-            return None
+    def _decode(self, best: np.ndarray[Any, Any], intensity: np.ndarray[Any, Any] | None
+                ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
+        """Published ranges and winners' intensities (float32, all slices back to back; None
+        without intensity): one compiled call (the slices'
+        :func:`converters._kernels.slices_numba._decode_slices`) when numba is used, else
+        :func:`converters._grid.decode` per slice."""
         from converters._kernels import slices_numba
-        kernels = slices_numba.kernels()
-        if kernels is None:
-            return None
+
+        kernels = None if self._kernel is None else slices_numba.kernels()
         ranges = np.empty(self._size, np.float32)
-        # an empty cloud's (empty) intensities are not read: every bin is empty, intensity 0
-        ints = (np.zeros if intensity is not None and intensity.size == 0 else np.empty)(
-            self._size if intensity is not None else 0, np.float32)
-        kernels.decode_slices(best, *self._decode_args,
-                              _NO_VALUES if intensity is None else intensity, _NO_KEYS,
-                              ranges, ints)
+        ints = None if intensity is None else np.zeros(self._size, np.float32)
+        if kernels is not None:
+            kernels.decode_slices(best, *self._decode_args,
+                                  _NO_VALUES if intensity is None else intensity, _NO_KEYS,
+                                  ranges, _NO_VALUES if ints is None else ints)
+            return ranges, ints
+        for s, off in zip(self.slices, self._offsets):
+            part = slice(off, off + s.grid.size)
+            ranges[part], winners = _grid.decode(best[part], s.options)
+            if ints is not None and intensity is not None:
+                hit = winners >= 0
+                ints[part][hit] = intensity[winners[hit]].astype(np.float32)
         return ranges, ints
 
 

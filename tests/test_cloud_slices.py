@@ -19,6 +19,7 @@ from converters.cloud_slices import CloudSliceConverter, cloud_points, cloud_to_
 from converters.laserscan import SliceSpec
 from grid_reference import RANK, pose, ref_bin, ref_grid
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
+from test_nodes import graph  # noqa: F401 - the DDS graph fixture of the node tests
 
 F32 = np.float32
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
@@ -559,36 +560,24 @@ def test_convert_slices_clouds_without_a_grid(tmp_path: Any, demo_mcap: Any,
 
 
 @pytest.mark.ros
-def test_cloud_to_scan_node_publishes_slices_of_a_gridless_cloud(monkeypatch: Any) -> None:
-    rclpy = pytest.importorskip("rclpy")
+def test_cloud_to_scan_node_publishes_slices_of_a_gridless_cloud(graph: Any) -> None:
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import LaserScan, PointCloud2
 
     from converters.nodes.cloud_to_scan_node import CloudToScanNode
-    from test_nodes import DOMAIN, Graph
 
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=DOMAIN)
-    graph = None
-    try:
-        graph = Graph(context)
-        node = graph.add(CloudToScanNode(context=context, parameter_overrides=[
-            Parameter("slice_names", value=["low"]),
-            Parameter("slices.low.min_height", value=0.0),
-            Parameter("slices.low.max_height", value=1.0),
-            Parameter("target_frame", value="base_link"),
-            Parameter("extrinsics", value=[0.0, 0.0, 0.3, 0.0, 0.0, 0.0])]))
-        pub = graph.publisher(PointCloud2, "points", "sensor_data")
-        got = graph.collect(LaserScan, "slices/low")
-        xyz = random_points(np.random.default_rng(9), 1500)
-        cloud = make_cloud(xyz, layout=LIVOX)
-        assert graph.wait(lambda: bool(got), tick=lambda: pub.publish(cloud))
-        assert node.stats["bad"] == 0 and node.stats["no_grid"] >= 1
-        assert got[0].header.frame_id == "base_link"
-        assert_same(got[0], ref_cloud_slice(xyz, np.arange(len(xyz)), zmin=0.0, zmax=1.0,
-                                            ext=pose(z=0.3)))
-    finally:
-        if graph is not None:
-            graph.close()
-        rclpy.try_shutdown(context=context)
+    node = graph.add(CloudToScanNode(context=graph.context, parameter_overrides=[
+        Parameter("slice_names", value=["low"]),
+        Parameter("slices.low.min_height", value=0.0),
+        Parameter("slices.low.max_height", value=1.0),
+        Parameter("target_frame", value="base_link"),
+        Parameter("extrinsics", value=[0.0, 0.0, 0.3, 0.0, 0.0, 0.0])]))
+    pub = graph.publisher(PointCloud2, "points", "sensor_data")
+    got = graph.collect(LaserScan, "slices/low")
+    xyz = random_points(np.random.default_rng(9), 1500)
+    cloud = make_cloud(xyz, layout=LIVOX)
+    assert graph.wait(lambda: bool(got), tick=lambda: pub.publish(cloud))
+    assert node.stats["bad"] == 0 and node.stats["no_grid"] >= 1
+    assert got[0].header.frame_id == "base_link"
+    assert_same(got[0], ref_cloud_slice(xyz, np.arange(len(xyz)), zmin=0.0, zmax=1.0,
+                                        ext=pose(z=0.3)))

@@ -262,24 +262,15 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
         S("allow_unknown_parameters", False, "start even with parameters this node does not "
           "know (a typo is otherwise an error)", read_only=True),
     )
-    per_slice = (
-        S("slices.NAME.min_height", None, "slice NAME: lowest z in target_frame, metres "
-          "(required)", kind="float"),
-        S("slices.NAME.max_height", None, "slice NAME: highest z, metres (required)",
-          kind="float"),
-        S("slices.NAME.topic", "", "slice NAME: output topic ('' = slices/NAME)",
-          read_only=True),
-        S("slices.NAME.angle_min", None, "slice NAME: first bin, radians (default -pi)",
-          kind="float"),
-        S("slices.NAME.angle_max", None, "slice NAME: last bin, radians (default a full "
-          "circle)", kind="float"),
-        S("slices.NAME.angle_increment", None, "slice NAME: bin width, radians (default "
-          "pi/360)", kind="float", low=0.0),
-        S("slices.NAME.range_min", None, "slice NAME: planar range min, metres (default 0)",
-          kind="float", low=0.0),
-        S("slices.NAME.range_max", None, "slice NAME: planar range max, metres (default inf)",
-          kind="float", low=0.0),
-    )
+    # the converter node's slice templates, with the defaults of a cloud (no sensor grid)
+    from converters.nodes.converter_node import _specs as converter_specs
+
+    cloud_defaults = {"angle_increment": "pi/360", "range_min": "0", "range_max": "inf"}
+    per_slice = tuple(
+        dataclasses.replace(t, description=t.description.rsplit("(default", 1)[0]
+                            + f"(default {cloud_defaults[t.name.rsplit('.', 1)[1]]})")
+        if t.name.rsplit(".", 1)[1] in cloud_defaults else t
+        for t in converter_specs()[1])
     return node, per_slice
 
 
@@ -320,27 +311,17 @@ def slicer(values: Mapping[str, Any], extra_slices: Sequence[Any] = ()) -> Cloud
     Raises:
         ConfigError: a slice without heights, duplicate names, bad slice options.
     """
-    from converters.nodes.params import SliceConfig, with_topic
+    from converters.nodes import converter_node
 
-    specs = []
-    for name in values["slice_names"]:
-        prefix = f"slices.{name}."
-        kw = {k: values.get(prefix + k) for k in ("min_height", "max_height", "angle_min",
-                                                  "angle_max", "angle_increment", "range_min",
-                                                  "range_max")}
-        for key in ("min_height", "max_height"):
-            if kw[key] is None:
-                raise ConfigError(prefix + key, None, "a height in metres (required)")
-        specs.append(SliceConfig(str(name), topic=values.get(prefix + "topic", ""), **kw))
-    specs.extend(extra_slices)
-    names = [s.name for s in specs]
-    if len(set(names)) != len(names):
-        raise ConfigError("slice_names", names, "unique slice names")
+    # the converter node's rules for slice parameters (required heights, unique names, topics)
+    keys = {s.name: s.default for s in converter_node._specs()[0]}
+    keys.update({k: v for k, v in values.items()
+                 if k == "slice_names" or k.startswith("slices.")})
+    specs = converter_node.settings(keys, extra_slices)["slices"]
     if not specs:
         return None
     field = values["slice_intensity_field"]
-    return CloudSlicer([with_topic(s, "slices") for s in specs],
-                       target_frame=values["target_frame"],
+    return CloudSlicer(specs, target_frame=values["target_frame"],
                        intensity_field=IfPresent(field) if field else None)
 
 
