@@ -792,7 +792,6 @@ def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan:
     from converters.nodes.cloud_to_scan_node import CloudSlicer, CloudToScanCore
     from converters.nodes.tf import TransformBuffer
     from lidarscan.errors import LidarScanError
-    from lidarscan.stamps import to_ns
 
     cores = {t: CloudToScanCore() for t in plan.prefix}
     slicer = CloudSlicer(slices, target_frame=args.frame) if slices else None
@@ -813,40 +812,52 @@ def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan:
         ns = plan.prefix[item.topic]
         try:
             cloud = item.decode()
-            out = {} if slicer is None else slicer.convert(
-                cloud, _cloud_extrinsics(cloud, args, tf, fallback, to_ns))
+            scan, info, changed = core.convert(cloud) if slicer is None else \
+                _grid_or_none(core, cloud)
         except LidarScanError as err:
             report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
             continue
-        try:
-            scan, info, changed = core.convert(cloud)
-        except LidarScanError as err:
-            if slicer is None:
-                report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
-                continue
-            if item.topic not in gridless and not args.quiet:
-                _err(f"{item.topic}: no LidarScan from its clouds ({err}); writing their "
-                     "slices only")
-            gridless.add(item.topic)
-        else:
+        if scan is not None:
             if changed:
                 writer.write(f"{ns}/lidar_info", info, log_time_ns=item.log_time_ns)
             writer.write(f"{ns}/lidar_scan", scan, log_time_ns=item.log_time_ns)
-        for name, msg in out.items():
-            writer.write(f"{ns}/slices/{name}", msg, log_time_ns=item.log_time_ns)
-            merge(f"{ns}/slices/{name}", msg, item.log_time_ns)
+        elif item.topic not in gridless:
+            gridless.add(item.topic)
+            if not args.quiet:
+                _err(f"{item.topic}: a cloud gave no LidarScan ({info}); its slices are "
+                     "written (said once per topic)")
+        if slicer is not None:
+            try:
+                out = slicer.convert(cloud, _cloud_extrinsics(cloud, args, tf, fallback))
+            except LidarScanError as err:
+                report.report_bad(item.index, item.topic, item.log_time_ns,
+                                  f"no slices: {err}", emit)
+                continue
+            for name, msg in out.items():
+                writer.write(f"{ns}/slices/{name}", msg, log_time_ns=item.log_time_ns)
+                merge(f"{ns}/slices/{name}", msg, item.log_time_ns)
         report.converted += 1
         if args.keep_clouds:
             _copy(writer, item, plan, report)
 
 
-def _cloud_extrinsics(cloud: Any, args: argparse.Namespace, tf: Any, fallback: Any,
-                      to_ns: Callable[..., int]) -> Any:
+def _grid_or_none(core: Any, cloud: Any) -> tuple[Any, Any, bool]:
+    """``core.convert(cloud)``, or (None, the reason, False) for a cloud that has no grid."""
+    from lidarscan.errors import LidarScanError
+
+    try:
+        return core.convert(cloud)  # type: ignore[no-any-return]
+    except LidarScanError as err:
+        return None, err, False
+
+
+def _cloud_extrinsics(cloud: Any, args: argparse.Namespace, tf: Any, fallback: Any) -> Any:
     """``--frame`` <- the cloud's frame from the file's TF at the cloud's stamp, else
     ``--extrinsics``; None without ``--frame`` (raises TransformLookupError naming --frame)."""
     import numpy as np
 
     from converters.nodes.tf import TransformLookupError
+    from lidarscan.stamps import to_ns
 
     source = str(cloud.header.frame_id)
     if not args.frame or args.frame == source:

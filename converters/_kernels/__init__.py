@@ -79,8 +79,8 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
 
     Args:
         task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"``, ``"merger"`` or
-            ``"cloud_slices"`` (chosen by ``backend``), ``"hesai"`` / ``"velodyne"`` (packet decoding: numba when
-            enabled).
+            ``"cloud_slices"`` (chosen by ``backend``), ``"hesai"`` / ``"velodyne"`` (packet
+            decoding: numba when enabled).
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy); ``"numba"``: numba only (an
             error when it is missing); ``"numpy"``: the reference.
