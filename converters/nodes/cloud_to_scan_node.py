@@ -72,7 +72,7 @@ import numpy as np
 
 from converters.nodes.common import entry_points
 from converters.options import IfPresent
-from lidarscan.errors import ConfigError, LidarScanError
+from lidarscan.errors import LidarScanError
 
 _DEFAULT_FIELD = IfPresent("intensity")
 
