@@ -28,12 +28,13 @@ those of :mod:`converters._grid`, read its docstring):
 
 Several slices cost one pass over the points: every point is read and transformed once, its
 bin computed once per distinct grid, then fused into each band it falls in (one reduction array
-with all slices back to back, :func:`converters._grid.reduce_min`, then
+with all slices back to back, as :func:`converters._grid.reduce_min` defines it, then
 :func:`converters._grid.decode` and :func:`converters._grid.make_laserscan` per slice).
 
 Backends (:func:`converters._kernels.select`, ``"cloud_slices"``): the numpy reference here
 (:func:`_fuse_numpy`) and the numba kernel of :mod:`converters._kernels.cloud_slices` (reads the
-fields in place, no copy unless the cloud is big-endian). They give identical slices up to
+fields in place, no copy unless the cloud is big-endian or its rows are padded; decoding in one
+compiled call). They give identical slices up to
 points within an ulp of a bin edge (numpy's SIMD ``arctan2`` and libm's ``atan2`` may differ
 in the last bit).
 """
