@@ -3,6 +3,8 @@
 * LidarScan -> PointCloud2: :func:`to_pointcloud2` (driver presets, deskew);
 * PointCloud2 -> LidarScan + estimated LidarInfo: :func:`from_pointcloud2`;
 * LidarScan -> height-filtered LaserScan slices: :func:`to_laserscan`, :class:`SliceConverter`;
+* any PointCloud2 (no grid needed) -> slices: :func:`cloud_to_laserscan`,
+  :class:`CloudSliceConverter` (:mod:`converters.cloud_slices`);
 * N LaserScans -> one: :class:`LaserScanMerger` configured with :class:`MergerInput`; moving
   mounts as :class:`TransformTrack` (:mod:`converters.transforms`);
 * importers: :mod:`converters.ouster` (metadata JSON, frames), :mod:`converters.velodyne`
@@ -25,6 +27,8 @@ __all__ = [
     "from_pointcloud2",
     "to_laserscan",
     "SliceConverter",
+    "cloud_to_laserscan",
+    "CloudSliceConverter",
     "LaserScanMerger",
     "MergerInput",
     "TransformTrack",
@@ -42,6 +46,8 @@ _LAZY = {
     "from_pointcloud2": "converters.pointcloud2",
     "to_laserscan": "converters.laserscan",
     "SliceConverter": "converters.laserscan",
+    "cloud_to_laserscan": "converters.cloud_slices",
+    "CloudSliceConverter": "converters.cloud_slices",
     "LaserScanMerger": "converters.merger",
     "MergerInput": "converters.merger",
     "TransformTrack": "converters.transforms",
@@ -49,7 +55,7 @@ _LAZY = {
     "from_depth_image": "converters.depth",
 }
 _SUBMODULES = {"ouster", "velodyne", "hesai", "pointcloud2", "laserscan", "merger", "sweep",
-               "depth", "transforms"}
+               "depth", "transforms", "cloud_slices"}
 
 
 def __getattr__(name: str) -> Any:

@@ -463,8 +463,8 @@ def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any
         sources = [t for t, k in topics.items() if k == SCAN_TYPE]
         plan.prefix = _prefixes(sources)
         per = []
-    if mode != "clouds":
-        per += (["points"] if args.pointcloud2 else []) + [f"slices/{s.name}" for s in slices]
+    per += (["points"] if args.pointcloud2 and mode != "clouds" else []) + \
+        [f"slices/{s.name}" for s in slices]
     for topic in sources:
         for name in per:
             plan.outputs[f"{plan.prefix[topic]}/{name}"] = topic
@@ -541,7 +541,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
                 _convert_packets(source, writer, args, plan, decoders, slices, fallback,
                                  report, emit, progress)
             elif mode == "clouds":
-                _convert_clouds(source, writer, args, plan, report, emit, progress)
+                _convert_clouds(source, writer, args, plan, slices, fallback, report, emit,
+                                progress)
             else:
                 _convert_scans(source, writer, args, plan, slices, fallback, report, emit,
                                progress)
@@ -795,29 +796,93 @@ class _LazyMerger:
 
 
 def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan: _Plan,
-                    report: ConvertReport, emit: Callable[[str], None],
-                    progress: Progress) -> None:
-    """Driver PointCloud2 recording -> LidarScan + LidarInfo (a new info only on change)."""
-    from converters.nodes.cloud_to_scan_node import CloudToScanCore
+                    slices: Sequence[Any], fallback: Any, report: ConvertReport,
+                    emit: Callable[[str], None], progress: Progress) -> None:
+    """Driver PointCloud2 recording -> LidarScan + LidarInfo (a new info only on change); with
+    ``--slice``, every cloud's slices from its points (any cloud, grid or not:
+    :class:`converters.nodes.cloud_to_scan_node.CloudSlicer`), and a cloud without a grid
+    gives its slices instead of failing (said once per topic)."""
+    from converters.nodes.cloud_to_scan_node import CloudSlicer, CloudToScanCore
+    from converters.nodes.tf import TransformBuffer
     from lidarscan.errors import LidarScanError
 
     cores = {t: CloudToScanCore() for t in plan.prefix}
+    slicer = CloudSlicer(slices, target_frame=args.frame) if slices else None
+    tf = TransformBuffer(cache_ns=3600 * 10**9, max_per_edge=100_000)
+    merge = _merge_sink(args, plan, tf, writer)
+    gridless: set[str] = set()
     for item in report.good(source.items(progress), emit):
         core = cores.get(item.topic)
-        if core is not None:
-            try:
-                scan, info, changed = core.convert(item.decode())
-            except LidarScanError as err:
-                report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
-                continue
-            ns = plan.prefix[item.topic]
+        if core is None:
+            if slicer is not None:                     # TF for --frame, --merge-topic scans
+                try:
+                    _side_input(item, tf, args, merge)
+                except LidarScanError as err:
+                    report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
+                    continue
+            _copy(writer, item, plan, report)
+            continue
+        ns = plan.prefix[item.topic]
+        try:
+            cloud = item.decode()
+            scan, info, changed = core.convert(cloud) if slicer is None else \
+                _grid_or_none(core, cloud)
+        except LidarScanError as err:
+            report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
+            continue
+        if scan is not None:
             if changed:
                 writer.write(f"{ns}/lidar_info", info, log_time_ns=item.log_time_ns)
             writer.write(f"{ns}/lidar_scan", scan, log_time_ns=item.log_time_ns)
-            report.converted += 1
-            if not args.keep_clouds:
+        elif item.topic not in gridless:
+            gridless.add(item.topic)
+            if not args.quiet:
+                _err(f"{item.topic}: a cloud gave no LidarScan ({info}); its slices are "
+                     "written (said once per topic)")
+        if slicer is not None:
+            try:
+                out = slicer.convert(cloud, _cloud_extrinsics(cloud, args, tf, fallback))
+            except LidarScanError as err:
+                report.report_bad(item.index, item.topic, item.log_time_ns,
+                                  f"no slices: {err}", emit)
                 continue
-        _copy(writer, item, plan, report)
+            for name, msg in out.items():
+                writer.write(f"{ns}/slices/{name}", msg, log_time_ns=item.log_time_ns)
+                merge(f"{ns}/slices/{name}", msg, item.log_time_ns)
+        report.converted += 1
+        if args.keep_clouds:
+            _copy(writer, item, plan, report)
+
+
+def _grid_or_none(core: Any, cloud: Any) -> tuple[Any, Any, bool]:
+    """``core.convert(cloud)``, or (None, the reason, False) for a cloud that has no grid."""
+    from lidarscan.errors import LidarScanError
+
+    try:
+        return core.convert(cloud)  # type: ignore[no-any-return]
+    except LidarScanError as err:
+        return None, err, False
+
+
+def _cloud_extrinsics(cloud: Any, args: argparse.Namespace, tf: Any, fallback: Any) -> Any:
+    """``--frame`` <- the cloud's frame from the file's TF at the cloud's stamp, else
+    ``--extrinsics``; None without ``--frame`` (raises TransformLookupError naming --frame)."""
+    import numpy as np
+
+    from converters.nodes.tf import TransformLookupError
+    from lidarscan.stamps import to_ns
+
+    source = str(cloud.header.frame_id)
+    if not args.frame or args.frame == source:
+        return None
+    try:
+        return tf.lookup(args.frame, source, to_ns(cloud.header.stamp))
+    except TransformLookupError as err:
+        if fallback is not None:
+            return np.asarray(fallback)
+        raise TransformLookupError(
+            "--frame", args.frame, f"a transform {args.frame} <- {source} in the file's /tf or "
+            f"/tf_static, or --extrinsics ({err})") from err
 
 
 def _packet_decoders(topics: dict[str, str]) -> dict[str, Any]:
@@ -1097,8 +1162,10 @@ def build_parser() -> argparse.ArgumentParser:
                     ".pcap/.osf. LidarScan recording: copy every message and add PointCloud2 "
                     "(<ns>/points), slices (<ns>/slices/NAME) and a merged scan. Driver "
                     "PointCloud2 (no LidarScan in it): convert the organized clouds to "
-                    "<ns>/lidar_scan + <ns>/lidar_info. Raw packets (velodyne_msgs/"
-                    "VelodyneScan, pandar_msgs/PandarScan): <topic>/lidar_info + "
+                    "<ns>/lidar_scan + <ns>/lidar_info; with --slice, every cloud (any "
+                    "layout, grid or not, e.g. Livox) also gives <ns>/slices/NAME from its "
+                    "points, and a cloud without a grid gives only those. Raw packets "
+                    "(velodyne_msgs/VelodyneScan, pandar_msgs/PandarScan): <topic>/lidar_info + "
                     "<topic>/lidar_scan (+ outputs). An Ouster .pcap/.osf (needs ouster-sdk): "
                     "/lidar/info + /lidar/scan (+ outputs). Copied topics keep their channel "
                     "metadata (QoS). Bad messages and damaged parts of IN are reported on "

@@ -23,6 +23,9 @@ numba       :mod:`.hesai`                   ``pip install numba``    Hesai packe
                                             (extra ``fast``)         (converters.hesai)
 numba       :mod:`.velodyne`                ``pip install numba``    Velodyne packets -> grids
                                             (extra ``fast``)         (converters.velodyne)
+numba       :mod:`.cloud_slices`            ``pip install numba``    unstructured PointCloud2 ->
+                                            (extra ``fast``)         slices
+                                                                     (converters.cloud_slices)
 numpy       the converters themselves       --                       everything (the reference)
 ==========  ==============================  =======================  ============================
 
@@ -81,9 +84,9 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
     """The backends of one converter object.
 
     Args:
-        task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"`` or ``"merger"``
-            (chosen by ``backend``), ``"hesai"`` / ``"velodyne"`` (packet decoding: numba when
-            enabled).
+        task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"``, ``"merger"`` or
+            ``"cloud_slices"`` (chosen by ``backend``), ``"hesai"`` / ``"velodyne"`` (packet
+            decoding: numba when enabled).
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy); ``"numba"``: numba only (an
             error when it is missing); ``"numpy"``: the reference.
@@ -108,10 +111,18 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
     if task == "velodyne":
         from converters._kernels import velodyne
         return Backends(numba=velodyne.fill_kernel() if numba_enabled() else None)
-    if task not in ("slices", "merger"):
-        raise ConfigError("task", task, "'cloud', 'slices', 'merger', 'hesai' or 'velodyne'")
+    if task not in ("slices", "merger", "cloud_slices"):
+        raise ConfigError("task", task, "'cloud', 'slices', 'merger', 'cloud_slices', 'hesai' "
+                          "or 'velodyne'")
     if backend not in ("auto", "numba", "numpy"):
         raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
+    if task == "cloud_slices":
+        from converters._kernels import cloud_slices
+        fn = cloud_slices.kernel() if backend != "numpy" and numba_enabled() else None
+        if backend == "numba" and fn is None:
+            raise ConfigError("backend", backend, "numba installed (pip install numba) and "
+                              "LIDARSCAN_NUMBA not 0")
+        return Backends(numba=fn)
     numba = None
     if backend != "numpy":
         from converters._kernels import slices_numba

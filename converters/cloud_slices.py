@@ -1,0 +1,358 @@
+"""Height-filtered LaserScan slices of any PointCloud2 (no firing grid needed), several in one pass.
+
+For clouds that have no LidarScan grid (Livox and other solid-state sensors, stereo, merged or
+filtered clouds: everything pointcloud_to_laserscan accepts), with the conventions of the
+structured slices (:mod:`converters.laserscan`; grid, binning, value classes and fusion are
+those of :mod:`converters._grid`, read its docstring):
+
+* points: fields ``x``, ``y``, ``z`` of any layout (any offsets, padding, ``point_step``,
+  ``row_step``; Livox's 26-byte packed points), either byte order, each FLOAT32 or FLOAT64
+  (:func:`converters.cloud_layout.read_points`); a point with a NaN or infinite coordinate is
+  skipped. Each point ``p`` (float64) goes once into the target frame: ``R @ p + t`` of the
+  ``extrinsics`` (target <- cloud frame), evaluated as ``R[i,0]*x + R[i,1]*y + R[i,2]*z + t[i]``;
+* band: the point takes part in a slice iff ``min_height <= z <= max_height`` (inclusive, target
+  frame); its planar range is ``rho = sqrt(x*x + y*y)`` and its bin that of ``atan2(y, x)``
+  (nearest bin, half-bin to the lower index, +pi and -pi share a bin on a full circle);
+* values: ``range_min <= rho <= range_max`` (inclusive) gives ``rho`` (float32); ``rho <
+  range_min`` gives ``-Inf`` (too close); ``rho > range_max`` (or beyond the float32 range) gives
+  ``+Inf``; per bin a finite value beats ``-Inf`` beats ``+Inf``; the smallest ``rho`` wins and
+  carries its intensity; equal values go to the first point in cloud order (row-major
+  ``v * width + u``). A cloud carries no "no return" rays, so a bin no point reaches is an empty
+  bin: it gets ``fill`` (default: what ``+Inf`` is published as, i.e. free space, as
+  pointcloud_to_laserscan does). ``NaN`` never appears unless ``fill`` is NaN;
+* default grid: full circle ``[-pi, pi)`` at ``angle_increment = pi/360`` (0.5 deg, the
+  increment of pointcloud_to_laserscan; a cloud has no column resolution); ``range_min`` 0,
+  ``range_max`` inf;
+* time fields: ``header.stamp`` = the cloud's; ``scan_time`` and ``time_increment`` are 0 (a
+  cloud's per-point times are not a sweep).
+
+Several slices cost one pass over the points: every point is read and transformed once, its
+bin computed once per distinct grid, then fused into each band it falls in (one reduction array
+with all slices back to back, as :func:`converters._grid.reduce_min` defines it, then
+:func:`converters._grid.decode` and :func:`converters._grid.make_laserscan` per slice).
+
+Backends (:func:`converters._kernels.select`, ``"cloud_slices"``): the numpy reference here
+(:func:`_fuse_numpy`) and the numba kernel of :mod:`converters._kernels.cloud_slices` (reads the
+fields in place, no copy unless the cloud is big-endian or its rows are padded; decoding in one
+compiled call). They give identical slices up to
+points within an ulp of a bin edge (numpy's SIMD ``arctan2`` and libm's ``atan2`` may differ
+in the last bit).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from converters import _grid, _kernels, options
+from converters._grid import AngleGrid, OutputOptions
+from converters.cloud_layout import read_points
+from converters.frames import check_extrinsics
+from converters.laserscan import _OVERRIDES, SliceSpec, _as_spec, _Slice
+from converters.options import IfPresent
+from lidarscan.datatypes import FLOAT32, FLOAT64
+from lidarscan.errors import ConfigError, ConversionError
+from lidarscan.stamps import to_ns
+
+__all__ = ["DEFAULT_ANGLE_INCREMENT", "CloudSliceConverter", "cloud_points",
+           "cloud_to_laserscan"]
+
+#: default bin width of a cloud's slices (radians): pointcloud_to_laserscan's pi/360
+DEFAULT_ANGLE_INCREMENT = math.pi / 360.0
+_F32_MAX = float(np.finfo(np.float32).max)
+_MAX_POINTS = 1 << 32            # tie keys are 32 bits
+_NO_VALUES = np.zeros(0, np.float32)
+_NO_KEYS = np.zeros(0, np.int64)
+
+
+def cloud_points(cloud: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any],
+                                      np.ndarray[Any, Any]]:
+    """The x, y, z fields of a PointCloud2 as flat (height * width,) arrays in cloud order.
+
+    Views into the message's buffer when it is in native byte order and rows are contiguous
+    (else copies); each float32 or float64 as its field says, native byte order.
+
+    Raises:
+        ConversionError: a missing x/y/z field, one that is not FLOAT32/FLOAT64 with count 1,
+            or inconsistent sizes (:func:`converters.cloud_layout.read_points`).
+    """
+    x, y, z = _xyz(cloud, read_points(cloud))
+    return x, y, z
+
+
+def _xyz(cloud: Any, points: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], ...]:
+    """:func:`cloud_points` from the cloud's :func:`read_points` view."""
+    fields = {str(f.name): f for f in cloud.fields}
+    out = []
+    for axis in "xyz":
+        f = fields.get(axis)
+        if f is None:
+            raise ConversionError("PointCloud2.fields", sorted(fields),
+                                  f"a field '{axis}' (x, y and z are required)")
+        if int(f.datatype) not in (FLOAT32, FLOAT64) or max(int(f.count), 1) != 1:
+            raise ConversionError(f"PointCloud2 field '{axis}'",
+                                  f"datatype {int(f.datatype)} count {int(f.count)}",
+                                  f"FLOAT32 ({FLOAT32}) or FLOAT64 ({FLOAT64}), count 1")
+        out.append(_native(points[axis].reshape(-1)))
+    return tuple(out)
+
+
+def _native(values: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """``values`` in native byte order (a copy only when they are not)."""
+    return values if values.dtype.isnative else values.astype(values.dtype.newbyteorder("="))
+
+
+def _intensity(cloud: Any, points: np.ndarray[Any, Any], wanted: str | None
+               ) -> np.ndarray[Any, Any] | None:
+    """(n,) native values of the intensity field (first element of a counted field), or
+    None."""
+    if wanted is None:
+        return None
+    names = [str(f.name) for f in cloud.fields]
+    if isinstance(wanted, IfPresent) and wanted not in names:
+        return None
+    if wanted not in names:
+        raise ConversionError("intensity_field", str(wanted),
+                              f"a field of the cloud ({', '.join(names)}) or None")
+    values = points[str(wanted)]
+    if values.ndim == 3:
+        values = values[..., 0]
+    return _native(values.reshape(-1))
+
+
+def _transform(x: np.ndarray[Any, Any], y: np.ndarray[Any, Any], z: np.ndarray[Any, Any],
+               m: np.ndarray[Any, Any], row: int) -> np.ndarray[Any, Any]:
+    """Row ``row`` of ``m @ [x y z 1]`` in float64, in the kernel's order of operations."""
+    out: np.ndarray[Any, Any] = (m[row, 0] * x + m[row, 1] * y + m[row, 2] * z) + m[row, 3]
+    return out
+
+
+def _fuse_numpy(x: np.ndarray[Any, Any], y: np.ndarray[Any, Any], z: np.ndarray[Any, Any],
+                m: np.ndarray[Any, Any], slices: list[_Slice], grids: list[AngleGrid],
+                slice_grid: list[int], offsets: np.ndarray[Any, Any], size: int
+                ) -> np.ndarray[Any, Any]:
+    """The reference: (size,) int64 reduction array of all slices back to back.
+
+    Args:
+        x, y, z: (n,) float32/float64 coordinates in the cloud frame, cloud order.
+        m: 4x4 float64 target <- cloud.
+        slices, grids, slice_grid, offsets, size: the converter's configuration.
+    """
+    x64, y64, z64 = (np.asarray(a, np.float64) for a in (x, y, z))
+    with np.errstate(invalid="ignore", over="ignore"):
+        finite = np.isfinite(x64) & np.isfinite(y64) & np.isfinite(z64)
+        idx = np.flatnonzero(finite)
+        x64, y64, z64 = x64[idx], y64[idx], z64[idx]
+        pz = _transform(x64, y64, z64, m, 2)
+        bands = [(pz >= s.min_z) & (pz <= s.max_z) for s in slices]
+        any_band = np.logical_or.reduce(bands) if bands else np.zeros(idx.size, bool)
+        sel = np.flatnonzero(any_band)             # transform and atan2 once per point
+        px = _transform(x64[sel], y64[sel], z64[sel], m, 0)
+        py = _transform(x64[sel], y64[sel], z64[sel], m, 1)
+        rho = np.sqrt(px * px + py * py)
+    theta = np.arctan2(py, px)
+    grid_bins = [grid.bins(theta) for grid in grids]
+    bits = np.where(rho > _F32_MAX, _grid.CODE_POS_INF,
+                    rho.astype(np.float32).view(np.int32).astype(np.int64))
+    keys = idx[sel].astype(np.int64)
+    all_bins, all_codes, all_keys = [], [], []
+    for s, g, off, band in zip(slices, slice_grid, offsets, bands):
+        bins = grid_bins[g]
+        keep = band[sel] & (bins >= 0)
+        codes = bits[keep].copy()
+        codes[rho[keep] < s.options.range_min] = _grid.CODE_NEG_INF
+        codes[rho[keep] > s.options.range_max] = _grid.CODE_POS_INF
+        all_bins.append(bins[keep] + off)
+        all_codes.append(codes)
+        all_keys.append(keys[keep])
+    return _grid.reduce_min(size, np.concatenate(all_bins), np.concatenate(all_codes),
+                            np.concatenate(all_keys))
+
+
+class CloudSliceConverter:
+    """Several height slices of unstructured PointCloud2s, computed together in one pass.
+
+    Args:
+        slices: name -> :class:`converters.laserscan.SliceSpec` (or a dict of its fields, the
+            format of :class:`converters.laserscan.SliceConverter`); order is kept.
+        extrinsics: 4x4 pose of the cloud's frame in the target frame; None = the cloud's frame
+            is the target frame. Heights and ranges are measured in the target frame.
+        frame_id: header.frame_id of the slices (required with ``extrinsics``; default: the
+            cloud's frame).
+        angle_min, angle_max, angle_increment: grid (radians); default a full circle from -pi
+            at :data:`DEFAULT_ANGLE_INCREMENT`.
+        range_min, range_max: inclusive planar limits, metres; default 0 and inf.
+        intensity_field: field whose value at the winning point becomes the intensity (any
+            datatype, cast to float32), or None for an empty ``intensities``; the default
+            ``IfPresent("intensity")`` uses ``intensity`` when the cloud has it.
+        use_inf, inf_epsilon, fill: output values (see :class:`converters._grid.OutputOptions`).
+        backend: ``"auto"``, ``"numba"`` or ``"numpy"`` (:func:`converters._kernels.select`).
+
+    Raises:
+        ConfigError: a bad option, named (``"slices['floor'].max_height"``, ``"range_min"``...).
+    """
+
+    def __init__(self, slices: Mapping[str, SliceSpec | Mapping[str, Any]], *,
+                 extrinsics: Any = None, frame_id: str | None = None,
+                 angle_min: float | None = None, angle_max: float | None = None,
+                 angle_increment: float | None = None, range_min: float | None = None,
+                 range_max: float | None = None,
+                 intensity_field: str | None = IfPresent("intensity"),
+                 use_inf: bool = True, inf_epsilon: float = 1.0, fill: float | None = None,
+                 backend: str = "auto") -> None:
+        if not isinstance(slices, Mapping):
+            raise ConfigError("slices", slices, "a non-empty dict of name -> SliceSpec")
+        specs = {name: _as_spec(name, spec) for name, spec in slices.items()}
+        common = {"angle_min": angle_min, "angle_max": angle_max,
+                  "angle_increment": angle_increment, "range_min": range_min,
+                  "range_max": range_max, "use_inf": use_inf, "inf_epsilon": inf_epsilon,
+                  "fill": fill}
+        options.slice_options(specs, {**common, "extrinsics": extrinsics, "frame_id": frame_id,
+                                      "intensity_channel": None, "range_channel": "range",
+                                      "backend": backend})
+        options.name("intensity_field", intensity_field, allow_none=True)
+        self._kernel = _kernels.select("cloud_slices", backend=backend).numba
+        self.extrinsics = check_extrinsics(extrinsics)
+        self._frame_id = frame_id
+        self.intensity_field = intensity_field
+        self.slices = [self._build_slice(name, spec, common) for name, spec in specs.items()]
+        self._size = sum(s.grid.size for s in self.slices)
+        self._offsets = np.cumsum([0] + [s.grid.size for s in self.slices])[:-1]
+        self._grids: list[AngleGrid] = []
+        self._slice_grid: list[int] = []
+        for s in self.slices:
+            if s.grid not in self._grids:
+                self._grids.append(s.grid)
+            self._slice_grid.append(self._grids.index(s.grid))
+        self._args = self._kernel_args()
+        self._decode_args = (np.asarray(self._offsets, np.int64),
+                             np.array([x.grid.size for x in self.slices], np.int64),
+                             np.array([x.options.inf_value for x in self.slices], np.float32),
+                             np.array([x.options.fill_value for x in self.slices], np.float32))
+
+    @staticmethod
+    def _build_slice(name: str, spec: SliceSpec, common: Mapping[str, Any]) -> _Slice:
+        opts = {k: getattr(spec, k) if getattr(spec, k) is not None else common[k]
+                for k in _OVERRIDES}
+        inc = DEFAULT_ANGLE_INCREMENT if opts["angle_increment"] is None \
+            else opts["angle_increment"]
+        amin = -math.pi if opts["angle_min"] is None else opts["angle_min"]
+        amax = amin + 2.0 * math.pi if opts["angle_max"] is None else opts["angle_max"]
+        grid = AngleGrid.create(amin, amax, inc)
+        rmin = 0.0 if opts["range_min"] is None else opts["range_min"]
+        rmax = math.inf if opts["range_max"] is None else opts["range_max"]
+        out = OutputOptions.create(rmin, rmax, bool(opts["use_inf"]), opts["inf_epsilon"],
+                                   opts["fill"])
+        return _Slice(name, float(spec.min_height), float(spec.max_height), grid, out)
+
+    def _kernel_args(self) -> tuple[Any, ...]:
+        """The configuration as the compiled kernel takes it (after the points)."""
+        m = self.extrinsics
+        s, g = self.slices, self._grids
+        return (np.ascontiguousarray(np.r_[m[:3, :3].reshape(-1), m[:3, 3]], np.float64),
+                np.array([x.min_z for x in s]), np.array([x.max_z for x in s]),
+                np.array([x.options.range_min for x in s]),
+                np.array([x.options.range_max for x in s]),
+                np.array(self._slice_grid, np.int64), np.asarray(self._offsets, np.int64),
+                np.array([x.angle_min for x in g]), np.array([x.increment for x in g]),
+                np.array([1.0 / x.increment for x in g]),
+                np.array([x.size for x in g], np.int64),
+                np.array([x.full_circle for x in g], np.bool_),
+                min(x.min_z for x in s), max(x.max_z for x in s))
+
+    def fuse(self, cloud: Any) -> np.ndarray[Any, np.dtype[np.int64]]:
+        """(total bins,) int64 reduction array of all slices back to back (diagnostics, tests).
+
+        Raises:
+            ConversionError: see :func:`cloud_points`; more than 2**32 points.
+        """
+        return self._fuse(*cloud_points(cloud))
+
+    def _fuse(self, x: np.ndarray[Any, Any], y: np.ndarray[Any, Any],
+              z: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.int64]]:
+        if x.size >= _MAX_POINTS:
+            raise ConversionError("PointCloud2 height * width", x.size, f"< {_MAX_POINTS}")
+        if self._kernel is None:
+            return _fuse_numpy(x, y, z, self.extrinsics, self.slices, self._grids,
+                               self._slice_grid, self._offsets, self._size)
+        best = np.full(self._size, _grid.EMPTY, np.int64)
+        self._kernel(x, y, z, *self._args, best)
+        return best
+
+    def convert(self, cloud: Any) -> dict[str, Any]:
+        """All slices of one cloud.
+
+        Args:
+            cloud: a ``sensor_msgs/PointCloud2`` (rclpy or any object with its fields; ``data``
+                bytes, array.array, memoryview or a uint8 numpy array). Never modified.
+
+        Returns:
+            slice name -> rclpy ``sensor_msgs.msg.LaserScan``, in configuration order, stamped
+            with the cloud's stamp.
+
+        Raises:
+            ConversionError: missing or non-float x/y/z, inconsistent sizes, a required
+                intensity field that is missing.
+        """
+        stamp = to_ns(cloud.header.stamp, field="PointCloud2.header.stamp")
+        points = read_points(cloud)
+        best = self._fuse(*_xyz(cloud, points))
+        intensity = _intensity(cloud, points, self.intensity_field)
+        frame = self._frame_id or str(cloud.header.frame_id)
+        ranges, ints = self._decode(best, intensity)
+        out: dict[str, Any] = {}
+        for s, off in zip(self.slices, self._offsets):
+            part = slice(off, off + s.grid.size)
+            out[s.name] = _grid.make_laserscan(
+                stamp_ns=stamp, frame_id=frame, grid=s.grid, ranges=ranges[part],
+                intensities=None if ints is None else ints[part], options=s.options)
+        return out
+
+    def _decode(self, best: np.ndarray[Any, Any], intensity: np.ndarray[Any, Any] | None
+                ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
+        """Published ranges and winners' intensities (float32, all slices back to back; None
+        without intensity): one compiled call (the slices'
+        :func:`converters._kernels.slices_numba._decode_slices`) when numba is used, else
+        :func:`converters._grid.decode` per slice."""
+        from converters._kernels import slices_numba
+
+        kernels = None if self._kernel is None else slices_numba.kernels()
+        ranges = np.empty(self._size, np.float32)
+        ints = None if intensity is None else np.zeros(self._size, np.float32)
+        if kernels is not None:
+            kernels.decode_slices(best, *self._decode_args,
+                                  _NO_VALUES if intensity is None else intensity, _NO_KEYS,
+                                  ranges, _NO_VALUES if ints is None else ints)
+            return ranges, ints
+        for s, off in zip(self.slices, self._offsets):
+            part = slice(off, off + s.grid.size)
+            ranges[part], winners = _grid.decode(best[part], s.options)
+            if ints is not None and intensity is not None:
+                hit = winners >= 0
+                ints[part][hit] = intensity[winners[hit]].astype(np.float32)
+        return ranges, ints
+
+
+def cloud_to_laserscan(cloud: Any, *, min_height: float, max_height: float,
+                       extrinsics: Any = None, frame_id: str | None = None,
+                       angle_min: float | None = None, angle_max: float | None = None,
+                       angle_increment: float | None = None, range_min: float | None = None,
+                       range_max: float | None = None,
+                       intensity_field: str | None = IfPresent("intensity"),
+                       use_inf: bool = True, inf_epsilon: float = 1.0,
+                       fill: float | None = None, backend: str = "auto") -> Any:
+    """One height slice of a PointCloud2 as a ``sensor_msgs.msg.LaserScan``.
+
+    Arguments are those of :class:`CloudSliceConverter` with a single slice
+    ``(min_height, max_height)`` (inclusive, metres in the target frame); for several slices of
+    the same cloud use :class:`CloudSliceConverter` (one pass).
+    """
+    converter = CloudSliceConverter(
+        {"slice": SliceSpec(min_height, max_height)}, extrinsics=extrinsics, frame_id=frame_id,
+        angle_min=angle_min, angle_max=angle_max, angle_increment=angle_increment,
+        range_min=range_min, range_max=range_max, intensity_field=intensity_field,
+        use_inf=use_inf, inf_epsilon=inf_epsilon, fill=fill, backend=backend)
+    return converter.convert(cloud)["slice"]
