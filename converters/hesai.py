@@ -62,8 +62,8 @@ sets and delays (``_QT128_LOOPS``; single return: block 1 loop 1, block 2 loop 2
 tail's mode flag): its scans carry an extra channel ``t`` (INT32 ns, the delay of each pixel's
 channel after its column's time, 0 where the channel does not fire), so a pixel's time is
 ``stamp + column_time_offsets[c] + beam_time_offsets[u] + t[u, c]`` (the msgs README's "a
-sensor with irregular pixel timing can add a ``t`` channel"; ``lidarscan``'s projector does
-not add it yet). The 128E3X/E4X delays depend on the tail's azimuth and operational states
+sensor with irregular pixel timing can add a ``t`` channel"; ``Projector.pixel_times`` and
+the PointCloud2 time fields add it). The 128E3X/E4X delays depend on the tail's azimuth and operational states
 (and, on the 128E3X, on near/far-field firing by distance), and the packet does not say
 whether it is a 128E3X or a 128E4X, whose tables differ: their channel delays (up to 55 us)
 are not applied. ``vendor_metadata``'s ``channel_timing`` says which case a scan is.

@@ -99,7 +99,7 @@ from lidarscan.errors import (
     UnknownChannelError,
     ValidationError,
 )
-from lidarscan.geometry import azimuth_channel, info_key, make_projector
+from lidarscan.geometry import azimuth_channel, info_key, make_projector, pixel_delays
 from lidarscan.scan import as_array, channel
 from lidarscan.stamps import split_ns, to_ns
 
@@ -472,18 +472,28 @@ class PointCloud2Converter:
         return _Planes(planes[:3], planes[3:])
 
     def _pixel_times(self, scan: Any) -> np.ndarray[Any, Any]:
-        """(H, W) int64 ns since the scan stamp, grid order (cached per column times)."""
+        """(H, W) int64 ns since the scan stamp, grid order (cached per column times), plus the
+        scan's per-pixel ``t`` delays where it has them (:func:`lidarscan.geometry.pixel_delays`,
+        moved from the scan's column order to the grid's)."""
         cols = self.projector.column_times(scan)
         cached = self._times_cache
         if cached is not None and np.array_equal(cached[0], cols):
-            return cached[1]
-        times = cols[None, :] + self.projector.beam_time_offsets[:, None]
-        if self._grid_destaggered:
-            grid = np.empty_like(times)
-            _roll_into(grid, times, self._groups, 1)
-            times = grid
-        self._times_cache = (cols.copy(), times)
-        return np.asarray(times, dtype=np.int64)
+            times = cached[1]
+        else:
+            times = cols[None, :] + self.projector.beam_time_offsets[:, None]
+            if self._grid_destaggered:
+                grid = np.empty_like(times)
+                _roll_into(grid, times, self._groups, 1)
+                times = grid
+            self._times_cache = (cols.copy(), times)
+        delays = pixel_delays(scan)
+        if delays is None:
+            return np.asarray(times, dtype=np.int64)
+        roll = self._roll(bool(scan.is_destaggered))
+        if roll is not None:                # grid[u, (c + r_u) % W] = delays[u, c]
+            cols_idx = (np.arange(self.width)[None, :] - roll[:, None]) % self.width
+            delays = np.take_along_axis(delays, cols_idx, axis=1)
+        return np.asarray(times, dtype=np.int64) + delays
 
     def _output(self, dtype: np.dtype[Any], points: int, recycle: bool = False
                 ) -> tuple[array.array[int], np.ndarray[Any, Any]]:

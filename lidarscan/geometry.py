@@ -60,6 +60,7 @@ __all__ = [
     "info_key",
     "make_projector",
     "pixel_azimuths",
+    "pixel_delays",
     "transform_matrix",
 ]
 
@@ -133,6 +134,23 @@ def azimuth_channel(scan: Any, range_channel: str = "range") -> str | None:
         if name in names:
             return name
     return None
+
+
+def pixel_delays(scan: Any) -> np.ndarray[Any, np.dtype[np.int64]] | None:
+    """(H, W) int64 ns of the scan's per-pixel ``t`` channel (an integer channel: the delay of
+    each pixel after its column's and beam's time, for sensors with irregular pixel timing such
+    as the Hesai PandarQT128; ``msgs/README.md``), in the scan's column order, or None without
+    one. The first element is used for a channel with count > 1."""
+    desc = next((c for c in scan.channels if c.name == "t"), None)
+    if desc is None:
+        return None
+    values = channel(scan, "t", native=True)
+    if values.ndim == 3:
+        values = values[..., 0]
+    if values.dtype.kind not in "iu":
+        raise ValidationError("LidarScan channel 't'", str(values.dtype),
+                              "an integer datatype (ns delays)")
+    return values.astype(np.int64)
 
 
 def pixel_azimuths(scan: Any, range_channel: str = "range"
@@ -482,13 +500,15 @@ class Projector:
     def pixel_times(self, scan: Any) -> np.ndarray[Any, np.dtype[np.int64]]:
         """(H, W) int64 ns of every pixel relative to ``scan.header.stamp``, scan column order.
 
-        t(u, c) = column_time_offsets[c] + beam_time_offsets[u], c = measurement column.
+        t(u, c) = column_time_offsets[c] + beam_time_offsets[u] (+ the pixel's ``t`` channel
+        value when the scan has one: :func:`pixel_delays`), c = measurement column.
         """
         times: np.ndarray[Any, np.dtype[np.int64]] = (self.column_times(scan)[None, :]
                                                       + self.beam_time_offsets[:, None])
         if bool(scan.is_destaggered) and np.any(self.shifts):
             times = self.destagger(times)
-        return times
+        delays = pixel_delays(scan)         # stored in the scan's own column order, like times
+        return times if delays is None else times + delays
 
 
 def make_projector(info: Any) -> Projector:

@@ -1615,3 +1615,41 @@ def test_big_endian_scans_give_identical_clouds(tiny: tuple[Any, Any], range_dty
         assert_identical(clouds[False], clouds[True])
         for preset in ("ouster", "hesai"):
             assert_identical(clouds[False, preset], clouds[True, preset])
+
+
+# ----------------------------------------------------------- per-pixel delays (channel "t")
+
+@pytest.mark.parametrize("scan_destaggered", [False, True])
+@pytest.mark.parametrize("grid_destagger", [False, True])
+def test_per_pixel_delay_channel_adds_to_every_pixel_time(
+        tiny: tuple[Any, Any], scan_destaggered: bool, grid_destagger: bool) -> None:
+    """A scan's integer ``t`` channel (irregular pixel timing, e.g. the Hesai PandarQT128) is
+    added to each pixel's column + beam time: by the projector and in the cloud's ``t`` field,
+    whatever order the scan is stored in and the cloud is laid out in. Oracle: a loop over
+    measurement pixels."""
+    info, scan = tiny
+    height, width = int(info.height), int(info.width)
+    delays = np.random.default_rng(3).integers(0, 50_000, (height, width)).astype(np.int32)
+    cot, bto = np.asarray(scan.column_time_offsets), np.asarray(info.beam_time_offsets)
+    expected = np.empty((height, width), np.int64)               # measurement order
+    for u in range(height):
+        for c in range(width):
+            expected[u, c] = int(cot[c]) + int(bto[u]) + int(delays[u, c])
+    proj = lidarscan.make_projector(info)
+    channels = {c.name: lidarscan.channel(scan, c.name) for c in scan.channels}
+    channels["t"] = delays
+    if scan_destaggered:
+        channels = {n: proj.destagger(v) for n, v in channels.items()}
+    with_t = lidarscan.make_scan(info, channels, lidarscan.to_ns(scan.header.stamp),
+                                 is_destaggered=scan_destaggered, column_time_offsets=cot)
+    stored = proj.destagger(expected) if scan_destaggered else expected
+    assert np.array_equal(proj.pixel_times(with_t), stored)
+    cloud = pc.to_pointcloud2(with_t, info, fields=("x", "y", "z", "t"), organized=True,
+                              destagger=grid_destagger)
+    got = np.array([p["t"] for p in loop_read(cloud)], np.int64).reshape(height, width)
+    assert np.array_equal(got, proj.destagger(expected) if grid_destagger else expected)
+    # without the channel the same cloud has the column + beam times only
+    plain = pc.to_pointcloud2(scan, info, fields=("x", "y", "z", "t"), organized=True,
+                              destagger=grid_destagger)
+    base = np.array([p["t"] for p in loop_read(plain)], np.int64).reshape(height, width)
+    assert np.array_equal(got - base, proj.destagger(delays) if grid_destagger else delays)
