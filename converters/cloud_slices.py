@@ -235,8 +235,12 @@ class CloudSliceConverter:
 
     @staticmethod
     def _build_slice(name: str, spec: SliceSpec, common: Mapping[str, Any]) -> _Slice:
+        if getattr(spec, "holes", None):
+            raise ConfigError(f"slices[{name!r}].holes", spec.holes,
+                              "off: a cloud has no rays to see a missing floor along (holes "
+                              "need a LidarScan: to_laserscan / SliceConverter)")
         opts = {k: getattr(spec, k) if getattr(spec, k) is not None else common[k]
-                for k in _OVERRIDES}
+                for k in _OVERRIDES if k not in options.HOLE_KEYS}
         inc = DEFAULT_ANGLE_INCREMENT if opts["angle_increment"] is None \
             else opts["angle_increment"]
         amin = -math.pi if opts["angle_min"] is None else opts["angle_min"]

@@ -589,3 +589,9 @@ def test_cloud_to_scan_node_publishes_slices_of_a_gridless_cloud(graph: Any) -> 
     assert got[0].header.frame_id == "base_link"
     assert_same(got[0], ref_cloud_slice(xyz, np.arange(len(xyz)), zmin=0.0, zmax=1.0,
                                         ext=pose(z=0.3)))
+
+
+def test_holes_are_refused_on_clouds_with_the_reason() -> None:
+    """Holes need rays (a LidarScan); a cloud slice asking for them is a named config error."""
+    with pytest.raises(ConfigError, match=r"slices\['drop'\]\.holes.*LidarScan"):
+        CloudSliceConverter({"drop": {"min_height": -0.1, "max_height": 0.1, "holes": True}})
