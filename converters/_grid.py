@@ -73,6 +73,7 @@ import array
 import functools
 import math
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -219,6 +220,22 @@ class AngleGrid:
 
 
 # --------------------------------------------------------------------------- static ray geometry
+
+def output_layout(grids: Sequence[AngleGrid]
+                  ) -> tuple[int, np.ndarray[Any, Any], list[AngleGrid], list[int]]:
+    """Where each slice's bins lie in one flat output array, for the slices' grids in order:
+    (total bins, each slice's first bin (int64), the distinct grids, each slice's index into
+    them -- slices sharing a grid share its binning work)."""
+    sizes = [g.size for g in grids]
+    offsets = np.cumsum([0] + sizes, dtype=np.int64)[:-1]
+    distinct: list[AngleGrid] = []
+    index: list[int] = []
+    for grid in grids:
+        if grid not in distinct:
+            distinct.append(grid)
+        index.append(distinct.index(grid))
+    return int(sum(sizes)), offsets, distinct, index
+
 
 def ray_interval(dz: np.ndarray[Any, Any], oz: np.ndarray[Any, Any], min_z: Any, max_z: Any
                  ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:

@@ -8,7 +8,8 @@ Commands::
     lidarscan convert REC OUT.mcap [--pointcloud2] [--preset P | --fields x,y,z,...]
                                    [--slice NAME:ZMIN:ZMAX]... [--frame F] [--extrinsics ...]
                                    [--merge] [--merge-topic TOPIC]... [--calibration FILE]
-                                   [--replace] [--keep-packets] [--progress] [-q]
+                                   [--cut-angle DEG] [--replace] [--keep-packets] [--progress]
+                                   [-q]
     lidarscan view REC --out DIR [--index K]
 
 REC is an MCAP file, a rosbag2 directory (``metadata.yaml`` + ``.db3`` or ``.mcap`` storage) or a
@@ -524,6 +525,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
             mode = "scans"
     plan = _plan(topics, args, slices, mode)
     decoders = _packet_decoders(topics) if mode == "packets" else {}
+    decoder_options = _decoder_options(args, decoders)
+    if decoder_options:
+        import functools
+        decoders = {t: functools.partial(d, **decoder_options) for t, d in decoders.items()}
     report = ConvertReport()
     emit = _err  # bad messages are always reported, also with --quiet
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
@@ -885,6 +890,28 @@ def _cloud_extrinsics(cloud: Any, args: argparse.Namespace, tf: Any, fallback: A
             f"/tf_static, or --extrinsics ({err})") from err
 
 
+def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict[str, Any]:
+    """Keyword options of the packet decoders from the command line (``--cut-angle``), checked
+    against every decoder that will get them (before anything is written)."""
+    if args.cut_angle is None:
+        return {}
+    import inspect
+    import math
+
+    from lidarscan.errors import ConfigError
+
+    if not decoders:
+        raise ConfigError("--cut-angle", args.cut_angle, "a recording of raw packets")
+    for topic, decoder in sorted(decoders.items()):
+        if "cut_angle_deg" not in inspect.signature(decoder).parameters:
+            raise ConfigError("--cut-angle", args.cut_angle,
+                              f"packets whose decoder takes a cut angle (Velodyne); topic "
+                              f"{topic} is decoded by {decoder.__module__}, which has none")
+    if not math.isfinite(args.cut_angle):
+        raise ConfigError("--cut-angle", args.cut_angle, "a finite angle in degrees")
+    return {"cut_angle_deg": args.cut_angle}
+
+
 def _packet_decoders(topics: dict[str, str]) -> dict[str, Any]:
     """topic -> PacketDecoder class for every packet topic; a clear error when this
     installation has no decoder for one of them (before anything is written)."""
@@ -1204,6 +1231,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="sensor calibration for raw packets (Velodyne YAML, Hesai CSV); "
                         "default: the model's nominal one where it exists")
+    p.add_argument("--cut-angle", type=float, default=None, metavar="DEG",
+                   help="raw Velodyne packets: packet azimuth (degrees, clockwise, the packets' "
+                        "own convention) where a rotation starts; default 0. Put it in the "
+                        "blind part of a restricted field of view (e.g. 180 for a front "
+                        "sensor seeing 270..90) so no scan is split")
     p.add_argument("--keep-packets", action="store_true",
                    help="also copy the input packet messages")
     p.add_argument("--progress", action="store_true",

@@ -219,14 +219,8 @@ class CloudSliceConverter:
         self._frame_id = frame_id
         self.intensity_field = intensity_field
         self.slices = [self._build_slice(name, spec, common) for name, spec in specs.items()]
-        self._size = sum(s.grid.size for s in self.slices)
-        self._offsets = np.cumsum([0] + [s.grid.size for s in self.slices])[:-1]
-        self._grids: list[AngleGrid] = []
-        self._slice_grid: list[int] = []
-        for s in self.slices:
-            if s.grid not in self._grids:
-                self._grids.append(s.grid)
-            self._slice_grid.append(self._grids.index(s.grid))
+        self._size, self._offsets, self._grids, self._slice_grid = _grid.output_layout(
+            [s.grid for s in self.slices])
         self._args = self._kernel_args()
         self._decode_args = (np.asarray(self._offsets, np.int64),
                              np.array([x.grid.size for x in self.slices], np.int64),

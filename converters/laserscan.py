@@ -408,15 +408,9 @@ class SliceConverter:
         width = int(info.width)
         self.slices = [self._build_slice(name, spec, info, width)
                        for name, spec in self._specs.items()]
-        self._size = sum(s.grid.size for s in self.slices)
         self._holes = any(s.holes is not None for s in self.slices)
-        self._offsets = np.cumsum([0] + [s.grid.size for s in self.slices])[:-1]
-        self._grids: list[AngleGrid] = []
-        self._slice_grid: list[int] = []
-        for spec_slice in self.slices:
-            if spec_slice.grid not in self._grids:
-                self._grids.append(spec_slice.grid)
-            self._slice_grid.append(self._grids.index(spec_slice.grid))
+        self._size, self._offsets, self._grids, self._slice_grid = _grid.output_layout(
+            [s.grid for s in self.slices])
         self._near = max(float(info.range_min), 0.0)
         self._sweep = self._sweep_sign(info)
         self._bands = Bands.create([(s.min_z, s.max_z, s.options, g)

@@ -864,17 +864,29 @@ def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes | None, *,
     Scans recorded before their info are held (at most ``max_pending``) until it appears;
     scans whose info never appears, undecodable messages and inconsistent scans are passed to
     ``on_error`` (as :class:`BadMessage`) and skipped; the rest are yielded. In a file the info
-    wait is bounded by the file, not by time. One resolver pairs every topic: ``max_infos``
-    LidarInfo versions (all sensors together) are held, the least recently published or used
-    evicted first (a recording's latched infos all come first, so it must hold one per sensor
-    plus the versions whose stragglers may still come). ``items`` (then ``source`` is ignored)
-    reads messages from another reader (e.g. a rosbag2 reader of the same items).
+    wait is bounded by the file, not by time.
+
+    Which info a scan may take: the topic convention is a namespace per sensor
+    (``<ns>/lidar_scan`` + ``<ns>/lidar_info``, as the nodes and ``lidarscan convert`` write
+    them). A scan whose namespace has carried a LidarInfo is paired only with the infos of that
+    namespace, so two sensors whose infos share a stamp (simulation time, one launch) do not
+    make each other ambiguous; a scan of a namespace without one (other topic names) is paired
+    with the infos of every topic by stamp alone. Each resolver holds ``max_infos`` versions,
+    the least recently published or used evicted first (a recording's latched infos all come
+    first, so the fallback must hold one per sensor plus the versions whose stragglers may still
+    come). ``items`` (then ``source`` is ignored) reads messages from another reader (e.g. a
+    rosbag2 reader of the same items).
     """
     from lidarscan.linkage import InfoResolver
 
     scans = set(scan_topics) if scan_topics is not None else None
     infos = set(info_topics) if info_topics is not None else None
-    resolver = InfoResolver(max_pending=max_pending, max_infos=max_infos, max_wait_ns=None)
+
+    def resolver() -> InfoResolver:
+        return InfoResolver(max_pending=max_pending, max_infos=max_infos, max_wait_ns=None)
+
+    anywhere = resolver()                       # every topic's infos: by stamp alone
+    per_namespace: dict[str, InfoResolver] = {}  # namespaces that carry a LidarInfo
     origin: dict[int, McapMessage] = {}
 
     def report(bad: BadMessage) -> None:
@@ -882,12 +894,13 @@ def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes | None, *,
             on_error(bad)
 
     def drops() -> None:
-        for drop in resolver.take_dropped():
-            src = origin.pop(id(drop.scan), None)
-            report(BadMessage(src.index if src else -1, src.topic if src else "",
-                              src.log_time_ns if src else 0, drop.reason,
-                              McapFormatError("lidar_info_time", drop.info_stamp_ns,
-                                              "a LidarInfo with this stamp")))
+        for res in (anywhere, *per_namespace.values()):
+            for drop in res.take_dropped():
+                src = origin.pop(id(drop.scan), None)
+                report(BadMessage(src.index if src else -1, src.topic if src else "",
+                                  src.log_time_ns if src else 0, drop.reason,
+                                  McapFormatError("lidar_info_time", drop.info_stamp_ns,
+                                                  "a LidarInfo with this stamp")))
 
     for item in (items if items is not None else read_messages(source)):  # type: ignore[arg-type]
         if isinstance(item, BadMessage):
@@ -897,10 +910,15 @@ def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes | None, *,
         is_info = item.msgtype == INFO_TYPE and (infos is None or item.topic in infos)
         if not (is_scan or is_info):
             continue
+        namespace = item.topic.rpartition("/")[0]
         try:
             msg = item.decode()
-            ready = resolver.add_info(msg) if is_info else resolver.add_scan(msg)
-            if is_scan:
+            if is_info:
+                own = per_namespace.get(namespace) or per_namespace.setdefault(namespace,
+                                                                               resolver())
+                ready = own.add_info(msg) + anywhere.add_info(msg)
+            else:
+                ready = per_namespace.get(namespace, anywhere).add_scan(msg)
                 origin[id(msg)] = item
         except LidarScanError as err:
             report(BadMessage(item.index, item.topic, item.log_time_ns, str(err), err))
@@ -909,5 +927,6 @@ def read_scans(source: str | os.PathLike[str] | IO[bytes] | bytes | None, *,
         for scan, info in ready:
             origin.pop(id(scan), None)
             yield scan, info
-    resolver.flush()
+    for res in (anywhere, *per_namespace.values()):
+        res.flush()
     drops()

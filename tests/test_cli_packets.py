@@ -108,24 +108,26 @@ def test_push_many_skips_bad_packets_like_push(name: str, tmp_path: Path) -> Non
         assert bytes(scan.data) == bytes(ref.data)
 
 
-@pytest.mark.parametrize("kernel", [None, False])
+@pytest.mark.parametrize("name,kernel", [("velodyne_vls128", None), ("velodyne_vls128", False),
+                                         ("velodyne_vlp32", None)])
 def test_converted_velodyne_bag_reproduces_nebula_through_to_pointcloud2(
-        kernel: bool | None, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """`lidarscan convert` on the VLS-128 bag (its ground truth's scan phase is the CLI's cut,
-    0 deg), re-read, projected by to_pointcloud2 (compiled kernel and numpy path): every return
-    within 2 mm of Nebula's points, both ways (>= 99 % / >= 95 %)."""
+        name: str, kernel: bool | None, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """`lidarscan convert --cut-angle` (the ground truth's scan phase: 0 deg on the VLS-128,
+    180 deg in the blind part of the VLP-32C's 270..90 deg field of view) on the bag, re-read,
+    projected by to_pointcloud2 (compiled kernel and numpy path): every return within 2 mm of
+    Nebula's points, both ways (>= 99 % / >= 95 %)."""
     from converters.pointcloud2 import PointCloud2Converter, read_points
     from pcd import read_pcd
     from test_velodyne_packets import RECORDINGS as TRUTH
     from test_velodyne_packets import _nearest, _within
 
-    name = "velodyne_vls128"
+    _, gt_stamp, settings = TRUTH[name]
     out = tmp_path / "out.mcap"
     assert cli.main(["convert", str(DATA / name / "bag"), str(out), "--calibration",
-                     str(DATA / name / RECORDINGS[name][0]), "-q"]) == 0
+                     str(DATA / name / RECORDINGS[name][0]), "--cut-angle",
+                     str(settings["cut"]), "-q"]) == 0
     capsys.readouterr()
-    _, gt_stamp, settings = TRUTH[name]
-    assert settings["cut"] == 0.0 and settings["azimuth"] is None
     truth = read_pcd(DATA / name / f"ground_truth_{gt_stamp}.pcd").astype(np.float64)
     lo, hi = settings["range"]
     candidates = []
@@ -136,7 +138,7 @@ def test_converted_velodyne_bag_reproduces_nebula_through_to_pointcloud2(
                                         range_channel=channel, kernel=kernel)
             points = read_points(conv.convert(scan)).reshape(-1)
             metres = points["range"].astype(np.float64)
-            keep = (metres > lo) & (metres < hi)       # dist_correction is 0 in VLS128.yaml
+            keep = (metres > lo) & (metres < hi)       # dist_correction is 0 in both YAMLs
             clouds.append(np.stack([points[k][keep] for k in "xyz"], -1).astype(np.float64))
         ours = np.concatenate(clouds)
         candidates.append((float(np.mean(_nearest(truth[::500], ours) < 0.002)), ours))
@@ -144,3 +146,17 @@ def test_converted_velodyne_bag_reproduces_nebula_through_to_pointcloud2(
     print(f"\nconvert -> to_pointcloud2 (kernel={kernel}): truth->decoded {best[0]:.4%}, "
           f"decoded->truth {best[1]:.4%} within 2 mm")
     assert best[0] >= 0.99 and best[1] >= 0.95
+
+
+@pytest.mark.parametrize("name,error", [("hesai_qt64", "has none"),
+                                        ("velodyne_vlp32", "finite angle")])
+def test_cut_angle_is_refused_where_it_cannot_apply(name: str, error: str, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """--cut-angle on packets whose decoder has no cut (Hesai), or not an angle: exit 2 naming
+    the option, nothing written."""
+    out = tmp_path / "out.mcap"
+    status = cli.main(["convert", str(DATA / name / "bag"), str(out), "--calibration",
+                       str(DATA / name / RECORDINGS[name][0]), "--cut-angle", "nan", "-q"])
+    err = capsys.readouterr().err
+    assert status == 2 and "--cut-angle" in err and error in err, err
+    assert not out.exists()

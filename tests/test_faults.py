@@ -132,31 +132,64 @@ def test_same_stamp_with_other_geometry_drops_its_scans_with_a_reason() -> None:
     assert [e.index for e in errors] == [3, 4]
 
 
-def test_a_recording_of_more_sensors_than_the_live_default_pairs_every_scan() -> None:
-    """Twelve sensors (more than a live resolver's eight held versions), each info latched at
-    the start as rosbag2 records them, then their scans interleaved: every scan is paired with
-    its own sensor's geometry and nothing is dropped. (Before: the first four sensors' scans
-    were all dropped as "evicted".)"""
-    infos = [_info(STAMP_A + i, tilt=0.01 * i) for i in range(12)]
+def _sensors_recording(infos: list[Any], info_topic: str, scan_topic: str) -> bytes:
+    """Each info latched at the start (as rosbag2 records them), then three scans per sensor
+    interleaved; sensor i's ranges are all 1 + i."""
     buf = io.BytesIO()
     with McapWriter(buf, chunk_size=2048) as writer:
         for i, info in enumerate(infos):
-            writer.write(f"/lidar{i}/lidar_info", info, log_time_ns=STAMP_A)
+            writer.write(info_topic.format(i=i), info, log_time_ns=STAMP_A)
         for k in range(3):
             for i, info in enumerate(infos):
                 scan = ls.make_scan(info, {"range": np.full((H, W), 1.0 + i, np.float32)},
                                     STAMP_B + k, as_dataclass=True)
-                writer.write(f"/lidar{i}/lidar_scan", scan, log_time_ns=STAMP_B + k)
-    errors: list[BadMessage] = []
-    pairs = list(read_scans(buf.getvalue(), on_error=errors.append))
-    assert errors == [] and len(pairs) == 36
-    for scan, info in pairs:
-        i = int(ls.channel(scan, "range")[0, 0]) - 1
-        assert info is not None and ls.to_ns(info.header.stamp) == STAMP_A + i
-    # the bound is a parameter: with the live default of 8, the four oldest are lost
-    errors.clear()
-    assert len(list(read_scans(buf.getvalue(), on_error=errors.append, max_infos=8))) == 24
+                writer.write(scan_topic.format(i=i), scan, log_time_ns=STAMP_B + k)
+    return buf.getvalue()
+
+
+def _sensor_of(scan: Any) -> int:
+    return int(ls.channel(scan, "range")[0, 0]) - 1
+
+
+def test_a_recording_of_more_sensors_than_the_live_default_pairs_every_scan() -> None:
+    """Twelve sensors (more than a live resolver's eight held versions): every scan is paired
+    with its own sensor's geometry and nothing is dropped, also with max_infos=8 when each
+    sensor has its own namespace. (Before: the first four sensors' scans were all dropped as
+    "evicted".) Topics outside the namespace convention are paired by stamp alone, bounded by
+    max_infos: with 8, the four oldest sensors are lost, each scan reported."""
+    infos = [_info(STAMP_A + i, tilt=0.01 * i) for i in range(12)]
+    for max_infos in (256, 8):
+        errors: list[BadMessage] = []
+        pairs = list(read_scans(_sensors_recording(infos, "/lidar{i}/lidar_info",
+                                                   "/lidar{i}/lidar_scan"),
+                                on_error=errors.append, max_infos=max_infos))
+        assert errors == [] and len(pairs) == 36
+        for scan, info in pairs:
+            assert ls.to_ns(info.header.stamp) == STAMP_A + _sensor_of(scan)
+    other_names = _sensors_recording(infos, "/infos/lidar{i}", "/scans/lidar{i}")
+    errors = []
+    assert len(list(read_scans(other_names, on_error=errors.append))) == 36 and errors == []
+    assert len(list(read_scans(other_names, on_error=errors.append, max_infos=8))) == 24
     assert len(errors) == 12 and all("evicted" in e.reason for e in errors)
+
+
+def test_two_sensors_whose_infos_share_a_stamp_each_keep_their_own_geometry() -> None:
+    """Simulation time or one launch can stamp two sensors' infos alike. In their own
+    namespaces, each sensor's scans are paired with its own info; by stamp alone (no
+    namespace convention) the stamp is ambiguous and every scan is dropped with that reason,
+    never paired with the other sensor's geometry."""
+    infos = [_info(STAMP_A, tilt=0.0), _info(STAMP_A, tilt=0.2)]
+    errors: list[BadMessage] = []
+    pairs = list(read_scans(_sensors_recording(infos, "/robot/lidar{i}/lidar_info",
+                                               "/robot/lidar{i}/lidar_scan"),
+                            on_error=errors.append))
+    assert errors == [] and len(pairs) == 6
+    for scan, info in pairs:
+        assert info is infos[_sensor_of(scan)] or np.array_equal(
+            info.vertical_angles, infos[_sensor_of(scan)].vertical_angles)
+    pairs = list(read_scans(_sensors_recording(infos, "/infos/lidar{i}", "/scans/lidar{i}"),
+                            on_error=errors.append))
+    assert pairs == [] and len(errors) == 6 and all("ambiguous" in e.reason for e in errors)
 
 
 def test_info_that_never_arrives_reports_every_scan() -> None:

@@ -123,9 +123,7 @@ def _decoded(results: list[tuple[Any, Any]]) -> list[tuple[int, int, str, float,
     for scan, info in results:
         proj = lidarscan.make_projector(info)
         stamp = lidarscan.stamps.to_ns(scan.header.stamp)
-        times = proj.pixel_times(scan) + stamp
-        if "t" in lidarscan.scan.channel_names(scan):   # per-pixel firing delays (QT128)
-            times = times + lidarscan.scan.channel(scan, "t")
+        times = proj.pixel_times(scan) + stamp      # with the QT128's per-pixel delays ("t")
         ids = np.asarray(info.beam_ids)
         for name in lidarscan.scan.channel_names(scan):
             if not name.startswith("range"):

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TASKS", "probe_info", "probe_scan", "specialisations", "warm"]
+__all__ = ["TASKS", "probe_cloud", "probe_info", "probe_scan", "specialisations", "warm"]
 
 #: What :func:`warm` can prepare.
 TASKS = ("cloud", "slices", "merger")
@@ -87,6 +87,18 @@ def probe_scan(info: Any, *, stamp_ns: int = 2, range_dtype: Any = np.float32,
     scan = lidarscan.make_scan(info, channels, stamp_ns=stamp_ns, is_destaggered=destaggered,
                                as_dataclass=True)
     return lidarscan.decode_scan(lidarscan.encode(scan))
+
+
+def probe_cloud(frame_id: str = "warm") -> Any:
+    """A synthetic unorganized PointCloud2 (x, y, z float32 + intensity, as drivers publish
+    them) of :func:`probe_scan`'s 32 x 1024 sensor: what warms the kernels of
+    :class:`converters.cloud_slices.CloudSliceConverter` (it compiles per x/y/z dtype and
+    layout: a cloud of another layout still pays its own first call)."""
+    from converters.pointcloud2 import to_pointcloud2
+
+    info = probe_info(32, 1024, frame_id=frame_id)
+    return to_pointcloud2(probe_scan(info), info, fields=("x", "y", "z", "intensity"),
+                          organized=False)
 
 
 def _tilt(angle: float) -> np.ndarray[Any, Any]:

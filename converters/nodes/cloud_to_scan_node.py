@@ -393,9 +393,12 @@ def _node_class() -> type:
 
             from converters.nodes.common import warm_up
             modules = ("converters.cloud_import", "converters.cloud_slices")
-            self.startup = warm_up(
-                self, {"imports": lambda: [importlib.import_module(m) for m in modules]},
-                self.diagnostics)
+            steps: dict[str, Any] = {
+                "imports": lambda: [importlib.import_module(m) for m in modules]}
+            if self.slicer is not None:          # compile its kernels on a driver-like cloud
+                from converters._kernels.warm import probe_cloud
+                steps["slices"] = lambda: self.slicer.convert(probe_cloud())
+            self.startup = warm_up(self, steps, self.diagnostics)
 
         def _validate(self, values: dict[str, Any]) -> None:
             CloudToScanCore(**settings(values))
