@@ -161,6 +161,20 @@ def test_help_prints_usage_parameters_and_topics_without_starting_ros(script: st
     assert check.returncode == 0, check.stderr
 
 
+def test_help_into_a_closed_pipe_exits_quietly() -> None:
+    """`lidarscan-merger --help | head -1`: the reader is gone before the text is written; the
+    script exits 0 without a BrokenPipeError traceback."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)                                   # nobody reads: the first write fails
+    try:
+        done = subprocess.run(_script("lidarscan-merger") + ["--help"], check=False,
+                              stdout=write_end, stderr=subprocess.PIPE, text=True, env=_env(),
+                              timeout=60)
+    finally:
+        os.close(write_end)
+    assert done.returncode == 0 and "BrokenPipeError" not in done.stderr, done.stderr
+
+
 def test_converter_help_names_the_new_default_topics() -> None:
     text = converter_node.usage()
     assert "lidar_scan" in text and "scan_topic [lidar_scan]" in text

@@ -17,6 +17,7 @@ the message stamp, milliseconds) and the node's linkage state.
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -363,7 +364,10 @@ def entry_points(class_name: str, node_class: Callable[[], Any], script: str,
         argv = list(sys.argv if args is None else args)
         ours = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
         if usage is not None and any(a in ("-h", "--help") for a in ours):
-            print(usage())
+            try:
+                print(usage(), flush=True)
+            except BrokenPipeError:          # `--help | head`: the reader has what it wanted
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             return 0
         if ours:
             print(f"usage: {script} [-h] [--ros-args ...]\nerror: unknown argument(s) "
