@@ -6,8 +6,11 @@ Written from the conventions in converters/_grid.py's docstring, not from its co
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
+
+import lidarscan
 
 TWO_PI = 2 * math.pi
 
@@ -58,6 +61,7 @@ def ref_qualify(d: tuple[float, ...], o: tuple[float, ...], zmin: float, zmax: f
 
 
 RANK = {"finite": 0, "neg": 1, "pos": 2, "nan": 3}
+F32 = np.float32
 
 
 def pose(x: float = 0.0, y: float = 0.0, z: float = 0.0, yaw: float = 0.0, roll: float = 0.0,
@@ -71,3 +75,81 @@ def pose(x: float = 0.0, y: float = 0.0, z: float = 0.0, yaw: float = 0.0, roll:
         np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
     m[:3, 3] = (x, y, z)
     return m
+
+
+def ref_slice(scan: Any, info: Any, *, zmin: float, zmax: float, ext: Any = None,
+              amin: float = -math.pi, amax: float | None = None, inc: float | None = None,
+              rmin: float | None = None, rmax: float | None = None, use_inf: bool = True,
+              eps: float = 1.0, fill: float | None = None, holes: dict[str, Any] | None = None,
+              intensity: str | None = "intensity") -> tuple[np.ndarray, np.ndarray]:
+    """One slice of a LidarScan, pixel by pixel, from the documented rules (float32 ranges and
+    the winners' intensities per bin); ``holes``: floor_height, hole_depth, hole_range_max
+    (None = rmax), hole_no_return."""
+    height, width = int(info.height), int(info.width)
+    m = np.eye(4) if ext is None else np.asarray(ext, float)
+    inc = TWO_PI / width if inc is None else inc
+    amax = amin + TWO_PI if amax is None else amax
+    rmin = max(float(info.range_min), 0.0) if rmin is None else rmin
+    if rmax is None:
+        rmax = float(info.range_max) if float(info.range_max) > 0 else math.inf
+    near = max(float(info.range_min), 0.0)
+    grid = ref_grid(amin, amax, inc)
+    proj = lidarscan.make_projector(info)
+    dirs, offs = proj.tables_for(scan)
+    ranges = lidarscan.range_m(scan, info)
+    values = lidarscan.channel(scan, intensity) if intensity else None
+    cands: dict[int, tuple[Any, ...]] = {}
+
+    def offer(b: int | None, cand: tuple[Any, ...]) -> None:
+        if b is not None and (b not in cands or cand[:3] < cands[b][:3]):
+            cands[b] = cand
+
+    def rank_of(rho: float) -> tuple[int, float]:
+        cls = "neg" if rho < rmin else "pos" if rho > rmax else "finite"
+        return RANK[cls], float(F32(rho)) if cls == "finite" else 0.0
+
+    for u in range(height):
+        for v in range(width):
+            c = (v - int(proj.shifts[u])) % width if scan.is_destaggered else v
+            key = u * width + c
+            d0 = [float(x) for x in dirs[u, v]]
+            o0 = [float(x) for x in offs[u, v]]
+            d = tuple(float(F32(m[i, 0] * d0[0] + m[i, 1] * d0[1] + m[i, 2] * d0[2]))
+                      for i in range(3))
+            o = tuple(float(F32(m[i, 0] * o0[0] + m[i, 1] * o0[1] + m[i, 2] * o0[2] + m[i, 3]))
+                      for i in range(3))
+            r = float(ranges[u, v])
+            inten = float(values[u, v]) if values is not None else 0.0
+            if math.isfinite(r) and r > 0:
+                x, y, z = (r * d[i] + o[i] for i in range(3))
+                if zmin <= z <= zmax:
+                    offer(ref_bin(math.atan2(y, x), grid),
+                          (*rank_of(math.sqrt(x * x + y * y)), key, inten))
+            elif d[0] != 0 or d[1] != 0:
+                cls = "pos" if r == math.inf else "neg" if r == -math.inf else "nan"
+                far, near_ok = ref_qualify(d, o, zmin, zmax, rmin, rmax, near)
+                if near_ok if cls == "neg" else far:
+                    offer(ref_bin(math.atan2(d[1], d[0]), grid), (RANK[cls], 0.0, key, inten))
+            if holes is None:
+                continue
+            floor = holes["floor_height"]
+            if not (d[2] < 0 and o[2] > floor):
+                continue                               # the ray never meets the floor
+            below = (math.isfinite(r) and r > 0
+                     and r * d[2] + o[2] <= floor - holes["hole_depth"]) or (
+                r == math.inf and holes["hole_no_return"])
+            if not below:
+                continue
+            r_f = (floor - o[2]) / d[2]
+            x_f, y_f = r_f * d[0] + o[0], r_f * d[1] + o[1]
+            rho_f = math.sqrt(x_f * x_f + y_f * y_f)
+            edge_max = rmax if holes["hole_range_max"] is None else holes["hole_range_max"]
+            if rho_f <= edge_max:
+                offer(ref_bin(math.atan2(y_f, x_f), grid), (*rank_of(rho_f), key, inten))
+    inf_value = math.inf if use_inf else rmax + eps
+    out = np.full(grid[2], inf_value if fill is None else fill, np.float32)
+    ints = np.zeros(grid[2], np.float32)
+    for b, (rank, v32, _key, inten) in cands.items():
+        out[b] = [v32, -math.inf, inf_value, math.nan][rank]
+        ints[b] = inten
+    return out, ints

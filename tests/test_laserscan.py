@@ -21,79 +21,13 @@ from hypothesis import strategies as st
 import lidarscan
 from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError, UnknownChannelError
-from grid_reference import RANK, pose, ref_bin, ref_grid, ref_qualify
+from grid_reference import pose, ref_slice
 
 TWO_PI = 2 * math.pi  # as in grid_reference
 F32 = np.float32
 
 
 # --------------------------------------------------------------------------- reference code
-
-def ref_slice(scan: Any, info: Any, *, zmin: float, zmax: float, ext: Any = None,
-              amin: float = -math.pi, amax: float | None = None, inc: float | None = None,
-              rmin: float | None = None, rmax: float | None = None, use_inf: bool = True,
-              eps: float = 1.0, fill: float | None = None,
-              intensity: str | None = "intensity") -> tuple[np.ndarray, np.ndarray]:
-    """One slice, pixel by pixel, from the documented rules."""
-    height, width = int(info.height), int(info.width)
-    m = np.eye(4) if ext is None else np.asarray(ext, float)
-    inc = TWO_PI / width if inc is None else inc
-    amax = amin + TWO_PI if amax is None else amax
-    rmin = max(float(info.range_min), 0.0) if rmin is None else rmin
-    if rmax is None:
-        rmax = float(info.range_max) if float(info.range_max) > 0 else math.inf
-    near = max(float(info.range_min), 0.0)
-    grid = ref_grid(amin, amax, inc)
-    proj = lidarscan.make_projector(info)
-    dirs, offs = proj.tables_for(scan)
-    ranges = lidarscan.range_m(scan, info)
-    values = lidarscan.channel(scan, intensity) if intensity else None
-    shifts = proj.shifts
-    cands: dict[int, tuple[Any, ...]] = {}
-    for u in range(height):
-        for v in range(width):
-            c = (v - int(shifts[u])) % width if scan.is_destaggered else v
-            key = u * width + c
-            d0 = [float(x) for x in dirs[u, v]]
-            o0 = [float(x) for x in offs[u, v]]
-            # rays in the target frame, rounded to float32 like the projector's tables
-            d = tuple(float(F32(m[i, 0] * d0[0] + m[i, 1] * d0[1] + m[i, 2] * d0[2]))
-                      for i in range(3))
-            o = tuple(float(F32(m[i, 0] * o0[0] + m[i, 1] * o0[1] + m[i, 2] * o0[2] + m[i, 3]))
-                      for i in range(3))
-            r = float(ranges[u, v])
-            inten = float(values[u, v]) if values is not None else 0.0
-            if math.isfinite(r) and r > 0:
-                x, y, z = (r * d[i] + o[i] for i in range(3))
-                if not zmin <= z <= zmax:
-                    continue
-                b = ref_bin(math.atan2(y, x), grid)
-                if b is None:
-                    continue
-                rho = math.sqrt(x * x + y * y)
-                cls = "neg" if rho < rmin else "pos" if rho > rmax else "finite"
-                cand = (RANK[cls], float(F32(rho)) if cls == "finite" else 0.0, key, inten)
-            else:
-                cls = "pos" if r == math.inf else "neg" if r == -math.inf else "nan"
-                if d[0] == 0 and d[1] == 0:
-                    continue
-                far, near_ok = ref_qualify(d, o, zmin, zmax, rmin, rmax, near)
-                if not (near_ok if cls == "neg" else far):
-                    continue
-                b = ref_bin(math.atan2(d[1], d[0]), grid)
-                if b is None:
-                    continue
-                cand = (RANK[cls], 0.0, key, inten)
-            if b not in cands or cand[:3] < cands[b][:3]:
-                cands[b] = cand
-    inf_value = math.inf if use_inf else rmax + eps
-    out = np.full(grid[2], inf_value if fill is None else fill, np.float32)
-    ints = np.zeros(grid[2], np.float32)
-    for b, (rank, v32, _key, inten) in cands.items():
-        out[b] = [v32, -math.inf, inf_value, math.nan][rank]
-        ints[b] = inten
-    return out, ints
-
 
 # ------------------------------------------------------------------------------- scenes
 
