@@ -14,10 +14,13 @@ before the cut and then one :class:`BadMessage` describing the truncation.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import re
+import signal
 import struct
+import threading
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -55,6 +58,29 @@ SCAN_TYPE = "lidarscan_msgs/msg/LidarScan"
 #: buffers (magic "LSCZ" + format version) instead of CDR; the schema stays the LidarScan's.
 CODEC_ENCODING = "lidarscan.codec"
 INFO_TYPE = "lidarscan_msgs/msg/LidarInfo"
+
+
+@contextlib.contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """Hold SIGINT (Ctrl-C) until the block is done, then deliver it as the previous handler
+    would (KeyboardInterrupt by default): a record and the statistics that count it are written
+    together, so an interrupted writer still finishes a consistent file. Only in the main
+    thread (the only one Python delivers signals to); elsewhere a no-op."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is None):   # a handler Python cannot restore
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught:
+            if callable(previous):
+                previous(signal.SIGINT, None)       # default_int_handler: KeyboardInterrupt
+            elif previous == signal.SIG_DFL:
+                os.kill(os.getpid(), signal.SIGINT)
 
 
 class McapWriter:
@@ -188,15 +214,17 @@ class McapWriter:
         if log_time_ns is None:
             header = getattr(msg, "header", None)
             log_time_ns = to_ns(header.stamp) if header is not None else 0
-        channel_id = self._channel(topic, full, metadata, encoding)
-        sequence = self._sequence.get(channel_id, 0)
-        self._sequence[channel_id] = sequence + 1
-        self._writer.add_message(channel_id=channel_id, log_time=int(log_time_ns), data=payload,
-                                 publish_time=int(publish_time_ns if publish_time_ns is not None
-                                                  else log_time_ns), sequence=sequence)
-        self.count += 1
-        self._times = [min(self._times[0], log_time_ns), max(self._times[1], log_time_ns)] \
-            if self._times else [int(log_time_ns), int(log_time_ns)]
+        with _interrupts_deferred():     # Ctrl-C never splits a record from its statistics
+            channel_id = self._channel(topic, full, metadata, encoding)
+            sequence = self._sequence.get(channel_id, 0)
+            self._sequence[channel_id] = sequence + 1
+            self._writer.add_message(channel_id=channel_id, log_time=int(log_time_ns),
+                                     data=payload, sequence=sequence,
+                                     publish_time=int(publish_time_ns if publish_time_ns
+                                                      is not None else log_time_ns))
+            self.count += 1
+            self._times = [min(self._times[0], log_time_ns), max(self._times[1], log_time_ns)] \
+                if self._times else [int(log_time_ns), int(log_time_ns)]
 
     def bag_metadata(self) -> dict[str, Any]:
         """The rosbag2 metadata of what was written so far (see :mod:`lidarscan.rosbag2`)."""
@@ -218,11 +246,12 @@ class McapWriter:
         self._closed = True
         from lidarscan.rosbag2 import metadata_yaml
 
-        try:
-            self._writer.add_metadata("rosbag2", {
-                "serialized_metadata": metadata_yaml(self.bag_metadata(), root=False)})
-        finally:
-            self._writer.finish()  # type: ignore[no-untyped-call]
+        with _interrupts_deferred():
+            try:
+                self._writer.add_metadata("rosbag2", {
+                    "serialized_metadata": metadata_yaml(self.bag_metadata(), root=False)})
+            finally:
+                self._writer.finish()  # type: ignore[no-untyped-call]
         if self._own:
             self._stream.close()
 
