@@ -146,9 +146,17 @@ def ref_slice(scan: Any, info: Any, *, zmin: float, zmax: float, ext: Any = None
             edge_max = rmax if holes["hole_range_max"] is None else holes["hole_range_max"]
             if rho_f <= edge_max:
                 offer(ref_bin(math.atan2(y_f, x_f), grid), (*rank_of(rho_f), key, inten))
+    return ref_output(cands, grid[2], rmax, use_inf=use_inf, eps=eps, fill=fill)
+
+
+def ref_output(cands: dict[int, tuple[Any, ...]], size: int, rmax: float, *,
+               use_inf: bool = True, eps: float = 1.0, fill: float | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The published (ranges, intensities) of ``size`` bins from each bin's winning candidate
+    (rank, float32 range, tie key, intensity): REP 117 values, ``fill`` where nothing won."""
     inf_value = math.inf if use_inf else rmax + eps
-    out = np.full(grid[2], inf_value if fill is None else fill, np.float32)
-    ints = np.zeros(grid[2], np.float32)
+    out = np.full(size, inf_value if fill is None else fill, np.float32)
+    ints = np.zeros(size, np.float32)
     for b, (rank, v32, _key, inten) in cands.items():
         out[b] = [v32, -math.inf, inf_value, math.nan][rank]
         ints[b] = inten

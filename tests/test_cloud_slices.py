@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from converters.cloud_slices import CloudSliceConverter, cloud_points, cloud_to_laserscan
 from converters.laserscan import SliceSpec
-from grid_reference import RANK, pose, ref_bin, ref_grid
+from grid_reference import RANK, pose, ref_bin, ref_grid, ref_output
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
 from test_nodes import graph  # noqa: F401 - the DDS graph fixture of the node tests
 
@@ -105,13 +105,7 @@ def ref_cloud_slice(xyz: Any, intensity: Any, *, zmin: float, zmax: float, ext: 
                 0.0 if intensity is None else float(F32(intensity[i])))
         if b not in cands or cand[:3] < cands[b][:3]:
             cands[b] = cand
-    inf_value = math.inf if use_inf else rmax + eps
-    out = np.full(grid[2], inf_value if fill is None else fill, np.float32)
-    ints = np.zeros(grid[2], np.float32)
-    for b, (rank, v32, _key, inten) in cands.items():
-        out[b] = [v32, -math.inf, inf_value, math.nan][rank]
-        ints[b] = inten
-    return out, ints
+    return ref_output(cands, grid[2], rmax, use_inf=use_inf, eps=eps, fill=fill)
 
 
 def assert_same(msg: Any, ref: tuple[np.ndarray, np.ndarray]) -> None:
