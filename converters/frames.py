@@ -99,7 +99,8 @@ def transform_rays(d: np.ndarray[Any, Any], o: np.ndarray[Any, Any],
     if index is None:
         m: Any = matrix                                      # m[i, j]: float64 scalars
     else:
-        m = np.asarray(matrix, np.float64)[:, :3, :].transpose(1, 2, 0)[:, :, index]  # (3,4,n)
+        rows = np.asarray(matrix, np.float64)[:, :3, :].reshape(-1, 12)
+        m = np.take(np.ascontiguousarray(rows.T), index, axis=1).reshape(3, 4, -1)  # (3, 4, n)
     dx, dy, dz = (d[:, k].astype(np.float64) for k in range(3))
     ox, oy, oz = (o[:, k].astype(np.float64) for k in range(3))
     dt = np.empty(d.shape, np.float32)
