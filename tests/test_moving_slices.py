@@ -85,8 +85,8 @@ def moving_room_scan(info: Any, mount: Any, *, destagger: bool = False,
         flat = r.reshape(-1)
         pick = rng.choice(flat.size, size=flat.size // 10, replace=False)
         flat[pick] = np.array([np.inf, np.nan, -np.inf, 0.0], np.float32)[np.arange(pick.size) % 4]
-    channels: dict[str, np.ndarray] = {"range": r,
-                                       "intensity": rng.integers(0, 4000, r.shape).astype(np.float32)}
+    channels: dict[str, np.ndarray] = {
+        "range": r, "intensity": rng.integers(0, 4000, r.shape).astype(np.float32)}
     if delays is not None:
         channels["t"] = delays.astype(np.uint32)
     if destagger:
