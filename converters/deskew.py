@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from converters.transforms import _so3_exp_and_v, interpolate_poses, pose_matrix
 from lidarscan.errors import ConfigError, ValidationError
 
 __all__ = [
@@ -92,37 +93,6 @@ class OdometryPair:
 Motion = ConstantVelocity | OdometryPair
 
 
-def pose_matrix(pose: Any, field: str = "pose") -> np.ndarray[Any, np.dtype[np.float64]]:
-    """4x4 float64 rigid transform from a 4x4 matrix or an (xyz, quaternion xyzw) pair.
-
-    Raises:
-        ConfigError: not a rigid transform / not 3 + 4 finite numbers / zero quaternion.
-    """
-    if isinstance(pose, np.ndarray) and pose.shape == (4, 4) or (
-            isinstance(pose, Sequence) and len(pose) == 4):
-        matrix = np.asarray(pose, dtype=np.float64)
-        if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
-            raise ConfigError(field, pose, "a finite 4x4 matrix")
-        rot = matrix[:3, :3]
-        if not (np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9)
-                and np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0):
-            raise ConfigError(field, matrix.round(6).tolist(), "a rigid transform")
-        return matrix
-    try:
-        xyz, quat = pose
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1)
-        quat = np.asarray(quat, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ConfigError(field, pose, "a 4x4 matrix or (xyz, quaternion xyzw)") from None
-    norm = float(np.linalg.norm(quat)) if quat.shape == (4,) else 0.0
-    if xyz.shape != (3,) or not np.all(np.isfinite(xyz)) or not np.isfinite(norm) or norm == 0:
-        raise ConfigError(field, pose, "(xyz: 3 finite numbers, quaternion xyzw: 4, non-zero)")
-    matrix = np.eye(4)
-    matrix[:3, :3] = _quat_to_matrix(quat / norm)[0]
-    matrix[:3, 3] = xyz
-    return matrix
-
-
 def as_motion(motion: Any) -> Motion:
     """Normalise the accepted motion forms to :class:`ConstantVelocity` / :class:`OdometryPair`.
 
@@ -148,63 +118,6 @@ def as_motion(motion: Any) -> Motion:
     raise ConfigError("motion", type(motion).__name__,
                       "ConstantVelocity, OdometryPair, {'linear', 'angular'}, (linear, angular) "
                       "or ((t0_ns, pose0), (t1_ns, pose1))")
-
-
-# ------------------------------------------------------------------------------ rotations
-
-def _hat(w: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """(N, 3) -> (N, 3, 3) skew-symmetric matrices."""
-    out = np.zeros(w.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -w[..., 1], w[..., 0]
-    return out
-
-
-def _so3_exp_and_v(phi: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """Rodrigues: rotation vectors (N, 3) -> R (N, 3, 3) and the SE(3) left Jacobian V (N, 3, 3)."""
-    theta = np.linalg.norm(phi, axis=-1)
-    small = theta < 1e-6
-    safe = np.where(small, 1.0, theta)
-    # Taylor series below 1e-6 rad: exact to double precision there
-    a = np.where(small, 1 - theta**2 / 6, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(safe)) / safe**2)
-    c = np.where(small, 1 / 6 - theta**2 / 120, (safe - np.sin(safe)) / safe**3)
-    k = _hat(phi)
-    k2 = k @ k
-    eye = np.eye(3)
-    rot = eye + a[:, None, None] * k + b[:, None, None] * k2
-    v = eye + b[:, None, None] * k + c[:, None, None] * k2
-    return rot, v
-
-
-def _quat_to_matrix(q: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Unit quaternions (N, 4) xyzw -> (N, 3, 3)."""
-    q = np.atleast_2d(q)
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
-def _matrix_to_rotvec(rot: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """One 3x3 rotation -> rotation vector (3,) (log map, robust near 0 and pi)."""
-    cos_t = np.clip((np.trace(rot) - 1) / 2, -1.0, 1.0)
-    theta = float(np.arccos(cos_t))
-    if theta < 1e-7:
-        return np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]]) / 2
-    if np.pi - theta < 1e-4:
-        # near pi: axis from the symmetric part
-        sym = (rot + np.eye(3)) / 2
-        axis = sym[int(np.argmax(np.diag(sym)))]
-        axis = axis / np.linalg.norm(axis)
-        sign = np.sign(np.dot(axis, [rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0],
-                                     rot[1, 0] - rot[0, 1]])) or 1.0
-        return np.asarray(sign * theta * axis, dtype=np.float64)
-    vec = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
-    return np.asarray(theta / (2 * np.sin(theta)) * vec, dtype=np.float64)
 
 
 # ------------------------------------------------------------------------------ transforms
@@ -243,14 +156,12 @@ def relative_transforms(motion: Any, times_ns: Any, reference_ns: int
 
 def _interpolate(motion: OdometryPair, times: np.ndarray[Any, Any]
                  ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """Pose at each time: lerp translation, slerp rotation (shortest arc), extrapolated."""
+    """Pose at each time: :func:`converters.transforms.interpolate_poses` of the pair
+    (lerp translation, shortest-arc slerp rotation), extrapolated along the same motion."""
     t0, t1 = int(motion.stamp0_ns), int(motion.stamp1_ns)
     s = (times - np.int64(t0)).astype(np.float64) / float(t1 - t0)
-    p0, p1 = motion.pose0, motion.pose1
-    trans = p0[:3, 3][None, :] + s[:, None] * (p1[:3, 3] - p0[:3, 3])[None, :]
-    delta = _matrix_to_rotvec(p0[:3, :3].T @ p1[:3, :3])          # shortest arc, |delta| <= pi
-    rot_delta, _ = _so3_exp_and_v(s[:, None] * delta[None, :])
-    return p0[:3, :3][None] @ rot_delta, trans
+    poses = interpolate_poses(motion.pose0, motion.pose1, s)
+    return poses[:, :3, :3], poses[:, :3, 3]
 
 
 def deskew_points(points: Any, times_ns: Any, motion: Any, reference_ns: int

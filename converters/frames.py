@@ -87,12 +87,20 @@ def check_frame(field: str, frame: str, output_frame: str, has_extrinsics: bool,
 
 
 def transform_rays(d: np.ndarray[Any, Any], o: np.ndarray[Any, Any],
-                   matrix: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any],
-                                                         np.ndarray[Any, Any]]:
+                   matrix: np.ndarray[Any, Any], index: np.ndarray[Any, Any] | None = None
+                   ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
     """Directions and origins (n, 3) moved into the target frame and rounded to float32 (like
     the projector's own tables). Written out per component, left to right, in float64 from the
-    float32 projector tables, so that a plain loop reproduces them bit for bit."""
-    m = matrix
+    float32 projector tables, so that a plain loop reproduces them bit for bit.
+
+    ``matrix``: one (4, 4) transform for every ray, or (P, 4, 4) transforms with ``index``
+    (n,) int, the transform of each ray (a moving mount: one pose per distinct ray time).
+    """
+    if index is None:
+        m: Any = matrix                                      # m[i, j]: float64 scalars
+    else:
+        rows = np.asarray(matrix, np.float64)[:, :3, :].reshape(-1, 12)
+        m = np.take(np.ascontiguousarray(rows.T), index, axis=1).reshape(3, 4, -1)  # (3, 4, n)
     dx, dy, dz = (d[:, k].astype(np.float64) for k in range(3))
     ox, oy, oz = (o[:, k].astype(np.float64) for k in range(3))
     dt = np.empty(d.shape, np.float32)

@@ -38,6 +38,23 @@ prefer a target frame below the sensor); per slice, which pixels may report +Inf
 Scans carrying ``column_azimuth_angles`` or a per-pixel ``azimuth`` channel
 (:func:`lidarscan.geometry.pixel_azimuths`) rebuild the tables for every scan (correct, not fast).
 
+**Moving mounts.** ``extrinsics`` may also be a :class:`converters.TransformTrack` (stamped
+poses, interpolated: linear translation, shortest-arc slerp) or any callable ``stamp_ns (int) ->
+4x4``: a lidar on a pan unit, an arm or a nodding mount that moves during its sweep. Every pixel's
+ray is then moved by the mount's pose at *that pixel's* time: ``header.stamp +
+column_time_offsets[c] + beam_time_offsets[u]`` (+ the per-pixel ``t`` channel when the scan has
+one; :meth:`lidarscan.geometry.Projector.pixel_times`), so the sweep is de-skewed pixel by pixel
+(with per-column times only, as most lidars, the pose is per column). The slicing that follows
+is the same in every respect (grid, band, classes, ties, holes, backends); only the tables are
+built per scan (:meth:`SliceConverter._moving_tables`: correct, not fast; a mount that holds
+still over a whole scan reuses them). A track computes the poses in one batch; a callable is
+called once per distinct pixel time and its result checked (a finite rigid 4x4, else
+:class:`lidarscan.errors.ValidationError`). A pose that cannot be found -- a time outside the
+track's span (:class:`converters.transforms.OutOfSpanError`, the track never extrapolates) or
+any :class:`~converters.transforms.TransformLookupError` the callable raises -- is raised by
+:meth:`SliceConverter.convert`; nothing falls back to another pose. The fixed-mount path is
+unchanged (same tables, same kernels).
+
 Backends (:func:`converters._kernels.select`, table in :mod:`converters._kernels`): the numpy
 reference here (:meth:`SliceConverter._fuse`, then :func:`converters._grid.decode`); the numba
 kernels of :mod:`converters._kernels.slices_numba` (bin-ordered when all slices share one grid
@@ -76,8 +93,9 @@ from converters import _grid, _kernels, options
 from converters._kernels import slices as _cslices
 from converters._kernels.slices_numba import Bands, Rays
 from converters._grid import AngleGrid, HoleOptions, OutputOptions
-from converters.frames import check_extrinsics, transform_rays
+from converters.frames import check_extrinsics, check_poses, transform_rays
 from converters.options import IfPresent, resolve_channel
+from converters.transforms import TransformTrack
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
 from lidarscan.geometry import azimuth_channel, info_key, make_projector
 from lidarscan.scan import as_array, channel, channel_names, range_m
@@ -331,7 +349,9 @@ class SliceConverter:
         slices: name -> :class:`SliceSpec` (or a dict of its fields); order is kept.
         extrinsics: 4x4 pose of the scan's frame (``info.header.frame_id``) in the target frame;
             None = the scan's frame is the target frame. Heights and ranges are measured in the
-            target frame, so a tilted or upside-down sensor works.
+            target frame, so a tilted or upside-down sensor works. A moving mount: a
+            :class:`converters.TransformTrack` or a callable ``stamp_ns (int) -> 4x4``, looked
+            up at every pixel's time (module docstring, **Moving mounts**).
         frame_id: header.frame_id of the slices (required with ``extrinsics``; default: the
             scan's frame).
         angle_min, angle_max, angle_increment: grid (radians); default full circle from -pi at
@@ -381,8 +401,10 @@ class SliceConverter:
                   "fill": fill, "holes": holes, "floor_height": floor_height,
                   "hole_depth": hole_depth, "hole_range_max": hole_range_max,
                   "hole_no_return": hole_no_return}
+        #: a moving mount: TransformTrack or callable stamp_ns -> 4x4 (None: a fixed mount)
+        self.moving: Any = extrinsics if callable(extrinsics) else None
         options.slice_options(specs, {
-            **common, "extrinsics": extrinsics, "frame_id": frame_id,
+            **common, "extrinsics": _checkable(extrinsics), "frame_id": frame_id,
             "intensity_channel": intensity_channel, "range_channel": range_channel,
             "backend": backend})
         chosen = _kernels.select("slices", backend=backend)
@@ -390,11 +412,12 @@ class SliceConverter:
         self._c_kernel = bool(chosen.c)
         self._common = common
         self._specs: dict[str, SliceSpec] = specs
-        self.extrinsics = check_extrinsics(extrinsics)
+        self.extrinsics = check_extrinsics(_checkable(extrinsics))
         self._frame_id = frame_id
         self.intensity_channel = intensity_channel
         self.range_channel = range_channel
         self._tables: dict[Any, _Tables] = {}
+        self._moving_cache: tuple[Any, _Tables] | None = None
         self._set_info(info)
 
     # ------------------------------------------------------------------------- configuration
@@ -405,6 +428,7 @@ class SliceConverter:
         self._info_stamp = to_ns(info.header.stamp)
         self.frame_id = self._frame_id or info.header.frame_id
         self._tables.clear()
+        self._moving_cache = None
         width = int(info.width)
         self.slices = [self._build_slice(name, spec, info, width)
                        for name, spec in self._specs.items()]
@@ -462,7 +486,9 @@ class SliceConverter:
         return 0.0
 
     # ------------------------------------------------------------------------------ tables
-    def _tables_for(self, scan: Any) -> _Tables:
+    def _geometry_key(self, scan: Any) -> tuple[Any, ...]:
+        """What the sensor-frame rays of a scan depend on: ("info", destaggered), or
+        ("measured", destaggered, digest) for scans with measured azimuths."""
         measured = as_array(scan.column_azimuth_angles, np.float64)
         destaggered = bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
         azimuths = azimuth_channel(scan, self.range_channel)     # per-pixel azimuths
@@ -470,24 +496,68 @@ class SliceConverter:
             digest = hashlib.blake2b(np.ascontiguousarray(measured).tobytes(), digest_size=16)
             if azimuths is not None:
                 digest.update(np.ascontiguousarray(channel(scan, azimuths)).tobytes())
-            key: Any = ("measured", destaggered, digest.digest())
-        else:
-            key = ("info", destaggered)
+            return ("measured", destaggered, digest.digest())
+        return ("info", destaggered)
+
+    def _tie_keys(self, destaggered: bool) -> np.ndarray[Any, Any] | None:
+        """Measurement-order tie key ``u*W + c`` per pixel of a destaggered scan (else None)."""
+        if not destaggered:
+            return None
+        height, width = self.projector.height, self.projector.width
+        src = self.projector.destagger_index
+        return (np.arange(height)[:, None] * width + src).reshape(-1).astype(np.int64)
+
+    def _tables_for(self, scan: Any) -> _Tables:
+        key = self._geometry_key(scan)
         tables = self._tables.get(key)
         if tables is None:
-            if measured.size:       # per-scan geometry: keep only the latest such table
+            if key[0] == "measured":     # per-scan geometry: keep only the latest such table
                 for k in [k for k in self._tables if k[0] == "measured"]:
                     del self._tables[k]
             d32, o32 = self.projector.tables_for(scan, self.range_channel)
             d, o = transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), self.extrinsics)
-            keys = None
-            if destaggered:                  # tie key = measurement-order index u*W + c
-                height, width = self.projector.height, self.projector.width
-                src = self.projector.destagger_index
-                keys = (np.arange(height)[:, None] * width + src).reshape(-1).astype(np.int64)
-            tables = _Tables(d, o, keys, self.slices, self._grids, self._slice_grid, self._near,
-                             self.projector.width)
+            tables = _Tables(d, o, self._tie_keys(key[1]), self.slices, self._grids,
+                             self._slice_grid, self._near, self.projector.width)
             self._tables[key] = tables
+        return tables
+
+    def mount_poses(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """The moving mount's poses for a scan's pixels.
+
+        Returns:
+            (poses, index): (P, 4, 4) float64 target <- sensor at the P distinct pixel times,
+            and (H*W,) int64 the pose of each pixel (scan column order, row-major).
+
+        Raises:
+            OutOfSpanError: a pixel time outside the track's span.
+            TransformLookupError: raised by the callable.
+            ValidationError: the callable returned something other than a finite rigid 4x4.
+        """
+        stamp = to_ns(scan.header.stamp, field="LidarScan.header.stamp")
+        times = np.int64(stamp) + self.projector.pixel_times(scan).reshape(-1)
+        unique, index = np.unique(times, return_inverse=True)
+        if isinstance(self.moving, TransformTrack):
+            poses = self.moving.lookup_many(unique)
+        else:
+            poses = check_poses([self.moving(int(t)) for t in unique], "extrinsics(stamp_ns)")
+        return poses, index.reshape(-1)
+
+    def _moving_tables(self, scan: Any) -> _Tables:
+        """Tables of one scan seen by a moving mount: every pixel's ray moved by the mount's
+        pose at its time (:meth:`mount_poses`). Built per scan; kept for the next scan only
+        while the mount holds one pose over the whole scan (then they equal fixed-mount
+        tables at that pose)."""
+        poses, index = self.mount_poses(scan)
+        geometry = self._geometry_key(scan)
+        still = bool(np.all(poses == poses[0]))
+        key = (geometry, poses[0].tobytes()) if still else None
+        if key is not None and self._moving_cache is not None and self._moving_cache[0] == key:
+            return self._moving_cache[1]
+        d32, o32 = self.projector.tables_for(scan, self.range_channel)
+        d, o = transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), poses, index)
+        tables = _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
+                         self._slice_grid, self._near, self.projector.width)
+        self._moving_cache = None if key is None else (key, tables)
         return tables
 
     # ----------------------------------------------------------------------------- convert
@@ -505,11 +575,13 @@ class SliceConverter:
             LinkageError: ``scan.lidar_info_time`` does not name the converter's info.
             InfoMismatchError: grid size differs from the info.
             UnknownChannelError: the range or intensity channel is missing.
+            TransformLookupError: a moving mount's pose is unknown at a pixel's time
+                (:class:`converters.transforms.OutOfSpanError` outside a track's span).
         """
         if info is not None and info_key(info) != self._info_key:
             self._set_info(info)
         self._check(scan)
-        tables = self._tables_for(scan)
+        tables = self._tables_for(scan) if self.moving is None else self._moving_tables(scan)
         r = np.ascontiguousarray(range_m(scan, self.info, self.range_channel)).reshape(-1)
         intensity = None
         wanted = resolve_channel(self.intensity_channel, channel_names(scan))
@@ -648,6 +720,12 @@ class SliceConverter:
         return best
 
 
+def _checkable(extrinsics: Any) -> Any:
+    """What the fixed-mount checks see: identity for a moving mount (a track or callable is
+    checked per pose), else the extrinsics themselves."""
+    return np.eye(4) if callable(extrinsics) else extrinsics
+
+
 def _as_spec(name: str, spec: SliceSpec | Mapping[str, Any]) -> SliceSpec:
     if isinstance(spec, SliceSpec):
         out = spec
@@ -698,8 +776,10 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
               "hole_range_max": hole_range_max, "hole_no_return": hole_no_return,
               "range_channel": range_channel, "backend": backend}
     spec = SliceSpec(min_height, max_height)
-    options.slice_options({"slice": spec}, kwargs)      # before any use of the values
-    ext = None if extrinsics is None else check_extrinsics(extrinsics).tobytes()
+    options.slice_options({"slice": spec}, {**kwargs, "extrinsics": _checkable(extrinsics)})
+    # a moving mount is cached by identity (the cached converter keeps it alive)
+    ext = None if extrinsics is None else ("moving", id(extrinsics)) if callable(extrinsics) \
+        else check_extrinsics(extrinsics).tobytes()
     # the type tells IfPresent("intensity") (the default) from a required "intensity"
     key = (info_key(info), float(min_height), float(max_height), ext,
            tuple((k, type(v), v) for k, v in kwargs.items() if k != "extrinsics"))

@@ -97,7 +97,8 @@ from converters import _grid, _kernels, options
 from converters._grid import AngleGrid, OutputOptions
 from converters._kernels.slices_numba import Bands, Rays
 from converters.frames import check_extrinsics, check_frame, check_poses
-from converters.transforms import TransformLookupError, TransformTrack
+from converters.transforms import (TransformLookupError, TransformTrack, _quat_to_matrix,
+                                   interpolate_poses, quaternion_from_matrix)
 from lidarscan.errors import ConfigError, ValidationError
 from lidarscan.scan import as_array
 from lidarscan.stamps import to_ns
@@ -153,35 +154,15 @@ class Pose:
     def matrix(self) -> np.ndarray[Any, np.dtype[np.float64]]:
         """4x4 float64 homogeneous transform."""
         out = np.eye(4)
-        out[:3, :3] = _quat_matrix(self.orientation)
+        out[:3, :3] = _quat_to_matrix(np.asarray(self.orientation, np.float64))[0]
         out[:3, 3] = self.position
         return out
 
 
-def _quat_matrix(q: Any) -> np.ndarray[Any, Any]:
-    x, y, z, w = (float(v) for v in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def _slerp(q0: np.ndarray[Any, Any], q1: np.ndarray[Any, Any], u: float) -> np.ndarray[Any, Any]:
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:                       # shortest arc: q and -q are the same rotation
-        q1, dot = -q1, -dot
-    if dot > 0.9995:
-        q = q0 + u * (q1 - q0)
-    else:
-        theta = math.acos(min(dot, 1.0))
-        q = (math.sin((1.0 - u) * theta) * q0 + math.sin(u * theta) * q1) / math.sin(theta)
-    out: np.ndarray[Any, Any] = q / np.linalg.norm(q)
-    return out
-
-
 def interpolate_pose(stamps: list[int], poses: list[Pose], t: int, max_gap_ns: int
                      ) -> Pose | None:
-    """Pose at ``t`` from sorted samples: exact sample, lerp + shortest-arc slerp between two,
+    """Pose at ``t`` from sorted samples: exact sample, lerp + shortest-arc slerp between two
+    (:func:`converters.transforms.interpolate_poses`),
     the nearest one held outside the window; None if the bracketing gap (or the distance to the
     nearest sample outside the window) exceeds ``max_gap_ns`` or there are no samples."""
     if not stamps:
@@ -196,11 +177,9 @@ def interpolate_pose(stamps: list[int], poses: list[Pose], t: int, max_gap_ns: i
     t0, t1 = stamps[i - 1], stamps[i]
     if t1 - t0 > max_gap_ns:
         return None
-    u = (t - t0) / (t1 - t0)
-    a, b = poses[i - 1], poses[i]
-    p = tuple(float(pa + u * (pb - pa)) for pa, pb in zip(a.position, b.position))
-    q = _slerp(np.array(a.orientation, float), np.array(b.orientation, float), u)
-    return Pose(t, p, tuple(float(v) for v in q))  # type: ignore[arg-type]
+    m = interpolate_poses(poses[i - 1].matrix(), poses[i].matrix(), [(t - t0) / (t1 - t0)])[0]
+    return Pose(t, tuple(float(v) for v in m[:3, 3]),  # type: ignore[arg-type]
+                quaternion_from_matrix(m))
 
 
 @dataclass

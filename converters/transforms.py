@@ -4,8 +4,13 @@ A :class:`TransformTrack` holds poses ``T(t)`` of one frame in another (4x4 floa
 ``p_parent = T(t) @ p_child``, REP 103 axes, metres) at int64 ns stamps, e.g. a laser on a pan
 unit seen from ``base_link``. :meth:`TransformTrack.lookup` interpolates between the two nearest
 samples as tf2 does: linear translation, spherical-linear (shortest-arc) rotation, written as
-``R(t) = R0 exp(u log(R0^T R1))`` with the rotation helpers of :mod:`converters.deskew` (this is
-slerp: same rotation, numerically). At a sample's own stamp the sample is returned exactly.
+``R(t) = R0 exp(u log(R0^T R1))`` (:func:`interpolate_poses`; this is slerp: same rotation,
+numerically). At a sample's own stamp the sample is returned exactly.
+
+**One pose interpolation.** :func:`interpolate_poses` is the project's only lerp/slerp of poses:
+the tracks here, :class:`converters.deskew.OdometryPair`, the merger's odometry and the nodes'
+:class:`converters.nodes.tf.TransformBuffer` all call it. The SO(3) helpers it rests on
+(Rodrigues, log map, quaternion <-> matrix) and :func:`pose_matrix` live here too.
 
 **Span.** A lookup before the oldest sample, or after the newest one, raises
 :class:`OutOfSpanError` (naming the stamp and the span): a track never extrapolates. The one
@@ -24,15 +29,17 @@ thread-safe.
 from __future__ import annotations
 
 import bisect
+import math
 import threading
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from converters.deskew import _matrix_to_rotvec, _so3_exp_and_v, pose_matrix
 from lidarscan.errors import ConfigError, ConversionError
 
-__all__ = ["OutOfSpanError", "TransformLookupError", "TransformTrack"]
+__all__ = ["OutOfSpanError", "TransformLookupError", "TransformTrack", "interpolate_poses",
+           "pose_matrix", "quaternion_from_matrix"]
 
 
 class TransformLookupError(ConversionError):
@@ -119,8 +126,7 @@ class TransformTrack:
             quaternion: (x, y, z, w), normalised here.
 
         Raises:
-            ConfigError: not a rigid transform, or bad numbers
-                (:func:`converters.deskew.pose_matrix`).
+            ConfigError: not a rigid transform, or bad numbers (:func:`pose_matrix`).
         """
         field = f"{self.name}.add({int(stamp_ns)})"
         matrix = pose_matrix(pose if quaternion is None else (pose, quaternion), field).copy()
@@ -196,13 +202,149 @@ class TransformTrack:
                 p0 = np.stack([poses[k] for k in segments])
                 p1 = np.stack([poses[k + 1] for k in segments])
         if between.size:
-            delta = np.stack([_matrix_to_rotvec(a[:3, :3].T @ b[:3, :3])
-                              for a, b in zip(p0, p1)])          # shortest arc, |delta| <= pi
-            rot, _ = _so3_exp_and_v(u[:, None] * delta[inverse])
-            a, b = p0[inverse], p1[inverse]
-            block = np.zeros((between.size, 4, 4))
-            block[:, :3, :3] = a[:, :3, :3] @ rot
-            block[:, :3, 3] = a[:, :3, 3] + u[:, None] * (b[:, :3, 3] - a[:, :3, 3])
-            block[:, 3, 3] = 1.0
-            out[between] = block
+            out[between] = interpolate_poses(p0, p1, u, inverse)
         return out
+
+
+# ------------------------------------------------------------------------------ interpolation
+
+def interpolate_poses(p0: Any, p1: Any, u: Any, segment: Any = None
+                      ) -> np.ndarray[Any, np.dtype[np.float64]]:
+    """Poses between two rigid transforms: linear translation, shortest-arc slerp rotation.
+
+    ``T(u) = [R0 exp(u log(R0^T R1)), t0 + u (t1 - t0)]``: ``u = 0`` gives ``p0``'s rotation
+    and translation, ``u = 1`` ``p1``'s; ``u`` outside [0, 1] extrapolates along the same
+    motion (callers that must not extrapolate check their span first). Two rotations exactly
+    pi apart have no unique shortest arc: one of the two is taken.
+
+    Args:
+        p0, p1: (K, 4, 4) or (4, 4) float64 rigid transforms (segment starts and ends).
+        u: (N,) float64 fractions.
+        segment: (N,) int indices into the K pairs (None: every u on pair 0).
+
+    Returns:
+        (N, 4, 4) float64.
+    """
+    a0 = np.asarray(p0, dtype=np.float64).reshape(-1, 4, 4)
+    a1 = np.asarray(p1, dtype=np.float64).reshape(-1, 4, 4)
+    frac = np.asarray(u, dtype=np.float64).reshape(-1)
+    index = np.zeros(frac.size, np.intp) if segment is None else np.asarray(segment)
+    delta = np.stack([_matrix_to_rotvec(a[:3, :3].T @ b[:3, :3])
+                      for a, b in zip(a0, a1)])              # shortest arc, |delta| <= pi
+    rot, _ = _so3_exp_and_v(frac[:, None] * delta[index])
+    a, b = a0[index], a1[index]
+    out = np.zeros((frac.size, 4, 4))
+    out[:, :3, :3] = a[:, :3, :3] @ rot
+    out[:, :3, 3] = a[:, :3, 3] + frac[:, None] * (b[:, :3, 3] - a[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def quaternion_from_matrix(matrix: Any) -> tuple[float, float, float, float]:
+    """(x, y, z, w) unit quaternion (w >= 0) of the rotation of a 4x4 or 3x3 matrix."""
+    m = np.asarray(matrix, dtype=np.float64)[:3, :3]
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4)
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = (s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s)
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = ((m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s)
+    norm = math.sqrt(sum(v * v for v in q))
+    x, y, z, w = (v / norm for v in q)
+    return (-x, -y, -z, -w) if w < 0 else (x, y, z, w)
+
+
+def pose_matrix(pose: Any, field: str = "pose") -> np.ndarray[Any, np.dtype[np.float64]]:
+    """4x4 float64 rigid transform from a 4x4 matrix or an (xyz, quaternion xyzw) pair.
+
+    Raises:
+        ConfigError: not a rigid transform / not 3 + 4 finite numbers / zero quaternion.
+    """
+    if isinstance(pose, np.ndarray) and pose.shape == (4, 4) or (
+            isinstance(pose, Sequence) and len(pose) == 4):
+        matrix = np.asarray(pose, dtype=np.float64)
+        if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+            raise ConfigError(field, pose, "a finite 4x4 matrix")
+        rot = matrix[:3, :3]
+        if not (np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9)
+                and np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0):
+            raise ConfigError(field, matrix.round(6).tolist(), "a rigid transform")
+        return matrix
+    try:
+        xyz, quat = pose
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1)
+        quat = np.asarray(quat, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ConfigError(field, pose, "a 4x4 matrix or (xyz, quaternion xyzw)") from None
+    norm = float(np.linalg.norm(quat)) if quat.shape == (4,) else 0.0
+    if xyz.shape != (3,) or not np.all(np.isfinite(xyz)) or not np.isfinite(norm) or norm == 0:
+        raise ConfigError(field, pose, "(xyz: 3 finite numbers, quaternion xyzw: 4, non-zero)")
+    matrix = np.eye(4)
+    matrix[:3, :3] = _quat_to_matrix(quat / norm)[0]
+    matrix[:3, 3] = xyz
+    return matrix
+
+
+
+# ------------------------------------------------------------------------------ rotations
+
+def _hat(w: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """(N, 3) -> (N, 3, 3) skew-symmetric matrices."""
+    out = np.zeros(w.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -w[..., 1], w[..., 0]
+    return out
+
+
+def _so3_exp_and_v(phi: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """Rodrigues: rotation vectors (N, 3) -> R (N, 3, 3) and the SE(3) left Jacobian V (N, 3, 3)."""
+    theta = np.linalg.norm(phi, axis=-1)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    # Taylor series below 1e-6 rad: exact to double precision there
+    a = np.where(small, 1 - theta**2 / 6, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(safe)) / safe**2)
+    c = np.where(small, 1 / 6 - theta**2 / 120, (safe - np.sin(safe)) / safe**3)
+    k = _hat(phi)
+    k2 = k @ k
+    eye = np.eye(3)
+    rot = eye + a[:, None, None] * k + b[:, None, None] * k2
+    v = eye + b[:, None, None] * k + c[:, None, None] * k2
+    return rot, v
+
+
+def _quat_to_matrix(q: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Unit quaternions (N, 4) xyzw -> (N, 3, 3)."""
+    q = np.atleast_2d(q)
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def _matrix_to_rotvec(rot: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """One 3x3 rotation -> rotation vector (3,) (log map, robust near 0 and pi)."""
+    cos_t = np.clip((np.trace(rot) - 1) / 2, -1.0, 1.0)
+    theta = float(np.arccos(cos_t))
+    if theta < 1e-7:
+        return np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]]) / 2
+    if np.pi - theta < 1e-4:
+        # near pi: axis from the symmetric part
+        sym = (rot + np.eye(3)) / 2
+        axis = sym[int(np.argmax(np.diag(sym)))]
+        axis = axis / np.linalg.norm(axis)
+        sign = np.sign(np.dot(axis, [rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0],
+                                     rot[1, 0] - rot[0, 1]])) or 1.0
+        return np.asarray(sign * theta * axis, dtype=np.float64)
+    vec = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    return np.asarray(theta / (2 * np.sin(theta)) * vec, dtype=np.float64)

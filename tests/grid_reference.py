@@ -86,7 +86,8 @@ def ref_slice(scan: Any, info: Any, *, zmin: float, zmax: float, ext: Any = None
     the winners' intensities per bin); ``holes``: floor_height, hole_depth, hole_range_max
     (None = rmax), hole_no_return."""
     height, width = int(info.height), int(info.width)
-    m = np.eye(4) if ext is None else np.asarray(ext, float)
+    # ext: a fixed 4x4, or a callable (u, v) -> 4x4: the pose of pixel (row, stored column)
+    m = np.eye(4) if ext is None or callable(ext) else np.asarray(ext, float)
     inc = TWO_PI / width if inc is None else inc
     amax = amin + TWO_PI if amax is None else amax
     rmin = max(float(info.range_min), 0.0) if rmin is None else rmin
@@ -112,6 +113,8 @@ def ref_slice(scan: Any, info: Any, *, zmin: float, zmax: float, ext: Any = None
         for v in range(width):
             c = (v - int(proj.shifts[u])) % width if scan.is_destaggered else v
             key = u * width + c
+            if callable(ext):
+                m = np.asarray(ext(u, v), float)
             d0 = [float(x) for x in dirs[u, v]]
             o0 = [float(x) for x in offs[u, v]]
             d = tuple(float(F32(m[i, 0] * d0[0] + m[i, 1] * d0[1] + m[i, 2] * d0[2]))

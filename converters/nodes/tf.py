@@ -7,7 +7,8 @@ two frames through their common ancestor, and looks a transform up at a time:
 * static transforms hold at every time;
 * dynamic transforms are kept per edge for ``cache_ns`` (default 10 s) and at most
   ``max_per_edge`` samples; a lookup between two samples interpolates (linear translation,
-  spherical-linear rotation); a lookup outside the samples is allowed up to ``tolerance_ns``
+  spherical-linear rotation: :func:`converters.transforms.interpolate_poses`); a lookup
+  outside the samples is allowed up to ``tolerance_ns``
   beyond the newest/oldest one (the nearest sample is used) and fails beyond that;
 * ``time_ns=None`` asks for the newest transform of each edge (tf2's "time 0");
 * :meth:`TransformBuffer.samples` gives the chained transform at every stored stamp of the
@@ -39,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from converters.transforms import TransformLookupError
+from converters.transforms import TransformLookupError, interpolate_poses, quaternion_from_matrix
 from lidarscan.errors import ValidationError
 from lidarscan.stamps import to_ns
 
@@ -94,42 +95,12 @@ def matrix_from_xyz_rpy(x: float = 0.0, y: float = 0.0, z: float = 0.0, roll: fl
     return m
 
 
-def quaternion_from_matrix(matrix: Any) -> tuple[float, float, float, float]:
-    """(x, y, z, w) unit quaternion (w >= 0) of the rotation of a 4x4 or 3x3 matrix."""
-    m = np.asarray(matrix, dtype=np.float64)[:3, :3]
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        q = ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4)
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = (s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s)
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = ((m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s)
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s)
-    norm = math.sqrt(sum(v * v for v in q))
-    x, y, z, w = (v / norm for v in q)
-    return (-x, -y, -z, -w) if w < 0 else (x, y, z, w)
-
-
 def slerp(q0: Any, q1: Any, fraction: float) -> tuple[float, float, float, float]:
-    """Spherical-linear interpolation of unit quaternions (x, y, z, w), the short way round."""
-    a = np.asarray(q0, dtype=np.float64)
-    b = np.asarray(q1, dtype=np.float64)
-    dot = float(a @ b)
-    if dot < 0.0:  # antipodal representation: take the short arc
-        b, dot = -b, -dot
-    if dot > 0.9995:
-        out = a + fraction * (b - a)
-    else:
-        theta = math.acos(min(dot, 1.0))
-        out = (math.sin((1 - fraction) * theta) * a + math.sin(fraction * theta) * b) / \
-            math.sin(theta)
-    out /= np.linalg.norm(out)
-    return (float(out[0]), float(out[1]), float(out[2]), float(out[3]))
+    """Spherical-linear interpolation of unit quaternions (x, y, z, w), the short way round
+    (:func:`converters.transforms.interpolate_poses`; the result has ``w >= 0``)."""
+    pose = interpolate_poses(matrix_from_quaternion(q0), matrix_from_quaternion(q1),
+                             [float(fraction)])[0]
+    return quaternion_from_matrix(pose)
 
 
 def matrix_from_transform_msg(transform: Any) -> np.ndarray[Any, np.dtype[np.float64]]:
@@ -358,9 +329,9 @@ class TransformBuffer:
             trans, quat = edge.values[nearest]
             return matrix_from_quaternion(quat, trans)
         t0, t1 = times[i - 1], times[i]
-        fraction = (time_ns - t0) / (t1 - t0)
         (p0, q0), (p1, q1) = edge.values[i - 1], edge.values[i]
-        return matrix_from_quaternion(slerp(q0, q1, fraction), p0 + fraction * (p1 - p0))
+        return interpolate_poses(matrix_from_quaternion(q0, p0), matrix_from_quaternion(q1, p1),
+                                 [(time_ns - t0) / (t1 - t0)])[0]
 
 
 def _strip(frame: str) -> str:

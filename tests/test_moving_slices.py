@@ -1,0 +1,271 @@
+"""LidarScan slices from a lidar on a moving mount (pan unit, nodding head): ``extrinsics`` as a
+TransformTrack or a callable ``stamp_ns -> 4x4``, looked up at every pixel's own time.
+
+Oracles: the per-pixel slice loop of ``grid_reference.ref_slice`` fed with one pose per pixel,
+whose time the test computes itself from the documented rule (stamp + measurement column *
+column_time_increment + beam_time_offsets[row] + the ``t`` channel); a static synthetic room
+ray-cast per pixel from the mount's pose at that pixel's time, whose slice must show the room's
+walls where a horizontal 2D ray cast from the target frame's origin finds them (and clearly
+not when the motion is ignored).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import lidarscan
+from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
+from converters.transforms import OutOfSpanError, TransformLookupError, TransformTrack
+from lidarscan.errors import ConfigError, ValidationError
+from grid_reference import pose, ref_slice
+from test_laserscan import BACKENDS, arrays, assert_same, make_sensor, raycast
+
+MS = 1_000_000
+STAMP = 10**9
+
+
+def mount_track(start: int, stop: int, *, yaw_rate: float = 2.0 * math.pi, nod: float = 0.2,
+                speed: float = 0.0, step: int = 5 * MS) -> TransformTrack:
+    """base_link <- sensor of a pan-tilt head at (0.1, 0, 0.6): yawing at ``yaw_rate`` rad/s,
+    nodding (pitch) ``nod`` rad at 5 Hz, sliding along x at ``speed`` m/s; sampled every
+    ``step`` ns over [start, stop]."""
+    track = TransformTrack(name="base_link <- os_sensor")
+    for t in range(start, stop + step, step):
+        s = (t - STAMP) * 1e-9
+        track.add(t, pose(0.1 + speed * s, 0.0, 0.6, yaw=yaw_rate * s,
+                          pitch=nod * math.sin(2 * math.pi * 5 * s)))
+    return track
+
+
+def pixel_times(info: Any, scan: Any) -> np.ndarray:
+    """(H, W) absolute int ns of every stored pixel, from the documented rule (loops)."""
+    height, width = int(info.height), int(info.width)
+    shifts = np.asarray(info.pixel_shift_by_row, np.int64) if len(info.pixel_shift_by_row) \
+        else np.zeros(height, np.int64)
+    beam = np.asarray(info.beam_time_offsets, np.int64) if len(info.beam_time_offsets) \
+        else np.zeros(height, np.int64)
+    names = [c.name for c in scan.channels]
+    delays = lidarscan.channel(scan, "t") if "t" in names else None
+    out = np.empty((height, width), np.int64)
+    for u in range(height):
+        for v in range(width):
+            c = (v - int(shifts[u])) % width if scan.is_destaggered else v
+            t = STAMP + c * int(info.column_time_increment) + int(beam[u])
+            out[u, v] = t + (int(delays[u, v]) if delays is not None else 0)
+    return out
+
+
+def moving_room_scan(info: Any, mount: Any, *, destagger: bool = False,
+                     delays: np.ndarray | None = None, specials: bool = True,
+                     rng: np.random.Generator | None = None) -> Any:
+    """The static room (tests/test_laserscan.py) seen pixel by pixel from ``mount(t)`` at each
+    pixel's time (measurement order, then destaggered if asked)."""
+    proj = lidarscan.make_projector(info)
+    height, width = proj.height, proj.width
+    d = proj.directions.reshape(-1, 3).astype(np.float64)
+    o = proj.offsets.reshape(-1, 3).astype(np.float64)
+    times = (STAMP + np.arange(width)[None, :] * int(info.column_time_increment)
+             + np.asarray(proj.beam_time_offsets, np.int64)[:, None])
+    if delays is not None:                      # given in measurement order
+        times = times + delays
+    unique, inverse = np.unique(times.reshape(-1), return_inverse=True)
+    mats = np.stack([mount(int(t)) for t in unique])[inverse.reshape(-1)]
+    dw = np.einsum("nij,nj->ni", mats[:, :3, :3], d)
+    ow = np.einsum("nij,nj->ni", mats[:, :3, :3], o) + mats[:, :3, 3]
+    r = raycast(ow, dw / np.linalg.norm(dw, axis=1)[:, None]).reshape(height, width)
+    r = r.astype(np.float32)
+    rng = rng or np.random.default_rng(3)
+    if specials:
+        flat = r.reshape(-1)
+        pick = rng.choice(flat.size, size=flat.size // 10, replace=False)
+        flat[pick] = np.array([np.inf, np.nan, -np.inf, 0.0], np.float32)[np.arange(pick.size) % 4]
+    channels: dict[str, np.ndarray] = {
+        "range": r, "intensity": rng.integers(0, 4000, r.shape).astype(np.float32)}
+    if delays is not None:
+        channels["t"] = delays.astype(np.uint32)
+    if destagger:
+        channels = {k: proj.destagger(v) for k, v in channels.items()}
+    return lidarscan.make_scan(info, channels, STAMP, is_destaggered=destagger,
+                               as_dataclass=True)
+
+
+def sweep_track(info: Any, margin: int = 10 * MS, **kwargs: Any) -> TransformTrack:
+    return mount_track(STAMP - margin, STAMP + 100 * MS + margin, **kwargs)
+
+
+BAND = (0.9, 1.5)      # walls and the pillar; below the ceiling, above the table top
+
+
+# ------------------------------------------------------------------------- loop oracle
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("variant", ["plain", "destaggered", "beam_times", "t_channel", "holes"])
+def test_moving_mount_matches_the_pixel_loop_oracle(backend: str, variant: str) -> None:
+    fields: dict[str, Any] = {}
+    if variant == "beam_times":
+        fields["beam_time_offsets"] = (np.arange(16) * 23_000).astype(np.int64)
+    info = make_sensor(16, 128, shifts=variant == "destaggered", **fields)
+    track = sweep_track(info)
+    delays = None
+    if variant == "t_channel":
+        delays = np.random.default_rng(4).integers(0, 700_000, (16, 128))
+    scan = moving_room_scan(info, track, destagger=variant == "destaggered", delays=delays)
+    times = pixel_times(info, scan)
+    holes = variant == "holes"
+    conv = SliceConverter(info, {"s": SliceSpec(*BAND)}, extrinsics=track, frame_id="base_link",
+                          holes=holes, floor_height=0.0, hole_depth=0.05, backend=backend)
+    got = conv.convert(scan)["s"]
+    assert got.header.frame_id == "base_link"
+    ref = ref_slice(scan, info, zmin=BAND[0], zmax=BAND[1],
+                    ext=lambda u, v: track.lookup(int(times[u, v])),
+                    holes={"floor_height": 0.0, "hole_depth": 0.05, "hole_range_max": None,
+                           "hole_no_return": True} if holes else None)
+    assert_same(got, ref)
+    # the mount's poses: one per distinct pixel time, in the documented order
+    poses, index = conv.mount_poses(scan)
+    assert len(poses) == len(np.unique(times))
+    np.testing.assert_array_equal(poses[index], track.lookup_many(times.reshape(-1)))
+
+
+@settings(max_examples=12, deadline=None)
+@given(yaw_rate=st.floats(-12.0, 12.0), nod=st.floats(0.0, 0.4), speed=st.floats(-2.0, 2.0),
+       step_ms=st.integers(1, 60))
+def test_any_smooth_motion_matches_the_oracle(yaw_rate: float, nod: float, speed: float,
+                                              step_ms: int) -> None:
+    info = make_sensor(8, 64)
+    track = sweep_track(info, margin=60 * MS, yaw_rate=yaw_rate, nod=nod, speed=speed,
+                        step=step_ms * MS)
+    scan = moving_room_scan(info, track)
+    times = pixel_times(info, scan)
+    got = SliceConverter(info, {"s": SliceSpec(0.3, 2.0)}, extrinsics=track,
+                         frame_id="base_link").convert(scan)["s"]
+    assert_same(got, ref_slice(scan, info, zmin=0.3, zmax=2.0,
+                               ext=lambda u, v: track.lookup(int(times[u, v]))))
+
+
+# -------------------------------------------------------------------- static-scene truth
+
+def wall_truth(grid_angles: np.ndarray, height: float) -> np.ndarray:
+    """Planar distance from base_link's z axis to the room at ``height`` along each angle."""
+    d = np.stack([np.cos(grid_angles), np.sin(grid_angles), np.zeros_like(grid_angles)], 1)
+    o = np.tile([0.0, 0.0, height], (len(grid_angles), 1))
+    return raycast(o, d)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_rotating_mount_slice_shows_the_static_room(backend: str) -> None:
+    """A lidar on a pan unit turning at 1 turn/s (36 degrees during its 100 ms sweep) and
+    nodding: with the track, every slice bin lies on the room's walls; with the pose at the
+    stamp only (motion ignored), most do not."""
+    info = make_sensor(32, 512, fov=40.0)
+    track = mount_track(STAMP - 10 * MS, STAMP + 110 * MS, yaw_rate=2 * math.pi, nod=0.1,
+                        step=2 * MS)
+    scan = moving_room_scan(info, track, specials=False)
+    spec = {"s": SliceSpec(*BAND)}
+    moving = SliceConverter(info, spec, extrinsics=track, frame_id="base_link",
+                            backend=backend).convert(scan)["s"]
+    ignored = SliceConverter(info, spec, extrinsics=track.lookup(STAMP), frame_id="base_link",
+                             backend=backend).convert(scan)["s"]
+    angles = moving.angle_min + np.arange(len(moving.ranges)) * moving.angle_increment
+    truth = wall_truth(angles, 1.2)
+    # a bin spans 0.7 degrees: the wall's distance changes across it, most near corners
+    tolerance = 0.02 + truth * np.radians(0.7) * 2
+    r_moving, r_ignored = arrays(moving)[0], arrays(ignored)[0]
+    ok = np.isfinite(r_moving)
+    # the head turns against the sensor's clockwise sweep: the sweep covers 360 - 36 degrees
+    assert 0.85 < ok.mean() < 0.95
+    err = np.abs(r_moving[ok] - truth[ok])
+    assert np.median(err) < 0.015 and np.mean(err <= tolerance[ok]) > 0.99, np.sort(err)[-10:]
+    bad = np.isfinite(r_ignored)
+    err_ignored = np.abs(r_ignored[bad] - truth[bad])
+    assert np.median(err_ignored) > 0.15 and np.mean(err_ignored <= tolerance[bad]) < 0.5
+
+
+# ----------------------------------------------------------------------- forms and errors
+
+def test_callable_and_track_give_the_same_slices() -> None:
+    info = make_sensor(16, 128, beam_time_offsets=(np.arange(16) * 1000).astype(np.int64))
+    track = sweep_track(info)
+    scan = moving_room_scan(info, track)
+    calls: list[int] = []
+
+    def mount(t: int) -> np.ndarray:
+        calls.append(t)
+        return track.lookup(t)
+
+    spec = {"a": SliceSpec(*BAND), "b": SliceSpec(0.2, 0.8, angle_increment=0.02)}
+    by_track = SliceConverter(info, spec, extrinsics=track, frame_id="base_link").convert(scan)
+    by_call = SliceConverter(info, spec, extrinsics=mount, frame_id="base_link").convert(scan)
+    for name in spec:
+        assert_same(by_call[name], arrays(by_track[name]))
+    times = pixel_times(info, scan)
+    assert sorted(calls) == sorted(set(times.reshape(-1).tolist()))     # once per distinct time
+    # to_laserscan takes the same forms (cached per mount object)
+    for ext in (track, mount):
+        one = to_laserscan(scan, info, min_height=BAND[0], max_height=BAND[1], extrinsics=ext,
+                           frame_id="base_link")
+        assert_same(one, arrays(by_track["a"]))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_still_mount_equals_the_fixed_extrinsics(backend: str) -> None:
+    """A track that holds one pose over the scan gives the fixed-mount slices bit for bit, and
+    its tables are reused by the next scan at the same pose."""
+    info = make_sensor(16, 128, shifts=True)
+    fixed = pose(0.1, 0.0, 0.6, yaw=0.4, pitch=0.1)
+    track = TransformTrack()
+    track.add(0, fixed)
+    track.add(10 * STAMP, fixed)
+    scan = moving_room_scan(info, lambda t: fixed, destagger=True)
+    spec = {"s": SliceSpec(*BAND), "h": SliceSpec(0.2, 0.8, holes=True, floor_height=0.0)}
+    conv = SliceConverter(info, spec, extrinsics=track, frame_id="base_link", backend=backend)
+    got = conv.convert(scan)
+    ref = SliceConverter(info, spec, extrinsics=fixed, frame_id="base_link",
+                         backend=backend).convert(scan)
+    for name in spec:
+        assert_same(got[name], arrays(ref[name]))
+    tables = conv._moving_cache
+    assert tables is not None
+    conv.convert(scan)
+    assert conv._moving_cache is tables                     # same pose: tables reused
+
+
+def test_out_of_span_and_lookup_errors_are_raised() -> None:
+    info = make_sensor(8, 64)
+    scan = moving_room_scan(info, lambda t: pose(z=0.6))
+    spec = {"s": SliceSpec(*BAND)}
+    short = mount_track(STAMP, STAMP + 50 * MS)           # ends in the middle of the sweep
+    with pytest.raises(OutOfSpanError) as err:
+        SliceConverter(info, spec, extrinsics=short, frame_id="base_link").convert(scan)
+    assert err.value.stamp_ns > STAMP + 50 * MS and err.value.span == (STAMP, STAMP + 50 * MS)
+    with pytest.raises(OutOfSpanError):
+        to_laserscan(scan, info, min_height=0.9, max_height=1.5, extrinsics=TransformTrack(),
+                     frame_id="base_link")
+    late = mount_track(STAMP + MS, STAMP + 200 * MS)      # starts after the first column
+    with pytest.raises(OutOfSpanError):
+        SliceConverter(info, spec, extrinsics=late, frame_id="base_link").convert(scan)
+
+    def unknown(t: int) -> np.ndarray:
+        raise TransformLookupError("base_link <- os_sensor", t, "a known time")
+
+    with pytest.raises(TransformLookupError):
+        SliceConverter(info, spec, extrinsics=unknown, frame_id="base_link").convert(scan)
+    for bad in (lambda t: np.diag([2.0, 1, 1, 1]), lambda t: np.eye(3),
+                lambda t: np.full((4, 4), np.nan)):
+        with pytest.raises(ValidationError):
+            SliceConverter(info, spec, extrinsics=bad, frame_id="base_link").convert(scan)
+
+
+def test_a_moving_mount_needs_the_target_frame() -> None:
+    info = make_sensor(8, 64)
+    with pytest.raises(ConfigError, match="frame_id"):
+        SliceConverter(info, {"s": SliceSpec(*BAND)}, extrinsics=lambda t: np.eye(4))
+    with pytest.raises(ConfigError, match="frame_id"):
+        to_laserscan(moving_room_scan(info, lambda t: np.eye(4)), info, min_height=0.0,
+                     max_height=1.0, extrinsics=TransformTrack())
