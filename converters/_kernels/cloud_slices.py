@@ -3,12 +3,14 @@ several LaserScan slices in one pass over the points.
 
 One kernel, ``fuse_points``, doing exactly what ``converters.cloud_slices._fuse_numpy`` does
 (the reference): per point (x, y, z read as float64 from the cloud's own float32 / float64
-fields, native byte order), skip it unless all three are finite, transform it once into the
-target frame (``m``: rotation row-major then translation, evaluated in the same order as the
-reference) and keep it when its z lies in the hull of the bands. Kept points are buffered in
-chunks of ``_CHUNK``; per chunk: the bin of every point once per distinct grid (one vectorised
-loop), its planar range and float32 code once, then band by band the minimum of
-``code << 32 | point index`` in the reduction array for the points inside the band.
+fields, native byte order), its target-frame z first (``m``: rotation row-major then
+translation, evaluated in the same order as the reference; from z alone for an upright
+target), dropped unless it lies in the hull of the bands; only a kept point has its x, y
+read and transformed and its finiteness checked (the reference's order gives the same set,
+:func:`_fill`). Kept points are buffered in chunks of ``_CHUNK``; per chunk: the bin of every
+point once per distinct grid (one vectorised loop), its planar range and float32 code once,
+then band by band the points inside the band (branch-free compaction) and the minimum of
+``code << 32 | point index`` in the reduction array.
 
 Binning without libm's ``atan2`` for almost every point: an odd polynomial of ``atan`` on
 ``[0, 1]`` (8 terms, error below 4e-8 rad, checked by a test) after the octant reduction
