@@ -3,7 +3,8 @@ four runs of a compiled per-point loop for one slice.
 
 Run: ``.venv/bin/python bench/bench_cloud_slices.py [--repeat N]``. Prints medians, minima and
 ratios of CPU time (``time.process_time``) measured in the same run (candidates interleaved, in
-a new random order every round) and the load average; no assertions. Target (issue 15): 4 slices >= 3x faster than four runs of the baseline.
+a new random order every round) and the load average; no assertions. Target (issue 15): 4
+slices >= 3x faster than four runs of the baseline.
 
 Cloud: the real OS-2-128 frame of tests/data/ouster (128 x 1024, 8.7 % of the pixels without
 return, NaN points there), converted with :func:`converters.pointcloud2.to_pointcloud2`

@@ -162,6 +162,17 @@ def _flush(bx: Any, by: Any, bz: Any, bi: Any, bk: Any, brho: Any, bbits: Any, b
             best[t] = min(best[t], v)
 
 
+def _push(bx: Any, by: Any, bz: Any, bi: Any, c: int, i: int, x: float, y: float, z: float,
+          pz: float, m: Any) -> int:  # pragma: no cover - compiled (inlined)
+    """Buffer point ``i`` (cloud x, y, z; target z ``pz``) at ``c`` in the target frame;
+    returns ``c + 1``."""
+    bx[c] = m[0] * x + m[1] * y + m[2] * z + m[9]
+    by[c] = m[3] * x + m[4] * y + m[5] * z + m[10]
+    bz[c] = pz
+    bi[c] = i
+    return c + 1
+
+
 def _fill(xs: Any, ys: Any, zs: Any, m: Any, zall_lo: float, zall_hi: float, start: int,
           bx: Any, by: Any, bz: Any, bi: Any) -> tuple[int, int]:  # pragma: no cover - compiled
     """Buffer the points from ``start`` on whose target-frame z lies in the hull of the bands
@@ -188,11 +199,7 @@ def _fill(xs: Any, ys: Any, zs: Any, m: Any, zall_lo: float, zall_hi: float, sta
                 x = float(xs[i])
                 y = float(ys[i])
                 if math.isfinite(x) and math.isfinite(y) and math.isfinite(z):
-                    bx[c] = m[0] * x + m[1] * y + m[2] * z + m[9]
-                    by[c] = m[3] * x + m[4] * y + m[5] * z + m[10]
-                    bz[c] = pz
-                    bi[c] = i
-                    c += 1
+                    c = _push(bx, by, bz, bi, c, i, x, y, z, pz, m)
                     if c == size:
                         return c, i + 1
             i += 1
@@ -205,11 +212,7 @@ def _fill(xs: Any, ys: Any, zs: Any, m: Any, zall_lo: float, zall_hi: float, sta
         if pz >= zall_lo and pz <= zall_hi and (
                 math.isfinite(pz) or (math.isfinite(x) and math.isfinite(y)
                                       and math.isfinite(z))):
-            bx[c] = m[0] * x + m[1] * y + m[2] * z + m[9]
-            by[c] = m[3] * x + m[4] * y + m[5] * z + m[10]
-            bz[c] = pz
-            bi[c] = i
-            c += 1
+            c = _push(bx, by, bz, bi, c, i, x, y, z, pz, m)
             if c == size:
                 return c, i + 1
         i += 1
@@ -248,11 +251,12 @@ def _load() -> Any:
         import numba
     except ImportError:
         return None
-    global atan2_approx, _bin_exact, _approx_bins, _flush, _fill
+    global atan2_approx, _bin_exact, _push, _approx_bins, _flush, _fill
     # called by the kernel, so compiled first; numba resolves globals at compile time
     inline = numba.njit(nogil=True, error_model="numpy", inline="always")
     atan2_approx = inline(atan2_approx)
     _bin_exact = inline(_bin_exact)
+    _push = inline(_push)
     jit = numba.njit(nogil=True, error_model="numpy", boundscheck=False)
     _approx_bins = jit(_approx_bins)
     _flush = jit(_flush)
