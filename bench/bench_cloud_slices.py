@@ -2,8 +2,9 @@
 four runs of a compiled per-point loop for one slice.
 
 Run: ``.venv/bin/python bench/bench_cloud_slices.py [--repeat N]``. Prints medians, minima and
-ratios measured in the same run (candidates interleaved, in a new random order every round);
-no assertions. Target (issue 15): 4 slices >= 3x faster than four runs of the baseline.
+ratios of CPU time (``time.process_time``) measured in the same run (candidates interleaved, in
+a new random order every round) and the load average; no assertions. Target (issue 15): 4
+slices >= 3x faster than four runs of the baseline.
 
 Cloud: the real OS-2-128 frame of tests/data/ouster (128 x 1024, 8.7 % of the pixels without
 return, NaN points there), converted with :func:`converters.pointcloud2.to_pointcloud2`
@@ -31,8 +32,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -141,14 +144,14 @@ def main() -> None:
               f"baseline == numpy reference: {np.array_equal(base, ref)} "
               f"({int(np.sum(base != ref))} bins differ)")
 
-    times = interleaved_times(candidates, args.repeat)
+    times = interleaved_times(candidates, args.repeat, clock=time.process_time)
     med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
     low = {k: min(v) * 1e3 for k, v in times.items()}
     n = int(cloud.width)
     zz = z.astype(np.float64) + MOUNT_Z
     print(f"4 slices of the OS-2-128 frame as an unstructured cloud ({n} points), sensor "
-          f"{MOUNT_Z} m above base_link; median of {args.repeat} runs, python "
-          f"{sys.version.split()[0]}")
+          f"{MOUNT_Z} m above base_link; CPU time, median of {args.repeat} runs, python "
+          f"{sys.version.split()[0]}, load average {os.getloadavg()[0]:.1f}")
     for name, ms in med.items():
         print(f"  {name:40s} median {ms:7.2f} ms   min {low[name]:7.2f} ms")
     for mine in ours:

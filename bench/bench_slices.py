@@ -1,8 +1,9 @@
 """Benchmark: 4 height slices of a 128 x 2048 LidarScan vs a pointcloud_to_laserscan-style loop.
 
 Run: ``.venv/bin/python bench/bench_slices.py [--repeat N] [--offset]``. Prints medians, minima
-and ratios measured in the same run (the timings of the candidates are interleaved, in a new
-random order every round, so machine load and cache leftovers hit all alike); no assertions.
+and ratios of CPU time (``time.process_time``) measured in the same run (the timings of the
+candidates are interleaved, in a new random order every round, so machine load and cache
+leftovers hit all alike) and the load average; no assertions.
 Target: >= 5x the baseline.
 
 Scene: an OS-1-128-like sensor (2048 columns, +-22.5 deg, 15.8 mm beam origins, +-4.2 deg beam
@@ -23,14 +24,19 @@ Candidates:
   the min. Written as a plain loop compiled with numba when numba is installed (the fastest form
   available here), and also as a vectorised numpy version of the same per-point algorithm
   (atan2 recomputed every scan). The cloud is built outside the timing (free for the baseline).
+* holes (issue 15): the same 4 slices with ``holes=True`` (floor at z = 0) by the numba
+  row-ordered kernel (what "auto" takes with holes on) and, forced, the path it replaced
+  (bin-ordered kernel, then the numpy hole pass).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -224,18 +230,28 @@ def main() -> None:
         ours["ours, one pass (numba kernel)"] = lambda: conv.convert(scan)
     conv_np = SliceConverter(info, specs, backend="numpy", **common)
     ours["ours, one pass (numpy backend)"] = lambda: conv_np.convert(scan)
+    if have_numba:
+        # holes on in every slice (floor z = 0, no drop in the room: every edge is tested; the
+        # no-return pixels looking down report holes): "auto" takes the numba row kernel
+        conv_holes = SliceConverter(info, specs, holes=True, **common)
+        ours["ours, holes on (numba row kernel)"] = lambda: conv_holes.convert(scan)
+        conv_before = SliceConverter(info, specs, holes=True, backend="numba", **common)
+        conv_before.convert(scan)
+        next(iter(conv_before._tables.values())).sorted.rows = None
+        ours["ours, holes on (bin-ordered + numpy holes)"] = lambda: conv_before.convert(scan)
     for fn in ours.values():
         fn()                                              # tables + JIT outside the timing
     if args.variants:
         ours.update(variants(info, specs, common, scan, have_numba))
     candidates.update(ours)
 
-    times = interleaved_times(candidates, args.repeat)
+    times = interleaved_times(candidates, args.repeat, clock=time.process_time)
     med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
     low = {k: min(v) * 1e3 for k, v in times.items()}
 
     print(f"4 slices of a {H}x{W} scan, sensor {'0.3 m in front of' if args.offset else 'on'} "
-          f"the z axis of base_link; median of {args.repeat} runs, python {sys.version.split()[0]}")
+          f"the z axis of base_link; CPU time, median of {args.repeat} runs, python "
+          f"{sys.version.split()[0]}, load average {os.getloadavg()[0]:.1f}")
     for name, ms in med.items():
         print(f"  {name:34s} median {ms:7.2f} ms   min {low[name]:7.2f} ms")
     for mine in ours:

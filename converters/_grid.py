@@ -89,6 +89,7 @@ __all__ = [
     "EMPTY",
     "AngleGrid",
     "HoleEdges",
+    "HolePlan",
     "HoleOptions",
     "OutputOptions",
     "aligned_rows",
@@ -528,6 +529,74 @@ def hole_hits(r: np.ndarray[Any, Any], edges: HoleEdges) -> np.ndarray[Any, np.d
     if edges.no_return:
         hit |= r64 == np.inf
     return hit
+
+
+@dataclass(frozen=True)
+class HolePlan:
+    """The hole edges of all slices, as the compiled row kernel takes them
+    (:func:`converters._kernels.slices_numba._row_convert`; the rule of :func:`hole_hits`,
+    then :func:`merge_min`). Compact (24 bytes per edge; the pass is memory-bound), and slices
+    whose edges are identical (same rays, bins, codes and hole options: usually all slices
+    sharing a grid and range limits) form one group, tested once per scan.
+
+    Attributes:
+        start: (k + 1,) int64 first edge of each group; below: (k,) float64; no_return: (k,)
+            bool; slice_start: (k + 1,) int64 first entry of each group in ``slice``.
+        slice: (s,) int64 the slices with holes, group by group.
+        pixel: (m,) int32 ray (pixel index) of each edge; bin: (m,) int32 its bin;
+        value: (m,) int64 ``code << 32 | key`` of the edge (code of its planar range, tie key
+            of its ray).
+        dz, oz: (m,) float32 the ray's z direction and origin (the slices' tables are float32,
+            so these are exact; the test is evaluated in float64).
+    """
+
+    start: np.ndarray[Any, np.dtype[np.int64]]
+    below: np.ndarray[Any, np.dtype[np.float64]]
+    no_return: np.ndarray[Any, np.dtype[np.bool_]]
+    slice_start: np.ndarray[Any, np.dtype[np.int64]]
+    slice: np.ndarray[Any, np.dtype[np.int64]]
+    pixel: np.ndarray[Any, np.dtype[np.int32]]
+    bin: np.ndarray[Any, np.dtype[np.int32]]
+    value: np.ndarray[Any, np.dtype[np.int64]]
+    dz: np.ndarray[Any, np.dtype[np.float32]]
+    oz: np.ndarray[Any, np.dtype[np.float32]]
+
+    @classmethod
+    def create(cls, holes: Sequence[tuple[int, HoleEdges]], key: Any) -> HolePlan:
+        """From (slice index, :class:`HoleEdges`) per slice with holes (none: an empty plan)
+        and ``key``: pixel indices -> (m,) int64 tie keys.
+
+        Raises:
+            ValueError: ray tables that are not float32 values (a programming error).
+        """
+        groups: list[tuple[HoleEdges, list[int]]] = []
+        for i, edges in holes:
+            same = next((g for e, g in groups if e.below == edges.below
+                         and e.no_return == edges.no_return
+                         and all(np.array_equal(getattr(e, f), getattr(edges, f))
+                                 for f in ("index", "bins", "codes", "dz", "oz"))), None)
+            if same is None:
+                groups.append((edges, [i]))
+            else:
+                same.append(i)
+        e = [edges for edges, _ in groups]
+
+        def cat(parts: list[Any], dtype: Any) -> np.ndarray[Any, Any]:
+            return np.ascontiguousarray(np.concatenate(parts) if parts else np.zeros(0), dtype)
+
+        dz, oz = cat([x.dz for x in e], np.float32), cat([x.oz for x in e], np.float32)
+        if not (np.array_equal(dz, cat([x.dz for x in e], np.float64))
+                and np.array_equal(oz, cat([x.oz for x in e], np.float64))):
+            raise ValueError("hole edges: dz, oz must be float32 values")
+        return cls(start=np.cumsum([0] + [x.index.size for x in e]).astype(np.int64),
+                   below=np.array([x.below for x in e], np.float64),
+                   no_return=np.array([x.no_return for x in e], np.bool_),
+                   slice_start=np.cumsum([0] + [len(g) for _, g in groups]).astype(np.int64),
+                   slice=np.array([i for _, g in groups for i in g], np.int64),
+                   pixel=cat([x.index for x in e], np.int32),
+                   bin=cat([x.bins for x in e], np.int32),
+                   value=cat([(x.codes << 32) | key(x.index) for x in e], np.int64),
+                   dz=dz, oz=oz)
 
 
 @dataclass(frozen=True)

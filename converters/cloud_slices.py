@@ -312,18 +312,21 @@ class CloudSliceConverter:
     def _decode(self, best: np.ndarray[Any, Any], intensity: np.ndarray[Any, Any] | None
                 ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
         """Published ranges and winners' intensities (float32, all slices back to back; None
-        without intensity): one compiled call (the slices'
-        :func:`converters._kernels.slices_numba._decode_slices`) when numba is used, else
-        :func:`converters._grid.decode` per slice."""
+        without intensity): the ranges in one compiled call (the slices'
+        :func:`converters._kernels.slices_numba._decode_slices`) and the intensities gathered
+        by numpy when numba is used, else :func:`converters._grid.decode` per slice."""
         from converters._kernels import slices_numba
 
         kernels = None if self._kernel is None else slices_numba.kernels()
         ranges = np.empty(self._size, np.float32)
         ints = None if intensity is None else np.zeros(self._size, np.float32)
         if kernels is not None:
-            kernels.decode_slices(best, *self._decode_args,
-                                  _NO_VALUES if intensity is None else intensity, _NO_KEYS,
-                                  ranges, _NO_VALUES if ints is None else ints)
+            kernels.decode_slices(best, *self._decode_args, _NO_VALUES, _NO_KEYS, ranges,
+                                  _NO_VALUES)
+            if ints is not None and intensity is not None:
+                # the winners' values straight from the (strided) field: no copy of it
+                hit = np.flatnonzero(best != _grid.EMPTY)
+                ints[hit] = intensity[best[hit] & 0xFFFFFFFF]
             return ranges, ints
         for s, off in zip(self.slices, self._offsets):
             part = slice(off, off + s.grid.size)

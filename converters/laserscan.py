@@ -64,10 +64,11 @@ else the per-pixel passes); the C kernel of :mod:`converters._kernels.slices` fo
 row-ordered case (streams the scan in pixel order). All give identical slices (up to points
 within an ulp of a bin edge, where numpy's SIMD ``atan2`` may differ from libm's in the last
 bit). Inputs reach the kernels in native byte order (:func:`lidarscan.channel`, ``native=True``).
-With holes enabled in any slice the one-call row-ordered kernels (C and numba) are not used: the
-bands are fused by the other compiled kernels (or numpy), the holes are then added to the same
-reduction array by numpy (:meth:`SliceConverter._add_holes`, the same code for every backend, on
-static per-pixel tables: only the height test runs per scan), and the result is decoded.
+With holes enabled in any slice the C kernel is not used: the numba row-ordered kernel adds the
+hole edges in the same call (static per-pixel tables, :class:`converters._grid.HolePlan`: only
+the height test runs per scan); elsewhere the bands are fused by the other kernels (or numpy),
+the holes are then added to the same reduction array by numpy
+(:meth:`SliceConverter._add_holes`), and the result is decoded.
 
 Time fields: ``header.stamp`` is the scan's stamp (measurement column 0), identical for all slices
 of a scan; ``scan_time`` is ``W * column_time_increment`` (or from ``column_time_offsets``);
@@ -192,6 +193,7 @@ class _Tables:
         self.holes = [(i, _grid.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
                                            s.options.range_max))
                       for i, s in enumerate(slices) if s.holes is not None]
+        self.hole_plan = _grid.HolePlan.create(self.holes, self.key)
         self.k_r_thr = np.ascontiguousarray(np.stack([_grid.round_up_f32(t) for t in self.r_thr]))
         #: the tables as the general compiled kernels take them
         self.kernel_rays = Rays(
@@ -588,7 +590,7 @@ class SliceConverter:
         if wanted is not None:
             values = channel(scan, wanted, native=True)
             intensity = (values[..., 0] if values.ndim == 3 else values).reshape(-1)
-        decoded = None if self._holes else self._row_convert(r, tables, intensity)
+        decoded = self._row_convert(r, tables, intensity)
         if decoded is None:
             best = self._fuse(r, tables)
             if self._holes:
@@ -623,7 +625,7 @@ class SliceConverter:
         t = tables.sorted
         if t is None or t.rows is None:
             return None
-        if self._c_kernel:
+        if self._c_kernel and not tables.holes:
             plan = t.rows.c_plan(tables, self.slices)
             if plan is not None:
                 ranges, ints, _ = plan.run(r, intensity)
@@ -632,7 +634,7 @@ class SliceConverter:
             return None
         return self._kernel.convert_rows(  # type: ignore[no-any-return]
             np.ascontiguousarray(r, np.float32), t, t.rows, self._bands,
-            *self._decode_inputs(tables, intensity))
+            *self._decode_inputs(tables, intensity), tables.hole_plan)
 
     @staticmethod
     def _decode_inputs(tables: _Tables, intensity: np.ndarray[Any, Any] | None

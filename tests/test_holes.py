@@ -285,6 +285,44 @@ def test_off_by_default_is_bit_identical_to_the_slicer_without_holes(backend: st
     assert _digest(on) != _digest(default)
 
 
+# ------------------------------------------------------------- the one-call row kernel
+
+@pytest.mark.skipif(not importlib.util.find_spec("numba"), reason="numba is not installed")
+@pytest.mark.parametrize("origins", [False, True])
+def test_row_kernel_fuses_the_holes_in_the_same_call(origins: bool, monkeypatch: Any) -> None:
+    """An upright lidar at one bin per column takes the row-ordered numba kernel with holes on
+    ("auto" too: the C kernel has no holes), which adds the hole edges itself (the numpy
+    hole pass is never called): four slices, one without holes, two with the same edges (one
+    group, tested once), one with other hole options; invalid and no-return pixels, with and
+    without beam origins (points needing atan2); every slice equals the per-pixel oracle bit
+    for bit."""
+    def no_numpy_pass(*_: Any) -> None:
+        raise AssertionError("the numpy hole pass ran: the row kernel was not used")
+
+    monkeypatch.setattr(SliceConverter, "_add_holes", no_numpy_pass)
+    info = lidar(origins=origins)
+    mount = pose(z=1.0)
+    scan = cast_scan(info, mount, staircase(2.0), specials=0.06)
+    near = {**HOLES, "hole_range_max": 6.0}
+    deep = {**HOLES, "hole_depth": 0.3, "hole_no_return": False}
+    specs = {"near": (SliceSpec(0.1, 0.6, holes=True, hole_range_max=6.0), near),
+             "plain": (SliceSpec(0.5, 1.5), None),
+             "twin": (SliceSpec(0.6, 1.0, holes=True, hole_range_max=6.0), near),
+             "deep": (SliceSpec(0.05, 2.0, holes=True, hole_depth=0.3, hole_no_return=False),
+                      deep)}
+    for backend in ("auto", "numba"):
+        conv = SliceConverter(info, {k: v[0] for k, v in specs.items()}, extrinsics=mount,
+                              frame_id="base", backend=backend)
+        out = conv.convert(scan)
+        t = next(iter(conv._tables.values()))
+        assert t.sorted is not None and t.sorted.rows is not None
+        assert t.hole_plan.pixel.size > 100 and list(t.hole_plan.slice_start) == [0, 2, 3]
+        for name, (spec, holes) in specs.items():
+            assert_same(out[name], ref_slice(scan, info, zmin=spec.min_height,
+                                             zmax=spec.max_height, ext=mount, holes=holes))
+    assert np.isfinite(arrays(out["near"])[0]).sum() > np.isfinite(arrays(out["plain"])[0]).sum()
+
+
 # ------------------------------------------------------- tilted sensor, target-frame limits
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -3,12 +3,14 @@ several LaserScan slices in one pass over the points.
 
 One kernel, ``fuse_points``, doing exactly what ``converters.cloud_slices._fuse_numpy`` does
 (the reference): per point (x, y, z read as float64 from the cloud's own float32 / float64
-fields, native byte order), skip it unless all three are finite, transform it once into the
-target frame (``m``: rotation row-major then translation, evaluated in the same order as the
-reference) and keep it when its z lies in the hull of the bands. Kept points are buffered in
-chunks of ``_CHUNK``; per chunk: the bin of every point once per distinct grid (one vectorised
-loop), its planar range and float32 code once, then band by band the minimum of
-``code << 32 | point index`` in the reduction array for the points inside the band.
+fields, native byte order), its target-frame z first (``m``: rotation row-major then
+translation, evaluated in the same order as the reference; from z alone for an upright
+target), dropped unless it lies in the hull of the bands; only a kept point has its x, y
+read and transformed and its finiteness checked (the reference's order gives the same set,
+:func:`_fill`). Kept points are buffered in chunks of ``_CHUNK``; per chunk: the bin of every
+point once per distinct grid (one vectorised loop), its planar range and float32 code once,
+then band by band the points inside the band (branch-free compaction) and the minimum of
+``code << 32 | point index`` in the reduction array.
 
 Binning without libm's ``atan2`` for almost every point: an odd polynomial of ``atan`` on
 ``[0, 1]`` (8 terms, error below 4e-8 rad, checked by a test) after the octant reduction
@@ -89,12 +91,14 @@ def _approx_bins(px: Any, py: Any, count: int, amin: float, inc: float, inv: flo
     sector), or -2 where the approximate angle is within 2 * EPS of a bin edge or of a sector's
     wrap point, or the point is at the origin (then the caller takes ``math.atan2``).
 
-    Straight-line loops (no calls, no branches) so that the compiler vectorises them."""
+    Straight-line loops (no calls, no branches) so that the compiler vectorises them (``np.ceil``
+    and ``np.floor`` stay in float64: numba's ``math.ceil`` returns an int64, and a float64 to
+    int64 conversion does not vectorise without AVX-512)."""
     fsize = float(size)
     if full:
         for j in range(count):
             e = (atan2_approx(py[j], px[j]) - amin) * inv - 0.5   # bin edges: integer e
-            kf = math.ceil(e)
+            kf = np.ceil(e)
             edge = kf - e                                          # NaN at the origin
             safe = (min(edge, 1.0 - edge) * inc > 2.0 * EPS) & (abs(e) < 1e9)
             kf = kf - fsize if kf >= fsize else kf
@@ -107,23 +111,25 @@ def _approx_bins(px: Any, py: Any, count: int, amin: float, inc: float, inv: flo
     for j in range(count):
         d = atan2_approx(py[j], px[j]) - amin
         w = (d + half) * inv_2pi
-        fw = math.floor(w)
+        fw = np.floor(w)
         wrap_far = min(w - fw, fw + 1.0 - w) * _TWO_PI > 2.0 * EPS
         e = (d - _TWO_PI * fw) * inv - 0.5
-        kf = math.ceil(e)
+        kf = np.ceil(e)
         edge = kf - e
         safe = (min(edge, 1.0 - edge) * inc > 2.0 * EPS) & (abs(e) < 1e9) & wrap_far
         kf = kf if (kf >= 0.0) & (kf < fsize) else -1.0
         out[j] = np.int32(kf if safe else -2.0)
 
 
-def _flush(bx: Any, by: Any, bz: Any, bi: Any, bk: Any, brho: Any, bbits: Any, count: int,
+def _flush(bx: Any, by: Any, bz: Any, bi: Any, bk: Any, brho: Any, bbits: Any, bsel: Any,
+           count: int,
            zlo: Any, zhi: Any, rlo: Any, rhi: Any, sgrid: Any, soff: Any, gmin: Any, ginc: Any,
            ginv: Any,
            gsize: Any, gfull: Any, best: Any) -> None:  # pragma: no cover - compiled
     """Fuse ``count`` buffered points (target-frame x, y, z and cloud index) into ``best``:
-    bins per grid and planar ranges first, then band by band (the branches on the band
-    follow runs of points and are predicted; ``brho``, ``bbits``: scratch)."""
+    bins per grid and planar ranges first, then band by band: the points inside the band
+    (a branch-free compaction into ``bsel``), then their minima (``brho``, ``bbits``,
+    ``bsel``: scratch)."""
     n_s = zlo.shape[0]
     for g in range(gmin.shape[0]):
         _approx_bins(bx, by, count, gmin[g], ginc[g], ginv[g], gsize[g], gfull[g], bk[g])
@@ -135,10 +141,13 @@ def _flush(bx: Any, by: Any, bz: Any, bi: Any, bk: Any, brho: Any, bbits: Any, c
     for s in range(n_s):
         lo, hi, rl, rh, off = zlo[s], zhi[s], rlo[s], rhi[s], soff[s]
         g = sgrid[s]
-        for j in range(count):
+        n_in = 0
+        for j in range(count):                   # branch-free: the points inside the band
             pz = bz[j]
-            if pz < lo or pz > hi:
-                continue
+            bsel[n_in] = j
+            n_in += (pz >= lo) & (pz <= hi)
+        for q in range(n_in):
+            j = bsel[q]
             b = np.int64(bk[g, j])
             if b == -2:                                  # rare: near a bin edge
                 b = _bin_exact(math.atan2(by[j], bx[j]), gmin[g], ginc[g], gsize[g], gfull[g])
@@ -150,8 +159,64 @@ def _flush(bx: Any, by: Any, bz: Any, bi: Any, bk: Any, brho: Any, bbits: Any, c
             code = CODE_POS_INF if rho > rh else code
             v = (code << 32) | bi[j]
             t = off + b
-            if v < best[t]:
-                best[t] = v
+            best[t] = min(best[t], v)
+
+
+def _push(bx: Any, by: Any, bz: Any, bi: Any, c: int, i: int, x: float, y: float, z: float,
+          pz: float, m: Any) -> int:  # pragma: no cover - compiled (inlined)
+    """Buffer point ``i`` (cloud x, y, z; target z ``pz``) at ``c`` in the target frame;
+    returns ``c + 1``."""
+    bx[c] = m[0] * x + m[1] * y + m[2] * z + m[9]
+    by[c] = m[3] * x + m[4] * y + m[5] * z + m[10]
+    bz[c] = pz
+    bi[c] = i
+    return c + 1
+
+
+def _fill(xs: Any, ys: Any, zs: Any, m: Any, zall_lo: float, zall_hi: float, start: int,
+          bx: Any, by: Any, bz: Any, bi: Any) -> tuple[int, int]:  # pragma: no cover - compiled
+    """Buffer the points from ``start`` on whose target-frame z lies in the hull of the bands
+    (target-frame x, y, z and cloud index) until the buffer is full; returns (points
+    buffered, index to resume from).
+
+    The height comes first: a point outside the hull is dropped before its x, y are read or
+    its finiteness tested. Exact: a finite z implies finite coordinates (a non-finite one
+    makes its term NaN or infinite, as does 0 * inf); only an infinite z in an infinite
+    band needs the test. Upright (``m[6] == m[7] == 0``): z from the cloud's z alone (the
+    reference's ``0*x + 0*y`` adds only zeros for finite x, y; a non-finite x or y is tested
+    before the point is kept)."""
+    n = xs.shape[0]
+    size = bx.shape[0]
+    c = 0
+    i = start
+    if m[6] == 0.0 and m[7] == 0.0:
+        m8 = m[8]
+        m11 = m[11]
+        while i < n:
+            z = float(zs[i])
+            pz = m8 * z + m11
+            if pz >= zall_lo and pz <= zall_hi:
+                x = float(xs[i])
+                y = float(ys[i])
+                if math.isfinite(x) and math.isfinite(y) and math.isfinite(z):
+                    c = _push(bx, by, bz, bi, c, i, x, y, z, pz, m)
+                    if c == size:
+                        return c, i + 1
+            i += 1
+        return c, i
+    while i < n:
+        x = float(xs[i])
+        y = float(ys[i])
+        z = float(zs[i])
+        pz = m[6] * x + m[7] * y + m[8] * z + m[11]
+        if pz >= zall_lo and pz <= zall_hi and (
+                math.isfinite(pz) or (math.isfinite(x) and math.isfinite(y)
+                                      and math.isfinite(z))):
+            c = _push(bx, by, bz, bi, c, i, x, y, z, pz, m)
+            if c == size:
+                return c, i + 1
+        i += 1
+    return c, i
 
 
 _CHUNK = 2048      # points buffered between the scan of the cloud and the fusion (L1-sized)
@@ -162,8 +227,9 @@ def _fuse_points(xs: Any, ys: Any, zs: Any, m: Any, zlo: Any, zhi: Any, rlo: Any
                  gfull: Any, zall_lo: float, zall_hi: float,
                  best: Any) -> None:  # pragma: no cover - compiled
     """See the module docstring; ``best``: (total bins,) int64 reduction array updated in
-    place. Points inside the hull of the bands are buffered in chunks; each chunk's bins are
-    computed in one vectorised loop per grid, then fused into every band it falls in."""
+    place. Points inside the hull of the bands are buffered in chunks (:func:`_fill`); each
+    chunk's bins are computed in one vectorised loop per grid, then fused into every band it
+    falls in."""
     bx = np.empty(_CHUNK)
     by = np.empty(_CHUNK)
     bz = np.empty(_CHUNK)
@@ -171,28 +237,13 @@ def _fuse_points(xs: Any, ys: Any, zs: Any, m: Any, zlo: Any, zhi: Any, rlo: Any
     bk = np.empty((gmin.shape[0], _CHUNK), np.int32)
     brho = np.empty(_CHUNK)
     bbits = np.empty(_CHUNK, np.int64)
-    c = 0
-    for i in range(xs.shape[0]):
-        x = float(xs[i])
-        y = float(ys[i])
-        z = float(zs[i])
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-            continue
-        pz = m[6] * x + m[7] * y + m[8] * z + m[11]
-        if not (pz >= zall_lo and pz <= zall_hi):
-            continue
-        bx[c] = m[0] * x + m[1] * y + m[2] * z + m[9]
-        by[c] = m[3] * x + m[4] * y + m[5] * z + m[10]
-        bz[c] = pz
-        bi[c] = i
-        c += 1
-        if c == _CHUNK:
-            _flush(bx, by, bz, bi, bk, brho, bbits, c, zlo, zhi, rlo, rhi, sgrid, soff, gmin,
+    bsel = np.empty(_CHUNK, np.int64)
+    i = 0
+    while i < xs.shape[0]:
+        c, i = _fill(xs, ys, zs, m, zall_lo, zall_hi, i, bx, by, bz, bi)
+        if c:
+            _flush(bx, by, bz, bi, bk, brho, bbits, bsel, c, zlo, zhi, rlo, rhi, sgrid, soff, gmin,
                    ginc, ginv, gsize, gfull, best)
-            c = 0
-    if c:
-        _flush(bx, by, bz, bi, bk, brho, bbits, c, zlo, zhi, rlo, rhi, sgrid, soff, gmin,
-               ginc, ginv, gsize, gfull, best)
 
 
 def _load() -> Any:
@@ -200,14 +251,16 @@ def _load() -> Any:
         import numba
     except ImportError:
         return None
-    global atan2_approx, _bin_exact, _approx_bins, _flush
+    global atan2_approx, _bin_exact, _push, _approx_bins, _flush, _fill
     # called by the kernel, so compiled first; numba resolves globals at compile time
     inline = numba.njit(nogil=True, error_model="numpy", inline="always")
     atan2_approx = inline(atan2_approx)
     _bin_exact = inline(_bin_exact)
+    _push = inline(_push)
     jit = numba.njit(nogil=True, error_model="numpy", boundscheck=False)
     _approx_bins = jit(_approx_bins)
     _flush = jit(_flush)
+    _fill = jit(_fill)
     return numba.njit(cache=True, nogil=True, error_model="numpy",
                       boundscheck=False)(_fuse_points)
 

@@ -14,7 +14,7 @@ Kernels (drivers in :class:`Compiled`):
   mount, the merger's inputs;
 * bin-ordered (:func:`_sorted_fuse`): one grid and shared range limits;
 * row-ordered (:func:`_row_convert`): the bin-ordered layout of an upright sensor, with exact
-  per-row float32 band intervals, fusion and decoding in one call.
+  per-row float32 band intervals, fusion, hole edges and decoding in one call.
 
 The kernels call each other through module globals (``_J_*``), compiled by :func:`kernels`
 before the kernels that use them (numba resolves a global dispatcher at compile time).
@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
+from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY, HolePlan
 
 __all__ = ["Bands", "Compiled", "Rays", "SORTED_CHUNK", "kernels"]
 
@@ -108,6 +108,7 @@ def _fuse_small(r: Any, keep: Any, limits: Any, dx: Any, dy: Any, dz: Any, ox: A
 
 
 _NO_KEEP = np.zeros(0, np.uint8)
+_NO_HOLES = HolePlan.create([], None)
 _NO_LIMITS = np.array([0.0, np.inf, 0.0])
 
 #: Below this many rays the three passes run in one compiled call (less call overhead).
@@ -285,12 +286,13 @@ class Compiled:
                      g_full, best)
 
     def convert_rows(self, r: Any, plan: Any, rows: Any, bands: Bands, intensity: Any,
-                     key_to_pos: Any) -> tuple[Any, Any]:
+                     key_to_pos: Any, holes: HolePlan = _NO_HOLES) -> tuple[Any, Any]:
         """The row-ordered kernel (:func:`_row_convert`): fusion and decoding in one call.
 
         ``plan``: as :meth:`fuse_sorted`; ``rows``: its row layout (``src``, ``keys``, ``qf``,
         ``qn``, ``q_rows``, ``lo``, ``hi``: per-row float32 band intervals). ``intensity``:
-        (n,) native image or empty; ``key_to_pos``: (n,) int64 or empty (key = pixel).
+        (n,) native image or empty; ``key_to_pos``: (n,) int64 or empty (key = pixel);
+        ``holes``: the hole edges of the slices (default none).
 
         Returns:
             (ranges, ints): float32 of all slices back to back (ints empty without intensity).
@@ -303,7 +305,9 @@ class Compiled:
             rows.qn, rows.q_rows, rows.lo, rows.hi, b.zmin.shape[0], float(b.rmin[0]),
             float(b.rmax[0]), rows.lo.shape[1], plan.bin_thr, b.offset, g_min, g_inc, g_size,
             g_full, int(b.size.sum()), b.size, b.inf_value, b.fill_value, frozen_f32(intensity),
-            key_to_pos, intensity.shape[0] > 0)
+            key_to_pos, intensity.shape[0] > 0, holes.start, holes.below, holes.no_return,
+            holes.slice_start, holes.slice, holes.pixel, holes.bin, holes.value, holes.dz,
+            holes.oz)
 
 
 def _decode_kernel(best: Any, inf_value: Any, fill_value: Any, ranges: Any,
@@ -753,10 +757,14 @@ def _row_convert(r: Any, src: Any, keys: Any, dx: Any, dy: Any, ox: Any, oy: Any
                  qf: Any, qn: Any, q_rows: Any, lo: Any, hi: Any, n_slices: Any, lim_lo: Any,
                  lim_hi: Any, height: Any, bin_thr: Any, offset: Any, g_min: Any, g_inc: Any,
                  g_size: Any, g_full: Any, total: Any, size: Any, inf_value: Any,
-                 fill_value: Any, intensity: Any, key_to_pos: Any,
-                 want_ints: Any) -> Any:  # pragma: no cover - compiled
-    """:func:`_row_fuse` into a fresh reduction array of ``total`` elements, then
-    :func:`_decode_slices`, in one compiled call (one dispatch less per scan).
+                 fill_value: Any, intensity: Any, key_to_pos: Any, want_ints: Any,
+                 h_start: Any, h_below: Any, h_no_return: Any, h_slice_start: Any,
+                 h_slice: Any, h_pixel: Any, h_bin: Any, h_value: Any, h_dz: Any,
+                 h_oz: Any) -> Any:  # pragma: no cover - compiled
+    """:func:`_row_fuse` into a fresh reduction array of ``total`` elements, the hole edges
+    (``h_*``: the arrays of :class:`converters._grid.HolePlan`, empty without holes; the rule
+    of :func:`converters._grid.hole_hits`), then :func:`_decode_slices`, in one compiled call
+    (one dispatch less per scan).
 
     Returns:
         (ranges, ints): float32 of all slices back to back (ints empty unless ``want_ints``).
@@ -764,6 +772,23 @@ def _row_convert(r: Any, src: Any, keys: Any, dx: Any, dy: Any, ox: Any, oy: Any
     best = np.full(total, np.int64(EMPTY), np.int64)
     _J_ROW(r, src, keys, dx, dy, ox, oy, r_thr, qf, qn, q_rows, lo, hi, n_slices, lim_lo, lim_hi,
            height, bin_thr, offset, g_min, g_inc, g_size, g_full, best)
+    hits = np.empty(h_pixel.shape[0], np.int32)
+    for g in range(h_start.shape[0] - 1):
+        below = h_below[g]
+        no_return = h_no_return[g]
+        n_hits = 0
+        for e in range(h_start[g], h_start[g + 1]):      # branch-free: hits are rare
+            rv = np.float64(r[h_pixel[e]])
+            z = rv * np.float64(h_dz[e]) + np.float64(h_oz[e])
+            hits[n_hits] = e
+            n_hits += ((rv > 0.0) & (rv < np.inf) & (z <= below)) | (no_return
+                                                                    & (rv == np.inf))
+        for k in range(h_slice_start[g], h_slice_start[g + 1]):
+            base = offset[h_slice[k]]
+            for j in range(n_hits):
+                e = hits[j]
+                t = base + h_bin[e]
+                best[t] = min(best[t], h_value[e])
     ranges = np.empty(total, np.float32)
     ints = np.empty(total if want_ints else 0, np.float32)
     _J_DECODE_SLICES(best, offset, size, inf_value, fill_value, intensity, key_to_pos, ranges,
