@@ -43,7 +43,8 @@ stamp (or ``motion.reference_ns``) using each pixel's own time.
 Compiled path: the hot loop (validity of each range, x, y, z, one channel field such as
 intensity, destaggering, dropping invalid points for unorganized row-order clouds) runs in the
 optional C kernel of :mod:`converters._kernels.cloud` (:func:`kernel_available`; chosen by
-:func:`converters._kernels.select`: ``kernel=False`` or ``LIDARSCAN_NO_KERNEL=1`` turn it off);
+:func:`converters._kernels.select`: ``kernel=False``, ``LIDARSCAN_NO_KERNEL=1`` or building
+inside :func:`numpy_reference` turn it off);
 every other field, and everything without the kernel, is numpy, the reference. The kernel
 projects from the factored beam model (:func:`lidarscan.geometry.beam_factors`), the numpy path
 from the projector's float32 tables ``r * D + O``: both are float32 evaluations of the same
@@ -62,12 +63,14 @@ Reading clouds (:func:`read_points`) and estimating a LidarScan from one
 from __future__ import annotations
 
 import array
+import contextlib
+import contextvars
 import itertools
 import math
 import sys
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -132,6 +135,23 @@ _TIME_REFERENCES = ("stamp", "first", "last")
 #: Output buffers a converter keeps for reuse (the caller may hold the previous messages).
 _POOL = 3
 
+#: set by :func:`numpy_reference`: converters built without ``kernel=`` use numpy
+_NUMPY_REFERENCE: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "lidarscan_pointcloud2_numpy_reference", default=False)
+
+
+@contextlib.contextmanager
+def numpy_reference() -> Iterator[None]:
+    """Inside: converters built without ``kernel=`` (and :func:`to_pointcloud2`) use the numpy
+    reference path, even where the compiled kernel is built, so their clouds are the same bytes
+    on every machine (what ``python -m converters.evidence`` needs for its deterministic
+    tables). ``LIDARSCAN_NO_KERNEL`` is read once per process; this is per context."""
+    token = _NUMPY_REFERENCE.set(True)
+    try:
+        yield
+    finally:
+        _NUMPY_REFERENCE.reset(token)
+
 
 def kernel_available() -> bool:
     """Whether LidarScan -> PointCloud2 uses the compiled kernel (:mod:`converters._kernels.cloud`).
@@ -171,9 +191,10 @@ class PointCloud2Converter(_FieldWriter):
         threads: split the rows over this many threads (numpy and the kernel release the
             GIL); 1 = no thread pool.
         kernel: use the optional compiled kernel for x, y, z (+ one float32 channel field and
-            the validity test): None = when available (:func:`kernel_available`), False = numpy
-            only, True = required. Both paths give the same clouds up to float32 rounding of
-            x, y, z (see :func:`kernel_available`); every other byte is identical.
+            the validity test): None = when available (:func:`kernel_available`) unless built
+            inside :func:`numpy_reference`, False = numpy only, True = required. Both paths
+            give the same clouds up to float32 rounding of x, y, z (see
+            :func:`kernel_available`); every other byte is identical.
 
     Raises:
         ConfigError: unknown preset / time reference, fields with a preset, no x/y/z, kernel
@@ -188,6 +209,8 @@ class PointCloud2Converter(_FieldWriter):
                  kernel: bool | None = None) -> None:
         if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
             raise ConfigError("threads", threads, "an int >= 1")
+        if kernel is None and _NUMPY_REFERENCE.get():
+            kernel = False
         self._kfn = _kernels.select("cloud", kernel=kernel).c
         if preset is not None:
             if preset not in PRESETS:
@@ -751,7 +774,8 @@ def to_pointcloud2(scan: Any, info: Any, *, preset: str | None = None,
     """LidarScan -> ``sensor_msgs.msg.PointCloud2``.
 
     One-call form of :class:`PointCloud2Converter` (same arguments; converters are cached per
-    info version and options, so repeated calls reuse tables and buffers). Fields default to
+    info version and options, and apart inside :func:`numpy_reference`, so repeated calls
+    reuse tables and buffers). Fields default to
     x, y, z, intensity (float32, 16 bytes per point), organized H x W in destaggered column order.
 
     Args:
@@ -765,7 +789,7 @@ def to_pointcloud2(scan: Any, info: Any, *, preset: str | None = None,
         A new ``sensor_msgs.msg.PointCloud2``; points in ``info.header.frame_id`` metres.
     """
     key = (info_key(info), preset, None if fields is None else tuple(fields), organized,
-           destagger, time_reference, range_channel, frame_id)
+           destagger, time_reference, range_channel, frame_id, _NUMPY_REFERENCE.get())
     with _CONVERTERS_LOCK:
         conv = _CONVERTERS.pop(key, None)
     if conv is None:
