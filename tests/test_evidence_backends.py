@@ -65,3 +65,31 @@ def test_the_subset_is_sensitive_to_the_backend(
     if not (kernel_available() and with_kernels["kernel"]):
         pytest.skip("the C PointCloud2 kernel is not built here: one backend only")
     assert with_kernels["outside"] != without["outside"]
+
+
+def test_numpy_reference_builds_numpy_converters_inside_only() -> None:
+    import numpy as np
+
+    import lidarscan
+    from converters.pointcloud2 import PointCloud2Converter, numpy_reference, to_pointcloud2
+
+    info = lidarscan.make_info(stamp_ns=1_000, frame_id="lidar",
+                               vertical_angles=np.radians([10.0, 0.0, -10.0]),
+                               horizontal_angles=2 * np.pi * (1 - np.arange(16) / 16),
+                               beam_origins=np.tile([0.015, 0.0, 0.01], 3),
+                               range_multiplier=0.001, as_dataclass=True)
+    ranges = (np.arange(48, dtype=np.uint32).reshape(3, 16) * 997) % 30_000
+    scan = lidarscan.make_scan(info, {"range": ranges,
+                                      "intensity": np.ones((3, 16), np.uint16)}, 2_000,
+                               as_dataclass=True)
+    reference = PointCloud2Converter(info, kernel=False).convert(scan)
+    with numpy_reference():
+        inside = PointCloud2Converter(info)
+        cloud = to_pointcloud2(scan, info)
+    assert inside._kfn is None
+    assert bytes(cloud.data) == bytes(reference.data)
+    outside = PointCloud2Converter(info)
+    assert (outside._kfn is not None) == kernel_available()
+    if kernel_available():
+        with numpy_reference():                       # an explicit choice wins inside too
+            assert PointCloud2Converter(info, kernel=True)._kfn is not None
