@@ -266,7 +266,7 @@ def test_fuzz_families_hold_their_promises(target: str, cases: Any, tmp_path: Pa
     """A slice of bench/fuzz.py's chunk-damage, packet and bag families (the long run's
     figures are in RELIABILITY.md): only LidarScanError, and the chunk family's own checks."""
     fuzz = _fuzz_module()
-    fuzz.ROOT = tmp_path  # scratch files of the targets go here
+    fuzz.fuzz_common.ROOT = tmp_path  # scratch files of the targets go here
     runner = fuzz.TARGETS[target]()
     runner.setup()
     for index in cases:

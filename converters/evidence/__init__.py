@@ -6,6 +6,12 @@
 on. ``--check`` computes only the deterministic blocks (sizes, errors, counts: seconds, no rclpy)
 and reports where the document differs; :func:`check` is what ``tests/test_evidence.py`` calls.
 
+The deterministic blocks write their PointCloud2s with the numpy reference path
+(:func:`reference_backends`), so they are the same whether or not the C kernels were built: the
+C PointCloud2 kernel evaluates the beam model a few float32 ulps away from numpy, which changes
+compressed cloud sizes and bin-by-bin comparisons (the slice, merger and decoder backends give
+identical bytes). Timings measure the fastest enabled backend.
+
 One module per question:
 
 =====================  =====================================================================
@@ -30,15 +36,18 @@ module                 answers
 
 from __future__ import annotations
 
+import contextlib
 import re
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 from converters.evidence._common import DOC, IMG, Block, machine_lines, pending
 
-__all__ = ["DOC", "Block", "check", "generate", "main", "read_blocks", "render"]
+__all__ = ["DOC", "Block", "check", "generate", "main", "read_blocks", "reference_backends",
+           "render"]
 
 _MARKER = re.compile(r"<!-- evidence:([a-z0-9-]+):begin -->\n(.*?)\n?<!-- evidence:\1:end -->",
                      re.DOTALL)
@@ -89,6 +98,46 @@ _SECTION_BLOCKS = {
     "transport": ("timing-transport", "timing-receiver"), "slicing timing": ("timing-slicing",),
 }
 
+#: cached evidence function -> its cache misses when :func:`reference_backends` last exited
+_REFERENCE_MISSES: dict[str, int] = {}
+
+
+def _evidence_caches() -> dict[str, Any]:
+    """Every ``lru_cache`` function of the loaded ``converters.evidence`` modules."""
+    out = {}
+    for name, module in list(sys.modules.items()):
+        if module is None or not name.startswith(__name__ + "."):
+            continue
+        for attr, value in vars(module).items():
+            if callable(getattr(value, "cache_info", None)) and \
+                    getattr(value, "__module__", None) == name:
+                out[f"{name}.{attr}"] = value
+    return out
+
+
+@contextlib.contextmanager
+def reference_backends() -> Iterator[None]:
+    """Inside: PointCloud2s are written by the numpy reference path, whatever is compiled
+    (:func:`converters.pointcloud2.numpy_reference`).
+
+    Evidence caches that computed anything outside this context since it last ran (e.g. a test
+    calling a measurement directly, with the kernel) are cleared first, so no value computed
+    with another backend leaks into a deterministic block.
+    """
+    from converters.pointcloud2 import numpy_reference
+
+    for key, fn in _evidence_caches().items():
+        if fn.cache_info().misses != _REFERENCE_MISSES.get(key, 0):
+            fn.cache_clear()
+    try:
+        with numpy_reference():
+            yield
+    finally:
+        _REFERENCE_MISSES.clear()
+        _REFERENCE_MISSES.update({key: fn.cache_info().misses
+                                  for key, fn in _evidence_caches().items()})
+
+
 #: sections that raised in the last :func:`generate` (name -> one-line error)
 FAILED: dict[str, str] = {}
 
@@ -111,7 +160,8 @@ def _run(name: str, fn: Callable[[], list[Block]], deterministic: bool,
     return blocks
 
 
-def generate(fast: bool = False, log: Callable[[str], None] | None = None) -> list[Block]:
+def generate(fast: bool = False, log: Callable[[str], None] | None = None,
+             sections: Sequence[str] | None = None) -> list[Block]:
     """Every block of the document.
 
     A section that raises is reported on stderr, listed in :data:`FAILED` and replaced by
@@ -120,6 +170,8 @@ def generate(fast: bool = False, log: Callable[[str], None] | None = None) -> li
     Args:
         fast: deterministic blocks only (no timings, no rclpy, no plots).
         log: called with one progress line per section.
+        sections: with ``fast``, only these deterministic sections (names as in the progress
+            lines, e.g. ``["slicing"]``); None = all.
 
     Returns:
         The blocks in document order of generation (names are unique).
@@ -127,8 +179,16 @@ def generate(fast: bool = False, log: Callable[[str], None] | None = None) -> li
     say = log or (lambda line: None)
     FAILED.clear()
     out: list[Block] = []
-    for name, fn in _deterministic_sections():
-        out += _run(name, fn, True, say)
+    chosen = _deterministic_sections()
+    if sections is not None:
+        unknown = set(sections) - {name for name, _ in chosen}
+        if unknown or not fast:
+            raise ValueError(f"sections={list(sections)}: only with fast=True, names from "
+                             f"{[name for name, _ in chosen]}")
+        chosen = [(name, fn) for name, fn in chosen if name in sections]
+    with reference_backends():
+        for name, fn in chosen:
+            out += _run(name, fn, True, say)
     if fast:
         return out
     from converters.evidence import codec_study, compression, images, slicing, transport, units

@@ -72,7 +72,7 @@ and is sliced with the slices of ``slice_names`` in ``target_frame``, published 
 ``<depth.slice_namespace>/NAME`` [``depth/slices/NAME``]; the camera's pose comes from TF at the
 image stamp, else ``depth.extrinsics``. ``depth.publish_scan`` [false] also publishes the
 LidarScan and the latched LidarInfo. A new CameraInfo content rebuilds the rays and the slice
-tables when it arrives, before the image that needs them.
+tables when it arrives, before the image that needs them (:mod:`converters.nodes.depth_input`).
 
 Ready: the node compiles or loads every kernel its configuration will call (numba's cache,
 filled by ``make install``) before it logs ``ready: warm-up ... ms`` and publishes a ``startup``
@@ -95,7 +95,6 @@ counted (``node.stats``), never fatal; Ctrl-C exits cleanly with status 0.
 from __future__ import annotations
 
 import functools
-import math
 import sys
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping, Sequence
@@ -105,6 +104,7 @@ from typing import Any
 import numpy as np
 
 from converters.nodes.common import entry_points
+from converters.nodes.depth_input import depth_options  # noqa: F401 - its old home
 from converters.nodes.params import SliceConfig, parse_extrinsics
 from converters.options import HOLE_KEYS
 from lidarscan.errors import ConfigError, LidarScanError
@@ -491,15 +491,6 @@ def _depth_specs(S: Any, qos_names: tuple[str, ...]) -> tuple[Any, ...]:  # noqa
     )
 
 
-def depth_options(values: Mapping[str, Any]) -> dict[str, Any]:
-    """Keyword options of :class:`converters.depth.DepthImageConverter` from checked
-    parameter values."""
-    rectified = {"auto": None, "true": True, "false": False}[values["depth.rectified"]]
-    invalid = math.inf if values["depth.no_measurement"] == "no_return" else math.nan
-    return {"rectified": rectified, "invalid": invalid, "range_min": values["depth.range_min"],
-            "range_max": values["depth.range_max"]}
-
-
 TOPICS = (("lidar_scan", "in  lidarscan_msgs/LidarScan", "scan_topic, scan_qos"),
           ("lidar_info", "in  lidarscan_msgs/LidarInfo", "info_topic, latched"),
           ("/tf, /tf_static", "in  tf2_msgs/TFMessage", "when target_frame is set"),
@@ -587,16 +578,16 @@ def _node_class() -> type:
         ERROR,
         WARN,
         Diagnostics,
-        ExactSync,
         LatencyWindow,
         LogLimiter,
         RateMeter,
         Status,
         warm_up,
     )
+    from converters.nodes.depth_input import DepthInput
     from converters.nodes.tf import TfListener, TransformBuffer, TransformLookupError
 
-    class ConverterNode(Node):
+    class ConverterNode(DepthInput, Node):
         """The rclpy node around :class:`ConverterCore` (see the module docstring)."""
 
         def __init__(self, name: str = "lidarscan_converter", **kwargs: Any) -> None:
@@ -658,140 +649,6 @@ def _node_class() -> type:
                 self, {"kernels": lambda: self.core.warm(cloud=self.cloud_pub is not None)},
                 self.diagnostics)
 
-        # ---------------------------------------------------------------------- depth input
-        def _init_depth(self, values: dict[str, Any], out_qos: Any) -> None:
-            """Subscriptions and publishers of the depth-image input (``depth.*``)."""
-            self.depth_sync: Any = None
-            self._depth_latency = LatencyWindow()
-            self.depth_converter: Any = None
-            self.depth_pubs: dict[str, Any] = {}
-            self.depth_scan_pub = self.depth_info_pub = None
-            self.depth_stats = ConverterStats()
-            self._depth_last: dict[str, Any] = {}
-            if not values["depth.enabled"]:
-                return
-            if not self.target_frame:
-                raise ConfigError("target_frame", "", "a frame with z up (e.g. base_link) "
-                                  "when depth.enabled: a camera's own frame has z forward")
-            from lidarscan_msgs.msg import LidarInfo, LidarScan
-            from sensor_msgs.msg import CameraInfo, Image, LaserScan
-
-            self.depth_options = depth_options(values)
-            self.depth_extrinsics = parse_extrinsics(values["depth.extrinsics"],
-                                                     "depth.extrinsics") \
-                if values["depth.extrinsics"] else None
-            self.depth_core = ConverterCore(slices=self.core.slices,
-                                            target_frame=self.target_frame,
-                                            slice_options={"intensity_channel": None})
-            self.depth_sync = ExactSync(("image", "camera_info"), values["depth.sync_queue"])
-            space = values["depth.slice_namespace"].rstrip("/")
-            self.depth_pubs = {s.name: self.create_publisher(
-                LaserScan, f"{space}/{s.name}" if space else s.name, out_qos)
-                for s in self.core.slices}
-            if values["depth.publish_scan"]:
-                self.depth_scan_pub = self.create_publisher(LidarScan, values["depth.scan_topic"],
-                                                            out_qos)
-                self.depth_info_pub = self.create_publisher(
-                    LidarInfo, values["depth.info_topic"], P.qos_profile("latched"))
-            in_qos = P.qos_profile(values["depth.qos"])
-            self.create_subscription(Image, values["depth.image_topic"], self._on_depth_image,
-                                     in_qos, raw=True)
-            self.create_subscription(CameraInfo, values["depth.camera_info_topic"],
-                                     self._on_depth_info, in_qos, raw=True)
-
-        def _on_depth_image(self, raw: bytes) -> None:
-            self._depth_add("image", raw, "sensor_msgs/msg/Image")
-
-        def _on_depth_info(self, raw: bytes) -> None:
-            self._depth_add("camera_info", raw, "sensor_msgs/msg/CameraInfo")
-
-        def _depth_add(self, name: str, raw: bytes, msgtype: str) -> None:
-            """Decode one depth input (a new CameraInfo content builds its converter and
-            tables at once) and pass it to the synchroniser, which may release a pair;
-            malformed input is counted and logged."""
-            from lidarscan import decode
-            from lidarscan.stamps import to_ns
-
-            st = self.depth_stats
-            if name == "image":
-                st.scans_received += 1
-            else:
-                st.infos_received += 1
-            try:
-                msg = decode(raw, msgtype)
-                stamp = to_ns(msg.header.stamp, field=f"{msgtype}.header.stamp")
-                if name == "camera_info":
-                    self._depth_camera(msg)
-            except LidarScanError as err:
-                st.bad_messages += 1
-                st.count(f"bad {msgtype}: {err}")
-                self._log(f"bad {msgtype} ignored: {err}", f"bad depth {name}")
-                return
-            pair = self.depth_sync.add(name, stamp, msg)
-            if pair is not None:
-                self._convert_depth(*pair)
-
-        def _depth_camera(self, camera_info: Any) -> bool:
-            """Build the depth converter for a new CameraInfo content, and the slice tables
-            of its LidarInfo version (before the image that needs them); True if new."""
-            from converters.depth import DepthImageConverter
-
-            if self.depth_converter is None:
-                self.depth_converter = DepthImageConverter(camera_info, **self.depth_options)
-            elif not self.depth_converter.update(camera_info):
-                return False
-            info = self.depth_converter.info
-            if self.depth_info_pub is not None:
-                self.depth_info_pub.publish(info)
-            try:
-                self.depth_core.prepare(info, self._depth_extrinsics(info, None), cloud=False,
-                                        intensity=False)
-            except (LidarScanError, self._lookup_error):
-                pass                  # no transform yet: the first image reports it
-            return True
-
-        def _convert_depth(self, image: Any, camera_info: Any) -> None:
-            st = self.depth_stats
-            want = [n for n, p in self.depth_pubs.items() if p.get_subscription_count()]
-            want_scan = self.depth_scan_pub is not None and \
-                self.depth_scan_pub.get_subscription_count() > 0
-            if not want and not want_scan:
-                st.scans_idle += 1
-                return
-            from lidarscan.stamps import to_ns
-
-            try:
-                self._depth_camera(camera_info)
-                scan, info = self.depth_converter.convert(image)
-                slices: dict[str, Any] = {}
-                if want:
-                    extrinsics = self._depth_extrinsics(info, to_ns(scan.header.stamp))
-                    _, slices = self.depth_core.convert(scan, info, cloud=False, slices=want,
-                                                        extrinsics=extrinsics)
-            except LidarScanError as err:
-                st.conversion_errors += 1
-                st.count(f"depth: {err}")
-                self._log(f"depth image not converted: {err}", "depth")
-                return
-            except Exception as err:  # noqa: BLE001 - a node must survive any input
-                st.conversion_errors += 1
-                st.count(f"internal: {type(err).__name__}")
-                self._log(f"depth image not converted (internal error {type(err).__name__}: "
-                          f"{err})", "depth internal")
-                return
-            if want_scan:
-                self.depth_scan_pub.publish(scan)
-            for name, msg in slices.items():
-                self.depth_pubs[name].publish(msg)
-                st.slices_published += 1
-            self._depth_latency.add(self.get_clock().now().nanoseconds -
-                                    to_ns(scan.header.stamp))
-
-        def _depth_extrinsics(self, info: Any, stamp_ns: int | None) -> np.ndarray[Any, Any]:
-            """target_frame <- camera: TF at the image stamp, else ``depth.extrinsics``."""
-            return self._mount(info.header.frame_id, stamp_ns, self.depth_extrinsics,
-                               "depth.extrinsics")
-
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:
             """Build the converters with the candidate values (raises LidarScanError)."""
@@ -809,16 +666,7 @@ def _node_class() -> type:
             self._have_fallback = bool(values["extrinsics"])
             self.core.reconfigure(**{k: v for k, v in config.items() if k != "target_frame"})
             self._prepared.clear()
-            if self.depth_sync is not None:
-                self.depth_core.reconfigure(**{**{k: v for k, v in config.items()
-                                                  if k != "target_frame"},
-                                               "slice_options": {"intensity_channel": None}})
-                self.depth_options = depth_options(values)
-                self.depth_extrinsics = parse_extrinsics(
-                    values["depth.extrinsics"], "depth.extrinsics") \
-                    if values["depth.extrinsics"] else None
-                self.depth_converter = None       # rebuilt with the next CameraInfo
-                self.depth_sync.queue_size = values["depth.sync_queue"]
+            self._apply_depth(values, config)
             self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
 
         # ----------------------------------------------------------------- diagnostics
@@ -862,36 +710,6 @@ def _node_class() -> type:
             if self.depth_sync is None:
                 return [io, linkage]
             return [io, linkage, self._diagnose_depth()]
-
-        def _diagnose_depth(self) -> Any:
-            Status, WARN, ERROR = self._status
-            st, sync = self.depth_stats, self.depth_sync
-            drops = sync.drops()
-            values = {"images_received": st.scans_received,
-                      "camera_infos_received": st.infos_received,
-                      "pairs": sync.released, "images_idle": st.scans_idle,
-                      "slices_published": st.slices_published,
-                      "bad_messages": st.bad_messages, "conversion_errors": st.conversion_errors,
-                      "sync_dropped": drops, **{f"waiting_{k}": v for k, v in
-                                                sync.waiting().items()},
-                      "camera": "none yet" if self.depth_converter is None else
-                      f"{int(self.depth_converter.info.height)}x"
-                      f"{int(self.depth_converter.info.width)} "
-                      f"{'rectified' if self.depth_converter.rectified else 'raw'}"}
-            status = Status("depth", {**values, **self._depth_latency.take()})
-            last = self._depth_last
-            self._depth_last = dict(values)
-            for key, level, what in (("sync_dropped", WARN, "image/CameraInfo message(s) "
-                                      "without a partner of the same stamp dropped"),
-                                     ("bad_messages", WARN, "malformed depth message(s)"),
-                                     ("conversion_errors", ERROR, "depth image(s) not "
-                                      "converted (e.g. no transform)")):
-                new = values[key] - last.get(key, 0)
-                if new:
-                    status.worse(level, f"{new} {what}")
-            if not st.scans_received:
-                status.worse(WARN, "no depth image received")
-            return status
 
         # ------------------------------------------------------------------- callbacks
         def _on_info(self, raw: bytes) -> None:
