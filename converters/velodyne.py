@@ -136,7 +136,7 @@ from typing import Any
 import numpy as np
 
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
-from lidarscan.scan import make_info, make_scan
+from lidarscan.scan import ScanBuffer, make_info, make_scan
 from converters._packets import payload_bytes
 
 __all__ = [
@@ -689,7 +689,7 @@ class PacketDecoder:
         self._period = 0.0                              # ns, mean column period of the version
         self._order = np.zeros(0, np.int64)             # laser id of each row
         self._last_info_stamp: int | None = None
-        self._offsets = np.zeros((0, 0, 0), np.int64)  # byte offsets, see _offsets()
+        self._tables: tuple[np.ndarray[Any, Any], ...] = ()   # see _tables()
         self._offsets_key: tuple[Any, ...] | None = None
         self._rotation = np.zeros(0)                    # see _nebula_rotation
 
@@ -949,7 +949,6 @@ class PacketDecoder:
         it keeps the current version when it fits in it."""
         layout = self._layout
         assert layout is not None and self._key is not None
-        model = layout.model
         count = times.size
         period, omega = _rates(times, azimuth)
         key = (self._key[0], layout.dual)     # strongest <-> last keeps the geometry
@@ -971,72 +970,23 @@ class PacketDecoder:
                                     .astype(np.int64)])
             azimuth = np.concatenate([azimuth, azimuth[-1] + step * self._period * 1e-9
                                       * math.degrees(self._omega) * 100.0])
+        nebula = self._azimuth_model == "nebula"
         if self._offsets_key != (layout.model.name, layout.dual):
-            self._offsets = _offsets(layout, self._order)
+            self._tables = _tables(layout, self._order, self._rotation if nebula else None)
             self._offsets_key = (layout.model.name, layout.dual)
-        returns = self._offsets.shape[0]
-        ranges = np.zeros((returns, model.lasers, width), np.uint16)
-        intensities = np.zeros((returns, model.lasers, width), np.uint8)
-        column, first = 0, begin                     # the sequences, run by run
-        for run in runs:
-            have = run.shape[0] * layout.sequences - first
-            if have > 0 and column < count:
-                take = min(have, count - column)
-                _fill(run, first, take, self._offsets, ranges[:, :, column:],
-                      intensities[:, :, column:])
-                column += take
-            first = max(0, -have)
-        channels = {"range": ranges[0], "intensity": intensities[0]}
+        returns = self._tables[0].shape[0]
+        specs = {"range": np.uint16, "intensity": np.uint8}
         if returns == 2:
-            channels.update(range2=ranges[1], intensity2=intensities[1])
-        if self._azimuth_model == "nebula":
-            azimuths = self._pixel_azimuths(runs, begin, count, width)
-            if returns == 2:           # Nebula emits an identical pair once, at the last's angle
-                same = ranges[0] == ranges[1]
-                azimuths[0][same] = azimuths[1][same]
-            channels["azimuth"] = azimuths[0]
-            if returns == 2:
-                channels["azimuth2"] = azimuths[1]
+            specs.update(range2=np.uint16, intensity2=np.uint8)
+        if nebula:
+            specs.update(azimuth=np.uint16, **({"azimuth2": np.uint16} if returns == 2 else {}))
+        buffer = ScanBuffer(info, specs, as_dataclass=self._as_dataclass)
+        _fill_views(runs, begin, count, layout, self._tables, buffer.views)
         stamp = int(times[0])
         column_azimuth = -np.deg2rad(np.mod(azimuth, 36000.0) / 100.0)
-        scan = make_scan(info, channels, stamp, column_azimuth_angles=column_azimuth,
-                         column_time_offsets=times - stamp, as_dataclass=self._as_dataclass)
+        scan = buffer.build(stamp, column_azimuth_angles=column_azimuth,
+                            column_time_offsets=times - stamp)
         return scan, info
-
-    def _pixel_azimuths(self, runs: list[np.ndarray[Any, Any]], begin: int, count: int,
-                        width: int) -> np.ndarray[Any, Any]:
-        """(R, H, W) uint16 ``azimuth`` channel(s): Nebula's azimuth of every pixel (see
-        :func:`_nebula_azimuths`) as counter-clockwise hundredths of a degree; padding 0."""
-        from converters._kernels import select
-        from converters._kernels import velodyne as compiled
-
-        layout = self._layout
-        assert layout is not None
-        seqs = layout.sequences
-        slots = self._offsets // 100 * 32 + (self._offsets % 100 - 4) // 3     # (R, S, H)
-        out = np.zeros((slots.shape[0], slots.shape[2], width), np.uint16)
-        kernel = compiled.azimuth_kernel() if select("velodyne").numba is not None else None
-        laser = _nebula_lasers(layout)
-        family = ("vlp16", "vlp32", "vls128").index(layout.model.nebula)
-        column, first = 0, begin
-        for run in runs:
-            have = run.shape[0] * seqs - first
-            if have > 0 and column < count:
-                take = min(have, count - column)
-                if kernel is not None:
-                    kernel(run, first, take, slots, laser, family, layout.dual, self._rotation,
-                           out[:, :, column:])
-                else:                                   # the numpy reference
-                    p0, p1 = first // seqs, (first + take - 1) // seqs + 1
-                    ccw = (36000 - _nebula_azimuths(run[p0:p1], layout, self._rotation)) % 36000
-                    picked = np.take(ccw.astype(np.uint16), slots, axis=1)    # (m, R, S, H)
-                    picked = picked.transpose(1, 3, 0, 2).reshape(slots.shape[0],
-                                                                  slots.shape[2], -1)
-                    skip = first - p0 * seqs
-                    out[:, :, column:column + take] = picked[:, :, skip:skip + take]
-                column += take
-            first = max(0, -have)
-        return out
 
     def _calib_for(self, model: VelodyneModel) -> Mapping[str, Any]:
         calib = self._calib if self._calib is not None else model.nominal
@@ -1149,31 +1099,103 @@ def _offsets(layout: _Layout, order: np.ndarray[Any, Any]) -> np.ndarray[Any, An
     return np.ascontiguousarray(100 * (point // 32) + 4 + 3 * (point % 32), dtype=np.int64)
 
 
+def _tables(layout: _Layout, order: np.ndarray[Any, Any], rotation: np.ndarray[Any, Any] | None
+            ) -> tuple[np.ndarray[Any, Any], ...]:
+    """Per-pixel tables of one layout and row order, each (R, S, H) (return slot, sequence,
+    row): the byte offset of the distance (:func:`_offsets`), and for the azimuth channel
+    (``rotation`` from :func:`_nebula_rotation`; None: no azimuth channel) the point's block,
+    its float32 firing factor (see ``converters._kernels.velodyne._fill``) and its laser's
+    rotation (float64, 0.01 deg); then ``rotation`` itself ((L,), zeros when None)."""
+    offsets = _offsets(layout, order)
+    blocks = offsets // 100
+    k = (offsets % 100 - 4) // 3
+    laser = _nebula_lasers(layout)[blocks, k]
+    family = layout.model.nebula
+    if family == "vlp16":
+        factors = (k % 16).astype(_F32) * _F32(2.304) + (k // 16).astype(_F32) * _F32(55.296)
+    elif family == "vlp32":
+        factors = k.astype(_F32)
+    else:
+        group = laser // 8
+        factors = (_F32(2.665) / _F32(53.3)) * (group + group // 8).astype(_F32)
+    if rotation is None:
+        rotation = np.zeros(layout.model.lasers)
+    return (offsets, blocks, np.ascontiguousarray(factors, _F32),
+            np.ascontiguousarray(rotation[laser], np.float64), rotation)
+
+
+def _fill_views(runs: list[np.ndarray[Any, Any]], begin: int, count: int, layout: _Layout,
+                tables: tuple[np.ndarray[Any, Any], ...], views: Mapping[str, Any]) -> None:
+    """Sequences begin..begin+count-1 of the packet runs into columns 0..count-1 of a
+    ScanBuffer's views (``range``, ``intensity``, [``range2``, ``intensity2``], [``azimuth``,
+    [``azimuth2``]]), by the compiled kernel when there is one, else by the numpy reference
+    (:func:`_fill_numpy`); identical results."""
+    from converters._kernels import select
+
+    kernel = select("velodyne").numba
+    offsets, blocks, factors, rotation, _ = tables
+    nebula = "azimuth" in views
+    seqs = layout.sequences
+    family = ("vlp16", "vlp32", "vls128").index(layout.model.nebula)
+    r0, i0 = views["range"], views["intensity"]
+    r1, i1 = views.get("range2", r0), views.get("intensity2", i0)
+    a0 = views.get("azimuth", r0)
+    a1 = views.get("azimuth2", a0)
+    column, first = 0, begin                     # the sequences, run by run
+    for run in runs:
+        have = run.shape[0] * seqs - first
+        if have > 0 and column < count:
+            take = min(have, count - column)
+            if kernel is not None:
+                kernel(run, first, take, column, offsets, blocks, factors, rotation, family,
+                       layout.dual, nebula, r0, i0, r1, i1, a0, a1)
+            else:
+                _fill_numpy(run, first, take, offsets,
+                            [(g[:, column:], h[:, column:]) for g, h in ((r0, i0), (r1, i1))])
+                if nebula:
+                    _azimuths_numpy(run, first, take, layout, tables,
+                                    [a[:, column:] for a in (a0, a1)[:offsets.shape[0]]])
+            column += take
+        first = max(0, -have)
+    if kernel is None and nebula and "azimuth2" in views:
+        same = r0 == r1                # Nebula emits an identical pair once, at the last's angle
+        a0[same] = a1[same]
+
+
 def _fill_numpy(buf: np.ndarray[Any, Any], begin: int, count: int, offsets: np.ndarray[Any, Any],
-                ranges: np.ndarray[Any, Any], intensities: np.ndarray[Any, Any]) -> None:
+                grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
     """Reference: sequences begin..begin+count-1 of buf (sequence q = sequence q % S of packet
-    q // S) into columns 0..count-1 of ranges (R, H, W) uint16 and intensities (R, H, W) uint8."""
+    q // S) into columns 0..count-1 of each return slot's (ranges (H, W) uint16, intensities
+    (H, W) uint8) in ``grids``."""
     returns, seqs, rows = offsets.shape
     p0, p1 = begin // seqs, (begin + count - 1) // seqs + 1
     sub = buf[p0:p1]
     skip = begin - p0 * seqs
     for r in range(returns):
+        ranges, intensities = grids[r]
         lo, hi = sub[:, offsets[r]], sub[:, offsets[r] + 1]               # (m, S, H)
         dist = (lo.astype(np.uint16) | (hi.astype(np.uint16) << 8)).reshape(-1, rows)
-        ranges[r, :, :count] = dist[skip:skip + count].T
-        intensities[r, :, :count] = sub[:, offsets[r] + 2].reshape(-1, rows)[skip:skip + count].T
+        ranges[:, :count] = dist[skip:skip + count].T
+        intensities[:, :count] = sub[:, offsets[r] + 2].reshape(-1, rows)[skip:skip + count].T
 
 
-def _fill(buf: np.ndarray[Any, Any], begin: int, count: int, offsets: np.ndarray[Any, Any],
-          ranges: np.ndarray[Any, Any], intensities: np.ndarray[Any, Any]) -> None:
-    """_fill_numpy, by the compiled kernel when there is one (identical results)."""
-    from converters._kernels import select
-
-    kernel = select("velodyne").numba
-    if kernel is not None and count > 0:
-        kernel(buf, begin, count, offsets, ranges, intensities)
-    else:
-        _fill_numpy(buf, begin, count, offsets, ranges, intensities)
+def _azimuths_numpy(buf: np.ndarray[Any, Any], begin: int, count: int, layout: _Layout,
+                    tables: tuple[np.ndarray[Any, Any], ...],
+                    out: list[np.ndarray[Any, Any]]) -> None:
+    """Reference: the ``azimuth`` channel(s) of sequences begin..begin+count-1 of buf (Nebula's
+    angle of each pixel, :func:`_nebula_azimuths`, counter-clockwise 0.01 deg) into columns
+    0..count-1 of each return slot's (H, W) uint16 view in ``out`` (identical pairs: see
+    :func:`_fill_views`)."""
+    offsets, rotation = tables[0], tables[-1]
+    seqs = layout.sequences
+    slots = offsets // 100 * 32 + (offsets % 100 - 4) // 3              # (R, S, H)
+    p0, p1 = begin // seqs, (begin + count - 1) // seqs + 1
+    ccw = (36000 - _nebula_azimuths(buf[p0:p1], layout, rotation)) % 36000
+    picked = np.take(ccw.astype(np.uint16), slots, axis=1)               # (m, R, S, H)
+    picked = picked.transpose(1, 3, 0, 2).reshape(slots.shape[0], slots.shape[2], -1)
+    skip = begin - p0 * seqs
+    for r, view in enumerate(out):
+        view[:, :count] = picked[r, :, skip:skip + count]
 
 
 def _rates(times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any]) -> tuple[float, float]:
