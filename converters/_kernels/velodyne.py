@@ -1,7 +1,7 @@
 """Optional numba kernel of the Velodyne packet decoder: packet bytes -> a scan's channel views.
 
 ``_fill`` writes, in one pass over the packets, what the numpy reference of
-``converters.velodyne.decoder`` computes in several: the ``range``/``intensity`` grids of
+``converters.velodyne.packets`` computes in several: the ``range``/``intensity`` grids of
 ``_fill_numpy`` (integer copies) and the ``azimuth`` channel of ``_nebula_azimuths`` (the same
 float32 and float64 operations in the same order, so the same integers), straight into the
 channel views of a :class:`lidarscan.scan.ScanBuffer`. The tests compare both paths byte for
