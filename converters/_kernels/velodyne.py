@@ -92,14 +92,21 @@ def _fill(buf: Any, begin: int, count: int, column: int, offsets: Any, blocks: A
                         out_i[j] = refl[j]
                 if not nebula:
                     continue
-                for r in range(n_ret):
+                for r in range(n_ret - 1, -1, -1):    # the last return's slot first
                     i = blocks[r, s, h]
                     f = factors[r, s, h]
                     turn = rotation[r, s, h]
                     b = base[lo - pa:hi - pa, i]
                     g = gap[lo - pa:hi - pa, i]
                     out = (azimuth0 if r == 0 else azimuth1)[h, c0:c1:seqs]
+                    pair = r == 0 and n_ret == 2
+                    first = range0[h, c0:c1:seqs]
+                    second = range1[h, c0:c1:seqs]
+                    other = azimuth1[h, c0:c1:seqs]
                     for j in range(m):
+                        if pair and first[j] == second[j]:
+                            out[j] = other[j]     # an identical pair: the last return's angle
+                            continue
                         if family == 0:
                             term = g[j] * f / np.float32(110.592)
                         else:
@@ -112,14 +119,6 @@ def _fill(buf: Any, begin: int, count: int, column: int, offsets: Any, blocks: A
                         if cw >= 36000:
                             cw -= 36000
                         out[j] = 36000 - cw if cw else 0
-                if n_ret == 2:            # an identical pair: the last return's angle in both
-                    first = range0[h, c0:c1:seqs]
-                    second = range1[h, c0:c1:seqs]
-                    az0 = azimuth0[h, c0:c1:seqs]
-                    az1 = azimuth1[h, c0:c1:seqs]
-                    for j in range(m):
-                        if first[j] == second[j]:
-                            az0[j] = az1[j]
 
 
 _COMPILED = LoadOnce(lambda: numba_jit(_fill))
