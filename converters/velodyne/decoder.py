@@ -1,0 +1,539 @@
+"""Velodyne packets -> one (LidarScan, LidarInfo) per rotation (the packet decoder contract).
+
+:class:`PacketDecoder` buffers packets, cuts rotations, measures times, rates and the scan
+width, and versions the LidarInfo; the pixels come from :mod:`converters.velodyne.packets`.
+Conventions: see :mod:`converters.velodyne`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Any
+
+import numpy as np
+
+from converters._packets import payload_bytes
+from converters.velodyne.calibration import info_from_calibration, load_calibration
+from converters.velodyne.packets import (
+    _AZIMUTHS,
+    _RETURN_MODES,
+    MODELS,
+    PACKET_SIZE,
+    VelodyneModel,
+    _fill_views,
+    _flag_names,
+    _flags,
+    _Layout,
+    _layout,
+    _nebula_rotation,
+    _tables,
+)
+from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
+from lidarscan.scan import ScanBuffer
+
+_HOUR_NS = 3_600_000_000_000
+_JUMP_CENTIDEG = 500.0      # an azimuth step this large between two firings is a gap (FOV)
+_RATE_CHANGE = 0.01         # a rotation rate this much off the info's makes a new version
+_RATE_COLUMNS = 100         # ... when measured over at least this many columns
+_AZIMUTH_MODELS = ("nebula", "manual")
+
+
+class PacketDecoder:
+    """Velodyne packets -> one (LidarScan, LidarInfo) per rotation (the packet decoder contract).
+
+    Args:
+        calibration: ros-drivers style calibration YAML path or mapping; None -> the model's
+            nominal public calibration (VLP-16, Puck LITE, Puck Hi-Res, HDL-32E) or a
+            :class:`~lidarscan.errors.ConfigError` naming the file the model needs.
+        frame_id: header.frame_id of scans and infos.
+        cut_angle_deg: packet azimuth (degrees, clockwise, the packets' own convention) where a
+            rotation starts (Nebula's ``scan_phase``): a rotation is cut before the first firing
+            sequence whose azimuth has passed it.
+        time_source: "auto" (default), "sensor" or "receive". The packets' timestamp counts
+            microseconds past the hour; "sensor" completes it with the hour of the recorded
+            stamp (a GPS/PTP-synchronised sensor: absolute times), "receive" anchors the
+            sensor's relative times at the recorded stamps (shifted so that no packet of the
+            rotation is received before its own timestamp).
+            "auto" uses "sensor" when the two agree within 1 s, else "receive".
+        range_min, range_max: ``LidarInfo.range_min/max`` in metres (default 0 and the packet
+            format's maximum, 65535 raw units: nothing is hidden).
+        width_margin: relative slack of the scan width over the measured columns per
+            revolution (default 0.02).
+        azimuth_model: "nebula" (default): Nebula's points exactly, through the per-pixel
+            ``azimuth`` channel(s) (module docstring, "Point geometry"); or "manual": no such
+            channel, the manuals' firing times as per-beam offsets (physically the better
+            timing on the real VLS-128 recording, ``converters.evidence.velodyne_timing``).
+        as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
+
+    Width: W = ceil((1 + width_margin) * 2 pi / (omega * T)), omega the rotation rate and T the
+    mean column period, both measured on the first rotation of an info version (a rotation
+    whose rate differs by more than 1 % starts a new version). A shorter
+    rotation is padded with no-return columns (their azimuths and times extrapolated at the
+    measured rate); a rotation with more than W firings gets a new info version whose width
+    fits it (again with the margin), so no firing is ever dropped.
+    """
+
+    def __init__(self, calibration: Any = None, *, frame_id: str = "lidar",
+                 cut_angle_deg: float = 0.0, time_source: str = "auto",
+                 range_min: float | None = None, range_max: float | None = None,
+                 width_margin: float = 0.02, azimuth_model: str = "nebula",
+                 as_dataclass: bool = False) -> None:
+        if azimuth_model not in _AZIMUTH_MODELS:
+            raise ConfigError("azimuth_model", azimuth_model, '"nebula" or "manual"')
+        if time_source not in ("auto", "sensor", "receive"):
+            raise ConfigError("time_source", time_source, '"auto", "sensor" or "receive"')
+        if not (math.isfinite(float(cut_angle_deg))):
+            raise ConfigError("cut_angle_deg", cut_angle_deg, "a finite angle in degrees")
+        if not (0.0 <= float(width_margin) < 1.0):
+            raise ConfigError("width_margin", width_margin, "a fraction in [0, 1)")
+        self._calib = None if calibration is None else load_calibration(calibration)
+        self._frame_id = frame_id
+        self._cut = int(round(float(cut_angle_deg) * 100)) % 36000
+        self._time_source = time_source
+        self._range = (range_min, range_max)
+        self._margin = float(width_margin)
+        self._azimuth_model = azimuth_model
+        self._as_dataclass = as_dataclass
+        self._key: tuple[int, int] | None = None      # (product, mode) of the packets buffered
+        self._layout: _Layout | None = None
+        self._packets: list[Any] = []                  # payloads (bytes) or (k, 1206) rows
+        self._stamps: list[Any] = []                   # recorded stamps (ns): ints or arrays
+        self._rows = 0                                  # packets buffered
+        self._first_seq = 0                             # first sequence of _packets[0] to keep
+        self._prev_rel = -1                             # phase-relative azimuth of the last firing
+        self._info: Any = None
+        self._info_key: tuple[Any, ...] | None = None
+        self._omega = 0.0                               # rad/s of the current info version
+        self._period = 0.0                              # ns, mean column period of the version
+        self._order = np.zeros(0, np.int64)             # laser id of each row
+        self._last_info_stamp: int | None = None
+        self._tables: tuple[np.ndarray[Any, Any], ...] = ()   # see _tables()
+        self._offsets_key: tuple[Any, ...] | None = None
+        self._rotation = np.zeros(0)                    # see _nebula_rotation
+
+    # -------------------------------------------------------------------------------- public
+
+    def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
+        """Add one packet (1206-byte payload, never modified); return the rotations it completed.
+
+        A packet of another model or return mode ends the current rotation (returned here);
+        the info version changes only when the geometry does (model, calibration, single <->
+        dual, width, rotation rate).
+
+        Raises:
+            DecodeError: malformed packet (size, block flags, azimuth, unknown product or
+                return mode); the packet is skipped and the decoder stays usable.
+            ConfigError / ValidationError: the calibration does not fit the detected model.
+        """
+        data = packet if isinstance(packet, bytes) else payload_bytes(packet)
+        key, layout = self._validate(data)
+        out: list[tuple[Any, Any]] = []
+        if key != self._key:                          # a valid packet of another mode/model
+            out.extend(self.flush())
+            self._key, self._layout = key, layout
+        cut = self._cut
+        first, last = 2, layout.last_offset
+        rel_first = ((data[first] | data[first + 1] << 8) - cut) % 36000
+        rel_last = ((data[last] | data[last + 1] << 8) - cut) % 36000
+        if rel_first >= self._prev_rel and rel_last >= rel_first:
+            self._packets.append(data)                   # fast path: no cut in this packet
+            self._stamps.append(int(stamp_ns))
+            self._rows += 1
+            self._prev_rel = rel_last
+            return out
+        out.extend(self._push_rows(np.array([int(stamp_ns)], np.int64),
+                                   np.frombuffer(data, np.uint8).reshape(1, PACKET_SIZE)))
+        return out
+
+    def push_many(self, stamps_ns: Any, payloads: Any, *,
+                  errors: list[tuple[int, LidarScanError]] | None = None
+                  ) -> list[tuple[Any, Any]]:
+        """Add N packets at once (the same as :meth:`push` of each, vectorised).
+
+        Args:
+            stamps_ns: (N,) integer recorded stamps, ns.
+            payloads: (N, 1206) uint8 array, one payload per row, e.g. a zero-copy view of a
+                VelodyneScan message's packet array. Read during the call, never modified; the
+                packets of the unfinished rotation are copied (the caller may reuse the buffer).
+            errors: None (default): if any packet is malformed, raise the DecodeError of the
+                first one (the message :meth:`push` gives, with its row index) before anything
+                is consumed. A list: malformed packets are skipped and ``(row, error)`` appended.
+
+        Returns:
+            The rotations completed by these packets, in order.
+
+        Raises:
+            DecodeError: payloads not an (N, 1206) uint8 array, stamps not (N,) integers, or a
+                malformed packet (``errors`` None).
+            ConfigError / ValidationError: the calibration does not fit a detected model.
+        """
+        rows = payloads if isinstance(payloads, np.ndarray) else np.asarray(payloads)
+        if rows.dtype != np.uint8 or rows.ndim != 2 or rows.shape[1] != PACKET_SIZE:
+            raise DecodeError("payloads", f"{rows.dtype} {rows.shape}",
+                              f"an (N, {PACKET_SIZE}) uint8 array of Velodyne packets")
+        stamps = np.asarray(stamps_ns)
+        if stamps.shape != (rows.shape[0],) or stamps.dtype.kind not in "iu":
+            raise DecodeError("stamps_ns", f"{stamps.dtype} {stamps.shape}",
+                              f"({rows.shape[0]},) integer ns, one per payload")
+        return self._push_array(stamps.astype(np.int64, copy=False), rows, errors=errors,
+                                owned=False)
+
+    def _push_array(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], *,
+                    errors: list[tuple[int, LidarScanError]] | None, owned: bool
+                    ) -> list[tuple[Any, Any]]:
+        """push_many() on checked arrays; ``owned``: rows may be kept without a copy."""
+        n = rows.shape[0]
+        if n == 0:
+            return []
+        keys = (rows[:, 1205].astype(np.int64) << 8) | rows[:, 1204]
+        good = self._good_rows(rows, keys)
+        if not good.all():
+            bad = np.flatnonzero(~good)
+            if errors is None:
+                err = self._row_error(rows[bad[0]])
+                raise DecodeError(f"payloads[{int(bad[0])}]: {err.field}", err.value,
+                                  err.expected) from err
+            errors.extend((int(i), self._row_error(rows[i])) for i in bad.tolist())
+        out: list[tuple[Any, Any]] = []
+        starts = np.flatnonzero((keys[1:] != keys[:-1]) | (good[1:] != good[:-1])) + 1
+        bounds = [0, *starts.tolist(), n]
+        for i, j in itertools.pairwise(bounds):
+            if not good[i]:
+                continue
+            key = (int(keys[i]) >> 8, int(keys[i]) & 0xFF)
+            if key != self._key:                      # another model or mode: end the rotation
+                out.extend(self.flush())
+                self._key, self._layout = key, self._check_key(key)
+            out.extend(self._push_rows(stamps[i:j], rows[i:j]))
+        if not owned:                                 # keep no view of the caller's buffer
+            self._packets = [p.copy() if isinstance(p, np.ndarray)
+                             and np.may_share_memory(p, rows) else p for p in self._packets]
+            self._stamps = [s.copy() if isinstance(s, np.ndarray)
+                            and np.may_share_memory(s, stamps) else s for s in self._stamps]
+        return out
+
+    def _validate(self, data: bytes) -> tuple[tuple[int, int], _Layout]:
+        """(key, layout) of one payload, or the DecodeError saying what is wrong with it."""
+        if len(data) != PACKET_SIZE:
+            raise DecodeError("packet", f"{len(data)} bytes", f"{PACKET_SIZE} bytes (a Velodyne "
+                              "data packet payload)")
+        key = (data[1205], data[1204])
+        layout = self._layout if key == self._key else self._check_key(key)
+        assert layout is not None
+        used = len(layout.flags) * 100
+        if data[0:used:100] != b"\xff" * len(layout.flags) or data[1:used:100] != layout.flags:
+            raise DecodeError("packet.blocks[*].flag", _flags(data, used // 100),
+                              f"{_flag_names(layout.flags)} for a {layout.model.name} "
+                              f"{_RETURN_MODES[key[1]]} packet")
+        if max(data[3:used:100]) >= 0x8C:              # 36000 = 0x8CA0: check exactly
+            worst = max(_AZIMUTHS.unpack_from(data)[: used // 100])
+            if worst > 35999:
+                raise DecodeError("packet.blocks[*].azimuth", worst,
+                                  "0..35999 (hundredths of a degree)")
+        return key, layout
+
+    def _row_error(self, row: np.ndarray[Any, Any]) -> DecodeError:
+        try:
+            self._validate(row.tobytes())
+        except DecodeError as err:
+            return err
+        raise AssertionError("a row judged malformed passes the per-packet checks")
+
+    def _good_rows(self, rows: np.ndarray[Any, Any], keys: np.ndarray[Any, Any]
+                   ) -> np.ndarray[Any, Any]:
+        """(N,) bool: the packets push() would accept (the same checks, vectorised)."""
+        good = np.zeros(rows.shape[0], bool)
+        first = int(keys[0])
+        for k in ([first] if np.all(keys == first) else np.unique(keys).tolist()):
+            key = (int(k) >> 8, int(k) & 0xFF)
+            try:
+                layout = self._layout if key == self._key else self._check_key(key)
+            except DecodeError:                        # unknown product or return mode
+                continue
+            assert layout is not None
+            mine = keys == k
+            sub = rows if mine.all() else rows[mine]
+            used = len(layout.flags)
+            # flag (2 bytes) and azimuth (u16) of each used block as one little-endian u32
+            head = sub[:, :100 * used].reshape(-1, used, 100)[:, :, :4].view("<u4")[..., 0]
+            flags = 0xFF | (np.frombuffer(layout.flags, np.uint8).astype(np.uint32) << 8)
+            good[mine] = np.all(((head & 0xFFFF) == flags) & (head < (36000 << 16)), axis=1)
+        return good
+
+    def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]
+                   ) -> list[tuple[Any, Any]]:
+        """Add validated packets (m, 1206) of the current model and mode; cut rotations."""
+        layout = self._layout
+        assert layout is not None
+        index = np.nonzero(layout.measured >= 0)[0]
+        offsets = 2 + 100 * layout.measured[index]
+        az = rows[:, offsets].astype(np.int64) | (rows[:, offsets + 1].astype(np.int64) << 8)
+        rel = ((az - self._cut) % 36000).reshape(-1)
+        cuts = np.nonzero(rel < np.concatenate([[self._prev_rel], rel[:-1]]))[0]
+        out: list[tuple[Any, Any]] = []
+        row0 = 0
+        for j in cuts.tolist():                     # sequence s of packet p starts a rotation
+            p, s = divmod(j, index.size)
+            s = int(index[s])
+            self._add(stamps[row0:p + (s > 0)], rows[row0:p + (s > 0)])
+            out.extend(self._emit(stop=s if s > 0 else None))
+            self._packets, self._stamps, self._rows, self._first_seq = [], [], 0, s
+            row0 = p
+        self._add(stamps[row0:], rows[row0:])
+        self._prev_rel = int(rel[-1])
+        return out
+
+    def _add(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]) -> None:
+        if rows.shape[0]:
+            self._packets.append(rows)
+            self._stamps.append(stamps)
+            self._rows += rows.shape[0]
+
+    def flush(self) -> list[tuple[Any, Any]]:
+        """The last, partial rotation (if it has any firing); the decoder is then empty."""
+        out = self._emit(stop=None, partial=True) if self._packets else []
+        self._packets, self._stamps, self._rows, self._first_seq = [], [], 0, 0
+        self._prev_rel = -1
+        return out
+
+    # ------------------------------------------------------------------------------ internals
+
+    def _check_key(self, key: tuple[int, int]) -> _Layout:
+        product, mode = key
+        if product not in MODELS:
+            raise DecodeError("packet.product_id", hex(product), "a known Velodyne product id "
+                              "(0x21 HDL-32E, 0x22 VLP-16/Puck LITE, 0x24 Puck Hi-Res, "
+                              "0x28 VLP-32C, 0xA1 VLS-128)")
+        if mode not in _RETURN_MODES:
+            raise DecodeError("packet.return_mode", hex(mode),
+                              "0x37 strongest, 0x38 last or 0x39 dual")
+        model = MODELS[product]
+        calib = self._calib if self._calib is not None else model.nominal
+        if calib is None:
+            raise ConfigError("calibration", None, f"the {model.name} calibration YAML "
+                              "(ros-drivers format, from the sensor's XML or the vendor); this "
+                              "model has no nominal calibration")
+        count = len(calib["lasers"])
+        if count != model.lasers:
+            raise ValidationError("calibration.lasers", f"{count} lasers",
+                                  f"{model.lasers} lasers for the {model.name} that sent "
+                                  "these packets")
+        return _layout(product, mode)
+
+    def _buffered(self) -> tuple[list[np.ndarray[Any, Any]], np.ndarray[Any, Any]]:
+        """The buffered packets as runs of (m, 1206) uint8 rows (consecutive single payloads
+        joined, array runs kept as they are: no copy) and all (n,) recorded stamps."""
+        runs: list[np.ndarray[Any, Any]] = []
+        for single, group in itertools.groupby(self._packets, key=lambda p: type(p) is bytes):
+            if single:
+                runs.append(np.frombuffer(b"".join(group), np.uint8).reshape(-1, PACKET_SIZE))
+            else:
+                runs.extend(group)
+        stamps = self._stamps
+        if len(stamps) == 1 and isinstance(stamps[0], np.ndarray):
+            return runs, stamps[0]
+        return runs, np.concatenate([np.atleast_1d(np.asarray(t, np.int64)) for t in stamps])
+
+    def _emit(self, stop: int | None, partial: bool = False) -> list[tuple[Any, Any]]:
+        """Decode the buffered packets' sequences [first_seq, stop of the last packet);
+        ``partial``: the last, unfinished rotation (see :meth:`_assemble`)."""
+        layout = self._layout
+        assert layout is not None and self._key is not None
+        n = self._rows
+        if n == 0:
+            return []
+        begin = self._first_seq
+        end = (n - 1) * layout.sequences + (layout.sequences if stop is None else stop)
+        if end - begin <= 0:
+            return []
+        runs, stamps = self._buffered()
+        blocks = 2 + 100 * np.maximum(layout.measured, 0)
+        head = np.concatenate([run[:, np.append(blocks, blocks + 1)] for run in runs]
+                              if len(runs) > 1 else [runs[0][:, np.append(blocks, blocks + 1)]])
+        toh = np.concatenate([run[:, 1200:1204] for run in runs]) if len(runs) > 1 else \
+            runs[0][:, 1200:1204]
+        azimuth = head[:, :blocks.size] + 256.0 * head[:, blocks.size:]
+        toh = np.ascontiguousarray(toh).view("<u4").reshape(-1).astype(np.int64)
+        times, azimuth = _sequence_columns(azimuth, toh, stamps, layout, self._time_source)
+        return [self._assemble(runs, begin, times[begin:end], azimuth[begin:end],
+                               partial=partial)]
+
+    def _assemble(self, runs: list[np.ndarray[Any, Any]], begin: int,
+                  times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any],
+                  partial: bool = False) -> tuple[Any, Any]:
+        """One rotation: sequences begin.. of the packet runs, their times (ns) and azimuths
+        (clockwise 0.01 deg). ``partial``: the stream's last, unfinished rotation (flush): its
+        rate is not measured over a whole turn (at a field-of-view edge it can be far off), so
+        it keeps the current version when it fits in it."""
+        layout = self._layout
+        assert layout is not None and self._key is not None
+        count = times.size
+        period, omega = _rates(times, azimuth)
+        key = (self._key[0], layout.dual)     # strongest <-> last keeps the geometry
+        changed = (self._info is None or self._info_key != key
+                   or (not partial and count >= _RATE_COLUMNS and omega > 0
+                       and abs(omega - self._omega) > _RATE_CHANGE * self._omega))
+        if changed or count > int(self._info.width):
+            if not changed:
+                period, omega = self._period, self._omega   # same sensor, only wider
+            per_rev = 2.0 * math.pi / (omega * period * 1e-9) if omega > 0 else count
+            width = max(count, int(math.ceil(per_rev * (1.0 + self._margin))))
+            self._new_info(key, width, int(times[0]), period, omega)
+        info = self._info
+        width = int(info.width)
+        pad = width - count
+        if pad:
+            step = np.arange(1, pad + 1, dtype=np.float64)
+            times = np.concatenate([times, times[-1] + np.round(step * self._period)
+                                    .astype(np.int64)])
+            azimuth = np.concatenate([azimuth, azimuth[-1] + step * self._period * 1e-9
+                                      * math.degrees(self._omega) * 100.0])
+        nebula = self._azimuth_model == "nebula"
+        if self._offsets_key != (layout.model.name, layout.dual):
+            self._tables = _tables(layout, self._order, self._rotation if nebula else None)
+            self._offsets_key = (layout.model.name, layout.dual)
+        returns = self._tables[0].shape[0]
+        specs = {"range": np.uint16, "intensity": np.uint8}
+        if returns == 2:
+            specs.update(range2=np.uint16, intensity2=np.uint8)
+        if nebula:
+            specs.update(azimuth=np.uint16, **({"azimuth2": np.uint16} if returns == 2 else {}))
+        buffer = ScanBuffer(info, specs, as_dataclass=self._as_dataclass)
+        _fill_views(runs, begin, count, layout, self._tables, buffer.views)
+        stamp = int(times[0])
+        column_azimuth = -np.deg2rad(np.mod(azimuth, 36000.0) / 100.0)
+        scan = buffer.build(stamp, column_azimuth_angles=column_azimuth,
+                            column_time_offsets=times - stamp)
+        return scan, info
+
+    def _calib_for(self, model: VelodyneModel) -> Mapping[str, Any]:
+        calib = self._calib if self._calib is not None else model.nominal
+        assert calib is not None
+        return calib
+
+    def _new_info(self, key: tuple[Any, ...], width: int, stamp: int, period: float,
+                  omega: float) -> None:
+        layout = self._layout
+        assert layout is not None
+        model = layout.model
+        if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
+            stamp = self._last_info_stamp + 1               # a new version needs a new stamp
+        lo, hi = self._range
+        calib = self._calib_for(model)
+        if self._azimuth_model == "nebula":
+            self._rotation = _nebula_rotation(calib, model.lasers)
+            if model.nebula != "vlp32":      # Nebula's VLP-16 and VLS-128 formulas: no offsets
+                calib = {**calib, "lasers": [
+                    {**las, "vert_offset_correction": 0.0, "horiz_offset_correction": 0.0}
+                    for las in calib["lasers"]]}
+        self._info = info_from_calibration(
+            calib, columns=width, stamp_ns=stamp, frame_id=self._frame_id,
+            rpm=omega * 60.0 / (2.0 * math.pi),
+            beam_time_offsets=np.asarray(model.laser_ns, np.int64),
+            column_time_increment=int(round(period)),
+            range_min=0.0 if lo is None else lo,
+            range_max=65535 * model.distance_resolution if hi is None else hi,
+            model=model.name, distance_resolution=model.distance_resolution,
+            beam_ids="laser_id", as_dataclass=self._as_dataclass)
+        self._info_key, self._period, self._omega = key, period, omega
+        self._order = np.asarray(self._info.beam_ids, np.int64)    # laser id of each row
+        self._offsets_key = None
+        self._last_info_stamp = stamp
+
+
+def _packet_times(toh_us: np.ndarray[Any, Any], stamps: np.ndarray[Any, Any],
+                  source: str) -> np.ndarray[Any, Any]:
+    """(n,) int64 ns of each packet's timestamp (see PacketDecoder ``time_source``), from the
+    packets' (n,) int64 microseconds past the hour and their recorded stamps (ns)."""
+    toh = toh_us * 1000
+    delta = (toh - toh[0]) % _HOUR_NS                 # forward in time, across the hour wrap
+    delta = np.where(delta > _HOUR_NS // 2, delta - _HOUR_NS, delta)
+    # receive time of the least delayed packet, relative to the sensor clock
+    anchor = int(np.min(stamps - delta))
+    if source != "receive":
+        cand = anchor - anchor % _HOUR_NS + int(toh[0])
+        cand += _HOUR_NS * int(round((anchor - cand) / _HOUR_NS))
+        if source == "sensor" or abs(cand - anchor) < 1_000_000_000:
+            anchor = cand
+    return anchor + delta
+
+
+def _sequence_columns(seq_az: np.ndarray[Any, Any], toh_us: np.ndarray[Any, Any],
+                      stamps: np.ndarray[Any, Any], layout: _Layout, source: str
+                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """Time and azimuth of each firing sequence of n packets (sequence order).
+
+    Args: seq_az (n, S) float64 azimuth (0.01 deg) of the block of each sequence (of block 0
+    where ``layout.measured`` is -1; overwritten), toh_us (n,) int64 timestamps (us past the
+    hour), stamps (n,) int64 recorded stamps (ns).
+
+    Returns time (n*S,) int64 ns of each sequence's first firing and azimuth (n*S,) float64
+    clockwise centidegrees (measured, or interpolated for VLP-16's second sequence of a block).
+    """
+    n = seq_az.shape[0]
+    if np.any(layout.measured < 0):      # VLP-16: second sequence of a block, half-way in time
+        meas = seq_az[:, 0::2]
+        gap = np.mod(np.diff(meas, axis=1), 36000.0)
+        gap = np.concatenate([gap, gap[:, -1:]], axis=1) if gap.shape[1] else np.zeros_like(meas)
+        seq_az[:, 1::2] = meas + gap / 2.0
+    times = _packet_times(toh_us, stamps, source)
+    seq_ns = np.round(layout.seq_ns).astype(np.int64)
+    grid = times[:, None] + seq_ns[None]
+    # A sensor with a restricted field of view completes its last packet before the gap with
+    # the first firings after it: sequences after an azimuth jump inside a packet are timed
+    # backwards from the next packet (they directly precede it).
+    meas = seq_az[:, layout.measured >= 0]
+    if meas.shape[1] > 1 and n > 1:
+        jump = np.mod(np.diff(meas, axis=1), 36000.0) > _JUMP_CENTIDEG
+        rows = np.nonzero(jump[:-1].any(axis=1))[0]
+        if rows.size:
+            index = np.nonzero(layout.measured >= 0)[0]
+            for p in rows.tolist():
+                first = int(index[int(np.argmax(jump[p])) + 1])
+                grid[p, first:] = (times[p + 1] + seq_ns[0] - int(round(layout.model.sequence_ns))
+                                   - (seq_ns[-1] - seq_ns[first:]))
+    return grid.reshape(-1), seq_az.reshape(-1)
+
+
+def _rates(times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any]) -> tuple[float, float]:
+    """(mean column period in ns, rotation rate in rad/s) measured on decoded columns."""
+    if times.size < 2:
+        return 0.0, 0.0
+    dt = np.diff(times.astype(np.float64))
+    da = np.mod(np.diff(azimuth), 36000.0)
+    regular = (dt > 0) & (dt < 1.5 * np.median(dt))   # consecutive firings, not gaps
+    if not np.any(regular):
+        return 0.0, 0.0
+    period = float(dt[regular].mean())
+    omega = float(np.radians(da[regular].sum() / 100.0) / (dt[regular].sum() * 1e-9))
+    return period, omega
+
+
+def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
+                   **kw: Any) -> Iterator[tuple[Any, Any]]:
+    """Decode (stamp_ns, payload) pairs: :meth:`PacketDecoder.push` each, then ``flush``.
+
+    Runs of ``bytes`` payloads go through :meth:`PacketDecoder.push_many` (same results).
+    Keyword arguments go to :class:`PacketDecoder`. A malformed packet raises its DecodeError
+    after the rotations before it (use :class:`PacketDecoder` directly to report and continue).
+    """
+    decoder = PacketDecoder(calibration, **kw)
+    source = iter(packets)
+    while chunk := list(itertools.islice(source, 4096)):
+        stamps, payloads = zip(*chunk)
+        done = None
+        if set(map(type, payloads)) == {bytes} and set(map(len, payloads)) == {PACKET_SIZE}:
+            rows = np.frombuffer(b"".join(payloads), np.uint8).reshape(-1, PACKET_SIZE)
+            try:
+                done = decoder._push_array(np.array(stamps, np.int64), rows, errors=None,
+                                           owned=True)
+            except LidarScanError:               # raised before anything was consumed
+                done = None
+        if done is None:                         # odd inputs or a bad packet: one by one
+            for stamp, payload in chunk:
+                yield from decoder.push(stamp, payload)
+        else:
+            yield from done
+    yield from decoder.flush()
