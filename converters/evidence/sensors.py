@@ -13,7 +13,7 @@ compared with the points of someone else's decoder:
   points do not correspond one to one, so the distance is the nearest-neighbour distance both
   ways (Nebula -> ours, ours -> Nebula), inside Nebula's range (and, VLP-32C, azimuth) limits.
   Velodyne: the default decoder (Nebula's per-pixel azimuths in the scan's ``azimuth``
-  channel, ``converters/velodyne.py``) and, beside it, ``azimuth_model="manual"`` (the manuals'
+  channel, ``converters/velodyne/``) and, beside it, ``azimuth_model="manual"`` (the manuals'
   firing times as per-beam offsets: the same ranges and elevations, other azimuths). Hesai:
   Nebula cuts rotations by corrected azimuth, the decoder by firing, so Nebula's points are
   looked up in the matched rotation and its two neighbours (``tests/test_hesai.py``).
