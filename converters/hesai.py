@@ -157,6 +157,7 @@ from __future__ import annotations
 import calendar
 import functools
 import io
+import itertools
 import json
 import math
 import os
@@ -825,11 +826,14 @@ class PacketDecoder:
         assert stream is not None
         fmt = stream.fmt
         self._join_packets()
-        recs = [_records(seg[1], fmt) for seg in self._segs]
+        segs = [seg[1] for seg in self._segs]
         firings = fmt.blocks // stream.returns
-        azimuth = np.concatenate([rec["b"]["az"][:, ::stream.returns] for rec in recs])
-        us = np.concatenate([rec["us"] for rec in recs]).astype(np.int64)
-        dates = np.concatenate([rec["date"] for rec in recs])            # (P, 6) uint8
+        at = fmt.body + fmt.azimuth_at + stream.returns * fmt.block_size * np.arange(firings)
+        azimuth = np.concatenate([_le_fields(rows, at, 2) for rows in segs])       # (P, F)
+        us = np.concatenate([_le_fields(rows, (fmt.timestamp_at,), 4)[:, 0]
+                             for rows in segs]).astype(np.int64)
+        d = fmt.datetime_at
+        dates = np.concatenate([rows[:, d:d + 6] for rows in segs])              # (P, 6) uint8
         starts = np.flatnonzero(np.r_[True, (dates[1:] != dates[:-1]).any(1)])
         secs = np.array([_date_seconds(bytes(dates[i])) for i in starts], np.int64)
         secs = np.repeat(secs, np.diff(np.r_[starts, len(dates)]))
@@ -838,7 +842,9 @@ class PacketDecoder:
         cols = {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
                 "t0": t0, "stamp": np.concatenate([seg[0] for seg in self._segs])}
         if fmt.pixel_tables:
-            cols["state"] = _firing_states(fmt, stream.returns, recs)
+            assert fmt.mode_flag_at is not None
+            flags = np.concatenate([rows[:, fmt.mode_flag_at] for rows in segs])
+            cols["state"] = _firing_states(fmt, stream.returns, flags)
         return cols
 
     def _emit(self, final: bool, limit: int | None = None) -> list[tuple[Any, Any]]:
@@ -995,15 +1001,22 @@ def _packet_dtype(fmt: HesaiFormat, size: int) -> np.dtype[Any]:
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": size})
 
 
-def _firing_states(fmt: HesaiFormat, returns: int, recs: list[np.ndarray[Any, Any]]
+def _firing_states(fmt: HesaiFormat, returns: int, flags: np.ndarray[Any, Any]
                    ) -> np.ndarray[Any, Any]:
-    """(F,) index into ``fmt.pixel_tables`` of every buffered firing (PandarQT128: loop 1 = 0,
-    loop 2 = 1; single return: block 1 loop 1, block 2 loop 2; dual: the tail's mode flag,
-    bit 0 set = loop 1)."""
-    flags = np.concatenate([rec["flag"] for rec in recs]).astype(np.int64)
+    """(F,) index into ``fmt.pixel_tables`` of every buffered firing, from the (P,) tail mode
+    flags of the buffered packets (PandarQT128: loop 1 = 0, loop 2 = 1; single return: block 1
+    loop 1, block 2 loop 2; dual: the tail's mode flag, bit 0 set = loop 1)."""
+    flags = flags.astype(np.int64)
     if returns == 1:
         return np.tile(np.arange(fmt.blocks) % 2, flags.size)
     return np.where(flags & 1, 0, 1)
+
+
+def _le_fields(rows: np.ndarray[Any, Any], offsets: Any, nbytes: int) -> np.ndarray[Any, Any]:
+    """(P, K) little-endian unsigned integers of ``nbytes`` (2 or 4) bytes at byte ``offsets``
+    (K,) of each payload row of ``rows`` (P, size) uint8."""
+    idx = (np.asarray(offsets)[:, None] + np.arange(nbytes)).reshape(-1)
+    return np.ascontiguousarray(rows.take(idx, axis=1)).view(f"<u{nbytes}")
 
 
 def _pixel_times(fmt: HesaiFormat, states: np.ndarray[Any, Any], order: np.ndarray[Any, Any],
@@ -1045,9 +1058,10 @@ def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _St
         _units_numpy(pieces, stream, rows, grids)
         return
     offsets = _unit_offsets(stream.fmt, stream.returns)
+    dists = tuple(dist for dist, _ in grids)
+    refls = tuple(refl for _, refl in grids)
     for payloads, first, count, col in pieces:
-        for r, (dist, refl) in enumerate(grids):
-            fill(payloads, first, count, col, offsets, r, rows, dist, refl)
+        fill(payloads, first, count, col, offsets, rows, dists, refls)
 
 
 def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
@@ -1136,7 +1150,7 @@ def _channel_rank(name: str) -> tuple[int, int]:
 
 
 
-#: packets pushed at once by decode_packets (a run of equal-size payloads is cut there)
+#: packets taken from the iterable at once by decode_packets (and pushed as runs of one size)
 _RUN = 4096
 
 
@@ -1144,44 +1158,67 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None, 
                    ) -> Iterator[tuple[Any, Any]]:
     """Decode an iterable of (stamp_ns, payload), then flush(): the results of push() one by one.
 
-    Runs of up to 4096 consecutive payloads of one size go through
-    :meth:`PacketDecoder.push_many`. A malformed packet raises the DecodeError of push_many()
-    after the rotations completed before it have been yielded; its message starts with
-    ``packets[i]``, i counting from the iterable's first packet (``index`` = i).
+    The iterable is read 4096 pairs at a time; each chunk's runs of consecutive payloads of
+    one size are joined and go through :meth:`PacketDecoder.push_many` (no Python step per
+    packet). A malformed packet raises the DecodeError of push_many() after the rotations
+    completed before it have been yielded; its message starts with ``packets[i]``, i counting
+    from the iterable's first packet (``index`` = i).
     """
     decoder = PacketDecoder(calibration, **kw)
-    run: list[bytes] = []
-    stamps: list[int] = []
-    done = 0                                  # packets of the iterable before ``run``
-    size = -1                                 # payload size of the run
-
-    def push_run() -> Iterator[tuple[Any, Any]]:
-        rows = np.frombuffer(b"".join(run), np.uint8).reshape(len(run), -1)
+    it = iter(packets)
+    done = 0                                  # packets of the iterable before the chunk
+    while True:
+        chunk = list(itertools.islice(it, _RUN))
+        if not chunk:
+            break
         try:
-            yield from decoder._push_rows(np.array(stamps, np.int64), rows, owned=True)
+            stamps, datas = zip(*chunk)
+        except (TypeError, ValueError):       # not all (stamp, payload) pairs: as a for loop
+            stamps, datas = _pairs(chunk)     # raises the loop's error at the first bad item
+        bad: DecodeError | None = None
+        if set(map(type, datas)) != {bytes}:
+            datas, bad = _payloads(datas)     # up to the first unreadable payload
+        yield from _push_runs(decoder, stamps[:len(datas)], datas, done)
+        if bad is not None:
+            raise _batch_error(bad, done + len(datas), []) from bad
+        done += len(chunk)
+    yield from decoder.flush()
+
+
+def _pairs(chunk: list[Any]) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+    """(stamps, payloads) of a chunk item by item: the first item that is not a pair raises
+    the error a ``for stamp, payload in packets`` loop raises."""
+    stamps, datas = [], []
+    for stamp, packet in chunk:
+        stamps.append(stamp)
+        datas.append(packet)
+    return tuple(stamps), tuple(datas)
+
+
+def _payloads(datas: tuple[Any, ...]) -> tuple[list[bytes], DecodeError | None]:
+    """The payloads as bytes, up to the first one that is not a payload (and its error)."""
+    out = []
+    for packet in datas:
+        try:
+            out.append(packet if type(packet) is bytes else payload_bytes(packet))
+        except DecodeError as err:
+            return out, err
+    return out, None
+
+
+def _push_runs(decoder: PacketDecoder, stamps: tuple[Any, ...], datas: Any, done: int
+               ) -> Iterator[tuple[Any, Any]]:
+    """push_many() each run of equal-size payloads of a chunk, joined into one block of rows;
+    ``done``: packets of the iterable before the chunk (for the error's index)."""
+    if not datas:
+        return
+    sizes = np.fromiter(map(len, datas), np.int64, len(datas))
+    cuts = [0, *(np.flatnonzero(sizes[1:] != sizes[:-1]) + 1).tolist(), len(datas)]
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        rows = np.frombuffer(b"".join(datas[lo:hi]), np.uint8).reshape(hi - lo, int(sizes[lo]))
+        try:
+            yield from decoder._push_rows(np.array(stamps[lo:hi], np.int64), rows, owned=True)
         except DecodeError as err:
             yield from err.results            # type: ignore[attr-defined]
             cause: Any = err.__cause__
-            raise _batch_error(cause, done + err.index, []) from cause  # type: ignore
-        finally:
-            del run[:], stamps[:]
-
-    for stamp, packet in packets:
-        try:
-            data = packet if type(packet) is bytes else payload_bytes(packet)
-        except DecodeError as err:
-            index = done + len(run)
-            if run:
-                yield from push_run()
-            raise _batch_error(err, index, []) from err
-        if len(data) != size or len(run) >= _RUN:
-            if run:
-                n = len(run)
-                yield from push_run()
-                done += n
-            size = len(data)
-        run.append(data)
-        stamps.append(stamp)
-    if run:
-        yield from push_run()
-    yield from decoder.flush()
+            raise _batch_error(cause, done + lo + err.index, []) from cause  # type: ignore
