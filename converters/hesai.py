@@ -110,7 +110,6 @@ from __future__ import annotations
 
 import calendar
 import functools
-import itertools
 import json
 import math
 import struct
@@ -696,7 +695,7 @@ def _batch_error(err: DecodeError, index: int, results: list[tuple[Any, Any]]) -
     return new
 
 
-#: packets taken from the iterable at once by decode_packets (and pushed as runs of one size)
+#: packets pushed at once by decode_packets (a run of equal-size payloads is cut there)
 _RUN = 4096
 
 
@@ -704,67 +703,44 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None, 
                    ) -> Iterator[tuple[Any, Any]]:
     """Decode an iterable of (stamp_ns, payload), then flush(): the results of push() one by one.
 
-    The iterable is read 4096 pairs at a time; each chunk's runs of consecutive payloads of
-    one size are joined and go through :meth:`PacketDecoder.push_many` (no Python step per
-    packet). A malformed packet raises the DecodeError of push_many() after the rotations
-    completed before it have been yielded; its message starts with ``packets[i]``, i counting
-    from the iterable's first packet (``index`` = i).
+    Runs of up to 4096 consecutive payloads of one size go through
+    :meth:`PacketDecoder.push_many`. A malformed packet raises the DecodeError of push_many()
+    after the rotations completed before it have been yielded; its message starts with
+    ``packets[i]``, i counting from the iterable's first packet (``index`` = i).
     """
     decoder = PacketDecoder(calibration, **kw)
-    it = iter(packets)
-    done = 0                                  # packets of the iterable before the chunk
-    while True:
-        chunk = list(itertools.islice(it, _RUN))
-        if not chunk:
-            break
+    run: list[bytes] = []
+    stamps: list[int] = []
+    done = 0                                  # packets of the iterable before ``run``
+    size = -1                                 # payload size of the run
+
+    def push_run() -> Iterator[tuple[Any, Any]]:
+        rows = np.frombuffer(b"".join(run), np.uint8).reshape(len(run), -1)
         try:
-            stamps, datas = zip(*chunk)
-        except (TypeError, ValueError):       # not all (stamp, payload) pairs: as a for loop
-            stamps, datas = _pairs(chunk)     # raises the loop's error at the first bad item
-        bad: DecodeError | None = None
-        if set(map(type, datas)) != {bytes}:
-            datas, bad = _payloads(datas)     # up to the first unreadable payload
-        yield from _push_runs(decoder, stamps[:len(datas)], datas, done)
-        if bad is not None:
-            raise _batch_error(bad, done + len(datas), []) from bad
-        done += len(chunk)
-    yield from decoder.flush()
-
-
-def _pairs(chunk: list[Any]) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
-    """(stamps, payloads) of a chunk item by item: the first item that is not a pair raises
-    the error a ``for stamp, payload in packets`` loop raises."""
-    stamps, datas = [], []
-    for stamp, packet in chunk:
-        stamps.append(stamp)
-        datas.append(packet)
-    return tuple(stamps), tuple(datas)
-
-
-def _payloads(datas: tuple[Any, ...]) -> tuple[list[bytes], DecodeError | None]:
-    """The payloads as bytes, up to the first one that is not a payload (and its error)."""
-    out = []
-    for packet in datas:
-        try:
-            out.append(packet if type(packet) is bytes else payload_bytes(packet))
-        except DecodeError as err:
-            return out, err
-    return out, None
-
-
-def _push_runs(decoder: PacketDecoder, stamps: tuple[Any, ...], datas: Any, done: int
-               ) -> Iterator[tuple[Any, Any]]:
-    """push_many() each run of equal-size payloads of a chunk, joined into one block of rows;
-    ``done``: packets of the iterable before the chunk (for the error's index)."""
-    if not datas:
-        return
-    sizes = np.fromiter(map(len, datas), np.int64, len(datas))
-    cuts = [0, *(np.flatnonzero(sizes[1:] != sizes[:-1]) + 1).tolist(), len(datas)]
-    for lo, hi in zip(cuts[:-1], cuts[1:]):
-        rows = np.frombuffer(b"".join(datas[lo:hi]), np.uint8).reshape(hi - lo, int(sizes[lo]))
-        try:
-            yield from decoder._push_rows(np.array(stamps[lo:hi], np.int64), rows, owned=True)
+            yield from decoder._push_rows(np.array(stamps, np.int64), rows, owned=True)
         except DecodeError as err:
             yield from err.results            # type: ignore[attr-defined]
             cause: Any = err.__cause__
-            raise _batch_error(cause, done + lo + err.index, []) from cause  # type: ignore
+            raise _batch_error(cause, done + err.index, []) from cause  # type: ignore
+        finally:
+            del run[:], stamps[:]
+
+    for stamp, packet in packets:
+        try:
+            data = packet if type(packet) is bytes else payload_bytes(packet)
+        except DecodeError as err:
+            index = done + len(run)
+            if run:
+                yield from push_run()
+            raise _batch_error(err, index, []) from err
+        if len(data) != size or len(run) >= _RUN:
+            if run:
+                n = len(run)
+                yield from push_run()
+                done += n
+            size = len(data)
+        run.append(data)
+        stamps.append(stamp)
+    if run:
+        yield from push_run()
+    yield from decoder.flush()
