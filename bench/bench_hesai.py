@@ -25,8 +25,9 @@ unless said otherwise:
 
 Besides wall-clock medians it prints the median CPU time (``time.process_time``) of a second
 set of rounds, interleaved the same way: on a shared, overloaded machine the process is often
-descheduled, and the CPU time is what one core spends on the work. The load average is printed with the figures. The compiled units
-kernel is used when numba is installed (``LIDARSCAN_NUMBA=0``: the numpy reference).
+descheduled, and the CPU time is what one core spends on the work. The load average is printed
+with the figures. The compiled units kernel is used when numba is installed
+(``LIDARSCAN_NUMBA=0``: the numpy reference).
 """
 
 from __future__ import annotations
