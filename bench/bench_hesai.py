@@ -1,7 +1,10 @@
 """Benchmark: Hesai packet decoding (Pandar64, dual return) as a multiple of real time, one core.
 
-Run: ``.venv/bin/python bench/bench_hesai.py [--rounds N]``. Prints medians and ratios measured
-in one run (no assertions). Target: >= 50x real time.
+Run: ``.venv/bin/python bench/bench_hesai.py [--rounds N] [--baseline FILE]``. Prints medians and
+ratios measured in one run (no assertions). Target: >= 50x real time. ``--baseline`` times
+another version of ``converters/hesai.py`` beside this one, interleaved in the same run (e.g.
+``git show main:converters/hesai.py > /tmp/hesai_main.py``; it must run against this tree's
+``lidarscan`` and kernels).
 
 Input: the real Pandar64 recording of ``tests/data/nebula/hesai_pandar64`` (2400 packets of
 1198 bytes in 25 PandarScan messages, 0.4 s of sensor time at 600 rpm, dual return 0x39), read
@@ -20,16 +23,18 @@ unless said otherwise:
   writes x, y, z, intensity and time of every return to preallocated lists: what a decoder
   without vectorisation does. It runs on the first 300 packets; its time is scaled to all.
 
-Besides wall-clock medians it prints the CPU time (``time.process_time``) of the same calls:
-on a shared, overloaded machine the process is often descheduled, and the CPU time is what one
-core spends on the work. The load average is printed with the figures. The compiled units
-kernel is used when numba is installed (``LIDARSCAN_NUMBA=0``: the numpy reference).
+Besides wall-clock medians it prints the median CPU time (``time.process_time``) of a second
+set of rounds, interleaved the same way: on a shared, overloaded machine the process is often
+descheduled, and the CPU time is what one core spends on the work. The load average is printed
+with the figures. The compiled units kernel is used when numba is installed
+(``LIDARSCAN_NUMBA=0``: the numpy reference).
 """
 
 from __future__ import annotations
 
 import argparse
 import calendar
+import importlib.util
 import math
 import os
 import statistics
@@ -101,60 +106,83 @@ def loop_decode(packets: list[tuple[int, bytes]], elevation: list[float],
     return len(xs)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=7)
-    args = parser.parse_args()
-    packets, messages = read_packets()
-    csv = DATA / "Pandar64.csv"
-    cal = hesai.load_calibration(csv)
-    firings = len(packets) * 3                            # dual return: 3 firings a packet
-    real_s = firings * 55.56e-6
-    subset = packets[:300]
+def load_baseline(path: Path) -> Any:
+    """``path`` (another version of converters/hesai.py) imported as a separate module."""
+    spec = importlib.util.spec_from_file_location("hesai_baseline", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module            # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def decoders(mod: Any, packets: list[tuple[int, bytes]],
+             messages: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+    """The four decoding candidates of module ``mod`` (converters.hesai or a baseline)."""
+    cal = mod.load_calibration(DATA / "Pandar64.csv")
 
     def decode(as_dataclass: bool = True) -> list[Any]:
-        return list(hesai.decode_packets(packets, cal, as_dataclass=as_dataclass))
+        return list(mod.decode_packets(packets, cal, as_dataclass=as_dataclass))
 
     def push() -> list[Any]:
-        dec = hesai.PacketDecoder(cal, as_dataclass=True)
+        dec = mod.PacketDecoder(cal, as_dataclass=True)
         return [r for t, p in packets for r in dec.push(t, p)] + dec.flush()
 
     def push_many() -> list[Any]:
-        dec = hesai.PacketDecoder(cal, as_dataclass=True)
+        dec = mod.PacketDecoder(cal, as_dataclass=True)
         return [r for stamps, rows in messages for r in dec.push_many(stamps, rows)
                 ] + dec.flush()
 
-    candidates = {
-        "push": push,
-        "push_many": push_many,
-        "decode_packets": decode,
-        "decode_packets+msg": lambda: decode(False),
-        "loop (300 packets)": lambda: loop_decode(subset, list(cal.elevation_deg),
-                                                  list(cal.azimuth_deg)),
-    }
+    return {"push": push, "push_many": push_many, "decode_packets": decode,
+            "decode_packets+msg": lambda: decode(False)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="another version of converters/hesai.py to time beside this one")
+    args = parser.parse_args()
+    packets, messages = read_packets()
+    cal = hesai.load_calibration(DATA / "Pandar64.csv")
+    firings = len(packets) * 3                            # dual return: 3 firings a packet
+    real_s = firings * 55.56e-6
+    subset = packets[:300]
+    candidates = decoders(hesai, packets, messages)
+    names = list(candidates)
+    if args.baseline is not None:
+        base = decoders(load_baseline(args.baseline), packets, messages)
+        candidates.update({f"{name} (baseline)": fn for name, fn in base.items()})
+        names = [n for name in names for n in (f"{name} (baseline)", name)]
+    candidates["loop (300 packets)"] = lambda: loop_decode(
+        subset, list(cal.elevation_deg), list(cal.azimuth_deg))
     load = os.getloadavg()
     times = interleaved_times(candidates, args.rounds)
     med = {k: statistics.median(v) for k, v in times.items()}
-    cpu = {}
-    for name, fn in candidates.items():
-        runs = []
-        for _ in range(args.rounds):
+    cpu: dict[str, list[float]] = {name: [] for name in candidates}
+    order = list(candidates)
+    shuffle = np.random.default_rng(1).shuffle
+    for _ in range(args.rounds):                          # CPU time, interleaved too
+        shuffle(order)
+        for name in order:
             start = time.process_time()
-            fn()
-            runs.append(time.process_time() - start)
-        cpu[name] = statistics.median(runs)
+            candidates[name]()
+            cpu[name].append(time.process_time() - start)
+    cpu_med = {k: statistics.median(v) for k, v in cpu.items()}
     load = max(load[0], os.getloadavg()[0])
-    loop_cpu = cpu["loop (300 packets)"] * len(packets) / len(subset)
+    loop_cpu = cpu_med["loop (300 packets)"] * len(packets) / len(subset)
     loop_all = med["loop (300 packets)"] * len(packets) / len(subset)
     kernel = "numba kernel" if hesai._kernel() is not None else "numpy (no compiled path)"
     print(f"Pandar64 dual return: {len(packets)} packets, {real_s:.3f} s of sensor time, "
-          f"{len(decode())} scans; medians of {args.rounds} interleaved rounds, one core, "
-          f"units by {kernel}; load average {load:.1f} on {os.cpu_count()} cores")
-    for name in ("push", "push_many", "decode_packets", "decode_packets+msg"):
-        print(f"  {name:<18} wall {med[name] * 1e3:7.2f} ms {real_s / med[name]:6.1f}x real "
-              f"time {loop_all / med[name]:5.1f}x the loop | cpu {cpu[name] * 1e3:7.2f} ms "
-              f"{real_s / cpu[name]:6.1f}x real time {loop_cpu / cpu[name]:5.1f}x the loop")
-    print(f"  {'loop':<18} wall {loop_all * 1e3:7.2f} ms {real_s / loop_all:6.1f}x real time "
+          f"{len(candidates['decode_packets']())} scans; medians of {args.rounds} interleaved "
+          f"rounds, one core, units by {kernel}; load average {load:.1f} on {os.cpu_count()} "
+          "cores")
+    for name in names:
+        c = cpu_med[name]
+        print(f"  {name:<29} wall {med[name] * 1e3:7.2f} ms {real_s / med[name]:6.1f}x real "
+              f"time {loop_all / med[name]:5.1f}x the loop | cpu {c * 1e3:7.2f} ms "
+              f"{real_s / c:6.1f}x real time {loop_cpu / c:5.1f}x the loop")
+    print(f"  {'loop':<29} wall {loop_all * 1e3:7.2f} ms {real_s / loop_all:6.1f}x real time "
           f"(300 packets, scaled) | cpu {loop_cpu * 1e3:7.2f} ms "
           f"{real_s / loop_cpu:6.1f}x real time")
 

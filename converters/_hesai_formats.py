@@ -1,0 +1,464 @@
+"""Hesai point-cloud packet formats: byte layouts, firing-time tables, detection, calibration.
+
+The tables and helpers behind :mod:`converters.hesai` (which re-exports the public names
+``FORMATS``, ``RETURN_MODES``, ``HesaiFormat``, ``detect_format`` and ``load_calibration``;
+import them from there). Formats, return modes and conventions: the module docstring of
+:mod:`converters.hesai`.
+
+Layouts (manuals, chapter "Data Structure" / "Point Cloud Data Packet"): pre-header 0xEE 0xFF,
+protocol major, minor, 2 reserved; header laser num, block num, first block return, dis unit,
+return num, flags. PandarXT (6.1): blocks of azimuth u16 (0.01 deg) + 4-byte units (distance
+u16, reflectivity, reserved); tail 10 reserved, return mode, motor speed u16, date-time (year -
+1900, month, day, hour, minute, second), timestamp u32 us, factory info; UDP sequence u32.
+PandarQT128 (3.2) and Pandar128E3X/E4X/OT128 (1.4): the Flags byte says which optional parts
+are present (bit 0 UDP sequence, 1 IMU, 2 functional safety, 3 digital signature, 4 a confidence
+byte after each unit's reflectivity: 4-byte instead of 3-byte units); body = 2 blocks + CRC u32;
+functional safety 17 bytes; tail: QT128 5 reserved, mode flag, 6 reserved; 128 series 9
+reserved, azimuth state u16, operational state; then both: return mode, motor speed, date-time,
+timestamp, factory info, UDP sequence, (128: IMU 22 bytes), CRC u32; then the 32-byte signature.
+No "fine azimuth" byte exists in these formats (that is the AT128's, not decoded here).
+
+Sources of the timing tables: Pandar40P, its manual's Table II.4 (time of each laser before its
+block's end) and block end times; Pandar64, its manual's block end times (t0 - 42.58 us - 55.56 us
+per later firing) and per-laser formula (1.304 / 1.968 us steps before the end, checked for the
+lasers the public excerpt lists), the full 64-entry table as tabulated in the Nebula driver;
+PandarXT32 (5.632 us - 50 us per later firing, then 0.368 us + 1.512 us per channel) and
+PandarQT64 (25.71 us + 166.67 us per firing, then its 64-entry table) as tabulated in Nebula
+(one QT64 entry there, 12960 ns for channel 56, is a typo of the 129600 its 2.06 us step gives).
+PandarXT16: the XT block times, 0.368 us + 3.024 us per channel; PandarXT32M: the XT block
+times, channels 1-16 and 17-32 fired in pairs, 0.368 us + 2.888 us per pair (as tabulated in
+Nebula). PandarQT128 and the 128 series fire a channel at a time that changes from firing to
+firing, which per-beam ``beam_time_offsets`` cannot express; for these models they are 0 and
+``column_time_offsets`` are the firings' trigger times (QT128: t0 + 9 us - 111.11 us per later
+firing; 128 series: t0 - 55.56 us per later firing, the manual's "absolute time is the trigger
+time of the firing in the last block"). The QT128 has two firing loops with different channel
+sets and delays (``_QT128_LOOPS``; single return: block 1 loop 1, block 2 loop 2; dual: the
+tail's mode flag): its scans carry an extra channel ``t`` (INT32 ns, the delay of each pixel's
+channel after its column's time, 0 where the channel does not fire), so a pixel's time is
+``stamp + column_time_offsets[c] + beam_time_offsets[u] + t[u, c]`` (the msgs README's "a
+sensor with irregular pixel timing can add a ``t`` channel"; ``Projector.pixel_times`` and
+the PointCloud2 time fields add it). The 128E3X/E4X delays depend on the tail's azimuth and
+operational states (and, on the 128E3X, on near/far-field firing by distance), and the packet
+does not say whether it is a 128E3X or a 128E4X, whose tables differ: their channel delays (up
+to 55 us) are not applied. ``vendor_metadata``'s ``channel_timing`` says which case a scan is.
+
+Dual-return block order (what blocks 1 and 2 of a firing hold): Pandar40P and Pandar64 0x39: last,
+strongest (manuals; confirmed on the Pandar64 recording: block 1 is never nearer than block 2);
+PandarXT32 0x39: strongest, last (its recording: block 2 is never nearer, and it is the stronger
+one where the two differ in distance, i.e. the "last = strongest, second strongest in the other
+block" case; the manual's text says the opposite); PandarQT64 0x3B: first, last (its
+recording). PandarXT16, PandarXT32M, PandarQT128, Pandar128E3X/E4X: the header table's "First
+Block Return" (block 1 holds the last return in 0x39 and 0x3B, the first in 0x3C): 0x39 last,
+strongest; 0x3B last, first; 0x3C first, strongest (0x39 confirmed on the XT16 and QT128
+recordings, 0x3C on the XT32M one: block 1 is never farther). Triple return 0x3D (PandarXT32M
+only, 6 blocks = 2 firings of 3 blocks): first, last, strongest, as the mode's name orders them
+(not confirmed on a recording). Other multi-return modes of a model raise a DecodeError naming
+the byte. Single modes (0x33 first, 0x37 strongest, 0x38 last) are accepted for every model.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidarscan.errors import DecodeError
+
+#: Return-mode byte of the packet tail -> the returns it reports.
+RETURN_MODES: dict[int, tuple[str, ...]] = {
+    0x33: ("first",),
+    0x37: ("strongest",),
+    0x38: ("last",),
+    0x39: ("last", "strongest"),
+    0x3B: ("first", "last"),
+    0x3C: ("first", "strongest"),
+    0x3D: ("first", "last", "strongest"),
+}
+
+# Firing-time tables (ns; sources in the module docstring). Pandar40P: time of each laser id
+# 1..40 before its block's end. Pandar64: the same per laser index (1.304 / 1.968 us steps from
+# 3.62 us). PandarQT64: per channel after the block's start (2.04-2.06 us apart, 2.44-3.05 us
+# between groups of 8 or 16). PandarXT32: 0.368 us + 1.512 us * channel index (in HesaiFormat).
+_P40P_BEFORE_END_US = {
+    4: 3.62, 40: 3.62, 36: 4.92, 28: 6.23, 12: 8.19, 16: 8.19, 32: 9.5, 24: 11.47, 29: 12.77,
+    17: 14.74, 3: 16.04, 39: 16.04, 35: 17.35, 25: 18.65, 9: 20.62, 13: 20.62, 31: 21.92,
+    21: 23.89, 26: 25.19, 14: 27.16, 2: 28.47, 38: 28.47, 34: 29.77, 6: 31.74, 22: 31.74,
+    10: 33.71, 30: 35.01, 18: 36.98, 23: 38.95, 11: 40.91, 1: 42.22, 37: 42.22, 33: 43.52,
+    5: 45.49, 19: 45.49, 7: 47.46, 27: 48.76, 15: 50.73, 20: 52.7, 8: 54.67,
+}
+_P64_BEFORE_END_NS = (
+    23180, 21876, 20572, 19268, 17964, 16660, 11444, 46796, 7532, 36956, 50732, 54668, 40892,
+    44828, 31052, 34988, 48764, 52700, 38924, 42860, 29084, 33020, 46796, 25148, 36956, 50732,
+    27116, 40892, 44828, 31052, 34988, 48764, 25148, 38924, 42860, 29084, 33020, 52700, 6228,
+    54668, 15356, 27116, 10140, 23180, 4924, 21876, 14052, 17964, 8836, 19268, 3620, 20572,
+    12748, 16660, 7532, 11444, 6228, 15356, 10140, 4924, 3620, 14052, 8836, 12748,
+)
+# QT64: 16 channels per group, 2.05-2.06 us apart, groups 2.45 / 3.05 us apart.
+_QT64_AFTER_START_NS = (
+    12310, 14370, 16430, 18490, 20540, 22600, 24660, 26710, 29160, 31220, 33280, 35340, 37390,
+    39450, 41500, 43560, 46610, 48670, 50730, 52780, 54840, 56900, 58950, 61010, 63450, 65520,
+    67580, 69630, 71690, 73740, 75800, 77860, 80900, 82970, 85020, 87080, 89140, 91190, 93250,
+    95300, 97750, 99820, 101870, 103930, 105980, 108040, 110100, 112150, 115200, 117260,
+    119320, 121380, 123430, 125490, 127540, 129600, 132050, 134110, 136170, 138220, 140280,
+    142340, 144390, 146450,
+)
+
+# PandarQT128 firing loops (delay of each channel after its firing's trigger, ns; -1: the
+# channel does not fire in that loop: channels 1-32 in loop 1, 33-64 in loop 2), as tabulated in
+# Nebula. Loop of a firing: single return, block 1 loop 1 and block 2 loop 2; dual return, the
+# tail's mode flag (bit 0 set: loop 1). Confirmed on the QT128 recording: in packets of mode
+# flag 0 channels 33-64 never return, with flag 1 channels 1-32 never do.
+_QT128_LOOPS = (
+    (-1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 27656, 53000, 2312, 78344, 81512, 5480,
+     56168, 30824, 33992, 59336, 8648, 84680, 87848, 11816, 62504, 37160, 40328, 65672,
+     14984, 91016, 94184, 18152, 68840, 43496, 46664, 72008, 21320, 97352, 100520, 24488,
+     75176, 49832, 1456, 77488, 26800, 52144, 55312, 29968, 80656, 4624, 7792, 83824,
+     33136, 58480, 61648, 36304, 86992, 10960, 14128, 90160, 39472, 64816, 67984, 42640,
+     93328, 17296, 20464, 96496, 45808, 71152, 74320, 48976, 99664, 23632, 25944, 51288,
+     600, 76632, 79800, 3768, 54456, 29112, 32280, 57624, 6936, 82968, 86136, 10104,
+     60792, 35448, 38616, 63960, 13272, 89304, 92472, 16440, 67128, 41784, 44952, 70296,
+     19608, 95640, 98808, 22776, 73464, 48120),
+    (2312, 78344, 27656, 53000, 56168, 30824, 81512, 5480, 8648, 84680, 33992, 59336, 62504,
+     37160, 87848, 11816, 14984, 91016, 40328, 65672, 68840, 43496, 94184, 18152, 21320,
+     97352, 46664, 72008, 75176, 49832, 100520, 24488, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+     -1, -1, 600, 76632, 25944, 51288, 54456, 29112, 79800, 3768, 6936, 82968, 32280,
+     57624, 60792, 35448, 86136, 10104, 13272, 89304, 38616, 63960, 67128, 41784, 92472,
+     16440, 19608, 95640, 44952, 70296, 73464, 48120, 98808, 22776, 26800, 52144, 1456,
+     77488, 80656, 4624, 55312, 29968, 33136, 58480, 7792, 83824, 86992, 10960, 61648,
+     36304, 39472, 64816, 14128, 90160, 93328, 17296, 67984, 42640, 45808, 71152, 20464,
+     96496, 99664, 23632, 74320, 48976),
+)
+
+
+@dataclass(frozen=True)
+class HesaiFormat:
+    """Byte layout and timing of one packet format (offsets in bytes from the payload start).
+
+    Block ``b`` starts at ``body + b * block_size``; its azimuth (uint16 LE, 0.01 deg) sits at
+    ``azimuth_at`` inside the block and channel ``l``'s unit (distance uint16 LE, reflectivity
+    uint8, then ``unit_size - 3`` other bytes) at ``azimuth_at + 2 + l * unit_size``. Tail
+    fields are at fixed offsets. Timing: firing ``k`` (of ``firings`` per packet) starts at
+    ``t0 + block_base_ns + firing_period_ns * (k - block_ref)`` where ``block_ref`` is 0 or the
+    last firing, and channel ``l`` fires ``channel_ns[l]`` after that.
+    """
+
+    model: str
+    lasers: int
+    blocks: int
+    body: int
+    block_size: int
+    azimuth_at: int
+    unit_size: int
+    size: int                 # payload without the optional 4-byte UDP sequence number
+    return_mode_at: int
+    motor_speed_at: int
+    timestamp_at: int
+    datetime_at: int
+    firing_period_ns: float
+    block_base_ns: float
+    block_ref_last: bool
+    channel_ns: tuple[float, ...]
+    dis_unit_at: int | None   # header byte holding the distance unit (mm), None: fixed 4 mm
+    range_limits: tuple[float, float]
+    dual_orders: tuple[tuple[int, tuple[str, ...]], ...]   # mode -> what blocks 1, 2(, 3) hold
+    sizes: tuple[int, ...] = ()       # accepted payload sizes; () = (size, size + 4)
+    channel_timing: str = "beam"      # "beam": channel_ns per beam; else how it is carried
+    mode_flag_at: int | None = None   # QT128 tail mode flag (which firing loop a packet holds)
+    #: per firing state (QT128: loop 1, loop 2): delay (ns) of each channel after the firing's
+    #: trigger, -1 = the channel does not fire; () = channel_ns per beam
+    pixel_tables: tuple[tuple[int, ...], ...] = ()
+
+    def block_start_ns(self, firing: np.ndarray[Any, Any], firings: int) -> np.ndarray[Any, Any]:
+        """Start of each firing (index ``firing`` of ``firings`` per packet) relative to t0."""
+        ref = firings - 1 if self.block_ref_last else 0
+        return np.rint(self.block_base_ns
+                       + self.firing_period_ns * (np.asarray(firing) - ref)).astype(np.int64)
+
+
+def _p40p_channels() -> tuple[float, ...]:
+    return tuple(-1000.0 * _P40P_BEFORE_END_US[k] for k in range(1, 41))
+
+
+FORMATS: dict[str, HesaiFormat] = {
+    "Pandar40P": HesaiFormat(
+        model="Pandar40P", lasers=40, blocks=10, body=0, block_size=124, azimuth_at=2,
+        unit_size=3, size=1262, return_mode_at=1240 + 14, motor_speed_at=1240 + 8,
+        timestamp_at=1240 + 10, datetime_at=1240 + 16, firing_period_ns=55560.0,
+        block_base_ns=-28580.0, block_ref_last=True, channel_ns=_p40p_channels(),
+        dis_unit_at=None, range_limits=(0.3, 200.0),
+        dual_orders=((0x39, ("last", "strongest")),)),
+    "Pandar64": HesaiFormat(
+        model="Pandar64", lasers=64, blocks=6, body=8, block_size=194, azimuth_at=0,
+        unit_size=3, size=1194, return_mode_at=1172 + 14, motor_speed_at=1172 + 8,
+        timestamp_at=1172 + 10, datetime_at=1172 + 16, firing_period_ns=55560.0,
+        block_base_ns=-42580.0, block_ref_last=True,
+        channel_ns=tuple(-float(v) for v in _P64_BEFORE_END_NS), dis_unit_at=5,
+        range_limits=(0.3, 200.0), dual_orders=((0x39, ("last", "strongest")),)),
+    "PandarXT32": HesaiFormat(
+        model="PandarXT32", lasers=32, blocks=8, body=12, block_size=130, azimuth_at=0,
+        unit_size=4, size=1076, return_mode_at=1052 + 10, motor_speed_at=1052 + 11,
+        timestamp_at=1052 + 19, datetime_at=1052 + 13, firing_period_ns=50000.0,
+        block_base_ns=5632.0, block_ref_last=True,
+        channel_ns=tuple(368.0 + 1512.0 * k for k in range(32)), dis_unit_at=9,
+        range_limits=(0.05, 120.0), dual_orders=((0x39, ("strongest", "last")),)),
+    "PandarQT64": HesaiFormat(
+        model="PandarQT64", lasers=64, blocks=4, body=12, block_size=258, azimuth_at=0,
+        unit_size=4, size=1068, return_mode_at=1044 + 16, motor_speed_at=1044 + 10,
+        timestamp_at=1044 + 12, datetime_at=1044 + 18, firing_period_ns=500000.0 / 3.0,
+        block_base_ns=25710.0, block_ref_last=False,
+        channel_ns=tuple(float(v) for v in _QT64_AFTER_START_NS), dis_unit_at=9,
+        range_limits=(0.1, 60.0), dual_orders=((0x3B, ("first", "last")),)),
+}
+
+#: dual/triple block orders of the formats with a 12-byte header ("First Block Return" field
+#: of the manuals' header tables: block 1 holds the last return in modes 0x39 and 0x3B, the
+#: first in 0x3C; 0x39 and 0x3C confirmed on the XT16, XT32M and QT128 recordings)
+_ORDERS_12B = ((0x39, ("last", "strongest")), (0x3B, ("last", "first")),
+               (0x3C, ("first", "strongest")))
+_PER_PIXEL = ("per pixel: channel 't' (INT32 ns) = the pixel's firing time after its column's "
+              "time (the firing's trigger); beam_time_offsets are 0")
+_NOT_PER_BEAM = ("not applied: the firing time of a channel changes from firing to firing "
+                 "({}), which per-beam LidarInfo.beam_time_offsets cannot express; column "
+                 "times are the firings' trigger times and beam_time_offsets are 0")
+
+
+def _xt_format(model: str, lasers: int, blocks: int, channel_ns: tuple[float, ...],
+               limits: tuple[float, float], orders: tuple[tuple[int, tuple[str, ...]], ...]
+               ) -> HesaiFormat:
+    """A PandarXT-family format (protocol 6.1): 12-byte header, blocks of an azimuth and
+    4-byte units, 24-byte tail (+ optional 4-byte UDP sequence); firing k of a packet starts
+    at t0 + 5.632 us - 50 us per later firing (PandarXT manuals, Appendix "Absolute Time and
+    Laser Firing Time")."""
+    tail = 12 + blocks * (2 + 4 * lasers)
+    return HesaiFormat(
+        model=model, lasers=lasers, blocks=blocks, body=12, block_size=2 + 4 * lasers,
+        azimuth_at=0, unit_size=4, size=tail + 24, return_mode_at=tail + 10,
+        motor_speed_at=tail + 11, timestamp_at=tail + 19, datetime_at=tail + 13,
+        firing_period_ns=50000.0, block_base_ns=5632.0, block_ref_last=True,
+        channel_ns=channel_ns, dis_unit_at=9, range_limits=limits, dual_orders=orders)
+
+
+@functools.lru_cache(maxsize=None)
+def _format_v1(model: str, major: int, lasers: int, blocks: int, flags: int) -> HesaiFormat:
+    """Pandar128E3X/E4X/OT128 (protocol 1.4) and PandarQT128 (3.2): 12-byte header whose Flags
+    byte says which optional parts the packet has (bit 0 UDP sequence, 1 IMU, 2 functional
+    safety, 3 digital signature, 4 confidence byte per unit); body = blocks of an azimuth and
+    3-byte (4 with confidence) units, then a 4-byte CRC; functional safety 17 bytes; tail:
+    reserved, (128: azimuth state u16 at +9, operational state at +11; QT128: mode flag at
+    +5), return mode +12, motor speed +13, date-time +15, timestamp +21, factory +25, UDP
+    sequence (4), IMU (22), CRC (4); signature (32)."""
+    unit = 4 if flags & 0x10 else 3
+    block_size = 2 + unit * lasers
+    tail = 12 + blocks * block_size + 4 + (17 if flags & 0x04 else 0)
+    size = (tail + 26 + (4 if flags & 0x01 else 0) + (22 if flags & 0x02 else 0) + 4
+            + (32 if flags & 0x08 else 0))
+    extra: dict[str, Any] = {}
+    if major == 3:       # QT128: 2 firings of 111.11 us, last one triggered at t0 + 9 us
+        period, base = 111110.0, 9000.0
+        limits = (0.05, 50.0)
+        extra = dict(mode_flag_at=tail + 5, pixel_tables=_QT128_LOOPS,
+                     channel_timing=_PER_PIXEL)
+    else:                # 128E3X/E4X: 2 firings of 55.56 us, the last one triggered at t0
+        period, base = 55556.0, 0.0
+        why = ("azimuth state and operational state of the tail, near/far-field firing on "
+               "the 128E3X; the packet does not tell 128E3X and 128E4X apart")
+        limits = (0.1, 230.0)
+        extra = dict(channel_timing=_NOT_PER_BEAM.format(why))
+    return HesaiFormat(
+        model=model, lasers=lasers, blocks=blocks, body=12, block_size=block_size,
+        azimuth_at=0, unit_size=unit, size=size, return_mode_at=tail + 12,
+        motor_speed_at=tail + 13, timestamp_at=tail + 21, datetime_at=tail + 15,
+        firing_period_ns=period, block_base_ns=base, block_ref_last=True,
+        channel_ns=(0.0,) * lasers, dis_unit_at=9, range_limits=limits,
+        dual_orders=_ORDERS_12B, sizes=(size,), **extra)
+
+
+FORMATS["PandarXT16"] = _xt_format(
+    "PandarXT16", 16, 8, tuple(368.0 + 3024.0 * k for k in range(16)), (0.05, 120.0),
+    _ORDERS_12B)
+# XT32M2X: channels 1-16 and 17-32 fire in pairs, 2.888 us apart; 6 blocks (triple: 2 firings)
+FORMATS["PandarXT32M"] = _xt_format(
+    "PandarXT32M", 32, 6, tuple(368.0 + 2888.0 * (k % 16) for k in range(32)), (0.5, 300.0),
+    _ORDERS_12B + ((0x3D, ("first", "last", "strongest")),))
+
+_SUPPORTED = ("supported: Pandar40P, Pandar64, PandarXT16/XT32/XT32M (protocol 6.1), PandarQT64 "
+              "(3.1), PandarQT128 (3.2), Pandar128E3X/E4X/OT128 (1.4)")
+
+
+def detect_format(packet: bytes) -> HesaiFormat:
+    """The :class:`HesaiFormat` of one UDP payload, from its own header bytes and size.
+
+    Raises:
+        DecodeError: not a Hesai point-cloud packet, or a model this module does not decode.
+    """
+    n = len(packet)
+    if n < 12:
+        raise DecodeError("hesai packet size", n, "a Hesai point-cloud UDP payload (>= 1068 "
+                          "bytes)")
+    if packet[0] == 0xFF and packet[1] == 0xEE:
+        fmt = FORMATS["Pandar40P"]
+        if n not in (fmt.size, fmt.size + 4):
+            raise DecodeError("hesai packet size", n, f"{fmt.size} or {fmt.size + 4} bytes for "
+                              "a Pandar40P packet (block flag 0xFFEE)")
+        flags = {bytes(packet[b * fmt.block_size:b * fmt.block_size + 2])
+                 for b in range(fmt.blocks)}
+        if flags != {b"\xff\xee"}:
+            raise DecodeError("Pandar40P block flags", sorted(f.hex() for f in flags),
+                              "0xFFEE at the start of each of the 10 blocks")
+        return fmt
+    if packet[0] != 0xEE or packet[1] != 0xFF:
+        raise DecodeError("hesai pre-header", packet[:2].hex(), "0xEE 0xFF (Hesai point-cloud "
+                          "packet) or 0xFF 0xEE (Pandar40P block flag)")
+    if packet[2] == 64 and packet[3] == 6:        # Pandar64: 8-byte header, laser num first
+        fmt = FORMATS["Pandar64"]
+    else:
+        major, minor, lasers, blocks, flags = (packet[2], packet[3], packet[6], packet[7],
+                                               packet[11])
+        key = (major, minor, lasers, blocks)
+        model = _MODELS_12B.get(key)
+        if model is None:
+            names = {(6, 1): "PandarXT (6.1): 16 or 32 lasers, 8 blocks; 32 lasers, 6 blocks",
+                     (3, 1): "PandarQT64 (3.1): 64 lasers, 4 blocks",
+                     (3, 2): "PandarQT128 (3.2): 128 lasers, 2 blocks",
+                     (1, 4): "Pandar128E3X/E4X/OT128 (1.4): 128 lasers, 2 blocks"}
+            expected = names.get((major, minor))
+            raise DecodeError("hesai header (protocol major.minor, laser num, block num)",
+                              f"{major}.{minor}, {lasers}, {blocks}",
+                              expected or f"a known protocol version ({_SUPPORTED})")
+        if model in FORMATS:
+            fmt = FORMATS[model]
+        else:
+            if flags & 0xE0:
+                raise DecodeError(f"{model} header flags", hex(flags), "bits 7..5 clear (bits "
+                                  "4..0: confidence, signature, functional safety, IMU, UDP "
+                                  "sequence)")
+            fmt = _format_v1(model, major, lasers, blocks, flags)
+    sizes = fmt.sizes or (fmt.size, fmt.size + 4)
+    if n not in sizes:
+        raise DecodeError("hesai packet size", n, " or ".join(map(str, sizes))
+                          + f" bytes for a {fmt.model} packet" + (
+                              f" with header flags {packet[11]:#04x}" if fmt.sizes else ""))
+    return fmt
+
+
+#: (protocol major, minor, laser num, block num) of the 12-byte header -> model
+_MODELS_12B = {(6, 1, 32, 8): "PandarXT32", (6, 1, 16, 8): "PandarXT16",
+               (6, 1, 32, 6): "PandarXT32M", (3, 1, 64, 4): "PandarQT64",
+               (3, 2, 128, 2): "PandarQT128", (1, 4, 128, 2): "Pandar128E3X/E4X"}
+
+
+# ------------------------------------------------------------------------------- calibration
+
+@dataclass(frozen=True)
+class _Calibration:
+    laser_ids: np.ndarray[Any, Any]     # (L,) int, 1-based, ascending
+    elevation_deg: np.ndarray[Any, Any]
+    azimuth_deg: np.ndarray[Any, Any]
+    text: str
+
+    @property
+    def order(self) -> np.ndarray[Any, Any]:
+        """(L,) laser index of each row: highest elevation first, ties by laser id."""
+        return np.lexsort((self.laser_ids, -self.elevation_deg))
+
+
+def load_calibration(calib: Any) -> _Calibration:
+    """Parse a Hesai angle-correction CSV (``Laser id,Elevation,Azimuth``, degrees).
+
+    Args:
+        calib: a path, the CSV text (str containing a newline), a mapping ``{laser_id:
+            (elevation_deg, azimuth_deg)}`` or an already parsed calibration.
+
+    Returns:
+        the parsed calibration, lasers in ascending id order (ids must be 1..L).
+
+    Raises:
+        DecodeError: unreadable file, malformed rows, ids not 1..L, non-finite angles.
+    """
+    if isinstance(calib, _Calibration):
+        return calib
+    rows: list[tuple[int, float, float]] = []
+    if isinstance(calib, Mapping):
+        try:
+            rows = [(int(k), float(v[0]), float(v[1])) for k, v in calib.items()]
+        except (TypeError, ValueError, IndexError) as err:
+            raise DecodeError("calibration", calib, "{laser_id: (elevation_deg, azimuth_deg)}"
+                              ) from err
+        text = ""
+    else:
+        if isinstance(calib, str) and "\n" in calib:
+            text = calib
+        else:
+            path = Path(os.fspath(calib))
+            try:
+                text = path.read_text(encoding="utf-8-sig")
+            except (OSError, UnicodeDecodeError) as err:
+                raise DecodeError("calibration", str(path), "a readable Hesai angle-correction "
+                                  "CSV (Laser id,Elevation,Azimuth)") from err
+        for i, line in enumerate(io.StringIO(text)):
+            cells = [c.strip() for c in line.strip().split(",")]
+            if not cells or not cells[0] or not (cells[0][0].isdigit() or cells[0][0] == "-"):
+                continue                      # header or blank line
+            try:
+                rows.append((int(cells[0]), float(cells[1]), float(cells[2])))
+            except (ValueError, IndexError) as err:
+                raise DecodeError(f"calibration line {i + 1}", line.strip(),
+                                  "laser_id,elevation_deg,azimuth_deg") from err
+    rows.sort()
+    ids = np.array([r[0] for r in rows], np.int64)
+    if ids.size == 0 or not np.array_equal(ids, np.arange(1, ids.size + 1)):
+        raise DecodeError("calibration laser ids", ids.tolist()[:8], "each of 1..L exactly once")
+    elev = np.array([r[1] for r in rows], np.float64)
+    azim = np.array([r[2] for r in rows], np.float64)
+    if not (np.all(np.isfinite(elev)) and np.all(np.isfinite(azim))):
+        raise DecodeError("calibration angles", "non-finite", "finite degrees")
+    return _Calibration(ids, elev, azim, text)
+
+
+def _block_kinds(fmt: HesaiFormat, mode: int) -> tuple[str, ...]:
+    """What each block of a firing holds under return-mode byte ``mode``, in block order."""
+    kinds = RETURN_MODES.get(mode)
+    if kinds is None:
+        raise DecodeError("hesai return mode byte", hex(mode),
+                          "one of " + ", ".join(hex(m) for m in RETURN_MODES))
+    if len(kinds) == 1:
+        return kinds
+    orders = dict(fmt.dual_orders)
+    if mode not in orders:
+        raise DecodeError(f"{fmt.model} return mode byte", hex(mode),
+                          "a single-return mode or dual mode " + ", ".join(
+                              hex(m) for m in orders) + " (the block order of this dual mode "
+                          "is not confirmed for this model)")
+    return orders[mode]
+
+
+def _channel_names(kinds: tuple[str, ...]) -> list[tuple[str, str]]:
+    """(range, intensity) channel names of each block of a firing, in block order.
+
+    The strongest return (else the last) is ``range``/``intensity``; the other returns are
+    ``range2``/``intensity2`` and (triple) ``range3``/``intensity3`` in block order.
+    """
+    if len(kinds) == 1:
+        return [("range", "intensity")]
+    primary = kinds.index("strongest") if "strongest" in kinds else kinds.index("last")
+    others = iter(range(2, len(kinds) + 1))
+    return [("range", "intensity") if r == primary else
+            (f"range{(n := next(others))}", f"intensity{n}") for r in range(len(kinds))]
+
+
+def _channel_rank(name: str) -> tuple[int, int]:
+    """Channel order in the scan: range, intensity, range2, intensity2, range3, intensity3,
+    then t."""
+    if name == "t":
+        return (9, 0)
+    if name.startswith("range"):
+        return (int(name[5:] or 1), 0)
+    return (int(name[9:] or 1), 1)
