@@ -507,6 +507,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
     if args.merge_topic and not slices and not args.frame:
         raise ConfigError("--frame", "", "the output frame of the merged scan when only "
                           "--merge-topic inputs are merged")
+    if args.zstd_level is not None and args.compression != "zstd":
+        raise ConfigError("--zstd-level", args.zstd_level, "--chunk-compression zstd (the "
+                          f"chunks are {args.compression})")
     for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
         if value is not None and not Path(value).is_file():
             raise FileNotFoundError(f"{option} {value}: no such file")
@@ -533,6 +536,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     emit = _err  # bad messages are always reported, also with --quiet
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
     writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20,
+                        level=args.zstd_level,
                         scan_encoding=CODEC_ENCODING if args.compress else "cdr")
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
     progress = Progress(size, f"converting {src.name}",
@@ -1251,6 +1255,9 @@ def build_parser() -> argparse.ArgumentParser:
                    choices=("zstd", "lz4", "none"), default="zstd",
                    help="compression of the output MCAP's chunks (zstd; lz4 is faster to "
                         "write and larger, see bench/README.md)")
+    p.add_argument("--zstd-level", type=_zstd_level, default=None, metavar="N",
+                   help="zstd level of the chunks: 1 (default, fast), up to 22 for smaller "
+                        "files, negative for faster and larger")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar, notes or summary (bad messages are still listed)")
     p.set_defaults(func=cmd_convert)
@@ -1297,6 +1304,13 @@ def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= 1")
+    return value
+
+
+def _zstd_level(text: str) -> int:
+    value = int(text)
+    if not -131072 <= value <= 22:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a zstd level from -131072 to 22")
     return value
 
 

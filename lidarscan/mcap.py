@@ -99,7 +99,9 @@ class McapWriter:
 
     Args:
         output: path or binary stream.
-        compression: "zstd" (default), "lz4" or "none".
+        compression: "zstd" (default), "lz4" or "none" (of the chunks).
+        level: zstd level of the chunks; default :data:`lidarscan._mcapfile.DEFAULT_ZSTD_LEVEL`
+            (1: fast, see bench/README.md); up to 22 for smaller files, negative for faster.
         chunk_size: bytes per chunk; a smaller chunk loses less when a run is interrupted.
         scan_encoding: message encoding of the LidarScan channels: "cdr" (default) or
             :data:`CODEC_ENCODING` (every scan compressed by :func:`lidarscan.codec.compress_scan`
@@ -114,19 +116,18 @@ class McapWriter:
 
     def __init__(self, output: str | os.PathLike[str] | IO[bytes], *, compression: str = "zstd",
                  chunk_size: int = 4 * 1024 * 1024, qos: dict[str, Any] | None = None,
-                 scan_encoding: str = "cdr") -> None:
-        from mcap.writer import CompressionType, Writer
-
+                 scan_encoding: str = "cdr", level: int | None = None) -> None:
+        from lidarscan._mcapfile import COMPRESSIONS, ChunkedMcapWriter
         from lidarscan.rosbag2 import qos_profile
 
         self._qos = {topic: tuple(qos_profile(p) for p in (
             value if isinstance(value, (list, tuple)) else [value]))
             for topic, value in (qos or {}).items()}
-        kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-                 "none": CompressionType.NONE}
         from lidarscan.errors import ConfigError
-        if compression not in kinds:
+        if compression not in COMPRESSIONS:
             raise ConfigError("compression", compression, "one of 'zstd', 'lz4', 'none'")
+        if level is not None and not (isinstance(level, int) and -131072 <= level <= 22):
+            raise ConfigError("level", level, "a zstd level: an integer from -131072 to 22")
         if scan_encoding not in ("cdr", CODEC_ENCODING):
             raise ConfigError("scan_encoding", scan_encoding, f"'cdr' or {CODEC_ENCODING!r}")
         self.scan_encoding = scan_encoding
@@ -134,7 +135,8 @@ class McapWriter:
         self._own = not hasattr(output, "write")
         target: Any = output
         self._stream: Any = open(target, "wb") if self._own else target  # noqa: SIM115
-        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=kinds[compression])
+        self._writer = ChunkedMcapWriter(self._stream, chunk_size=chunk_size,
+                                         compression=compression, level=level)
         self._writer.start(profile="ros2", library="lidarscan")
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str, str], int] = {}
@@ -251,7 +253,7 @@ class McapWriter:
                 self._writer.add_metadata("rosbag2", {
                     "serialized_metadata": metadata_yaml(self.bag_metadata(), root=False)})
             finally:
-                self._writer.finish()  # type: ignore[no-untyped-call]
+                self._writer.finish()
         if self._own:
             self._stream.close()
 
