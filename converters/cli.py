@@ -6,10 +6,11 @@ Commands::
     lidarscan demo [--out DIR] [--frames N] [--no-images]
     lidarscan info REC
     lidarscan convert REC OUT.mcap [--pointcloud2] [--preset P | --fields x,y,z,...]
-                                   [--slice NAME:ZMIN:ZMAX]... [--frame F] [--extrinsics ...]
+                                   [--slice NAME:ZMIN:ZMAX[:holes[:KEY=VALUE]...]]...
+                                   [--frame F] [--extrinsics ...]
                                    [--merge] [--merge-topic TOPIC]... [--calibration FILE]
                                    [--cut-angle DEG] [--replace] [--keep-packets] [--progress]
-                                   [-q]
+                                   [--compress] [--chunk-compression C] [--zstd-level N] [-q]
     lidarscan view REC --out DIR [--index K]
 
 REC is an MCAP file, a rosbag2 directory (``metadata.yaml`` + ``.db3`` or ``.mcap`` storage) or a
@@ -103,6 +104,56 @@ def _namespace(topic: str) -> str:
     """'/lidar/scan' -> '/lidar'; '/scan' or 'scan' -> ''."""
     head, _, _ = topic.rstrip("/").rpartition("/")
     return head
+
+
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def parse_slice(text: str) -> Any:
+    """``NAME:ZMIN:ZMAX[:KEY[=VALUE]]...`` -> :class:`converters.nodes.params.SliceConfig`.
+
+    KEYs are the hole options of a slice (:data:`converters.options.HOLE_KEYS`): ``holes``
+    (alone: on), ``floor_height`` (metres, in --frame), ``hole_depth`` (metres, > 0),
+    ``hole_range_max`` (metres, > 0, ``inf``), ``hole_no_return`` (true/false), e.g.
+    ``floor:0.05:0.5:holes:floor_height=0:hole_depth=0.08``.
+
+    Raises:
+        ConfigError: naming the bad part of ``text`` and what was expected.
+    """
+    from converters.nodes.params import SliceConfig, parse_slice_arg
+    from converters.options import HOLE_KEYS, number
+    from lidarscan.errors import ConfigError
+
+    parts = str(text).split(":")
+    base = parse_slice_arg(":".join(parts[:3]))
+    extra: dict[str, Any] = {}
+    for part in parts[3:]:
+        key, has_value, value = part.partition("=")
+        key, value = key.strip(), value.strip().lower()
+        where = f"--slice {text}: {key or part!r}"
+        if key not in HOLE_KEYS:
+            raise ConfigError(where, part,
+                              f"KEY or KEY=VALUE with KEY among {', '.join(HOLE_KEYS)}")
+        if key in extra:
+            raise ConfigError(where, part, "each key once")
+        if key in ("holes", "hole_no_return"):
+            if not has_value or value in _TRUE:
+                extra[key] = True
+            elif value in _FALSE:
+                extra[key] = False
+            else:
+                raise ConfigError(where, value, "true or false")
+            continue
+        try:
+            amount = float(value)
+        except ValueError:
+            raise ConfigError(where, value or None, "a number of metres") from None
+        extra[key] = number(where, amount, positive=key != "floor_height",
+                            allow_inf=key == "hole_range_max")
+    if not extra.get("holes") and extra:
+        raise ConfigError(f"--slice {text}", sorted(extra)[0], "'holes' among the keys (the "
+                          "other hole options only apply with holes on)")
+    return SliceConfig(base.name, base.min_height, base.max_height, extra=extra)
 
 
 # ---------------------------------------------------------------------------------- inputs
@@ -496,9 +547,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
         raise ConfigError("OUT", str(dst), "a file other than IN")
     if not dst.parent.is_dir():
         raise FileNotFoundError(f"OUT {dst}: no such directory {dst.parent}")
-    from converters.nodes.params import parse_extrinsics, parse_slice_arg
+    from converters.nodes.params import parse_extrinsics
 
-    slices = [parse_slice_arg(s) for s in args.slice]
+    slices = [parse_slice(s) for s in args.slice]
     if len({s.name for s in slices}) != len(slices):
         raise ConfigError("--slice", [s.name for s in slices], "unique slice names")
     fallback = parse_extrinsics(args.extrinsics) if args.extrinsics is not None else None
@@ -813,17 +864,21 @@ def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan:
     gives its slices instead of failing (said once per topic)."""
     from converters.nodes.cloud_to_scan_node import CloudSlicer, CloudToScanCore
     from converters.nodes.tf import TransformBuffer
-    from lidarscan.errors import LidarScanError
+    from lidarscan.errors import ConfigError, LidarScanError
 
     cores = {t: CloudToScanCore() for t in plan.prefix}
-    slicer = CloudSlicer(slices, target_frame=args.frame) if slices else None
     tf = TransformBuffer(cache_ns=3600 * 10**9, max_per_edge=100_000)
+    holes = [s for s in slices if s.extra.get("holes")]
+    # holes need rays: the slices then come from each cloud's LidarScan (a cloud with a grid)
+    pipeline = _ScanPipeline(argparse.Namespace(**{**vars(args), "pointcloud2": False}),
+                             slices, fallback, tf) if holes else None
+    slicer = CloudSlicer(slices, target_frame=args.frame) if slices and not holes else None
     merge = _merge_sink(args, plan, tf, writer)
     gridless: set[str] = set()
     for item in report.good(source.items(progress), emit):
         core = cores.get(item.topic)
         if core is None:
-            if slicer is not None:                     # TF for --frame, --merge-topic scans
+            if slices:                                 # TF for --frame, --merge-topic scans
                 try:
                     _side_input(item, tf, args, merge)
                 except LidarScanError as err:
@@ -837,7 +892,26 @@ def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan:
             scan, info, changed = core.convert(cloud) if slicer is None else \
                 _grid_or_none(core, cloud)
         except LidarScanError as err:
-            report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
+            if pipeline is None:
+                report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
+            else:   # an option error unless a cloud of the topic had a grid (then bad data)
+                pipeline.failed(ConfigError(
+                    f"--slice {holes[0].name}", "holes", "clouds with a grid (holes need the "
+                    "rays of a LidarScan; cloud_slices refuses them for clouds without one), "
+                    f"or no holes ({err})"), item.index, item.topic, item.log_time_ns,
+                    report, emit)
+            continue
+        if pipeline is not None:
+            if changed:
+                writer.write(f"{ns}/lidar_info", info, log_time_ns=item.log_time_ns)
+            writer.write(f"{ns}/lidar_scan", scan, log_time_ns=item.log_time_ns)
+            try:
+                pipeline.outputs(scan, info, item.topic, ns, item.log_time_ns, writer, report,
+                                 merge, emit)
+            except LidarScanError as err:
+                pipeline.failed(err, item.index, item.topic, item.log_time_ns, report, emit)
+            if args.keep_clouds:
+                _copy(writer, item, plan, report)
             continue
         if scan is not None:
             if changed:
@@ -861,6 +935,8 @@ def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan:
         report.converted += 1
         if args.keep_clouds:
             _copy(writer, item, plan, report)
+    if pipeline is not None:
+        pipeline.finish()
 
 
 def _grid_or_none(core: Any, cloud: Any) -> tuple[Any, Any, bool]:
@@ -1210,8 +1286,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="", type=_preset, help="PointCloud2 field preset")
     p.add_argument("--fields", default=(), type=_fields,
                    help="PointCloud2 fields, e.g. x,y,z,intensity")
-    p.add_argument("--slice", action="append", default=[], metavar="NAME:ZMIN:ZMAX",
-                   help="add a LaserScan height slice (repeatable), heights in --frame")
+    p.add_argument("--slice", action="append", default=[], metavar="NAME:ZMIN:ZMAX[:KEY=V]",
+                   help="add a LaserScan height slice (repeatable), heights in --frame; "
+                        "negative obstacles (holes) with the keys holes, floor_height=M, "
+                        "hole_depth=M, hole_range_max=M, hole_no_return=false, e.g. "
+                        "floor:0.05:0.5:holes:floor_height=0 (LidarScans and clouds with a "
+                        "grid; a cloud without one has no rays to see a hole along)")
     p.add_argument("--frame", default="",
                    help="frame of the slices (default: the scan's); pose from the file's TF")
     p.add_argument("--extrinsics", type=_floats, default=None, metavar="X,Y,Z,R,P,Y",
