@@ -61,7 +61,7 @@ class McapWriter:
         output: path or binary stream.
         compression: "zstd" (default), "lz4" or "none" (of the chunks).
         level: zstd level of the chunks; default :data:`lidarscan._mcapfile.DEFAULT_ZSTD_LEVEL`
-            (1: fast, see bench/README.md); up to 22 for smaller files, negative for faster.
+            (2: fast, see bench/README.md); up to 22 for smaller files, negative for faster.
         chunk_size: bytes per chunk; a smaller chunk loses less when a run is interrupted.
         scan_encoding: message encoding of the LidarScan channels: "cdr" (default) or
             :data:`CODEC_ENCODING` (every scan compressed by :func:`lidarscan.codec.compress_scan`

@@ -111,7 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="compression of the output MCAP's chunks (zstd; lz4 is faster to "
                         "write and larger, see bench/README.md)")
     p.add_argument("--zstd-level", type=_zstd_level, default=None, metavar="N",
-                   help="zstd level of the chunks: 1 (default, fast), up to 22 for smaller "
+                   help="zstd level of the chunks: 2 (default, fast), up to 22 for smaller "
                         "files, negative for faster and larger")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar, notes or summary (bad messages are still listed)")
