@@ -23,8 +23,9 @@ median of ``--repeat`` rounds; ratios against ``convert`` in the same round):
   in this process (no interpreter start-up), the default options: read the .db3, parse the packet
   messages, decode every rotation to LidarScan + LidarInfo, write the MCAP file (zstd chunks at
   the default level).
-- ``zstd:3`` / ``lz4`` / ``none``: the same with ``--zstd-level 3`` (the ``mcap`` package's
-  level, the default before) / ``--chunk-compression lz4`` / ``none``.
+- ``zstd:1`` / ``zstd:3`` / ``lz4`` / ``none``: the same with ``--zstd-level 1`` /
+  ``--zstd-level 3`` (the ``mcap`` package's level, the default before) /
+  ``--chunk-compression lz4`` / ``none``.
 - ``--compress``: the default chunks with every LidarScan compressed by lidarscan.codec.
 - ``decode``: the decoder alone (``PacketDecoder.push_many`` on the parsed packets of every
   message, no output): the part of ``convert`` the decoders own; the rest is reading, parsing,
@@ -163,7 +164,7 @@ def build_bag(name: str, seconds: float, where: Path) -> tuple[Path, float, int,
 
 
 #: candidate -> extra ``convert`` options
-CONVERTS = {"convert": [], "zstd:3": ["--zstd-level", "3"],
+CONVERTS = {"convert": [], "zstd:1": ["--zstd-level", "1"], "zstd:3": ["--zstd-level", "3"],
             "lz4": ["--chunk-compression", "lz4"], "none": ["--chunk-compression", "none"],
             "--compress": ["--compress"]}
 
