@@ -13,8 +13,10 @@ from converters import cli
 from converters.laserscan import SliceConverter
 from converters.nodes.tf import TransformBuffer
 from lidarscan.errors import ConfigError
-from lidarscan.mcap import BadMessage, McapWriter, read_messages, read_scans
+from lidarscan.mcap import McapWriter, read_messages, read_scans
 from lidarscan.stamps import to_ns
+from test_cli import copy_topics as _copy_topics
+from test_cli import messages as _topics
 
 SPEC = "floor:-0.3:0.3:holes:floor_height=0:hole_depth=0.05"
 HOLES = {"min_height": -0.3, "max_height": 0.3, "holes": True, "floor_height": 0.0,
@@ -26,22 +28,6 @@ def demo_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from converters.demo import run_demo
 
     return run_demo(tmp_path_factory.mktemp("demo"), frames=2, images=False).mcap_path
-
-
-def _topics(path: Path) -> dict[str, list[Any]]:
-    out: dict[str, list[Any]] = {}
-    for item in read_messages(path):
-        assert not isinstance(item, BadMessage), item
-        out.setdefault(item.topic, []).append(item)
-    return out
-
-
-def _copy(src: Path, dst: Path, topics: set[str]) -> None:
-    with McapWriter(dst) as writer:
-        for item in read_messages(src):
-            if item.topic in topics:
-                writer.write(item.topic, item.payload, msgtype=item.msgtype,
-                             log_time_ns=item.log_time_ns)
 
 
 def _holed_scans(src: Path) -> list[tuple[Any, Any]]:
@@ -69,7 +55,7 @@ def _oracle(scan: Any, info: Any, tf: TransformBuffer, spec: dict[str, Any]) -> 
 def test_holes_of_a_lidarscan_recording_match_the_library(tmp_path: Path,
                                                            demo_mcap: Path) -> None:
     src, dst = tmp_path / "in.mcap", tmp_path / "out.mcap"
-    _copy(demo_mcap, src, {"/tf_static", "/tf", "/lidar/info", "/lidar/scan"})
+    _copy_topics(demo_mcap, src, {"/tf_static", "/tf", "/lidar/info", "/lidar/scan"})
     assert cli.main(["convert", str(src), str(dst), "--slice", SPEC, "--frame", "base_link",
                      "-q"]) == 0
     out = _topics(dst)
@@ -114,7 +100,7 @@ def test_a_pit_is_reported_with_holes_and_not_without(tmp_path: Path, demo_mcap:
 def test_clouds_with_a_grid_get_holes_through_their_lidarscan(tmp_path: Path,
                                                                demo_mcap: Path) -> None:
     src, dst = tmp_path / "clouds.mcap", tmp_path / "out.mcap"
-    _copy(demo_mcap, src, {"/lidar/points", "/tf_static"})
+    _copy_topics(demo_mcap, src, {"/lidar/points", "/tf_static"})
     assert cli.main(["convert", str(src), str(dst), "--slice", SPEC, "--frame", "base_link",
                      "-q"]) == 0
     out = _topics(dst)
