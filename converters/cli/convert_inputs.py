@@ -71,7 +71,9 @@ def _convert_clouds(source: _Input, writer: Any, args: argparse.Namespace, plan:
     """Driver PointCloud2 recording -> LidarScan + LidarInfo (a new info only on change); with
     ``--slice``, every cloud's slices from its points (any cloud, grid or not:
     :class:`converters.nodes.cloud_to_scan_node.CloudSlicer`), and a cloud without a grid
-    gives its slices instead of failing (said once per topic)."""
+    gives its slices instead of failing (said once per topic). A slice with holes needs rays:
+    then every slice comes from the cloud's LidarScan (as for a LidarScan recording), and a
+    topic none of whose clouds has a grid is a usage error (exit 2)."""
     from converters.nodes.cloud_to_scan_node import CloudSlicer, CloudToScanCore
     from converters.nodes.tf import TransformBuffer
     from lidarscan.errors import ConfigError, LidarScanError
