@@ -16,15 +16,24 @@ continuous recording (with an azimuth jump at each seam). An empty ``serializati
 (the VLS-128 bag) is written as "cdr" (rosbags refuses the empty one; ``converters.bags`` reads
 both).
 
-Candidates (the bag already on disk, page cache warm):
+Candidates (the bag already on disk, page cache warm), timed in interleaved rounds (CPU time,
+median of ``--repeat`` rounds; ratios against ``convert`` in the same round):
 
-- ``convert zstd``: ``converters.cli.main(["convert", BAG, OUT.mcap, "--calibration", FILE,
-  "-q"])`` in this process (no interpreter start-up): read the .db3, parse the packet messages,
-  decode every rotation to LidarScan + LidarInfo, write the MCAP file (zstd chunks, the default).
-- ``convert lz4`` / ``convert none``: the same with ``--chunk-compression lz4`` / ``none`` (the
-  output size is printed beside each).
+- ``convert``: ``converters.cli.main(["convert", BAG, OUT.mcap, "--calibration", FILE, "-q"])``
+  in this process (no interpreter start-up), the default options: read the .db3, parse the packet
+  messages, decode every rotation to LidarScan + LidarInfo, write the MCAP file (zstd chunks at
+  the default level).
+- ``zstd:1`` / ``zstd:3`` / ``lz4`` / ``none``: the same with ``--zstd-level 1`` /
+  ``--zstd-level 3`` (the ``mcap`` package's level, the default before) /
+  ``--chunk-compression lz4`` / ``none``.
+- ``--compress``: the default chunks with every LidarScan compressed by lidarscan.codec.
+- ``decode``: the decoder alone (``PacketDecoder.push_many`` on the parsed packets of every
+  message, no output): the part of ``convert`` the decoders own; the rest is reading, parsing,
+  serialising and writing.
 - ``rosbags``: read the same bag with rosbags and deserialise every message into Python objects
   (what a Python tool does before any decoding): no decode, no output.
+
+The output size is printed beside each convert candidate.
 """
 
 from __future__ import annotations
@@ -33,9 +42,11 @@ import argparse
 import calendar
 import cProfile
 import io
+import os
 import pstats
 import shutil
 import sqlite3
+import statistics
 import struct
 import sys
 import tempfile
@@ -152,13 +163,55 @@ def build_bag(name: str, seconds: float, where: Path) -> tuple[Path, float, int,
     return bag, total / 1e9, count, packets
 
 
-def run_convert(bag: Path, calibration: Path, out: Path, chunks: str = "zstd") -> None:
+#: candidate -> extra ``convert`` options
+CONVERTS = {"convert": [], "zstd:1": ["--zstd-level", "1"], "zstd:3": ["--zstd-level", "3"],
+            "lz4": ["--chunk-compression", "lz4"], "none": ["--chunk-compression", "none"],
+            "--compress": ["--compress"]}
+
+
+def run_convert(bag: Path, calibration: Path, out: Path, extra: list[str] | None = None) -> None:
     from converters import cli
     out.unlink(missing_ok=True)
     status = cli.main(["convert", str(bag), str(out), "--calibration", str(calibration), "-q",
-                       "--chunk-compression", chunks])
+                       *(extra or [])])
     if status != 0:
         raise RuntimeError(f"lidarscan convert {bag} exited with {status}")
+
+
+def run_decode(bag: Path, calibration: Path) -> int:
+    """The decoder alone on every packet message of the bag (parsed beforehand): scans made."""
+    from converters.bags import PACKET_TYPES, open_bag
+    batches = [(PACKET_TYPES[m.msgtype][1](m.payload)) for m in open_bag(bag).messages()
+               if getattr(m, "msgtype", "") in PACKET_TYPES]
+    module = __import__(PACKET_TYPES[_packet_type(bag)][0], fromlist=["PacketDecoder"])
+    decoder = module.PacketDecoder(str(calibration), frame_id="lidar")
+    count = 0
+    with _clock() as spent:
+        for packets in batches:
+            count += len(decoder.push_many(packets.stamps, packets.payloads))
+        count += len(decoder.flush())
+    _DECODE_CPU.append(spent[0])
+    return count
+
+
+_DECODE_CPU: list[float] = []
+
+
+def _packet_type(bag: Path) -> str:
+    from converters.bags import PACKET_TYPES, open_bag
+    return next(t.msgtype for t in open_bag(bag).topics.values() if t.msgtype in PACKET_TYPES)
+
+
+class _clock:
+    """CPU seconds of the block, in ``[0]`` of the value of ``with``."""
+
+    def __enter__(self) -> list[float]:
+        self.spent = [0.0]
+        self.t0 = time.process_time()
+        return self.spent
+
+    def __exit__(self, *exc: object) -> None:
+        self.spent[0] = time.process_time() - self.t0
 
 
 def run_rosbags(bag: Path) -> int:
@@ -185,7 +238,7 @@ def run_rosbags(bag: Path) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="sensor time per bag")
-    parser.add_argument("--repeat", type=int, default=2, help="timed runs per candidate")
+    parser.add_argument("--repeat", type=int, default=3, help="timed rounds (median)")
     parser.add_argument("--profile", type=int, default=0, metavar="N",
                         help="print the N top cProfile entries (cumulative) of one convert")
     parser.add_argument("--only", choices=sorted(RECORDINGS), action="append")
@@ -200,36 +253,41 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name}: {sensor_s:.1f} s of sensor time, {messages} messages, {packets} "
                   f"packets, {mb:.0f} MB bag (built in {time.perf_counter() - start:.1f} s)")
             out = where / f"{folder}.mcap"
-            chunks = ("zstd", "lz4", "none")
-            labels = [f"convert {c}" for c in chunks] + ["rosbags"]
-            times: dict[str, list[float]] = {label: [] for label in labels}
+            cal = DATA / folder / calib
+            labels = [*CONVERTS, "decode", "rosbags"]
             cpu: dict[str, list[float]] = {label: [] for label in labels}
             sizes: dict[str, int] = {}
 
-            def convert(c: str) -> None:
-                run_convert(bag, DATA / folder / calib, out, c)
-                sizes[f"convert {c}"] = out.stat().st_size
+            def convert(label: str) -> None:
+                run_convert(bag, cal, out, CONVERTS[label])
+                sizes[label] = out.stat().st_size
 
+            def decode() -> None:
+                run_decode(bag, cal)
+
+            runs = [(label, lambda label=label: convert(label)) for label in CONVERTS] + \
+                [("decode", decode), ("rosbags", lambda: run_rosbags(bag))]
             for _ in range(args.repeat):  # interleaved: the machine's load hits all alike
-                for label, fn in [(f"convert {c}", lambda c=c: convert(c)) for c in chunks] + \
-                        [("rosbags", lambda: run_rosbags(bag))]:
-                    c0, t0 = time.process_time(), time.perf_counter()
+                for label, fn in runs:
+                    _DECODE_CPU.clear()
+                    c0 = time.process_time()
                     fn()
-                    times[label].append(time.perf_counter() - t0)
-                    cpu[label].append(time.process_time() - c0)
-            base_wall, base_cpu = min(times["convert zstd"]), min(cpu["convert zstd"])
+                    # decode: the decoder's own CPU only (not the parsing before it)
+                    cpu[label].append(_DECODE_CPU[0] if label == "decode"
+                                      else time.process_time() - c0)
+            base = statistics.median(cpu["convert"])
             for label in labels:
-                wall, proc = min(times[label]), min(cpu[label])
+                proc = statistics.median(cpu[label])
                 size = f"; output {sizes[label] / 1e6:6.1f} MB" if label in sizes else ""
-                print(f"  {label:13s} best wall {wall:6.2f} s = {sensor_s / wall:5.1f}x real "
-                      f"time (CPU {proc:6.2f} s = {sensor_s / proc:5.1f}x; "
-                      f"÷ convert zstd: wall {wall / base_wall:4.2f}, CPU "
-                      f"{proc / base_cpu:4.2f}){size}")
-            ratio = min(times["rosbags"]) / base_wall
-            print(f"  convert (zstd) vs rosbags read+deserialise: {ratio:.2f}x")
+                print(f"  {label:11s} CPU {proc:6.2f} s = {sensor_s / proc:5.1f}x real time "
+                      f"(/ convert {proc / base:4.2f}){size}")
+            decode_share = statistics.median(cpu["decode"]) / base
+            print(f"  split of convert: decode {100 * decode_share:.0f} %, the rest (read, parse, "
+                  f"serialise, write) {100 * (1 - decode_share):.0f} %; load average "
+                  f"{os.getloadavg()[0]:.1f}")
             if args.profile:
                 prof = cProfile.Profile()
-                prof.runcall(run_convert, bag, DATA / folder / calib, out)
+                prof.runcall(run_convert, bag, cal, out)
                 text = io.StringIO()
                 pstats.Stats(prof, stream=text).sort_stats("cumulative").print_stats(args.profile)
                 print("\n".join(line for line in text.getvalue().splitlines()[6:] if line))

@@ -353,11 +353,14 @@ def _mcap_topics(path: Path, topics: dict[str, TopicInfo]) -> None:
 # ---------------------------------------------------------------------------------- sqlite3
 
 def _connect(path: Path) -> sqlite3.Connection:
-    """Read-only, immutable (no journal or lock files next to a bag on a read-only disk)."""
+    """Read-only, immutable (no journal or lock files next to a bag on a read-only disk; the
+    file must not change while it is read, as for any rosbag2 reader)."""
     try:
         con = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1", uri=True)
         # damaged text must not raise UnicodeDecodeError; names stay readable, BLOBs are bytes
         con.text_factory = lambda raw: raw.decode("utf-8", "replace")
+        # BLOBs read through a memory map: half the CPU of read() copies (bench_convert)
+        con.execute("PRAGMA mmap_size=1073741824")
         con.execute("SELECT count(*) FROM sqlite_master").fetchone()
     except _SQL_ERRORS as err:
         raise McapFormatError(str(path), str(err), "a readable sqlite3 database") from err

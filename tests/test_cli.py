@@ -399,3 +399,27 @@ def test_convert_keeps_channel_metadata_and_reports_progress(
         assert dict(got[topic][0].metadata).get("offered_qos_profiles") == qos, topic
     assert "offered_qos_profiles" not in dict(got["/laser/scan"][0].metadata) or \
         dict(got["/laser/scan"][0].metadata)["offered_qos_profiles"] != qos
+
+
+def test_zstd_level_is_checked_and_written(tmp_path: Path, demo_mcap: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    from mcap.reader import make_reader
+
+    out = tmp_path / "o.mcap"
+    assert cli.main(["convert", str(demo_mcap), str(out), "--chunk-compression", "lz4",
+                     "--zstd-level", "3"]) == 2
+    assert "--zstd-level" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["convert", str(demo_mcap), str(out), "--zstd-level", "23"])
+    assert exc.value.code == 2 and "zstd level" in capsys.readouterr().err
+    sizes = {}
+    for level in ("-5", "9"):
+        assert cli.main(["convert", str(demo_mcap), str(out), "--zstd-level", level,
+                         "--replace", "-q"]) == 0
+        with open(out, "rb") as stream:
+            reader = make_reader(stream, validate_crcs=True)
+            assert {c.compression for c in reader.get_summary().chunk_indexes} == {"zstd"}
+            assert sum(1 for _ in reader.iter_messages()) == \
+                sum(1 for _ in read_messages(demo_mcap))
+        sizes[level] = out.stat().st_size
+    assert sizes["9"] < sizes["-5"]   # the level reached the compressor

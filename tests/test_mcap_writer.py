@@ -1,0 +1,148 @@
+"""The low-level MCAP writer (lidarscan._mcapfile) against the reference readers: the ``mcap``
+package's stream reader (every record, CRCs checked) and its indexed reader (summary, chunk and
+message indexes), for every chunk compression and a few zstd levels."""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+from typing import Any
+
+import pytest
+
+from lidarscan._mcapfile import ChunkedMcapWriter
+from lidarscan.errors import ConfigError
+from lidarscan.mcap import McapWriter, read_messages
+
+CASES = [("zstd", None), ("zstd", 3), ("zstd", -5), ("lz4", None), ("none", None)]
+
+
+def _messages(n: int = 40) -> list[tuple[int, int, bytes]]:
+    """(channel, log time, payload): two channels, times not sorted, sizes from 0 to ~3 kB."""
+    out = []
+    for i in range(n):
+        payload = bytes((i * 7 + k) % 251 for k in range((i * 97) % 3000))
+        out.append((1 + i % 2, 1_000 + ((i * 37) % n) * 10, payload))
+    return out
+
+
+def _write(compression: str, level: int | None, messages: list[tuple[int, int, bytes]],
+           chunk_size: int = 4096) -> bytes:
+    buf = io.BytesIO()
+    writer = ChunkedMcapWriter(buf, chunk_size=chunk_size, compression=compression, level=level)
+    writer.start("ros2", "test")
+    schema = writer.register_schema("pkg/msg/A", "ros2msg", b"int32 a")
+    for topic in ("/a", "/b"):
+        writer.register_channel(topic, "cdr", schema, {"k": topic})
+    for seq, (channel, log_time, payload) in enumerate(messages):
+        writer.add_message(channel_id=channel, log_time=log_time, data=payload,
+                           publish_time=log_time + 1, sequence=seq)
+    writer.add_metadata("rosbag2", {"serialized_metadata": "x: 1"})
+    writer.finish()
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize(("compression", "level"), CASES)
+def test_every_record_reads_back_with_crcs_checked(compression: str, level: int | None) -> None:
+    from mcap.records import Chunk, DataEnd, Footer, Message, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    messages = _messages()
+    data = _write(compression, level, messages)
+    records = list(StreamReader(io.BytesIO(data), validate_crcs=True).records)
+    got = [(r.channel_id, r.log_time, r.data, r.sequence, r.publish_time)
+           for r in records if isinstance(r, Message)]
+    assert got == [(c, t, p, s, t + 1) for s, (c, t, p) in enumerate(messages)]
+    chunks = [r for r in StreamReader(io.BytesIO(data), emit_chunks=True).records
+              if isinstance(r, Chunk)]
+    assert len(chunks) > 3  # the 4 kB chunks closed many times
+    assert {c.compression for c in chunks} == {"" if compression == "none" else compression}
+    assert sum(isinstance(r, MessageIndex) for r in records) >= len(chunks)
+    assert isinstance(records[-1], Footer) and any(isinstance(r, DataEnd) for r in records)
+
+
+@pytest.mark.parametrize(("compression", "level"), CASES)
+def test_the_indexed_reader_finds_every_message_through_the_summary(
+        compression: str, level: int | None) -> None:
+    from mcap.reader import make_reader
+
+    messages = _messages()
+    data = _write(compression, level, messages)
+    reader = make_reader(io.BytesIO(data), validate_crcs=True)
+    summary = reader.get_summary()
+    assert summary is not None
+    stats = summary.statistics
+    assert stats.message_count == len(messages) and stats.channel_count == 2
+    assert stats.message_start_time == min(t for _, t, _ in messages)
+    assert stats.message_end_time == max(t for _, t, _ in messages)
+    assert stats.channel_message_counts == {1: 20, 2: 20}
+    assert stats.chunk_count == len(summary.chunk_indexes) and stats.metadata_count == 1
+    assert {c.topic: c.metadata for c in summary.channels.values()} == {
+        "/a": {"k": "/a"}, "/b": {"k": "/b"}}
+    # the indexed path reads through chunk indexes and message indexes, in log-time order
+    got = [(c.id, m.log_time, m.data) for _, c, m in reader.iter_messages(log_time_order=True)]
+    assert got == sorted(((c, t, p) for c, t, p in messages), key=lambda m: m[1])
+    only_b = [m.data for _, _, m in reader.iter_messages(topics=["/b"], log_time_order=False)]
+    assert sorted(only_b) == sorted(p for c, _, p in messages if c == 2)
+    assert [m.name for m in reader.iter_metadata()] == ["rosbag2"]
+
+
+def test_message_indexes_point_at_their_messages() -> None:
+    """Each MessageIndex entry's offset, inside its chunk's uncompressed records, is the start of
+    a Message record of that channel with that log time."""
+    from mcap.records import Chunk, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    data = _write("none", None, _messages())
+    records = list(StreamReader(io.BytesIO(data), emit_chunks=True).records)
+    checked = 0
+    chunk: Any = None
+    for record in records:
+        if isinstance(record, Chunk):
+            chunk = record
+            assert zlib.crc32(chunk.data) == chunk.uncompressed_crc
+        elif isinstance(record, MessageIndex):
+            for log_time, offset in record.records:
+                opcode, _, channel, _, stamp = struct.unpack_from("<BQHIQ", chunk.data, offset)
+                assert (opcode, channel, stamp) == (0x05, record.channel_id, log_time)
+                checked += 1
+    assert checked == 40
+
+
+def test_a_payload_view_of_any_item_size_is_written_as_its_bytes() -> None:
+    import numpy as np
+    from mcap.reader import make_reader
+
+    buf = io.BytesIO()
+    writer = ChunkedMcapWriter(buf, chunk_size=1 << 20, compression="zstd")
+    writer.start("", "test")
+    writer.register_channel("/v", "raw", 0, {})
+    values = np.arange(10, dtype=np.float64)
+    writer.add_message(channel_id=1, log_time=5, data=memoryview(values), publish_time=5)
+    writer.finish()
+    got = [m.data for _, _, m in make_reader(io.BytesIO(buf.getvalue()),
+                                             validate_crcs=True).iter_messages()]
+    assert got == [values.tobytes()]
+
+
+@pytest.mark.parametrize("level", [None, 1, 19, -3])
+def test_mcap_writer_levels_read_back_with_ours_and_theirs(tmp_path: Any,
+                                                           level: int | None) -> None:
+    from mcap.reader import make_reader
+
+    path = tmp_path / "x.mcap"
+    with McapWriter(path, level=level, chunk_size=2048) as writer:
+        for i in range(30):
+            writer.write("/raw", bytes(range(i, i + 200)), msgtype="std_msgs/msg/String",
+                         log_time_ns=i)
+    ours = [m.payload for m in read_messages(path)]
+    with open(path, "rb") as stream:
+        theirs = [m.data for _, _, m in make_reader(stream, validate_crcs=True).iter_messages()]
+    assert ours == theirs == [bytes(range(i, i + 200)) for i in range(30)]
+
+
+@pytest.mark.parametrize("level", [23, 1.5, "3"])
+def test_mcap_writer_refuses_a_level_zstd_does_not_have(tmp_path: Any, level: Any) -> None:
+    with pytest.raises(ConfigError, match="level"):
+        McapWriter(tmp_path / "x.mcap", level=level)
