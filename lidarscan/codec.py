@@ -90,12 +90,12 @@ not encode), :class:`lidarscan.errors.DecodeError` (a buffer that is not this fo
 from __future__ import annotations
 
 import dataclasses
-import functools
 import struct
 from typing import Any
 
 import numpy as np
 
+from lidarscan._codec_bits import NUMPY, ResidualCoder, bitlen, bitlen_table
 from lidarscan.errors import DecodeError, EncodeError
 
 __all__ = [
@@ -109,6 +109,7 @@ __all__ = [
     "PREDICT2",
     "QUANT2",
     "REF",
+    "ResidualCoder",
     "compress_scan",
     "decompress_scan",
     "segments",
@@ -302,110 +303,41 @@ def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
 
 # ------------------------------------------------------------ version 2: bit-length coding
 
-@functools.lru_cache(maxsize=1)
-def _bitlen_table() -> np.ndarray[Any, Any]:
-    """Bit length of 0 .. 65535 (uint8)."""
-    return np.frexp(np.arange(1 << 16, dtype=np.float64))[1].astype(np.uint8)
-
-
-def _bitlen(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Bit length of every value of an unsigned array of at most 32 bits (0 for 0), as uint8."""
-    table = _bitlen_table()
-    if z.dtype.itemsize <= 2:
-        return table[z]
-    hi = (z >> z.dtype.type(16)).astype(np.uint16)
-    lo = (z & z.dtype.type(0xFFFF)).astype(np.uint16)
-    return np.where(hi > 0, table[hi] + np.uint8(16), table[lo])
-
-
 def _bits_cost(z: np.ndarray[Any, Any]) -> int:
     """Size proxy of zigzag residuals for the bit-length coding: the sum of bit lengths."""
-    return int(_bitlen(z).sum(dtype=np.int64))
+    return int(bitlen(z).sum(dtype=np.int64))
 
 
-def _symbols(z: np.ndarray[Any, Any]) -> dict[int, tuple[np.ndarray[Any, Any],
-                                                          np.ndarray[Any, Any]]]:
-    """extra -> (symbols uint8, number k of raw low bits per value uint8), extra 1 and 2, of
-    uint32 zigzag residuals z."""
-    b = _bitlen(z)
-    b1 = np.maximum(b, np.uint8(1)) - np.uint8(1)            # bits below the leading one
-    e2 = np.minimum(b1, np.uint8(2))
-    k2 = b1 - e2
-    top2 = ((z >> k2.astype(np.uint32)) & np.uint32(3)).astype(np.uint8)
-    top2 &= (np.uint8(1) << e2) - np.uint8(1)
-    wide = b1 >= 2                                           # e = 2 -> e = 1 drops a bit
-    top1 = np.where(wide, top2 >> np.uint8(1), top2)
-    k1 = k2 + wide.astype(np.uint8)
-    return {1: ((b << np.uint8(1)) | top1, k1), 2: ((b << np.uint8(2)) | top2, k2)}
-
-
-def _pack_residuals(z: np.ndarray[Any, Any], level: int) -> tuple[int, bytes, bytes]:
+def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = NUMPY
+                    ) -> tuple[int, bytes, bytes]:
     """(extra, zstd frame of the symbols, zstd frame of the low bits) of zigzag residuals
-    ``z`` (1-D unsigned, at most 32 bits); extra 1 or 2, whichever is smaller.
-
-    Symbol of a value of bit length b: ``b << extra | t`` where t holds the ``e = min(b - 1,
-    extra)`` bits below the leading one (0 when b <= 1). The remaining ``k = b - 1 - e`` low
-    bits of every value are one bit stream: values grouped by k ascending (value order inside a
-    group), each value's k bits most significant first, packed MSB first (numpy packbits), the
-    last byte padded with zeros.
-    """
-    z = z.astype(np.uint32, copy=False)
+    ``z`` (1-D unsigned, at most 32 bits); extra 1 or 2, whichever is smaller (the coding:
+    :mod:`lidarscan._codec_bits`)."""
+    z = np.ascontiguousarray(z, np.uint32)
+    sym1, k1, sym2, k2 = coder.symbols(z, bitlen_table())
     options = []
-    for extra, (sym, k) in _symbols(z).items():
+    for extra, sym, k in ((1, sym1, k1), (2, sym2, k2)):
         frame = _zc(level).compress(sym.tobytes())
         options.append((len(frame) + (int(k.sum(dtype=np.int64)) + 7) // 8, extra, frame, k))
     _, extra, frame, k = min(options, key=lambda option: option[0])
-    order = np.argsort(k, kind="stable")
-    counts = np.bincount(k, minlength=33)
-    low = z[order] & ((np.uint32(1) << k[order].astype(np.uint32)) - np.uint32(1))
-    pieces, pos = [], int(counts[0])
-    for width in range(1, 33):
-        n = int(counts[width])
-        if n:
-            nbytes = (width + 7) // 8
-            words = low[pos:pos + n].astype(">u4").view(np.uint8).reshape(n, 4)[:, 4 - nbytes:]
-            bits = np.unpackbits(np.ascontiguousarray(words).reshape(-1))  # whole rows of 8
-            pieces.append(bits.reshape(n, 8 * nbytes)[:, 8 * nbytes - width:].reshape(-1))
-            pos += n
-    bits = np.concatenate(pieces) if pieces else np.zeros(0, np.uint8)
-    return extra, frame, _zc(level).compress(np.packbits(bits).tobytes())
+    return extra, frame, _zc(level).compress(coder.pack_low(z, k).tobytes())
 
 
 def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
-                      what: str) -> np.ndarray[Any, Any]:
+                      what: str, coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
     """Inverse of :func:`_pack_residuals`: n zigzag residuals as unsigned ``itemsize`` ints."""
     symbols = np.frombuffer(_zd(frame, n, what), np.uint8)
     if symbols.size != n:
         raise DecodeError(what, symbols.size, f"{n} residual symbols")
-    b = symbols >> np.uint8(extra)
-    if b.size and int(b.max()) > 8 * itemsize:
-        raise DecodeError(what, int(b.max()), f"bit lengths of at most {8 * itemsize}")
-    e = np.minimum(np.maximum(b, 1) - 1, extra).astype(np.uint8)
-    k = (np.maximum(b, 1) - 1 - e).astype(np.uint8)
-    top = (symbols & ((np.uint8(1) << e) - np.uint8(1))).astype(np.uint32)
-    z = np.where(b > 0, np.uint32(1) << (np.maximum(b, 1) - 1).astype(np.uint32), np.uint32(0))
-    z |= top << k.astype(np.uint32)
-    counts = np.bincount(k, minlength=33)
+    if n and int(symbols.max()) >> extra > 8 * itemsize:
+        raise DecodeError(what, int(symbols.max()) >> extra,
+                          f"bit lengths of at most {8 * itemsize}")
+    counts = coder.low_counts(symbols, extra)
     total = int((counts * np.arange(counts.size)).sum())
-    raw = _zd(raw, (total + 7) // 8, what)
-    if len(raw) != (total + 7) // 8:
-        raise DecodeError(what, len(raw), f"{(total + 7) // 8} bytes of low bits")
-    bits = np.unpackbits(np.frombuffer(raw, np.uint8), count=total)
-    order = np.argsort(k, kind="stable")
-    low = np.zeros(n, np.uint32)
-    pos, start = int(counts[0]), 0
-    for width in range(1, 33):
-        m = int(counts[width])
-        if m:
-            nbytes = (width + 7) // 8
-            grid = np.zeros((m, 8 * nbytes), np.uint8)
-            grid[:, 8 * nbytes - width:] = bits[start:start + m * width].reshape(m, width)
-            packed = np.zeros((m, 4), np.uint8)
-            packed[:, 4 - nbytes:] = np.packbits(grid.reshape(-1)).reshape(m, nbytes)
-            low[pos:pos + m] = packed.view(">u4").reshape(-1)
-            pos += m
-            start += m * width
-    z[order] |= low
+    low = _zd(raw, (total + 7) // 8, what)
+    if len(low) != (total + 7) // 8:
+        raise DecodeError(what, len(low), f"{(total + 7) // 8} bytes of low bits")
+    z = coder.unpack(symbols, extra, counts, np.frombuffer(low, np.uint8))
     return z.astype(f"u{itemsize}")
 
 
@@ -501,12 +433,13 @@ def _split(payload: bytes, count: int, what: str) -> list[bytes]:
 
 
 def _code_grid(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, level: int,
-               predictor: int | None = None, ref: np.ndarray[Any, Any] | None = None
-               ) -> tuple[int, int, list[bytes]]:
+               predictor: int | None = None, ref: np.ndarray[Any, Any] | None = None,
+               coder: ResidualCoder = NUMPY) -> tuple[int, int, list[bytes]]:
     """(predictor, extra, [symbols frame, low bits]) of the valid pixels of grid x."""
     if predictor is None:
         predictor = _choose_masked(x, valid, ref)[0]
-    extra, frame, low = _pack_residuals(_masked_residuals(x, valid, predictor, ref), level)
+    extra, frame, low = _pack_residuals(_masked_residuals(x, valid, predictor, ref), level,
+                                        coder)
     return predictor, extra, [frame, low]
 
 
@@ -521,17 +454,17 @@ def _unmask_frame(frame: bytes, n: int, what: str) -> np.ndarray[Any, Any]:
     return np.unpackbits(np.frombuffer(packed, np.uint8), count=n).astype(bool)
 
 
-def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None
-                 ) -> tuple[int, int, bool, bytes]:
+def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None,
+                 coder: ResidualCoder = NUMPY) -> tuple[int, int, bool, bytes]:
     """(predictor, extra, masked, payload) of an unsigned (H, W, C) grid (ref: an earlier
     channel's grid REF may predict from). With at least 2 % zero values the grid is also
     coded with the zeros masked (not coded); the smaller coding wins."""
-    predictor, extra, parts = _code_grid(u, None, level, None, ref)
+    predictor, extra, parts = _code_grid(u, None, level, None, ref, coder)
     best = (predictor, extra, False, _parts(*parts))
     zeros = int(np.count_nonzero(u == 0))
     if 0.02 * u.size <= zeros < u.size:
         valid = u != 0
-        predictor, extra, parts = _code_grid(u, valid, level, None, ref)
+        predictor, extra, parts = _code_grid(u, valid, level, None, ref, coder)
         masked = _parts(_mask_frame(valid, level), *parts)
         if len(masked) < len(best[3]):
             best = (predictor, extra, True, masked)
@@ -539,19 +472,20 @@ def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] 
 
 
 def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
-                 extra: int, masked: bool, what: str, ref: np.ndarray[Any, Any] | None = None
-                 ) -> np.ndarray[Any, Any]:
+                 extra: int, masked: bool, what: str, ref: np.ndarray[Any, Any] | None = None,
+                 coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
     n = shape[0] * shape[1] * shape[2]
     parts = _split(payload, 3 if masked else 2, what)
     valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
     count = n if valid is None else int(valid.sum())
-    z = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what)
+    z = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what, coder)
     f = _unmask_residuals(z, valid, shape, predictor, ref)
     return f if valid is None else np.where(valid, f, f.dtype.type(0))
 
 
 def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], step: float,
-                   level: int) -> tuple[int, int, bool, float, bytes] | None:
+                   level: int, coder: ResidualCoder = NUMPY
+                   ) -> tuple[int, int, bool, float, bytes] | None:
     """(predictor, extra, masked, step, payload) of a native float32 (H, W, C) grid, or None
     when it does not fit the int32 grid; exceptions are masked and kept bit for bit. The step
     is ``step`` times the greatest common divisor of the grid values when that coarser grid
@@ -567,22 +501,23 @@ def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], ste
             step, (q, exc) = step * common, coarse
     u = q.view(np.uint32)
     if not exc.any():
-        predictor, extra, parts = _code_grid(u, None, level)
+        predictor, extra, parts = _code_grid(u, None, level, coder=coder)
         return predictor, extra, False, step, _parts(*parts)
     valid = ~exc
-    predictor, extra, parts = _code_grid(u, valid, level)
+    predictor, extra, parts = _code_grid(u, valid, level, coder=coder)
     words = _zc(level).compress(raw_words[exc].tobytes())
     return predictor, extra, True, step, _parts(_mask_frame(valid, level), *parts, words)
 
 
 def _decode_quant2(payload: bytes, shape: tuple[int, int, int], predictor: int, extra: int,
-                   masked: bool, step: float, bigendian: bool, what: str) -> bytes:
+                   masked: bool, step: float, bigendian: bool, what: str,
+                   coder: ResidualCoder = NUMPY) -> bytes:
     n = shape[0] * shape[1] * shape[2]
     parts = _split(payload, 4 if masked else 2, what)
     valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
     count = n if valid is None else int(valid.sum())
     sym, low = (parts[1], parts[2]) if masked else (parts[0], parts[1])
-    z = _unpack_residuals(sym, low, count, 4, extra, what)
+    z = _unpack_residuals(sym, low, count, 4, extra, what, coder)
     q = _unmask_residuals(z, valid, shape, predictor).view(np.int32)
     return _float_bits(q, step, bigendian, None if valid is None else ~valid,
                        parts[3] if masked else b"", what)
@@ -612,7 +547,8 @@ def _layout(scan: Any, data_len: int) -> list[tuple[int, int, Any]] | None:
 
 def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: float | None,
                   shifts: np.ndarray[Any, Any] | None,
-                  refs: dict[int, np.ndarray[Any, Any]]) -> tuple[int, bytes, bytes]:
+                  refs: dict[int, np.ndarray[Any, Any]], coder: ResidualCoder = NUMPY
+                  ) -> tuple[int, bytes, bytes]:
     """(method, params, payload) of one channel block (the version 2 methods). ``refs``:
     offset -> rolled unsigned grid of the earlier integer blocks; this block's grid is added
     when it is an integer block."""
@@ -630,7 +566,7 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
                 _zigzag(_residual(u[::8], REF, same[off][::8]))))
         refs[int(desc.offset)] = u
         predictor, extra, masked, payload = _encode_int2(
-            u, level, None if ref_offset is None else same[ref_offset])
+            u, level, None if ref_offset is None else same[ref_offset], coder)
         ref_param = struct.pack("<I", ref_offset) if predictor == REF else b""
         return (PREDICT2, _GRID2.pack(datatype, big, *shape, predictor, rolled, extra, masked)
                 + ref_param + _shift_params(shifts), payload)
@@ -638,7 +574,7 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
         native = _roll(raw.astype(np.float32), shifts, 1)
         words = _roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
-        got = _encode_quant2(native, words, float_step, level)
+        got = _encode_quant2(native, words, float_step, level, coder)
         if got is not None:
             predictor, extra, masked, step, payload = got
             shuffled = None
@@ -654,7 +590,7 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
 
 
 def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
-                  float_step: float | None = 0.001) -> bytes:
+                  float_step: float | None = 0.001, coder: ResidualCoder | None = None) -> bytes:
     """Compress a LidarScan losslessly (format above).
 
     Args:
@@ -666,6 +602,9 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         float_step: grid of float32 channels in their unit (0.001: metres from millimetres;
             a multiple of it when every value is on that coarser grid, e.g. 0.004 for 4 mm
             units); None codes float32 channels by byte shuffle only.
+        coder: the residual coding's implementation (:class:`ResidualCoder`): None = the numpy
+            reference; converters pass the compiled one (``converters._kernels.select("codec")``).
+            Every coder writes the same bytes.
 
     Returns:
         The compressed bytes; :func:`decompress_scan` restores the scan bit for bit.
@@ -676,6 +615,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
     from lidarscan.cdr import encode
     from lidarscan.scan import data_view
     from lidarscan.types import LidarScan as ScanDC
+    coder = coder or NUMPY
 
     data = data_view(scan)
     data_len = int(data.size)
@@ -713,7 +653,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         for offset, length, desc in layout:
             gap(pos, offset)
             method, params, payload = _encode_block(raw[offset:offset + length], desc, scan,
-                                                    level, float_step, shifts, refs)
+                                                    level, float_step, shifts, refs, coder)
             segs.append((offset, length, method, params, payload))
             pos = offset + length
         gap(pos, data_len)
@@ -810,7 +750,8 @@ def _decode_columns(buf: bytes) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, A
 
 
 def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes,
-                    payload: bytes, data: np.ndarray[Any, Any]) -> bytes:
+                    payload: bytes, data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY
+                    ) -> bytes:
     """The bytes of segment i; ``data``: the scan's data, decoded up to ``offset``."""
     what = f"segment {i}"
     if method == RAW:
@@ -844,7 +785,7 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
             bits = _unquant(payload, (h, w, c), predictor, step, bool(big), what)
             out = _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
     elif method in (PREDICT2, QUANT2):
-        out = _decode_v2(what, offset, length, method, params, payload, data)
+        out = _decode_v2(what, offset, length, method, params, payload, data, coder)
     else:
         raise DecodeError(f"{what} method", method,
                           "0..6 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2)")
@@ -854,7 +795,7 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
 
 
 def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
-               data: np.ndarray[Any, Any]) -> bytes:
+               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> bytes:
     if len(params) < _GRID2.size:
         raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
     datatype, big, h, w, c, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
@@ -880,23 +821,29 @@ def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, 
             grid = np.frombuffer(data[ref_offset:ref_offset + length].tobytes(),
                                  (">" if big else "<") + f"u{size}").reshape(h, w, c)
             ref = _roll(_as_unsigned(grid), shifts, 1)
-        u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref)
+        u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref,
+                         coder)
         u = _roll(u, shifts, -1)
         return u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
     (step,) = struct.unpack_from("<d", params, _GRID2.size)
     bits = _decode_quant2(payload, (h, w, c), predictor, extra, bool(masked), step, bool(big),
-                          what)
+                          what, coder)
     return _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
 
 
-def decompress_scan(buf: bytes) -> Any:
+def decompress_scan(buf: bytes, *, coder: ResidualCoder | None = None) -> Any:
     """The LidarScan of :func:`compress_scan`'s bytes, as a :class:`lidarscan.types.LidarScan`
     (``data`` a read-only uint8 array) whose CDR equals the original's byte for byte.
+
+    Args:
+        buf: the compressed bytes.
+        coder: as for :func:`compress_scan` (None: the numpy reference); same result.
 
     Raises:
         DecodeError: not this format, another version, or a damaged buffer.
     """
     from lidarscan.cdr import decode_scan
+    coder = coder or NUMPY
     skeleton, columns, data_len, segs = _parse(buf)
     try:
         skel = decode_scan(_zd(skeleton, 1 << 30, "skeleton"))
@@ -907,7 +854,7 @@ def decompress_scan(buf: bytes) -> Any:
     data = np.empty(data_len, np.uint8)
     for i, (offset, length, method, params, payload) in enumerate(segs):
         data[offset:offset + length] = np.frombuffer(
-            _decode_segment(i, offset, length, method, params, payload, data), np.uint8)
+            _decode_segment(i, offset, length, method, params, payload, data, coder), np.uint8)
     data.flags.writeable = False
     if columns is None:
         return dataclasses.replace(skel, data=data)

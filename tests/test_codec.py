@@ -326,6 +326,61 @@ def test_roundtrip_is_bit_exact(scan: Any, step: float | None, level: int,
     assert back.data.tobytes() == scan.data.tobytes()
 
 
+# -------------------------------------------------------------- compiled residual coder
+
+def _compiled() -> Any:
+    pytest.importorskip("numba")
+    from converters._kernels import select
+    coder = select("codec").numba
+    if coder is None:
+        pytest.skip("numba disabled (LIDARSCAN_NUMBA=0)")
+    return coder
+
+
+@given(st.lists(st.integers(0, 2**32 - 1) | st.integers(0, 300) | st.just(0), max_size=300))
+def test_compiled_coder_matches_the_numpy_reference(values: list[int]) -> None:
+    from lidarscan._codec_bits import NUMPY, bitlen_table
+    coder = _compiled()
+    z = np.array(values, np.uint32)
+    ref = NUMPY.symbols(z, bitlen_table())
+    got = coder.symbols(z, bitlen_table())
+    for a, b in zip(ref, got, strict=True):
+        assert a.dtype == b.dtype and a.tolist() == b.tolist()
+    for extra, sym, k in ((1, ref[0], ref[1]), (2, ref[2], ref[3])):
+        low = NUMPY.pack_low(z, k)
+        assert coder.pack_low(z, k).tobytes() == low.tobytes()
+        counts = NUMPY.low_counts(sym, extra)
+        assert coder.low_counts(sym, extra).tolist() == counts.tolist()
+        assert coder.unpack(sym, extra, counts, low).tolist() == values
+        assert NUMPY.unpack(sym, extra, counts, low).tolist() == values
+
+
+@given(_scans(), st.sampled_from([None, 0.001]))
+def test_compiled_coder_writes_the_reference_bytes_and_roundtrips(scan: Any,
+                                                                  step: float | None) -> None:
+    coder = _compiled()
+    buf = codec.compress_scan(scan, float_step=step, coder=coder)
+    assert buf == codec.compress_scan(scan, float_step=step)
+    _same(codec.decompress_scan(buf, coder=coder), scan)
+
+
+def test_compiled_coder_on_a_real_frame_and_its_switch(monkeypatch: Any) -> None:
+    from converters._kernels import select
+    from converters.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.ouster import scan_from_frame
+    coder = _compiled()
+    meta, path = next((m, p) for m, p in ouster_files() if p is not None)
+    info = ouster_info(meta)
+    scan = scan_from_frame(load_frame(path), info, as_dataclass=True)
+    buf = codec.compress_scan(scan, info, coder=coder)
+    assert buf == codec.compress_scan(scan, info)
+    _same(codec.decompress_scan(buf, coder=coder), scan)
+    assert codec.decompress_scan(GOLDEN_V2, coder=coder).data.tobytes() == \
+        _golden_scan_v2().data.tobytes()
+    monkeypatch.setenv("LIDARSCAN_NUMBA", "0")
+    assert select("codec").numba is None
+
+
 def test_roundtrip_of_overlapping_and_out_of_range_channels_falls_back_to_zstd() -> None:
     data = np.arange(40, dtype=np.uint8)
     for channels in ((LidarChannel("a", 0, 4, 1), LidarChannel("b", 2, 4, 1)),

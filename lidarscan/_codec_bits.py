@@ -1,0 +1,135 @@
+"""The residual bit-length coding of :mod:`lidarscan.codec` (format versions 2 and 3), in numpy.
+
+This is the reference (and the test oracle) of the coding the module header specifies: a
+zigzag residual z of bit length b becomes the symbol byte ``b << extra | t`` (t: the
+``e = min(b - 1, extra)`` bits below the leading one) and ``k = b - 1 - e`` raw low bits, the
+low bits of all values forming one stream grouped by k ascending (value order inside a group),
+each value's bits most significant first, packed most significant bit first.
+
+The four hot steps are the fields of a :class:`ResidualCoder`; :data:`NUMPY` holds the functions
+below. A compiled coder (``converters._kernels.codec``, chosen by
+:func:`converters._kernels.select`) has the same signatures and must give the same bytes; the
+core never imports it: callers pass it to ``compress_scan`` / ``decompress_scan``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import numpy as np
+
+__all__ = ["NUMPY", "ResidualCoder", "bitlen", "bitlen_table"]
+
+
+class ResidualCoder(NamedTuple):
+    """The residual coding's hot steps (all arrays 1-D, native order).
+
+    Attributes:
+        name: "numpy" (the reference) or the compiled backend's name.
+        symbols: ``(z uint32, table uint8[65536]) -> (sym1, k1, sym2, k2)``: the symbols and
+            low-bit counts (uint8) with extra 1 and with extra 2 (``table``: :func:`bitlen_table`).
+        pack_low: ``(z uint32, k uint8) -> uint8``: the packed low-bit stream.
+        low_counts: ``(symbols uint8, extra) -> int64[33]``: values per low-bit count k.
+        unpack: ``(symbols uint8, extra, counts int64[33], low uint8) -> uint32``: the values
+            (symbols' bit lengths checked by the caller, ``low`` at least the stream's bytes).
+    """
+
+    name: str
+    symbols: Callable[..., Any]
+    pack_low: Callable[..., Any]
+    low_counts: Callable[..., Any]
+    unpack: Callable[..., Any]
+
+
+@functools.lru_cache(maxsize=1)
+def bitlen_table() -> np.ndarray[Any, Any]:
+    """Bit length of 0 .. 65535 (uint8)."""
+    return np.frexp(np.arange(1 << 16, dtype=np.float64))[1].astype(np.uint8)
+
+
+def bitlen(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Bit length of every value of an unsigned array of at most 32 bits (0 for 0), as uint8."""
+    table = bitlen_table()
+    if z.dtype.itemsize <= 2:
+        return table[z]
+    hi = (z >> z.dtype.type(16)).astype(np.uint16)
+    lo = (z & z.dtype.type(0xFFFF)).astype(np.uint16)
+    return np.where(hi > 0, table[hi] + np.uint8(16), table[lo])
+
+
+def _symbols(z: np.ndarray[Any, Any], table: np.ndarray[Any, Any]
+             ) -> tuple[np.ndarray[Any, Any], ...]:
+    b = bitlen(z)
+    b1 = np.maximum(b, np.uint8(1)) - np.uint8(1)            # bits below the leading one
+    e2 = np.minimum(b1, np.uint8(2))
+    k2 = b1 - e2
+    top2 = ((z >> k2.astype(np.uint32)) & np.uint32(3)).astype(np.uint8)
+    top2 &= (np.uint8(1) << e2) - np.uint8(1)
+    wide = b1 >= 2                                           # e = 2 -> e = 1 drops a bit
+    top1 = np.where(wide, top2 >> np.uint8(1), top2)
+    k1 = k2 + wide.astype(np.uint8)
+    return (b << np.uint8(1)) | top1, k1, (b << np.uint8(2)) | top2, k2
+
+
+def _pack_low(z: np.ndarray[Any, Any], k: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    order = np.argsort(k, kind="stable")
+    counts = np.bincount(k, minlength=33)
+    low = z[order] & ((np.uint32(1) << k[order].astype(np.uint32)) - np.uint32(1))
+    pieces, pos = [], int(counts[0])
+    for width in range(1, 33):
+        n = int(counts[width])
+        if n:
+            nbytes = (width + 7) // 8
+            words = low[pos:pos + n].astype(">u4").view(np.uint8).reshape(n, 4)[:, 4 - nbytes:]
+            bits = np.unpackbits(np.ascontiguousarray(words).reshape(-1))  # whole rows of 8
+            pieces.append(bits.reshape(n, 8 * nbytes)[:, 8 * nbytes - width:].reshape(-1))
+            pos += n
+    bits = np.concatenate(pieces) if pieces else np.zeros(0, np.uint8)
+    return np.packbits(bits)
+
+
+def _parts(symbols: np.ndarray[Any, Any], extra: int
+           ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """(b, e, k) uint8 of the symbols."""
+    b = symbols >> np.uint8(extra)
+    below = np.maximum(b, np.uint8(1)) - np.uint8(1)
+    e = np.minimum(below, np.uint8(extra))
+    return b, e, below - e
+
+
+def _low_counts(symbols: np.ndarray[Any, Any], extra: int) -> np.ndarray[Any, Any]:
+    return np.bincount(np.minimum(_parts(symbols, extra)[2], 32), minlength=33)[:33].astype(
+        np.int64)
+
+
+def _unpack(symbols: np.ndarray[Any, Any], extra: int, counts: np.ndarray[Any, Any],
+            low_bytes: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    b, e, k = _parts(symbols, extra)
+    n = symbols.size
+    top = (symbols & ((np.uint8(1) << e) - np.uint8(1))).astype(np.uint32)
+    z = np.where(b > 0, np.uint32(1) << (np.maximum(b, 1) - 1).astype(np.uint32), np.uint32(0))
+    z |= top << k.astype(np.uint32)
+    total = int((counts * np.arange(counts.size)).sum())
+    bits = np.unpackbits(low_bytes, count=total)
+    order = np.argsort(k, kind="stable")
+    low = np.zeros(n, np.uint32)
+    pos, start = int(counts[0]), 0
+    for width in range(1, 33):
+        m = int(counts[width])
+        if m:
+            nbytes = (width + 7) // 8
+            grid = np.zeros((m, 8 * nbytes), np.uint8)
+            grid[:, 8 * nbytes - width:] = bits[start:start + m * width].reshape(m, width)
+            packed = np.zeros((m, 4), np.uint8)
+            packed[:, 4 - nbytes:] = np.packbits(grid.reshape(-1)).reshape(m, nbytes)
+            low[pos:pos + m] = packed.view(">u4").reshape(-1)
+            pos += m
+            start += m * width
+    z[order] |= low
+    return z
+
+
+#: The reference coder (numpy, one pass per bit width).
+NUMPY = ResidualCoder("numpy", _symbols, _pack_low, _low_counts, _unpack)
