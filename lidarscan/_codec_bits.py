@@ -20,7 +20,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["NUMPY", "ResidualCoder", "bitlen", "bitlen_table"]
+__all__ = ["LEFT", "NONE", "NUMPY", "PLANAR", "REF", "UP", "ResidualCoder", "bitlen",
+           "bitlen_table"]
+
+#: Predictors (format header of :mod:`lidarscan.codec`).
+NONE, LEFT, UP, PLANAR, REF = 0, 1, 2, 3, 4
 
 
 class ResidualCoder(NamedTuple):
@@ -34,6 +38,10 @@ class ResidualCoder(NamedTuple):
         low_counts: ``(symbols uint8, extra) -> int64[33]``: values per low-bit count k.
         unpack: ``(symbols uint8, extra, counts int64[33], low uint8) -> uint32``: the values
             (symbols' bit lengths checked by the caller, ``low`` at least the stream's bytes).
+        residuals: ``(x (H, W, C) unsigned, valid bool (H, W, C) or None, predictor, ref (H,
+            W, C) or None) -> uint32``: :func:`masked_residuals`.
+        unresiduals: ``(z uint32, valid or None, predictor, ref or None, out (H, W, C)
+            unsigned) -> out``: :func:`unmask_residuals` written into ``out``.
     """
 
     name: str
@@ -41,7 +49,112 @@ class ResidualCoder(NamedTuple):
     pack_low: Callable[..., Any]
     low_counts: Callable[..., Any]
     unpack: Callable[..., Any]
+    residuals: Callable[..., Any]
+    unresiduals: Callable[..., Any]
 
+
+# ------------------------------------------------------------------ prediction
+
+def residual(x: np.ndarray[Any, Any], predictor: int,
+              ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    """x - prediction in x's (unsigned, native) dtype, wrapping; x (and ref, the grid REF
+    predicts from) is (H, W, C)."""
+    if predictor == REF:
+        return x - ref
+    r = x.copy()
+    if predictor in (UP, PLANAR):
+        r[1:] -= x[:-1]
+    if predictor in (LEFT, PLANAR):
+        r[:, 1:] -= r[:, :-1].copy() if predictor == PLANAR else x[:, :-1]
+    return r
+
+
+def unresidual(r: np.ndarray[Any, Any], predictor: int,
+                ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    if predictor == REF:
+        return r + ref
+    x = r
+    if predictor in (LEFT, PLANAR):
+        x = np.cumsum(x, axis=1, dtype=r.dtype)
+    if predictor in (UP, PLANAR):
+        # row by row: numpy's cumulative sum along the outer axis is ~5x slower than H adds
+        x = x.copy() if x is r else x
+        for row in range(1, x.shape[0]):
+            np.add(x[row], x[row - 1], out=x[row])
+    return x
+
+
+def zigzag(r: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Unsigned residuals (wrapping) -> zigzag order: 0, -1, 1, -2, ... -> 0, 1, 2, 3, ..."""
+    bits = r.dtype.itemsize * 8
+    s = r.view(r.dtype.str.replace("u", "i"))
+    return ((s << 1) ^ (s >> (bits - 1))).view(r.dtype)
+
+
+def unzigzag(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    one = z.dtype.type(1)
+    return (z >> one) ^ (np.zeros_like(z) - (z & one))
+
+
+def fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """x (H, W, C) with every invalid pixel replaced by the last valid value to its left in
+    its row (0 if none)."""
+    cols = np.arange(valid.shape[1]).reshape(1, -1, 1)
+    index = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
+    got = np.take_along_axis(x, np.maximum(index, 0), axis=1)
+    return np.where(index >= 0, got, x.dtype.type(0))
+
+
+def predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int,
+                    ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    """The grid f (H, W, C) equal to x at valid pixels and to its own prediction at invalid
+    ones (their residual is 0): NONE 0, LEFT the last valid value to the left, UP the last
+    valid value above, PLANAR the row above plus the last valid (x - row above) to the left,
+    REF the reference grid's value."""
+    if predictor == REF:
+        return np.where(valid, x, ref)
+    if predictor == NONE:
+        return np.where(valid, x, x.dtype.type(0))
+    if predictor == LEFT:
+        return fill(x, valid)
+    if predictor == UP:  # row by row: faster than gathering along the outer axis
+        out = np.empty_like(x)
+        prev = np.zeros(x.shape[1:], x.dtype)
+        for row in range(x.shape[0]):
+            prev = np.where(valid[row], x[row], prev)
+            out[row] = prev
+        return out
+    out = np.empty_like(x)
+    prev = np.zeros(x.shape[1:], x.dtype)
+    for row in range(x.shape[0]):
+        prev = prev + fill((x[row] - prev)[None], valid[row][None])[0]
+        out[row] = prev
+    return out
+
+
+def masked_residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
+                      predictor: int, ref: np.ndarray[Any, Any] | None = None
+                      ) -> np.ndarray[Any, Any]:
+    """Zigzag residuals of the valid pixels of x (H, W, C), row-major; invalid pixels take
+    their predicted value (:func:`predicted_fill`)."""
+    if valid is None:
+        return zigzag(residual(x, predictor, ref)).reshape(-1)
+    return zigzag(residual(predicted_fill(x, valid, predictor, ref), predictor, ref))[valid]
+
+
+def unmask_residuals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
+                      shape: tuple[int, int, int], predictor: int,
+                      ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+    """The grid from the valid pixels' zigzag residuals, invalid pixels' residuals being 0
+    (inverse of :func:`masked_residuals`; invalid pixels hold their predicted value)."""
+    if valid is None:
+        return unresidual(unzigzag(z).reshape(shape), predictor, ref)
+    r = np.zeros(shape, z.dtype)
+    r[valid] = unzigzag(z)
+    return unresidual(r, predictor, ref)
+
+
+# ------------------------------------------------------------- bit-length coding
 
 @functools.lru_cache(maxsize=1)
 def bitlen_table() -> np.ndarray[Any, Any]:
@@ -131,5 +244,18 @@ def _unpack(symbols: np.ndarray[Any, Any], extra: int, counts: np.ndarray[Any, A
     return z
 
 
+def _residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, predictor: int,
+               ref: np.ndarray[Any, Any] | None) -> np.ndarray[Any, Any]:
+    return masked_residuals(x, valid, predictor, ref).astype(np.uint32)
+
+
+def _unresiduals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, predictor: int,
+                 ref: np.ndarray[Any, Any] | None, out: np.ndarray[Any, Any]
+                 ) -> np.ndarray[Any, Any]:
+    out[...] = unmask_residuals(z.astype(out.dtype), valid, out.shape, predictor, ref)
+    return out
+
+
 #: The reference coder (numpy, one pass per bit width).
-NUMPY = ResidualCoder("numpy", _symbols, _pack_low, _low_counts, _unpack)
+NUMPY = ResidualCoder("numpy", _symbols, _pack_low, _low_counts, _unpack, _residuals,
+                      _unresiduals)

@@ -95,7 +95,20 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan._codec_bits import NUMPY, ResidualCoder, bitlen, bitlen_table
+from lidarscan._codec_bits import (
+    LEFT,
+    NONE,
+    NUMPY,
+    PLANAR,
+    REF,
+    UP,
+    ResidualCoder,
+    residual,
+    unresidual,
+    unzigzag,
+    zigzag,
+    bitlen_table,
+)
 from lidarscan.errors import DecodeError, EncodeError
 
 __all__ = [
@@ -120,7 +133,6 @@ VERSION = 2
 RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2 = 0, 1, 2, 3, 4, 5, 6
 _METHOD_NAMES = {RAW: "raw", ZSTD: "zstd", SHUFFLE: "shuffle", PREDICT: "predict",
                  QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2"}
-NONE, LEFT, UP, PLANAR, REF = 0, 1, 2, 3, 4
 
 _INT_CODES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
 _FLOAT32, _FLOAT64 = 7, 8
@@ -168,47 +180,6 @@ def _unplanes(buf: bytes, itemsize: int, n: int, what: str) -> np.ndarray[Any, A
     return out.view(np.uint8)
 
 
-def _residual(x: np.ndarray[Any, Any], predictor: int,
-              ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
-    """x - prediction in x's (unsigned, native) dtype, wrapping; x (and ref, the grid REF
-    predicts from) is (H, W, C)."""
-    if predictor == REF:
-        return x - ref
-    r = x.copy()
-    if predictor in (UP, PLANAR):
-        r[1:] -= x[:-1]
-    if predictor in (LEFT, PLANAR):
-        r[:, 1:] -= r[:, :-1].copy() if predictor == PLANAR else x[:, :-1]
-    return r
-
-
-def _unresidual(r: np.ndarray[Any, Any], predictor: int,
-                ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
-    if predictor == REF:
-        return r + ref
-    x = r
-    if predictor in (LEFT, PLANAR):
-        x = np.cumsum(x, axis=1, dtype=r.dtype)
-    if predictor in (UP, PLANAR):
-        # row by row: numpy's cumulative sum along the outer axis is ~5x slower than H adds
-        x = x.copy() if x is r else x
-        for row in range(1, x.shape[0]):
-            np.add(x[row], x[row - 1], out=x[row])
-    return x
-
-
-def _zigzag(r: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Unsigned residuals (wrapping) -> zigzag order: 0, -1, 1, -2, ... -> 0, 1, 2, 3, ..."""
-    bits = r.dtype.itemsize * 8
-    s = r.view(r.dtype.str.replace("u", "i"))
-    return ((s << 1) ^ (s >> (bits - 1))).view(r.dtype)
-
-
-def _unzigzag(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    one = z.dtype.type(1)
-    return (z >> one) ^ (np.zeros_like(z) - (z & one))
-
-
 def _as_unsigned(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     """Native-order unsigned view/copy of an integer or float array (same bytes per value)."""
     native = arr.astype(arr.dtype.newbyteorder("="), copy=False)
@@ -219,7 +190,7 @@ def _unpredict(payload: bytes, shape: tuple[int, int, int], itemsize: int, predi
                what: str) -> np.ndarray[Any, Any]:
     n = shape[0] * shape[1] * shape[2]
     z = _unplanes(_zd(payload, n * itemsize, what), itemsize, n, what).view(f"u{itemsize}")
-    return _unresidual(_unzigzag(z).reshape(shape), predictor)
+    return unresidual(unzigzag(z).reshape(shape), predictor)
 
 
 def _roll(x: np.ndarray[Any, Any], shifts: np.ndarray[Any, Any] | None, sign: int
@@ -304,8 +275,9 @@ def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
 # ------------------------------------------------------------ version 2: bit-length coding
 
 def _bits_cost(z: np.ndarray[Any, Any]) -> int:
-    """Size proxy of zigzag residuals for the bit-length coding: the sum of bit lengths."""
-    return int(bitlen(z).sum(dtype=np.int64))
+    """Size proxy of zigzag residuals for the bit-length coding: the sum of bit lengths
+    (through float32 exponents: exact below 2**24, a bit more above; a proxy only)."""
+    return int(np.frexp(z.astype(np.float32))[1].sum(dtype=np.int64))
 
 
 def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = NUMPY
@@ -325,7 +297,8 @@ def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = 
 
 def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
                       what: str, coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
-    """Inverse of :func:`_pack_residuals`: n zigzag residuals as unsigned ``itemsize`` ints."""
+    """Inverse of :func:`_pack_residuals`: n zigzag residuals (uint32) of at most
+    ``8 * itemsize`` bits."""
     symbols = np.frombuffer(_zd(frame, n, what), np.uint8)
     if symbols.size != n:
         raise DecodeError(what, symbols.size, f"{n} residual symbols")
@@ -337,77 +310,19 @@ def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: in
     low = _zd(raw, (total + 7) // 8, what)
     if len(low) != (total + 7) // 8:
         raise DecodeError(what, len(low), f"{(total + 7) // 8} bytes of low bits")
-    z = coder.unpack(symbols, extra, counts, np.frombuffer(low, np.uint8))
-    return z.astype(f"u{itemsize}")
-
-
-def _fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """x (H, W, C) with every invalid pixel replaced by the last valid value to its left in
-    its row (0 if none)."""
-    cols = np.arange(valid.shape[1]).reshape(1, -1, 1)
-    index = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
-    got = np.take_along_axis(x, np.maximum(index, 0), axis=1)
-    return np.where(index >= 0, got, x.dtype.type(0))
-
-
-def _predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int,
-                    ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
-    """The grid f (H, W, C) equal to x at valid pixels and to its own prediction at invalid
-    ones (their residual is 0): NONE 0, LEFT the last valid value to the left, UP the last
-    valid value above, PLANAR the row above plus the last valid (x - row above) to the left,
-    REF the reference grid's value."""
-    if predictor == REF:
-        return np.where(valid, x, ref)
-    if predictor == NONE:
-        return np.where(valid, x, x.dtype.type(0))
-    if predictor == LEFT:
-        return _fill(x, valid)
-    if predictor == UP:  # row by row: faster than gathering along the outer axis
-        out = np.empty_like(x)
-        prev = np.zeros(x.shape[1:], x.dtype)
-        for row in range(x.shape[0]):
-            prev = np.where(valid[row], x[row], prev)
-            out[row] = prev
-        return out
-    out = np.empty_like(x)
-    prev = np.zeros(x.shape[1:], x.dtype)
-    for row in range(x.shape[0]):
-        prev = prev + _fill((x[row] - prev)[None], valid[row][None])[0]
-        out[row] = prev
-    return out
-
-
-def _masked_residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                      predictor: int, ref: np.ndarray[Any, Any] | None = None
-                      ) -> np.ndarray[Any, Any]:
-    """Zigzag residuals of the valid pixels of x (H, W, C), row-major; invalid pixels take
-    their predicted value (:func:`_predicted_fill`)."""
-    if valid is None:
-        return _zigzag(_residual(x, predictor, ref)).reshape(-1)
-    return _zigzag(_residual(_predicted_fill(x, valid, predictor, ref), predictor, ref))[valid]
-
-
-def _unmask_residuals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                      shape: tuple[int, int, int], predictor: int,
-                      ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
-    """The grid from the valid pixels' zigzag residuals, invalid pixels' residuals being 0
-    (inverse of :func:`_masked_residuals`; invalid pixels hold their predicted value)."""
-    if valid is None:
-        return _unresidual(_unzigzag(z).reshape(shape), predictor, ref)
-    r = np.zeros(shape, z.dtype)
-    r[valid] = _unzigzag(z)
-    return _unresidual(r, predictor, ref)
+    return coder.unpack(symbols, extra, counts, np.frombuffer(low, np.uint8))
 
 
 def _choose_masked(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                   ref: np.ndarray[Any, Any] | None = None) -> tuple[int, int]:
+                   ref: np.ndarray[Any, Any] | None = None, coder: ResidualCoder = NUMPY
+                   ) -> tuple[int, int]:
     """(predictor, its residual bits) with the fewest residual bits on a band of up to 32
     rows (bits: the sum of the residuals' bit lengths on the band); REF only with a ref."""
     start = max(0, x.shape[0] // 2 - 16)
     band = x[start:start + 32]
     vband = None if valid is None else valid[start:start + 32]
     rband = None if ref is None else ref[start:start + 32]
-    costs = {p: _bits_cost(_masked_residuals(band, vband, p, rband))
+    costs = {p: _bits_cost(coder.residuals(band, vband, p, rband))
              for p in (UP, LEFT, PLANAR, NONE) + ((REF,) if ref is not None else ())}
     best = min(costs, key=lambda p: costs[p])
     return best, costs[best]
@@ -437,8 +352,8 @@ def _code_grid(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, leve
                coder: ResidualCoder = NUMPY) -> tuple[int, int, list[bytes]]:
     """(predictor, extra, [symbols frame, low bits]) of the valid pixels of grid x."""
     if predictor is None:
-        predictor = _choose_masked(x, valid, ref)[0]
-    extra, frame, low = _pack_residuals(_masked_residuals(x, valid, predictor, ref), level,
+        predictor = _choose_masked(x, valid, ref, coder)[0]
+    extra, frame, low = _pack_residuals(coder.residuals(x, valid, predictor, ref), level,
                                         coder)
     return predictor, extra, [frame, low]
 
@@ -479,7 +394,7 @@ def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, pre
     valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
     count = n if valid is None else int(valid.sum())
     z = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what, coder)
-    f = _unmask_residuals(z, valid, shape, predictor, ref)
+    f = coder.unresiduals(z, valid, predictor, ref, np.empty(shape, f"u{itemsize}"))
     return f if valid is None else np.where(valid, f, f.dtype.type(0))
 
 
@@ -518,7 +433,7 @@ def _decode_quant2(payload: bytes, shape: tuple[int, int, int], predictor: int, 
     count = n if valid is None else int(valid.sum())
     sym, low = (parts[1], parts[2]) if masked else (parts[0], parts[1])
     z = _unpack_residuals(sym, low, count, 4, extra, what, coder)
-    q = _unmask_residuals(z, valid, shape, predictor).view(np.int32)
+    q = coder.unresiduals(z, valid, predictor, None, np.empty(shape, np.uint32)).view(np.int32)
     return _float_bits(q, step, bigendian, None if valid is None else ~valid,
                        parts[3] if masked else b"", what)
 
@@ -563,7 +478,7 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
         ref_offset = None
         if same:  # the earlier grid closest to this one (a second return's first return)
             ref_offset = min(same, key=lambda off: _bits_cost(
-                _zigzag(_residual(u[::8], REF, same[off][::8]))))
+                zigzag(residual(u[::8], REF, same[off][::8]))))
         refs[int(desc.offset)] = u
         predictor, extra, masked, payload = _encode_int2(
             u, level, None if ref_offset is None else same[ref_offset], coder)
@@ -589,7 +504,7 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
         np.frombuffer(block, f"<u{size}")))
 
 
-def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
+def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
                   float_step: float | None = 0.001, coder: ResidualCoder | None = None) -> bytes:
     """Compress a LidarScan losslessly (format above).
 
@@ -598,7 +513,9 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
             datatypes, counts and byte order.
         info: its LidarInfo, optional: a staggered scan is then predicted in destaggered order
             (``pixel_shift_by_row``; the shifts travel in the format, decoding needs no info).
-        level: zstd level of every part (1..22; 3 is the measured speed/size balance).
+        level: zstd level of every part (1..22). 1, the default, is the measured best: on the
+            residual symbols (one byte per pixel, few repeats) higher levels search for
+            matches that are not there, taking 2-8x the time for the same or more bytes.
         float_step: grid of float32 channels in their unit (0.001: metres from millimetres;
             a multiple of it when every value is on that coarser grid, e.g. 0.004 for 4 mm
             units); None codes float32 channels by byte shuffle only.
@@ -732,7 +649,7 @@ def _encode_columns(times: np.ndarray[Any, Any], azimuths: np.ndarray[Any, Any],
     def delta(words: np.ndarray[Any, Any]) -> bytes:
         r = words.copy()
         r[1:] -= words[:-1]
-        return _zc(level).compress(_planes(_zigzag(r)))
+        return _zc(level).compress(_planes(zigzag(r)))
     head = struct.pack("<II", times.size, azimuths.size)
     return head + _parts(delta(times.view(np.uint64)), delta(azimuths.view(np.uint64)))
 
@@ -745,7 +662,7 @@ def _decode_columns(buf: bytes) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, A
     out = []
     for n, part in zip((n_time, n_az), _split(buf[8:], 2, "columns"), strict=True):
         z = _unplanes(_zd(part, 8 * n, "columns"), 8, n, "columns").view(np.uint64)
-        out.append(np.cumsum(_unzigzag(z), dtype=np.uint64))
+        out.append(np.cumsum(unzigzag(z), dtype=np.uint64))
     return out[0].view(np.int64), out[1].view(np.float64)
 
 

@@ -18,6 +18,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import lidarscan as ls
+from lidarscan import _codec_bits as bits
 from lidarscan import codec
 from lidarscan.errors import DecodeError
 from lidarscan.types import LidarChannel, LidarScan
@@ -148,7 +149,7 @@ def test_second_returns_are_predicted_from_the_first_and_roundtrip(
 
 def test_golden_bytes_are_what_the_encoder_writes() -> None:
     import zstandard
-    out = codec.compress_scan(_golden_scan_v2())
+    out = codec.compress_scan(_golden_scan_v2(), level=3)
     assert out[:8] == GOLDEN_V2[:8]
     assert [(s["offset"], s["length"], s["method"], s["params"]) for s in codec.segments(out)] \
         == [(s["offset"], s["length"], s["method"], s["params"])
@@ -187,15 +188,15 @@ def _loop_residual(x: np.ndarray[Any, Any], predictor: int) -> list[int]:
 def test_residuals_match_a_loop_and_invert(predictor: int, dtype: Any,
                                            rng: np.random.Generator) -> None:
     x = rng.integers(0, np.iinfo(dtype).max, (4, 5, 2), dtype=dtype, endpoint=True)
-    r = codec._residual(x, predictor)
+    r = bits.residual(x, predictor)
     assert r.reshape(-1).tolist() == _loop_residual(x, predictor)
-    assert np.array_equal(codec._unresidual(r, predictor), x)
+    assert np.array_equal(bits.unresidual(r, predictor), x)
 
 
 def test_zigzag_matches_the_definition() -> None:
     values = np.array([0, -1, 1, -2, 2, 127, -128], np.int8).view(np.uint8)
-    assert codec._zigzag(values).tolist() == [0, 1, 2, 3, 4, 254, 255]
-    assert np.array_equal(codec._unzigzag(codec._zigzag(values)), values)
+    assert bits.zigzag(values).tolist() == [0, 1, 2, 3, 4, 254, 255]
+    assert np.array_equal(bits.unzigzag(bits.zigzag(values)), values)
 
 
 def test_quant_keeps_grid_values_and_marks_everything_else_as_exception() -> None:
@@ -257,12 +258,12 @@ def test_masked_pixels_hold_their_prediction_and_cost_no_residual(
         predictor: int, dtype: Any, rng: np.random.Generator) -> None:
     x = rng.integers(0, np.iinfo(dtype).max, (5, 7, 2), dtype=dtype, endpoint=True)
     valid = rng.random(x.shape) < 0.6
-    f = codec._predicted_fill(x, valid, predictor)
+    f = bits.predicted_fill(x, valid, predictor)
     assert np.array_equal(f, _loop_fill(x, valid, predictor))
-    assert not codec._residual(f, predictor)[~valid].any()
-    z = codec._masked_residuals(x, valid, predictor)
+    assert not bits.residual(f, predictor)[~valid].any()
+    z = bits.masked_residuals(x, valid, predictor)
     assert z.size == valid.sum()
-    back = codec._unmask_residuals(z, valid, x.shape, predictor)
+    back = bits.unmask_residuals(z, valid, x.shape, predictor)
     assert np.array_equal(back[valid], x[valid])
 
 
@@ -353,6 +354,30 @@ def test_compiled_coder_matches_the_numpy_reference(values: list[int]) -> None:
         assert coder.low_counts(sym, extra).tolist() == counts.tolist()
         assert coder.unpack(sym, extra, counts, low).tolist() == values
         assert NUMPY.unpack(sym, extra, counts, low).tolist() == values
+
+
+@given(st.integers(1, 5), st.integers(1, 7), st.integers(1, 2), st.sampled_from(["u1", "u2", "u4"]),
+       st.integers(0, 4), st.booleans(), st.integers(0, 2**32 - 1))
+def test_compiled_prediction_matches_the_numpy_reference(h: int, w: int, c: int, dtype: str,
+                                                         predictor: int, masked: bool,
+                                                         seed: int) -> None:
+    from lidarscan._codec_bits import NUMPY
+    coder = _compiled()
+    rng = np.random.default_rng(seed)
+    x = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True)
+    ref = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True) \
+        if predictor == bits.REF else None
+    valid = rng.random((h, w, c)) < 0.7 if masked else None
+    z = NUMPY.residuals(x, valid, predictor, ref)
+    assert z.dtype == np.uint32
+    assert coder.residuals(x, valid, predictor, ref).tolist() == z.tolist()
+    want = NUMPY.unresiduals(z, valid, predictor, ref, np.empty_like(x))
+    got = coder.unresiduals(z, valid, predictor, ref, np.empty_like(x))
+    assert got.tolist() == want.tolist()
+    if valid is not None:
+        assert np.array_equal(want[valid], x[valid])
+    else:
+        assert np.array_equal(want, x)
 
 
 @given(_scans(), st.sampled_from([None, 0.001]))

@@ -67,22 +67,22 @@ def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     for w in range(33):
         start[w] = bit
         bit += counts[w] * w
-    out = np.zeros((bit + 7) // 8, np.uint8)
+    nbytes = (bit + 7) // 8
+    out = np.zeros(nbytes + 5, np.uint8)  # + 5: a 40-bit window never leaves the array
     for i in range(z.shape[0]):
-        rem = np.int64(k[i])
-        if rem == 0:
+        w = np.int64(k[i])
+        if w == 0:
             continue
-        p = start[rem]
-        start[rem] = p + rem
-        v = np.int64(z[i])
-        while rem > 0:
-            off = p & 7
-            take = 8 - off if 8 - off < rem else rem
-            bits = (v >> (rem - take)) & ((1 << take) - 1)
-            out[p >> 3] |= np.uint8(bits << (8 - off - take))
-            p += take
-            rem -= take
-    return out
+        p = start[w]
+        start[w] = p + w
+        win = (np.int64(z[i]) & ((np.int64(1) << w) - 1)) << (40 - (p & 7) - w)
+        at = p >> 3
+        out[at] |= np.uint8(win >> 32)
+        out[at + 1] |= np.uint8((win >> 24) & 0xFF)
+        out[at + 2] |= np.uint8((win >> 16) & 0xFF)
+        out[at + 3] |= np.uint8((win >> 8) & 0xFF)
+        out[at + 4] |= np.uint8(win & 0xFF)
+    return out[:nbytes]
 
 
 def _low_counts(symbols: Any, extra: int) -> Any:  # pragma: no cover - compiled
@@ -101,7 +101,7 @@ def _low_counts(symbols: Any, extra: int) -> Any:  # pragma: no cover - compiled
 
 def _unpack(symbols: Any, extra: int, counts: Any, low: Any) -> Any:  # pragma: no cover
     """uint32 zigzag residuals of the symbols and the low-bit stream (the caller checked the
-    bit lengths and the stream's size against ``counts``)."""
+    bit lengths and the stream's size against ``counts``; ``low`` padded with 5 zero bytes)."""
     start = np.zeros(33, np.int64)
     bit = 0
     for w in range(33):
@@ -121,27 +121,121 @@ def _unpack(symbols: Any, extra: int, counts: Any, low: Any) -> Any:  # pragma: 
         if k:
             p = start[k]
             start[k] = p + k
-            rem = k
-            acc = np.int64(0)
-            while rem > 0:
-                off = p & 7
-                take = 8 - off if 8 - off < rem else rem
-                byte = np.int64(low[p >> 3])
-                acc = (acc << take) | ((byte >> (8 - off - take)) & ((1 << take) - 1))
-                p += take
-                rem -= take
-            v |= acc
+            at = p >> 3
+            win = ((np.int64(low[at]) << 32) | (np.int64(low[at + 1]) << 24)
+                   | (np.int64(low[at + 2]) << 16) | (np.int64(low[at + 3]) << 8)
+                   | np.int64(low[at + 4]))
+            v |= (win >> (40 - (p & 7) - k)) & ((np.int64(1) << k) - 1)
         out[i] = np.uint32(v & 0xFFFFFFFF)
+    return out
+
+
+def _residuals(x: Any, valid: Any, predictor: int, ref: Any, h: int, w: int,
+               c: int) -> Any:  # pragma: no cover - compiled
+    """Zigzag residuals (uint32, row-major) of the valid pixels of the unsigned grid x (H, W, C
+    flattened; valid likewise, or None: every pixel); an invalid pixel holds its own
+    prediction (predictors 0..4: none, left, up, planar, the reference grid ``ref``)."""
+    bits = x.itemsize * 8
+    mask = (np.int64(1) << bits) - 1
+    half = np.int64(1) << (bits - 1)
+    f = np.empty_like(x)
+    out = np.empty(x.shape[0], np.uint32)
+    row = w * c
+    j = 0
+    for r in range(h):
+        base = r * row
+        for i in range(base, base + row):
+            p = np.int64(0)
+            if predictor == 1:
+                if i - base >= c:
+                    p = np.int64(f[i - c])
+            elif predictor == 2:
+                if r > 0:
+                    p = np.int64(f[i - row])
+            elif predictor == 3:
+                if i - base >= c:
+                    p += np.int64(f[i - c])
+                    if r > 0:
+                        p -= np.int64(f[i - row - c])
+                if r > 0:
+                    p += np.int64(f[i - row])
+                p &= mask
+            elif predictor == 4:
+                p = np.int64(ref[i])
+            if valid is None or valid[i]:
+                f[i] = x[i]
+                d = (np.int64(x[i]) - p) & mask
+                if d >= half:
+                    d -= mask + 1
+                out[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                j += 1
+            else:
+                f[i] = p
+    return out[:j]
+
+
+def _unresiduals(z: Any, valid: Any, predictor: int, ref: Any, out: Any, h: int, w: int,
+                 c: int) -> Any:  # pragma: no cover - compiled
+    """Inverse of ``_residuals``: ``out`` (H, W, C flattened, unsigned) filled and returned."""
+    bits = out.itemsize * 8
+    mask = (np.int64(1) << bits) - 1
+    row = w * c
+    j = 0
+    for r in range(h):
+        base = r * row
+        for i in range(base, base + row):
+            p = np.int64(0)
+            if predictor == 1:
+                if i - base >= c:
+                    p = np.int64(out[i - c])
+            elif predictor == 2:
+                if r > 0:
+                    p = np.int64(out[i - row])
+            elif predictor == 3:
+                if i - base >= c:
+                    p += np.int64(out[i - c])
+                    if r > 0:
+                        p -= np.int64(out[i - row - c])
+                if r > 0:
+                    p += np.int64(out[i - row])
+            elif predictor == 4:
+                p = np.int64(ref[i])
+            if valid is None or valid[i]:
+                zz = np.int64(z[j])
+                j += 1
+                p += (zz >> 1) ^ -(zz & 1)
+            out[i] = p & mask
     return out
 
 
 def _load() -> Any:
     fns = [numba_jit(fn, boundscheck=False) for fn in (_symbols, _pack_low, _low_counts,
-                                                       _unpack)]
+                                                       _unpack, _residuals, _unresiduals)]
     if fns[0] is None:
         return None
     from lidarscan.codec import ResidualCoder
-    return ResidualCoder("numba", *fns)
+    residuals, unresiduals = fns[4:]
+
+    symbols, pack_low, low_counts, unpack, residuals, unresiduals = fns
+
+    def flat(a: Any) -> Any:
+        return None if a is None else np.ascontiguousarray(a).reshape(-1)
+
+    def residuals_of(x: Any, valid: Any, predictor: int, ref: Any) -> Any:
+        # ref None: any array of x's type (only the REF predictor reads it)
+        return residuals(flat(x), flat(valid), predictor, flat(x if ref is None else ref),
+                         *x.shape)
+
+    def unresiduals_of(z: Any, valid: Any, predictor: int, ref: Any, out: Any) -> Any:
+        got = unresiduals(z, flat(valid), predictor, flat(out if ref is None else ref),
+                          out.reshape(-1), *out.shape)
+        return got.reshape(out.shape)
+
+    def unpack_of(symbols_: Any, extra: int, counts: Any, low: Any) -> Any:
+        return unpack(symbols_, extra, counts, np.concatenate([low, np.zeros(5, np.uint8)]))
+
+    return ResidualCoder("numba", symbols, pack_low, low_counts, unpack_of, residuals_of,
+                         unresiduals_of)
 
 
 _COMPILED = LoadOnce(_load)
