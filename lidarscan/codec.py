@@ -44,8 +44,9 @@ id    name       params / payload
                  numpy packbits order), zstd frame of the exceptions' original 4 bytes.
                  Exceptions take their left neighbour's q (0 at a row start).
 5     PREDICT2   u8 datatype (an integer type), u8 bigendian, u32 H, u32 W, u32 count,
-                 u8 predictor, u8 rolled, u8 extra (1 or 2), u8 masked [, H x i32 row
-                 shifts] / parts, each ``u32 n + n bytes``: [mask,] symbols, low bits.
+                 u8 predictor, u8 rolled, u8 extra (1 or 2), u8 masked [, u32 reference
+                 offset when predictor = 4] [, H x i32 row shifts] / parts, each
+                 ``u32 n + n bytes``: [mask,] symbols, low bits.
                  masked = 1: pixels whose value is 0 are not coded (mask: zstd frame of the
                  packed "value != 0" bits, row-major over (H, W, count), numpy packbits
                  order); they decode to 0.
@@ -59,7 +60,10 @@ id    name       params / payload
 ====  =========  ==========================================================================
 
 Predictors (on the (H, W, C) array, per count index): 0 none, 1 left (x[r, c-1]), 2 up
-(x[r-1, c]), 3 planar (left + up - up-left); out-of-grid neighbours are 0. Residuals are
+(x[r-1, c]), 3 planar (left + up - up-left); out-of-grid neighbours are 0; 4 (PREDICT2 only)
+the same pixel of the earlier channel block at the reference offset, which has this block's
+datatype, count and size (a second return predicted from the first), read as unsigned values
+in the scan's byte order and rolled like this block. Residuals are
 computed and inverted with wrapping integer arithmetic (decoding: cumulative sums).
 "Rolled": before prediction row r was rotated right by its shift s_r (element c moved to
 (c + s_r) mod W): a staggered scan is predicted in destaggered order, where the row above sees
@@ -81,6 +85,12 @@ pixel, row-major. Low bits: zstd frame of one bit stream in which the values are
 ascending (pixel order inside a group), each value's k bits most significant first, packed
 most significant bit first, the last byte padded with zeros. The sizes of the symbols are
 what zstd's entropy coder sees; the low bits are close to uniform and cost about k bits.
+
+Code layout: this module holds the container and the encoder's choices; the numpy reference of
+the prediction and of the residual coding (the test oracle) is :mod:`lidarscan._codec_bits`,
+whose hot steps a :class:`ResidualCoder` bundles (``coder=``: converters pass the compiled one,
+``converters._kernels.select("codec")``; every coder writes the same bytes); the version 1
+methods decode in :mod:`lidarscan._codec_v1`.
 
 ``decompress_scan`` returns a :class:`lidarscan.types.LidarScan` whose CDR (``lidarscan.encode``)
 is byte-identical to the input's (any version). Errors: :class:`lidarscan.errors.EncodeError` (a scan that does
@@ -104,7 +114,6 @@ from lidarscan._codec_bits import (
     UP,
     ResidualCoder,
     residual,
-    unresidual,
     unzigzag,
     zigzag,
     bitlen_table,
@@ -186,13 +195,6 @@ def _as_unsigned(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     return native.view(f"u{arr.dtype.itemsize}")
 
 
-def _unpredict(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
-               what: str) -> np.ndarray[Any, Any]:
-    n = shape[0] * shape[1] * shape[2]
-    z = _unplanes(_zd(payload, n * itemsize, what), itemsize, n, what).view(f"u{itemsize}")
-    return unresidual(unzigzag(z).reshape(shape), predictor)
-
-
 def _roll(x: np.ndarray[Any, Any], shifts: np.ndarray[Any, Any] | None, sign: int
           ) -> np.ndarray[Any, Any]:
     """Rotate row r of (H, W, C) right by sign * shifts[r] (None: unchanged); rows sharing a
@@ -231,27 +233,6 @@ def _quantise(v: np.ndarray[Any, Any], step: float
         return None
     q[exc] = 0
     return q, exc
-
-
-def _unquant(payload: bytes, shape: tuple[int, int, int], predictor: int, step: float,
-             bigendian: bool, what: str) -> bytes:
-    n = shape[0] * shape[1] * shape[2]
-    pos = 0
-
-    def take() -> bytes:
-        nonlocal pos
-        if pos + 4 > len(payload):
-            raise DecodeError(what, len(payload), "a length-prefixed QUANT part")
-        (k,) = struct.unpack_from("<I", payload, pos)
-        if pos + 4 + k > len(payload):
-            raise DecodeError(what, k, f"at most {len(payload) - pos - 4} bytes")
-        part = payload[pos + 4: pos + 4 + k]
-        pos += 4 + k
-        return part
-
-    q = _unpredict(take(), shape, 4, predictor, what).view(np.int32)
-    exc = _unmask_frame(take(), n, what)
-    return _float_bits(q, step, bigendian, exc, payload[pos:], what)
 
 
 def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
@@ -681,26 +662,8 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
         size = params[0]
         out = _unplanes(_zd(payload, length, what), size, length // size, what).tobytes()
     elif method in (PREDICT, QUANT):
-        if len(params) < _GRID.size:
-            raise DecodeError(f"{what} params", len(params), f"at least {_GRID.size} bytes")
-        datatype, big, h, w, c, predictor, rolled = _GRID.unpack_from(params)
-        base = _GRID.size + (8 if method == QUANT else 0)
-        want = base + (4 * h if rolled else 0)
-        if len(params) != want:
-            raise DecodeError(f"{what} params", len(params), f"{want} bytes")
-        ok_type = datatype in _INT_CODES if method == PREDICT else datatype == _FLOAT32
-        if not ok_type or predictor > PLANAR or h * w * c * _SIZES.get(datatype, 0) != length:
-            raise DecodeError(f"{what} params", (datatype, h, w, c, predictor),
-                              f"a grid of {length} bytes with a known datatype and predictor")
-        shifts = (np.frombuffer(params, "<i4", h, base).astype(np.int64) if rolled else None)
-        if method == PREDICT:
-            size = _SIZES[datatype]
-            u = _roll(_unpredict(payload, (h, w, c), size, predictor, what), shifts, -1)
-            out = u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
-        else:
-            (step,) = struct.unpack_from("<d", params, _GRID.size)
-            bits = _unquant(payload, (h, w, c), predictor, step, bool(big), what)
-            out = _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
+        from lidarscan._codec_v1 import decode_v1
+        out = decode_v1(what, length, method, params, payload)
     elif method in (PREDICT2, QUANT2):
         out = _decode_v2(what, offset, length, method, params, payload, data, coder)
     else:
