@@ -528,6 +528,22 @@ def test_mcap_writer_compresses_scans_and_the_reader_decompresses(tmp_path: Any)
     assert [ls.encode(s) for s, _ in read_scans(path)] == [ls.encode(scan)] * 2
 
 
+def test_mcap_writer_and_records_take_the_compiled_coder(tmp_path: Any) -> None:
+    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter, read_messages
+    coder = _compiled()
+    info, scan = _ouster_pair()
+    payloads = []
+    for name, given in (("ref.mcap", None), ("fast.mcap", coder)):
+        with McapWriter(tmp_path / name, scan_encoding=CODEC_ENCODING,
+                        codec_coder=given) as writer:
+            writer.write("/info", info)
+            writer.write("/scan", scan)
+        record = next(m for m in read_messages(tmp_path / name) if m.msgtype == SCAN_TYPE)
+        assert ls.encode(record.decode(coder)) == ls.encode(scan)
+        payloads.append(record.payload)
+    assert payloads[0] == payloads[1]
+
+
 def test_mcap_writer_refuses_another_encoding_or_a_compressed_non_scan(tmp_path: Any) -> None:
     from lidarscan.errors import ConfigError, SchemaError
     from lidarscan.mcap import CODEC_ENCODING, INFO_TYPE, McapWriter
