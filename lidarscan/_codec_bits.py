@@ -42,6 +42,8 @@ class ResidualCoder(NamedTuple):
             W, C) or None) -> uint32``: :func:`masked_residuals`.
         unresiduals: ``(z uint32, valid or None, predictor, ref or None, out (H, W, C)
             unsigned) -> out``: :func:`unmask_residuals` written into ``out``.
+        costs: ``(x, valid or None, ref or None) -> int64[5]``: the sum of the bit lengths of
+            the residuals under each predictor 0..4 (-1 for REF without ``ref``).
     """
 
     name: str
@@ -51,6 +53,7 @@ class ResidualCoder(NamedTuple):
     unpack: Callable[..., Any]
     residuals: Callable[..., Any]
     unresiduals: Callable[..., Any]
+    costs: Callable[..., Any]
 
 
 # ------------------------------------------------------------------ prediction
@@ -256,6 +259,14 @@ def _unresiduals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, pr
     return out
 
 
+def _costs(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
+           ref: np.ndarray[Any, Any] | None) -> np.ndarray[Any, Any]:
+    out = np.full(5, -1, np.int64)
+    for predictor in range(5 if ref is not None else 4):
+        out[predictor] = int(bitlen(_residuals(x, valid, predictor, ref)).sum(dtype=np.int64))
+    return out
+
+
 #: The reference coder (numpy, one pass per bit width).
 NUMPY = ResidualCoder("numpy", _symbols, _pack_low, _low_counts, _unpack, _residuals,
-                      _unresiduals)
+                      _unresiduals, _costs)

@@ -303,8 +303,9 @@ def _choose_masked(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
     band = x[start:start + 32]
     vband = None if valid is None else valid[start:start + 32]
     rband = None if ref is None else ref[start:start + 32]
-    costs = {p: _bits_cost(coder.residuals(band, vband, p, rband))
-             for p in (UP, LEFT, PLANAR, NONE) + ((REF,) if ref is not None else ())}
+    bits = coder.costs(band, vband, rband)
+    costs = {p: int(bits[p]) for p in (UP, LEFT, PLANAR, NONE) + ((REF,) if ref is not None
+                                                                   else ())}
     best = min(costs, key=lambda p: costs[p])
     return best, costs[best]
 

@@ -370,6 +370,10 @@ def test_compiled_prediction_matches_the_numpy_reference(h: int, w: int, c: int,
     valid = rng.random((h, w, c)) < 0.7 if masked else None
     z = NUMPY.residuals(x, valid, predictor, ref)
     assert z.dtype == np.uint32
+    costs = NUMPY.costs(x, valid, ref)
+    assert costs[predictor] == sum(int(v).bit_length() for v in z.tolist())
+    assert (costs[bits.REF] == -1) == (ref is None)
+    assert coder.costs(x, valid, ref).tolist() == costs.tolist()
     assert coder.residuals(x, valid, predictor, ref).tolist() == z.tolist()
     want = NUMPY.unresiduals(z, valid, predictor, ref, np.empty_like(x))
     got = coder.unresiduals(z, valid, predictor, ref, np.empty_like(x))

@@ -1,22 +1,22 @@
-"""Optional compiled (numba) path of :mod:`lidarscan.codec`: the residual bit-length coding.
+"""Optional compiled (numba) path of :mod:`lidarscan.codec`: prediction and residual coding.
 
 The format's version 2 residual coding (methods PREDICT2 and QUANT2, spec in the header of
-:mod:`lidarscan.codec`) turns zigzag residuals into one symbol byte per value plus a bit stream
-of low bits grouped by their width. Its numpy reference (:mod:`lidarscan._codec_bits`, the test
-oracle) makes one pass per bit width; the kernels here make one pass over the values and must
-give the same bytes (integer arithmetic only: bit-identical by construction, and tested so).
+:mod:`lidarscan.codec`) predicts every pixel of a channel grid, turns the zigzag residuals into
+one symbol byte per value plus a bit stream of low bits grouped by their width. Its numpy
+reference (:mod:`lidarscan._codec_bits`, the test oracle) makes one pass per predictor step
+and per bit width; the kernels here make one pass over the values and give the same bytes
+(integer arithmetic only: bit-identical by construction, and tested so).
 
-Three kernels, the same arguments as the reference functions they replace:
+:func:`coder` bundles them as a :class:`lidarscan.codec.ResidualCoder` (the fields and their
+arguments are documented there: ``symbols``, ``pack_low``, ``low_counts``, ``unpack``,
+``residuals``, ``unresiduals``, ``costs``); ``compress_scan`` / ``decompress_scan`` take it as
+``coder=``. It is chosen by :func:`converters._kernels.select` (``"codec"``), which reads the
+switches. The core package never imports this module (layering): converters-level entry
+points (the evidence, the bench, ``McapWriter(codec_coder=...)`` from the CLI) pass it.
 
-* ``symbols(z, table)``: (symbols with extra 1, k with extra 1, symbols with extra 2, k with
-  extra 2) of uint32 zigzag residuals, ``table`` the uint8 bit length of 0 .. 65535;
-* ``pack_low(z, k)``: the low-bit stream (uint8) of the values ``z`` with ``k`` low bits each;
-* ``low_counts(symbols, extra)`` and ``unpack(symbols, extra, counts, low)``: the inverse.
-
-:func:`coder` bundles them as a :class:`lidarscan.codec.ResidualCoder`, the object
-``compress_scan`` / ``decompress_scan`` take (``coder=``); it is chosen by
-:func:`converters._kernels.select` (``"codec"``), which reads the switches. The core package
-never imports this module (layering): converters-level entry points pass the coder.
+The grid kernels take flattened C-order arrays plus the shape (H, W, C); the wrappers in
+:func:`_load` flatten, pad the low-bit stream by 5 bytes (the 40-bit read window) and stand in
+x for an absent reference grid (only predictor 4 reads it).
 """
 
 from __future__ import annotations
@@ -174,6 +174,16 @@ def _residuals(x: Any, valid: Any, predictor: int, ref: Any, h: int, w: int,
     return out[:j]
 
 
+def _bitsum(z: Any, table: Any) -> Any:  # pragma: no cover - compiled
+    """Sum of the bit lengths (int64) of uint32 values; ``table``: bit lengths of 0..65535."""
+    total = np.int64(0)
+    for i in range(z.shape[0]):
+        v = np.int64(z[i])
+        hi = v >> 16
+        total += np.int64(table[hi]) + 16 if hi else np.int64(table[v])
+    return total
+
+
 def _unresiduals(z: Any, valid: Any, predictor: int, ref: Any, out: Any, h: int, w: int,
                  c: int) -> Any:  # pragma: no cover - compiled
     """Inverse of ``_residuals``: ``out`` (H, W, C flattened, unsigned) filled and returned."""
@@ -210,13 +220,12 @@ def _unresiduals(z: Any, valid: Any, predictor: int, ref: Any, out: Any, h: int,
 
 def _load() -> Any:
     fns = [numba_jit(fn, boundscheck=False) for fn in (_symbols, _pack_low, _low_counts,
-                                                       _unpack, _residuals, _unresiduals)]
+                                                       _unpack, _residuals, _unresiduals,
+                                                       _bitsum)]
     if fns[0] is None:
         return None
-    from lidarscan.codec import ResidualCoder
-    residuals, unresiduals = fns[4:]
-
-    symbols, pack_low, low_counts, unpack, residuals, unresiduals = fns
+    from lidarscan._codec_bits import ResidualCoder, bitlen_table
+    symbols, pack_low, low_counts, unpack, residuals, unresiduals, bitsum = fns
 
     def flat(a: Any) -> Any:
         return None if a is None else np.ascontiguousarray(a).reshape(-1)
@@ -234,8 +243,16 @@ def _load() -> Any:
     def unpack_of(symbols_: Any, extra: int, counts: Any, low: Any) -> Any:
         return unpack(symbols_, extra, counts, np.concatenate([low, np.zeros(5, np.uint8)]))
 
+    def costs_of(x: Any, valid: Any, ref: Any) -> Any:
+        out = np.full(5, -1, np.int64)
+        flat_x, flat_valid, flat_ref = flat(x), flat(valid), flat(x if ref is None else ref)
+        for predictor in range(5 if ref is not None else 4):
+            z = residuals(flat_x, flat_valid, predictor, flat_ref, *x.shape)
+            out[predictor] = bitsum(z, bitlen_table())
+        return out
+
     return ResidualCoder("numba", symbols, pack_low, low_counts, unpack_of, residuals_of,
-                         unresiduals_of)
+                         unresiduals_of, costs_of)
 
 
 _COMPILED = LoadOnce(_load)
