@@ -21,6 +21,7 @@ x for an absent reference grid (only predictor 4 reads it).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -85,23 +86,38 @@ def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     return out[:nbytes]
 
 
-def _low_counts(symbols: Any, extra: int) -> Any:  # pragma: no cover - compiled
-    """Number of values per low-bit width 0 .. 32 (int64) of the symbols."""
-    counts = np.zeros(33, np.int64)
+@functools.lru_cache(maxsize=4)
+def _symbol_tables(extra: int) -> tuple[Any, Any]:
+    """(value bits above the low bits, low-bit count k) of every symbol byte, int64[256]."""
+    base = np.zeros(256, np.int64)
+    kk = np.zeros(256, np.int64)
+    for s in range(256):
+        b = s >> extra
+        below = max(b - 1, 0)
+        e = min(below, extra)
+        kk[s] = min(below - e, 32)
+        if 0 < b <= 32:
+            base[s] = (1 << below) | ((s & ((1 << e) - 1)) << int(kk[s]))
+    return base, kk
+
+
+def _low_counts(symbols: Any, kk: Any) -> Any:  # pragma: no cover - compiled
+    """Number of values per low-bit width 0 .. 32 (int64) of the symbols (kk: the symbols'
+    low-bit counts, :func:`_symbol_tables`)."""
+    hist = np.zeros(256, np.int64)
     for i in range(symbols.shape[0]):
-        b = np.int64(symbols[i]) >> extra
-        below = b - 1 if b > 0 else 0
-        e = below if below < extra else extra
-        k = below - e
-        if k > 32:
-            k = 32
-        counts[k] += 1
+        hist[symbols[i]] += 1
+    counts = np.zeros(33, np.int64)
+    for s in range(256):
+        counts[kk[s]] += hist[s]
     return counts
 
 
-def _unpack(symbols: Any, extra: int, counts: Any, low: Any) -> Any:  # pragma: no cover
+def _unpack(symbols: Any, base: Any, kk: Any, counts: Any, low: Any
+            ) -> Any:  # pragma: no cover - compiled
     """uint32 zigzag residuals of the symbols and the low-bit stream (the caller checked the
-    bit lengths and the stream's size against ``counts``; ``low`` padded with 5 zero bytes)."""
+    bit lengths and the stream's size against ``counts``; ``low`` padded with 5 zero bytes;
+    base, kk: :func:`_symbol_tables`)."""
     start = np.zeros(33, np.int64)
     bit = 0
     for w in range(33):
@@ -110,14 +126,9 @@ def _unpack(symbols: Any, extra: int, counts: Any, low: Any) -> Any:  # pragma: 
     n = symbols.shape[0]
     out = np.empty(n, np.uint32)
     for i in range(n):
-        s = np.int64(symbols[i])
-        b = s >> extra
-        below = b - 1 if b > 0 else 0
-        e = below if below < extra else extra
-        k = below - e
-        v = np.int64(0)
-        if b > 0:
-            v = (np.int64(1) << below) | ((s & ((1 << e) - 1)) << k)
+        s = symbols[i]
+        v = base[s]
+        k = kk[s]
         if k:
             p = start[k]
             start[k] = p + k
@@ -240,8 +251,12 @@ def _load() -> Any:
                           out.reshape(-1), *out.shape)
         return got.reshape(out.shape)
 
+    def low_counts_of(symbols_: Any, extra: int) -> Any:
+        return low_counts(symbols_, _symbol_tables(extra)[1])
+
     def unpack_of(symbols_: Any, extra: int, counts: Any, low: Any) -> Any:
-        return unpack(symbols_, extra, counts, np.concatenate([low, np.zeros(5, np.uint8)]))
+        return unpack(symbols_, *_symbol_tables(extra), counts,
+                      np.concatenate([low, np.zeros(5, np.uint8)]))
 
     def costs_of(x: Any, valid: Any, ref: Any) -> Any:
         out = np.full(5, -1, np.int64)
@@ -251,7 +266,7 @@ def _load() -> Any:
             out[predictor] = bitsum(z, bitlen_table())
         return out
 
-    return ResidualCoder("numba", symbols, pack_low, low_counts, unpack_of, residuals_of,
+    return ResidualCoder("numba", symbols, pack_low, low_counts_of, unpack_of, residuals_of,
                          unresiduals_of, costs_of)
 
 
