@@ -23,7 +23,6 @@ import argparse
 import os
 import statistics
 import time
-from collections.abc import Callable
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -33,6 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _timing import interleaved_times  # noqa: E402
 
 import lidarscan as ls  # noqa: E402
 from lidarscan import codec  # noqa: E402
@@ -57,24 +57,6 @@ def make_scan() -> tuple[Any, Any]:
                        column_time_offsets=np.arange(width, dtype=np.int64) * 48_828,
                        as_dataclass=True)
     return out, SimpleNamespace(pixel_shift_by_row=np.asarray(info.pixel_shift_by_row) * 2)
-
-
-def cpu_times(candidates: dict[str, Callable[[], Any]], rounds: int, seed: int = 0
-              ) -> dict[str, list[float]]:
-    """CPU seconds (``time.process_time``) of every call of each candidate: one untimed
-    warm-up call each, then round after round in a new random order."""
-    times: dict[str, list[float]] = {name: [] for name in candidates}
-    order = list(candidates)
-    shuffle = np.random.default_rng(seed).shuffle
-    for fn in candidates.values():
-        fn()
-    for _ in range(rounds):
-        shuffle(order)
-        for name in order:
-            start = time.process_time()
-            candidates[name]()
-            times[name].append(time.process_time() - start)
-    return times
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -109,8 +91,9 @@ def main(argv: list[str] | None = None) -> int:
         dec[name] = lambda n=name, c=coder: codec.decompress_scan(packed[n], coder=c)
     assert len({packed[name] for name in coders}) == 1, "the coders wrote different bytes"
     load = os.getloadavg()[0]
-    te = {k: statistics.median(v) for k, v in cpu_times(enc, args.rounds).items()}
-    td = {k: statistics.median(v) for k, v in cpu_times(dec, args.rounds, 1).items()}
+    cpu = time.process_time
+    te = {k: statistics.median(v) for k, v in interleaved_times(enc, args.rounds, 0, cpu).items()}
+    td = {k: statistics.median(v) for k, v in interleaved_times(dec, args.rounds, 1, cpu).items()}
     base_b, base_e, base_d = (len(packed["zstd-3 (buffer)"]), te["zstd-3 (buffer)"],
                               td["zstd-3 (buffer)"])
     print(f"LidarScan {scan.height}x{scan.width}, {len(scan.channels)} channels, "

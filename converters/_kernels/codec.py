@@ -141,50 +141,6 @@ def _unpack(symbols: Any, base: Any, kk: Any, counts: Any, low: Any
     return out
 
 
-def _residuals(x: Any, valid: Any, predictor: int, ref: Any, h: int, w: int,
-               c: int) -> Any:  # pragma: no cover - compiled
-    """Zigzag residuals (uint32, row-major) of the valid pixels of the unsigned grid x (H, W, C
-    flattened; valid likewise, or None: every pixel); an invalid pixel holds its own
-    prediction (predictors 0..4: none, left, up, planar, the reference grid ``ref``)."""
-    bits = x.itemsize * 8
-    mask = (np.int64(1) << bits) - 1
-    half = np.int64(1) << (bits - 1)
-    f = np.empty_like(x)
-    out = np.empty(x.shape[0], np.uint32)
-    row = w * c
-    j = 0
-    for r in range(h):
-        base = r * row
-        for i in range(base, base + row):
-            p = np.int64(0)
-            if predictor == 1:
-                if i - base >= c:
-                    p = np.int64(f[i - c])
-            elif predictor == 2:
-                if r > 0:
-                    p = np.int64(f[i - row])
-            elif predictor == 3:
-                if i - base >= c:
-                    p += np.int64(f[i - c])
-                    if r > 0:
-                        p -= np.int64(f[i - row - c])
-                if r > 0:
-                    p += np.int64(f[i - row])
-                p &= mask
-            elif predictor == 4:
-                p = np.int64(ref[i])
-            if valid is None or valid[i]:
-                f[i] = x[i]
-                d = (np.int64(x[i]) - p) & mask
-                if d >= half:
-                    d -= mask + 1
-                out[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
-                j += 1
-            else:
-                f[i] = p
-    return out[:j]
-
-
 def _bitsum(z: Any, table: Any) -> Any:  # pragma: no cover - compiled
     """Sum of the bit lengths (int64) of uint32 values; ``table``: bit lengths of 0..65535."""
     total = np.int64(0)
@@ -195,11 +151,17 @@ def _bitsum(z: Any, table: Any) -> Any:  # pragma: no cover - compiled
     return total
 
 
-def _unresiduals(z: Any, valid: Any, predictor: int, ref: Any, out: Any, h: int, w: int,
-                 c: int) -> Any:  # pragma: no cover - compiled
-    """Inverse of ``_residuals``: ``out`` (H, W, C flattened, unsigned) filled and returned."""
-    bits = out.itemsize * 8
+def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, decode: bool, h: int,
+          w: int, c: int) -> int:  # pragma: no cover - compiled
+    """Prediction of an unsigned grid (H, W, C flattened; valid likewise, or None: every pixel
+    valid; predictors 0..4: none, left, up, planar, the reference grid ``ref``), in row-major
+    order; an invalid pixel holds its own prediction, and g (like x, written) is the grid the
+    predictions read. Encoding (``decode`` False): the zigzag residuals of the valid pixels of
+    x go to z (uint32). Decoding: g is written from the residuals z (x is not read). Returns
+    the number of valid pixels."""
+    bits = g.itemsize * 8
     mask = (np.int64(1) << bits) - 1
+    half = np.int64(1) << (bits - 1)
     row = w * c
     j = 0
     for r in range(h):
@@ -208,48 +170,58 @@ def _unresiduals(z: Any, valid: Any, predictor: int, ref: Any, out: Any, h: int,
             p = np.int64(0)
             if predictor == 1:
                 if i - base >= c:
-                    p = np.int64(out[i - c])
+                    p = np.int64(g[i - c])
             elif predictor == 2:
                 if r > 0:
-                    p = np.int64(out[i - row])
+                    p = np.int64(g[i - row])
             elif predictor == 3:
                 if i - base >= c:
-                    p += np.int64(out[i - c])
+                    p += np.int64(g[i - c])
                     if r > 0:
-                        p -= np.int64(out[i - row - c])
+                        p -= np.int64(g[i - row - c])
                 if r > 0:
-                    p += np.int64(out[i - row])
+                    p += np.int64(g[i - row])
             elif predictor == 4:
                 p = np.int64(ref[i])
             if valid is None or valid[i]:
-                zz = np.int64(z[j])
+                if decode:
+                    zz = np.int64(z[j])
+                    p += (zz >> 1) ^ -(zz & 1)
+                else:
+                    d = (np.int64(x[i]) - p) & mask
+                    if d >= half:
+                        d -= mask + 1
+                    z[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                    p = np.int64(x[i])
                 j += 1
-                p += (zz >> 1) ^ -(zz & 1)
-            out[i] = p & mask
-    return out
+            g[i] = p & mask
+    return j
 
 
 def _load() -> Any:
     fns = [numba_jit(fn, boundscheck=False) for fn in (_symbols, _pack_low, _low_counts,
-                                                       _unpack, _residuals, _unresiduals,
-                                                       _bitsum)]
+                                                       _unpack, _grid, _bitsum)]
     if fns[0] is None:
         return None
     from lidarscan._codec_bits import ResidualCoder, bitlen_table
-    symbols, pack_low, low_counts, unpack, residuals, unresiduals, bitsum = fns
+    symbols, pack_low, low_counts, unpack, grid, bitsum = fns
 
     def flat(a: Any) -> Any:
         return None if a is None else np.ascontiguousarray(a).reshape(-1)
 
     def residuals_of(x: Any, valid: Any, predictor: int, ref: Any) -> Any:
         # ref None: any array of x's type (only the REF predictor reads it)
-        return residuals(flat(x), flat(valid), predictor, flat(x if ref is None else ref),
-                         *x.shape)
+        z = np.empty(x.size, np.uint32)
+        flat_x = flat(x)
+        n = grid(flat_x, np.empty_like(flat_x), z, flat(valid), predictor,
+                 flat(x if ref is None else ref), False, *x.shape)
+        return z[:n]
 
     def unresiduals_of(z: Any, valid: Any, predictor: int, ref: Any, out: Any) -> Any:
-        got = unresiduals(z, flat(valid), predictor, flat(out if ref is None else ref),
-                          out.reshape(-1), *out.shape)
-        return got.reshape(out.shape)
+        g = out.reshape(-1)
+        grid(g, g, z, flat(valid), predictor, flat(out if ref is None else ref), True,
+             *out.shape)
+        return out
 
     def low_counts_of(symbols_: Any, extra: int) -> Any:
         return low_counts(symbols_, _symbol_tables(extra)[1])
@@ -262,8 +234,10 @@ def _load() -> Any:
         out = np.full(5, -1, np.int64)
         flat_x, flat_valid, flat_ref = flat(x), flat(valid), flat(x if ref is None else ref)
         for predictor in range(5 if ref is not None else 4):
-            z = residuals(flat_x, flat_valid, predictor, flat_ref, *x.shape)
-            out[predictor] = bitsum(z, bitlen_table())
+            z = np.empty(x.size, np.uint32)
+            n = grid(flat_x, np.empty_like(flat_x), z, flat_valid, predictor, flat_ref, False,
+                     *x.shape)
+            out[predictor] = bitsum(z[:n], bitlen_table())
         return out
 
     return ResidualCoder("numba", symbols, pack_low, low_counts_of, unpack_of, residuals_of,
