@@ -1,15 +1,18 @@
-"""The residual bit-length coding of :mod:`lidarscan.codec` (format versions 2 and 3), in numpy.
+"""Prediction and residual bit-length coding of :mod:`lidarscan.codec` (version 2), in numpy.
 
-This is the reference (and the test oracle) of the coding the module header specifies: a
-zigzag residual z of bit length b becomes the symbol byte ``b << extra | t`` (t: the
+This is the reference (and the test oracle) of what the format header of :mod:`lidarscan.codec`
+specifies: the predictors (none, left, up, planar, a reference grid) with wrapping integer
+arithmetic, the masked pixels that hold their own prediction, zigzag, and the bit-length
+coding: a zigzag residual z of bit length b becomes the symbol byte ``b << extra | t`` (t: the
 ``e = min(b - 1, extra)`` bits below the leading one) and ``k = b - 1 - e`` raw low bits, the
 low bits of all values forming one stream grouped by k ascending (value order inside a group),
 each value's bits most significant first, packed most significant bit first.
 
-The four hot steps are the fields of a :class:`ResidualCoder`; :data:`NUMPY` holds the functions
+The hot steps are the fields of a :class:`ResidualCoder`; :data:`NUMPY` holds the functions
 below. A compiled coder (``converters._kernels.codec``, chosen by
-:func:`converters._kernels.select`) has the same signatures and must give the same bytes; the
-core never imports it: callers pass it to ``compress_scan`` / ``decompress_scan``.
+:func:`converters._kernels.select`) has the same signatures and gives the same bytes; the core
+never imports it: callers pass it to ``compress_scan`` / ``decompress_scan``. All arrays are
+native byte order.
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 __all__ = ["LEFT", "NONE", "NUMPY", "PLANAR", "REF", "UP", "ResidualCoder", "bitlen",
-           "bitlen_table"]
+           "bitlen_table", "fill", "masked_residuals", "predicted_fill", "residual",
+           "unmask_residuals", "unresidual", "unzigzag", "zigzag"]
 
 #: Predictors (format header of :mod:`lidarscan.codec`).
 NONE, LEFT, UP, PLANAR, REF = 0, 1, 2, 3, 4
@@ -59,7 +63,7 @@ class ResidualCoder(NamedTuple):
 # ------------------------------------------------------------------ prediction
 
 def residual(x: np.ndarray[Any, Any], predictor: int,
-              ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+             ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
     """x - prediction in x's (unsigned, native) dtype, wrapping; x (and ref, the grid REF
     predicts from) is (H, W, C)."""
     if predictor == REF:
@@ -73,7 +77,7 @@ def residual(x: np.ndarray[Any, Any], predictor: int,
 
 
 def unresidual(r: np.ndarray[Any, Any], predictor: int,
-                ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+               ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
     if predictor == REF:
         return r + ref
     x = r
@@ -109,7 +113,7 @@ def fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any]) -> np.ndarray[Any
 
 
 def predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int,
-                    ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+                   ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
     """The grid f (H, W, C) equal to x at valid pixels and to its own prediction at invalid
     ones (their residual is 0): NONE 0, LEFT the last valid value to the left, UP the last
     valid value above, PLANAR the row above plus the last valid (x - row above) to the left,
@@ -136,8 +140,8 @@ def predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predict
 
 
 def masked_residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                      predictor: int, ref: np.ndarray[Any, Any] | None = None
-                      ) -> np.ndarray[Any, Any]:
+                     predictor: int, ref: np.ndarray[Any, Any] | None = None
+                     ) -> np.ndarray[Any, Any]:
     """Zigzag residuals of the valid pixels of x (H, W, C), row-major; invalid pixels take
     their predicted value (:func:`predicted_fill`)."""
     if valid is None:
@@ -146,8 +150,8 @@ def masked_residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None
 
 
 def unmask_residuals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                      shape: tuple[int, int, int], predictor: int,
-                      ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
+                     shape: tuple[int, int, int], predictor: int,
+                     ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
     """The grid from the valid pixels' zigzag residuals, invalid pixels' residuals being 0
     (inverse of :func:`masked_residuals`; invalid pixels hold their predicted value)."""
     if valid is None:

@@ -113,10 +113,10 @@ from lidarscan._codec_bits import (
     REF,
     UP,
     ResidualCoder,
+    bitlen_table,
     residual,
     unzigzag,
     zigzag,
-    bitlen_table,
 )
 from lidarscan.errors import DecodeError, EncodeError
 

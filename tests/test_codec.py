@@ -4,7 +4,9 @@ Layers: golden bytes of the format (version 2 decoded, and re-encoded with the z
 were made with; version 1 still decoded), loop-based oracles of the predictors, zigzag, masked
 pixels' fill and the bit-length coding, round trips on hypothesis scans (shapes,
 every datatype, counts, both byte orders, arbitrary bytes including NaN payloads, +-Inf, -0,
-padding bytes and trailing bytes), round trips of the real Ouster frames, and damaged buffers.
+padding bytes and trailing bytes), round trips of the real Ouster frames, and damaged buffers;
+the compiled residual coder (numba, ``converters._kernels.select("codec")``) against the numpy
+reference step by step and scan by scan (same bytes), also through the MCAP writer.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import lidarscan as ls
-from lidarscan import _codec_bits as bits
+from lidarscan import _codec_bits as cbits
 from lidarscan import codec
 from lidarscan.errors import DecodeError
 from lidarscan.types import LidarChannel, LidarScan
@@ -188,15 +190,15 @@ def _loop_residual(x: np.ndarray[Any, Any], predictor: int) -> list[int]:
 def test_residuals_match_a_loop_and_invert(predictor: int, dtype: Any,
                                            rng: np.random.Generator) -> None:
     x = rng.integers(0, np.iinfo(dtype).max, (4, 5, 2), dtype=dtype, endpoint=True)
-    r = bits.residual(x, predictor)
+    r = cbits.residual(x, predictor)
     assert r.reshape(-1).tolist() == _loop_residual(x, predictor)
-    assert np.array_equal(bits.unresidual(r, predictor), x)
+    assert np.array_equal(cbits.unresidual(r, predictor), x)
 
 
 def test_zigzag_matches_the_definition() -> None:
     values = np.array([0, -1, 1, -2, 2, 127, -128], np.int8).view(np.uint8)
-    assert bits.zigzag(values).tolist() == [0, 1, 2, 3, 4, 254, 255]
-    assert np.array_equal(bits.unzigzag(bits.zigzag(values)), values)
+    assert cbits.zigzag(values).tolist() == [0, 1, 2, 3, 4, 254, 255]
+    assert np.array_equal(cbits.unzigzag(cbits.zigzag(values)), values)
 
 
 def test_quant_keeps_grid_values_and_marks_everything_else_as_exception() -> None:
@@ -258,12 +260,12 @@ def test_masked_pixels_hold_their_prediction_and_cost_no_residual(
         predictor: int, dtype: Any, rng: np.random.Generator) -> None:
     x = rng.integers(0, np.iinfo(dtype).max, (5, 7, 2), dtype=dtype, endpoint=True)
     valid = rng.random(x.shape) < 0.6
-    f = bits.predicted_fill(x, valid, predictor)
+    f = cbits.predicted_fill(x, valid, predictor)
     assert np.array_equal(f, _loop_fill(x, valid, predictor))
-    assert not bits.residual(f, predictor)[~valid].any()
-    z = bits.masked_residuals(x, valid, predictor)
+    assert not cbits.residual(f, predictor)[~valid].any()
+    z = cbits.masked_residuals(x, valid, predictor)
     assert z.size == valid.sum()
-    back = bits.unmask_residuals(z, valid, x.shape, predictor)
+    back = cbits.unmask_residuals(z, valid, x.shape, predictor)
     assert np.array_equal(back[valid], x[valid])
 
 
@@ -366,13 +368,13 @@ def test_compiled_prediction_matches_the_numpy_reference(h: int, w: int, c: int,
     rng = np.random.default_rng(seed)
     x = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True)
     ref = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True) \
-        if predictor == bits.REF else None
+        if predictor == cbits.REF else None
     valid = rng.random((h, w, c)) < 0.7 if masked else None
     z = NUMPY.residuals(x, valid, predictor, ref)
     assert z.dtype == np.uint32
     costs = NUMPY.costs(x, valid, ref)
     assert costs[predictor] == sum(int(v).bit_length() for v in z.tolist())
-    assert (costs[bits.REF] == -1) == (ref is None)
+    assert (costs[cbits.REF] == -1) == (ref is None)
     assert coder.costs(x, valid, ref).tolist() == costs.tolist()
     assert coder.residuals(x, valid, predictor, ref).tolist() == z.tolist()
     want = NUMPY.unresiduals(z, valid, predictor, ref, np.empty_like(x))
