@@ -59,12 +59,13 @@ class McapMessage:
     metadata: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
     encoding: str = "cdr"
 
-    def decode(self) -> Any:
+    def decode(self, coder: Any = None) -> Any:
         """Decode the payload into a :mod:`lidarscan.types` dataclass (raises DecodeError);
-        a compressed LidarScan is decompressed."""
+        a compressed LidarScan is decompressed (``coder``: as ``McapWriter``'s
+        ``codec_coder``)."""
         if self.encoding == CODEC_ENCODING:
             from lidarscan import codec
-            return codec.decompress_scan(self.payload)
+            return codec.decompress_scan(self.payload, coder=coder)
         return decode(self.payload, self.msgtype)
 
 

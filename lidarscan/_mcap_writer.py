@@ -69,6 +69,9 @@ class McapWriter:
             was written before it; channel metadata ``lidarscan.codec.version``). Scans given
             in the other encoding are converted; ``ros2 bag play`` and CDR-only readers cannot
             read a :data:`CODEC_ENCODING` channel (``lidarscan convert`` back to CDR first).
+        codec_coder: the :class:`lidarscan.codec.ResidualCoder` of that compression (None:
+            the numpy reference; converters pass ``converters._kernels.select("codec").numba``,
+            which writes the same bytes faster).
         qos: recorded QoS per topic: a name of :data:`lidarscan.rosbag2.QOS_PROFILES`
             ("sensor_data", "best_effort", "reliable", "latched"), a
             :class:`lidarscan.rosbag2.QosProfile`, rosbag2's dict form, or a list of these.
@@ -76,7 +79,8 @@ class McapWriter:
 
     def __init__(self, output: str | os.PathLike[str] | IO[bytes], *, compression: str = "zstd",
                  chunk_size: int = 4 * 1024 * 1024, qos: dict[str, Any] | None = None,
-                 scan_encoding: str = "cdr", level: int | None = None) -> None:
+                 scan_encoding: str = "cdr", level: int | None = None,
+                 codec_coder: Any = None) -> None:
         from lidarscan._mcapfile import COMPRESSIONS, ChunkedMcapWriter
         from lidarscan.rosbag2 import qos_profile
 
@@ -91,6 +95,7 @@ class McapWriter:
         if scan_encoding not in ("cdr", CODEC_ENCODING):
             raise ConfigError("scan_encoding", scan_encoding, f"'cdr' or {CODEC_ENCODING!r}")
         self.scan_encoding = scan_encoding
+        self._coder = codec_coder
         self._infos: dict[int, Any] = {}  # info stamp ns -> LidarInfo, for compress_scan
         self._own = not hasattr(output, "write")
         target: Any = output
@@ -169,9 +174,9 @@ class McapWriter:
                 source = msg if not isinstance(msg, (bytes, bytearray, memoryview)) else \
                     decode(payload, full)
                 payload = codec.compress_scan(
-                    source, self._infos.get(to_ns(source.lidar_info_time)))
+                    source, self._infos.get(to_ns(source.lidar_info_time)), coder=self._coder)
             else:
-                payload = encode(codec.decompress_scan(payload), full)
+                payload = encode(codec.decompress_scan(payload, coder=self._coder), full)
             encoding = self.scan_encoding
         if log_time_ns is None:
             header = getattr(msg, "header", None)

@@ -44,8 +44,9 @@ id    name       params / payload
                  numpy packbits order), zstd frame of the exceptions' original 4 bytes.
                  Exceptions take their left neighbour's q (0 at a row start).
 5     PREDICT2   u8 datatype (an integer type), u8 bigendian, u32 H, u32 W, u32 count,
-                 u8 predictor, u8 rolled, u8 extra (1 or 2), u8 masked [, H x i32 row
-                 shifts] / parts, each ``u32 n + n bytes``: [mask,] symbols, low bits.
+                 u8 predictor, u8 rolled, u8 extra (1 or 2), u8 masked [, u32 reference
+                 offset when predictor = 4] [, H x i32 row shifts] / parts, each
+                 ``u32 n + n bytes``: [mask,] symbols, low bits.
                  masked = 1: pixels whose value is 0 are not coded (mask: zstd frame of the
                  packed "value != 0" bits, row-major over (H, W, count), numpy packbits
                  order); they decode to 0.
@@ -59,7 +60,10 @@ id    name       params / payload
 ====  =========  ==========================================================================
 
 Predictors (on the (H, W, C) array, per count index): 0 none, 1 left (x[r, c-1]), 2 up
-(x[r-1, c]), 3 planar (left + up - up-left); out-of-grid neighbours are 0. Residuals are
+(x[r-1, c]), 3 planar (left + up - up-left); out-of-grid neighbours are 0; 4 (PREDICT2 only)
+the same pixel of the earlier channel block at the reference offset, which has this block's
+datatype, count and size (a second return predicted from the first), read as unsigned values
+in the scan's byte order and rolled like this block. Residuals are
 computed and inverted with wrapping integer arithmetic (decoding: cumulative sums).
 "Rolled": before prediction row r was rotated right by its shift s_r (element c moved to
 (c + s_r) mod W): a staggered scan is predicted in destaggered order, where the row above sees
@@ -82,6 +86,12 @@ ascending (pixel order inside a group), each value's k bits most significant fir
 most significant bit first, the last byte padded with zeros. The sizes of the symbols are
 what zstd's entropy coder sees; the low bits are close to uniform and cost about k bits.
 
+Code layout: this module holds the container and the encoder's choices; the numpy reference of
+the prediction and of the residual coding (the test oracle) is :mod:`lidarscan._codec_bits`,
+whose hot steps a :class:`ResidualCoder` bundles (``coder=``: converters pass the compiled one,
+``converters._kernels.select("codec")``; every coder writes the same bytes); the version 1
+methods decode in :mod:`lidarscan._codec_v1`.
+
 ``decompress_scan`` returns a :class:`lidarscan.types.LidarScan` whose CDR (``lidarscan.encode``)
 is byte-identical to the input's (any version). Errors: :class:`lidarscan.errors.EncodeError` (a scan that does
 not encode), :class:`lidarscan.errors.DecodeError` (a buffer that is not this format).
@@ -90,12 +100,24 @@ not encode), :class:`lidarscan.errors.DecodeError` (a buffer that is not this fo
 from __future__ import annotations
 
 import dataclasses
-import functools
 import struct
 from typing import Any
 
 import numpy as np
 
+from lidarscan._codec_bits import (
+    LEFT,
+    NONE,
+    NUMPY,
+    PLANAR,
+    REF,
+    UP,
+    ResidualCoder,
+    bitlen_table,
+    residual,
+    unzigzag,
+    zigzag,
+)
 from lidarscan.errors import DecodeError, EncodeError
 
 __all__ = [
@@ -109,6 +131,7 @@ __all__ = [
     "PREDICT2",
     "QUANT2",
     "REF",
+    "ResidualCoder",
     "compress_scan",
     "decompress_scan",
     "segments",
@@ -119,7 +142,6 @@ VERSION = 2
 RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2 = 0, 1, 2, 3, 4, 5, 6
 _METHOD_NAMES = {RAW: "raw", ZSTD: "zstd", SHUFFLE: "shuffle", PREDICT: "predict",
                  QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2"}
-NONE, LEFT, UP, PLANAR, REF = 0, 1, 2, 3, 4
 
 _INT_CODES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
 _FLOAT32, _FLOAT64 = 7, 8
@@ -167,58 +189,10 @@ def _unplanes(buf: bytes, itemsize: int, n: int, what: str) -> np.ndarray[Any, A
     return out.view(np.uint8)
 
 
-def _residual(x: np.ndarray[Any, Any], predictor: int,
-              ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
-    """x - prediction in x's (unsigned, native) dtype, wrapping; x (and ref, the grid REF
-    predicts from) is (H, W, C)."""
-    if predictor == REF:
-        return x - ref
-    r = x.copy()
-    if predictor in (UP, PLANAR):
-        r[1:] -= x[:-1]
-    if predictor in (LEFT, PLANAR):
-        r[:, 1:] -= r[:, :-1].copy() if predictor == PLANAR else x[:, :-1]
-    return r
-
-
-def _unresidual(r: np.ndarray[Any, Any], predictor: int,
-                ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
-    if predictor == REF:
-        return r + ref
-    x = r
-    if predictor in (LEFT, PLANAR):
-        x = np.cumsum(x, axis=1, dtype=r.dtype)
-    if predictor in (UP, PLANAR):
-        # row by row: numpy's cumulative sum along the outer axis is ~5x slower than H adds
-        x = x.copy() if x is r else x
-        for row in range(1, x.shape[0]):
-            np.add(x[row], x[row - 1], out=x[row])
-    return x
-
-
-def _zigzag(r: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Unsigned residuals (wrapping) -> zigzag order: 0, -1, 1, -2, ... -> 0, 1, 2, 3, ..."""
-    bits = r.dtype.itemsize * 8
-    s = r.view(r.dtype.str.replace("u", "i"))
-    return ((s << 1) ^ (s >> (bits - 1))).view(r.dtype)
-
-
-def _unzigzag(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    one = z.dtype.type(1)
-    return (z >> one) ^ (np.zeros_like(z) - (z & one))
-
-
 def _as_unsigned(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     """Native-order unsigned view/copy of an integer or float array (same bytes per value)."""
     native = arr.astype(arr.dtype.newbyteorder("="), copy=False)
     return native.view(f"u{arr.dtype.itemsize}")
-
-
-def _unpredict(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
-               what: str) -> np.ndarray[Any, Any]:
-    n = shape[0] * shape[1] * shape[2]
-    z = _unplanes(_zd(payload, n * itemsize, what), itemsize, n, what).view(f"u{itemsize}")
-    return _unresidual(_unzigzag(z).reshape(shape), predictor)
 
 
 def _roll(x: np.ndarray[Any, Any], shifts: np.ndarray[Any, Any] | None, sign: int
@@ -261,27 +235,6 @@ def _quantise(v: np.ndarray[Any, Any], step: float
     return q, exc
 
 
-def _unquant(payload: bytes, shape: tuple[int, int, int], predictor: int, step: float,
-             bigendian: bool, what: str) -> bytes:
-    n = shape[0] * shape[1] * shape[2]
-    pos = 0
-
-    def take() -> bytes:
-        nonlocal pos
-        if pos + 4 > len(payload):
-            raise DecodeError(what, len(payload), "a length-prefixed QUANT part")
-        (k,) = struct.unpack_from("<I", payload, pos)
-        if pos + 4 + k > len(payload):
-            raise DecodeError(what, k, f"at most {len(payload) - pos - 4} bytes")
-        part = payload[pos + 4: pos + 4 + k]
-        pos += 4 + k
-        return part
-
-    q = _unpredict(take(), shape, 4, predictor, what).view(np.int32)
-    exc = _unmask_frame(take(), n, what)
-    return _float_bits(q, step, bigendian, exc, payload[pos:], what)
-
-
 def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
                 exc: np.ndarray[Any, Any] | None, words_frame: bytes, what: str) -> bytes:
     """The float32 bytes of the int32 grid q (value ``float32(float64(q) * step)``) with the
@@ -302,181 +255,57 @@ def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
 
 # ------------------------------------------------------------ version 2: bit-length coding
 
-@functools.lru_cache(maxsize=1)
-def _bitlen_table() -> np.ndarray[Any, Any]:
-    """Bit length of 0 .. 65535 (uint8)."""
-    return np.frexp(np.arange(1 << 16, dtype=np.float64))[1].astype(np.uint8)
-
-
-def _bitlen(z: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Bit length of every value of an unsigned array of at most 32 bits (0 for 0), as uint8."""
-    table = _bitlen_table()
-    if z.dtype.itemsize <= 2:
-        return table[z]
-    hi = (z >> z.dtype.type(16)).astype(np.uint16)
-    lo = (z & z.dtype.type(0xFFFF)).astype(np.uint16)
-    return np.where(hi > 0, table[hi] + np.uint8(16), table[lo])
-
-
 def _bits_cost(z: np.ndarray[Any, Any]) -> int:
-    """Size proxy of zigzag residuals for the bit-length coding: the sum of bit lengths."""
-    return int(_bitlen(z).sum(dtype=np.int64))
+    """Size proxy of zigzag residuals for the bit-length coding: the sum of bit lengths
+    (through float32 exponents: exact below 2**24, a bit more above; a proxy only)."""
+    return int(np.frexp(z.astype(np.float32))[1].sum(dtype=np.int64))
 
 
-def _symbols(z: np.ndarray[Any, Any]) -> dict[int, tuple[np.ndarray[Any, Any],
-                                                          np.ndarray[Any, Any]]]:
-    """extra -> (symbols uint8, number k of raw low bits per value uint8), extra 1 and 2, of
-    uint32 zigzag residuals z."""
-    b = _bitlen(z)
-    b1 = np.maximum(b, np.uint8(1)) - np.uint8(1)            # bits below the leading one
-    e2 = np.minimum(b1, np.uint8(2))
-    k2 = b1 - e2
-    top2 = ((z >> k2.astype(np.uint32)) & np.uint32(3)).astype(np.uint8)
-    top2 &= (np.uint8(1) << e2) - np.uint8(1)
-    wide = b1 >= 2                                           # e = 2 -> e = 1 drops a bit
-    top1 = np.where(wide, top2 >> np.uint8(1), top2)
-    k1 = k2 + wide.astype(np.uint8)
-    return {1: ((b << np.uint8(1)) | top1, k1), 2: ((b << np.uint8(2)) | top2, k2)}
-
-
-def _pack_residuals(z: np.ndarray[Any, Any], level: int) -> tuple[int, bytes, bytes]:
+def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = NUMPY
+                    ) -> tuple[int, bytes, bytes]:
     """(extra, zstd frame of the symbols, zstd frame of the low bits) of zigzag residuals
-    ``z`` (1-D unsigned, at most 32 bits); extra 1 or 2, whichever is smaller.
-
-    Symbol of a value of bit length b: ``b << extra | t`` where t holds the ``e = min(b - 1,
-    extra)`` bits below the leading one (0 when b <= 1). The remaining ``k = b - 1 - e`` low
-    bits of every value are one bit stream: values grouped by k ascending (value order inside a
-    group), each value's k bits most significant first, packed MSB first (numpy packbits), the
-    last byte padded with zeros.
-    """
-    z = z.astype(np.uint32, copy=False)
+    ``z`` (1-D unsigned, at most 32 bits); extra 1 or 2, whichever is smaller (the coding:
+    :mod:`lidarscan._codec_bits`)."""
+    z = np.ascontiguousarray(z, np.uint32)
+    sym1, k1, sym2, k2 = coder.symbols(z, bitlen_table())
     options = []
-    for extra, (sym, k) in _symbols(z).items():
+    for extra, sym, k in ((1, sym1, k1), (2, sym2, k2)):
         frame = _zc(level).compress(sym.tobytes())
         options.append((len(frame) + (int(k.sum(dtype=np.int64)) + 7) // 8, extra, frame, k))
     _, extra, frame, k = min(options, key=lambda option: option[0])
-    order = np.argsort(k, kind="stable")
-    counts = np.bincount(k, minlength=33)
-    low = z[order] & ((np.uint32(1) << k[order].astype(np.uint32)) - np.uint32(1))
-    pieces, pos = [], int(counts[0])
-    for width in range(1, 33):
-        n = int(counts[width])
-        if n:
-            nbytes = (width + 7) // 8
-            words = low[pos:pos + n].astype(">u4").view(np.uint8).reshape(n, 4)[:, 4 - nbytes:]
-            bits = np.unpackbits(np.ascontiguousarray(words).reshape(-1))  # whole rows of 8
-            pieces.append(bits.reshape(n, 8 * nbytes)[:, 8 * nbytes - width:].reshape(-1))
-            pos += n
-    bits = np.concatenate(pieces) if pieces else np.zeros(0, np.uint8)
-    return extra, frame, _zc(level).compress(np.packbits(bits).tobytes())
+    return extra, frame, _zc(level).compress(coder.pack_low(z, k).tobytes())
 
 
 def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
-                      what: str) -> np.ndarray[Any, Any]:
-    """Inverse of :func:`_pack_residuals`: n zigzag residuals as unsigned ``itemsize`` ints."""
+                      what: str, coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
+    """Inverse of :func:`_pack_residuals`: n zigzag residuals (uint32) of at most
+    ``8 * itemsize`` bits."""
     symbols = np.frombuffer(_zd(frame, n, what), np.uint8)
     if symbols.size != n:
         raise DecodeError(what, symbols.size, f"{n} residual symbols")
-    b = symbols >> np.uint8(extra)
-    if b.size and int(b.max()) > 8 * itemsize:
-        raise DecodeError(what, int(b.max()), f"bit lengths of at most {8 * itemsize}")
-    e = np.minimum(np.maximum(b, 1) - 1, extra).astype(np.uint8)
-    k = (np.maximum(b, 1) - 1 - e).astype(np.uint8)
-    top = (symbols & ((np.uint8(1) << e) - np.uint8(1))).astype(np.uint32)
-    z = np.where(b > 0, np.uint32(1) << (np.maximum(b, 1) - 1).astype(np.uint32), np.uint32(0))
-    z |= top << k.astype(np.uint32)
-    counts = np.bincount(k, minlength=33)
+    if n and int(symbols.max()) >> extra > 8 * itemsize:
+        raise DecodeError(what, int(symbols.max()) >> extra,
+                          f"bit lengths of at most {8 * itemsize}")
+    counts = coder.low_counts(symbols, extra)
     total = int((counts * np.arange(counts.size)).sum())
-    raw = _zd(raw, (total + 7) // 8, what)
-    if len(raw) != (total + 7) // 8:
-        raise DecodeError(what, len(raw), f"{(total + 7) // 8} bytes of low bits")
-    bits = np.unpackbits(np.frombuffer(raw, np.uint8), count=total)
-    order = np.argsort(k, kind="stable")
-    low = np.zeros(n, np.uint32)
-    pos, start = int(counts[0]), 0
-    for width in range(1, 33):
-        m = int(counts[width])
-        if m:
-            nbytes = (width + 7) // 8
-            grid = np.zeros((m, 8 * nbytes), np.uint8)
-            grid[:, 8 * nbytes - width:] = bits[start:start + m * width].reshape(m, width)
-            packed = np.zeros((m, 4), np.uint8)
-            packed[:, 4 - nbytes:] = np.packbits(grid.reshape(-1)).reshape(m, nbytes)
-            low[pos:pos + m] = packed.view(">u4").reshape(-1)
-            pos += m
-            start += m * width
-    z[order] |= low
-    return z.astype(f"u{itemsize}")
-
-
-def _fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """x (H, W, C) with every invalid pixel replaced by the last valid value to its left in
-    its row (0 if none)."""
-    cols = np.arange(valid.shape[1]).reshape(1, -1, 1)
-    index = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
-    got = np.take_along_axis(x, np.maximum(index, 0), axis=1)
-    return np.where(index >= 0, got, x.dtype.type(0))
-
-
-def _predicted_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int,
-                    ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
-    """The grid f (H, W, C) equal to x at valid pixels and to its own prediction at invalid
-    ones (their residual is 0): NONE 0, LEFT the last valid value to the left, UP the last
-    valid value above, PLANAR the row above plus the last valid (x - row above) to the left,
-    REF the reference grid's value."""
-    if predictor == REF:
-        return np.where(valid, x, ref)
-    if predictor == NONE:
-        return np.where(valid, x, x.dtype.type(0))
-    if predictor == LEFT:
-        return _fill(x, valid)
-    if predictor == UP:  # row by row: faster than gathering along the outer axis
-        out = np.empty_like(x)
-        prev = np.zeros(x.shape[1:], x.dtype)
-        for row in range(x.shape[0]):
-            prev = np.where(valid[row], x[row], prev)
-            out[row] = prev
-        return out
-    out = np.empty_like(x)
-    prev = np.zeros(x.shape[1:], x.dtype)
-    for row in range(x.shape[0]):
-        prev = prev + _fill((x[row] - prev)[None], valid[row][None])[0]
-        out[row] = prev
-    return out
-
-
-def _masked_residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                      predictor: int, ref: np.ndarray[Any, Any] | None = None
-                      ) -> np.ndarray[Any, Any]:
-    """Zigzag residuals of the valid pixels of x (H, W, C), row-major; invalid pixels take
-    their predicted value (:func:`_predicted_fill`)."""
-    if valid is None:
-        return _zigzag(_residual(x, predictor, ref)).reshape(-1)
-    return _zigzag(_residual(_predicted_fill(x, valid, predictor, ref), predictor, ref))[valid]
-
-
-def _unmask_residuals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                      shape: tuple[int, int, int], predictor: int,
-                      ref: np.ndarray[Any, Any] | None = None) -> np.ndarray[Any, Any]:
-    """The grid from the valid pixels' zigzag residuals, invalid pixels' residuals being 0
-    (inverse of :func:`_masked_residuals`; invalid pixels hold their predicted value)."""
-    if valid is None:
-        return _unresidual(_unzigzag(z).reshape(shape), predictor, ref)
-    r = np.zeros(shape, z.dtype)
-    r[valid] = _unzigzag(z)
-    return _unresidual(r, predictor, ref)
+    low = _zd(raw, (total + 7) // 8, what)
+    if len(low) != (total + 7) // 8:
+        raise DecodeError(what, len(low), f"{(total + 7) // 8} bytes of low bits")
+    return coder.unpack(symbols, extra, counts, np.frombuffer(low, np.uint8))
 
 
 def _choose_masked(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                   ref: np.ndarray[Any, Any] | None = None) -> tuple[int, int]:
+                   ref: np.ndarray[Any, Any] | None = None, coder: ResidualCoder = NUMPY
+                   ) -> tuple[int, int]:
     """(predictor, its residual bits) with the fewest residual bits on a band of up to 32
     rows (bits: the sum of the residuals' bit lengths on the band); REF only with a ref."""
     start = max(0, x.shape[0] // 2 - 16)
     band = x[start:start + 32]
     vband = None if valid is None else valid[start:start + 32]
     rband = None if ref is None else ref[start:start + 32]
-    costs = {p: _bits_cost(_masked_residuals(band, vband, p, rband))
-             for p in (UP, LEFT, PLANAR, NONE) + ((REF,) if ref is not None else ())}
+    bits = coder.costs(band, vband, rband)
+    costs = {p: int(bits[p]) for p in (UP, LEFT, PLANAR, NONE) + ((REF,) if ref is not None
+                                                                   else ())}
     best = min(costs, key=lambda p: costs[p])
     return best, costs[best]
 
@@ -501,12 +330,13 @@ def _split(payload: bytes, count: int, what: str) -> list[bytes]:
 
 
 def _code_grid(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, level: int,
-               predictor: int | None = None, ref: np.ndarray[Any, Any] | None = None
-               ) -> tuple[int, int, list[bytes]]:
+               predictor: int | None = None, ref: np.ndarray[Any, Any] | None = None,
+               coder: ResidualCoder = NUMPY) -> tuple[int, int, list[bytes]]:
     """(predictor, extra, [symbols frame, low bits]) of the valid pixels of grid x."""
     if predictor is None:
-        predictor = _choose_masked(x, valid, ref)[0]
-    extra, frame, low = _pack_residuals(_masked_residuals(x, valid, predictor, ref), level)
+        predictor = _choose_masked(x, valid, ref, coder)[0]
+    extra, frame, low = _pack_residuals(coder.residuals(x, valid, predictor, ref), level,
+                                        coder)
     return predictor, extra, [frame, low]
 
 
@@ -521,17 +351,17 @@ def _unmask_frame(frame: bytes, n: int, what: str) -> np.ndarray[Any, Any]:
     return np.unpackbits(np.frombuffer(packed, np.uint8), count=n).astype(bool)
 
 
-def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None
-                 ) -> tuple[int, int, bool, bytes]:
+def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None,
+                 coder: ResidualCoder = NUMPY) -> tuple[int, int, bool, bytes]:
     """(predictor, extra, masked, payload) of an unsigned (H, W, C) grid (ref: an earlier
     channel's grid REF may predict from). With at least 2 % zero values the grid is also
     coded with the zeros masked (not coded); the smaller coding wins."""
-    predictor, extra, parts = _code_grid(u, None, level, None, ref)
+    predictor, extra, parts = _code_grid(u, None, level, None, ref, coder)
     best = (predictor, extra, False, _parts(*parts))
     zeros = int(np.count_nonzero(u == 0))
     if 0.02 * u.size <= zeros < u.size:
         valid = u != 0
-        predictor, extra, parts = _code_grid(u, valid, level, None, ref)
+        predictor, extra, parts = _code_grid(u, valid, level, None, ref, coder)
         masked = _parts(_mask_frame(valid, level), *parts)
         if len(masked) < len(best[3]):
             best = (predictor, extra, True, masked)
@@ -539,19 +369,20 @@ def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] 
 
 
 def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
-                 extra: int, masked: bool, what: str, ref: np.ndarray[Any, Any] | None = None
-                 ) -> np.ndarray[Any, Any]:
+                 extra: int, masked: bool, what: str, ref: np.ndarray[Any, Any] | None = None,
+                 coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
     n = shape[0] * shape[1] * shape[2]
     parts = _split(payload, 3 if masked else 2, what)
     valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
     count = n if valid is None else int(valid.sum())
-    z = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what)
-    f = _unmask_residuals(z, valid, shape, predictor, ref)
+    z = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what, coder)
+    f = coder.unresiduals(z, valid, predictor, ref, np.empty(shape, f"u{itemsize}"))
     return f if valid is None else np.where(valid, f, f.dtype.type(0))
 
 
 def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], step: float,
-                   level: int) -> tuple[int, int, bool, float, bytes] | None:
+                   level: int, coder: ResidualCoder = NUMPY
+                   ) -> tuple[int, int, bool, float, bytes] | None:
     """(predictor, extra, masked, step, payload) of a native float32 (H, W, C) grid, or None
     when it does not fit the int32 grid; exceptions are masked and kept bit for bit. The step
     is ``step`` times the greatest common divisor of the grid values when that coarser grid
@@ -567,23 +398,24 @@ def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], ste
             step, (q, exc) = step * common, coarse
     u = q.view(np.uint32)
     if not exc.any():
-        predictor, extra, parts = _code_grid(u, None, level)
+        predictor, extra, parts = _code_grid(u, None, level, coder=coder)
         return predictor, extra, False, step, _parts(*parts)
     valid = ~exc
-    predictor, extra, parts = _code_grid(u, valid, level)
+    predictor, extra, parts = _code_grid(u, valid, level, coder=coder)
     words = _zc(level).compress(raw_words[exc].tobytes())
     return predictor, extra, True, step, _parts(_mask_frame(valid, level), *parts, words)
 
 
 def _decode_quant2(payload: bytes, shape: tuple[int, int, int], predictor: int, extra: int,
-                   masked: bool, step: float, bigendian: bool, what: str) -> bytes:
+                   masked: bool, step: float, bigendian: bool, what: str,
+                   coder: ResidualCoder = NUMPY) -> bytes:
     n = shape[0] * shape[1] * shape[2]
     parts = _split(payload, 4 if masked else 2, what)
     valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
     count = n if valid is None else int(valid.sum())
     sym, low = (parts[1], parts[2]) if masked else (parts[0], parts[1])
-    z = _unpack_residuals(sym, low, count, 4, extra, what)
-    q = _unmask_residuals(z, valid, shape, predictor).view(np.int32)
+    z = _unpack_residuals(sym, low, count, 4, extra, what, coder)
+    q = coder.unresiduals(z, valid, predictor, None, np.empty(shape, np.uint32)).view(np.int32)
     return _float_bits(q, step, bigendian, None if valid is None else ~valid,
                        parts[3] if masked else b"", what)
 
@@ -612,7 +444,8 @@ def _layout(scan: Any, data_len: int) -> list[tuple[int, int, Any]] | None:
 
 def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: float | None,
                   shifts: np.ndarray[Any, Any] | None,
-                  refs: dict[int, np.ndarray[Any, Any]]) -> tuple[int, bytes, bytes]:
+                  refs: dict[int, np.ndarray[Any, Any]], coder: ResidualCoder = NUMPY
+                  ) -> tuple[int, bytes, bytes]:
     """(method, params, payload) of one channel block (the version 2 methods). ``refs``:
     offset -> rolled unsigned grid of the earlier integer blocks; this block's grid is added
     when it is an integer block."""
@@ -627,10 +460,10 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
         ref_offset = None
         if same:  # the earlier grid closest to this one (a second return's first return)
             ref_offset = min(same, key=lambda off: _bits_cost(
-                _zigzag(_residual(u[::8], REF, same[off][::8]))))
+                zigzag(residual(u[::8], REF, same[off][::8]))))
         refs[int(desc.offset)] = u
         predictor, extra, masked, payload = _encode_int2(
-            u, level, None if ref_offset is None else same[ref_offset])
+            u, level, None if ref_offset is None else same[ref_offset], coder)
         ref_param = struct.pack("<I", ref_offset) if predictor == REF else b""
         return (PREDICT2, _GRID2.pack(datatype, big, *shape, predictor, rolled, extra, masked)
                 + ref_param + _shift_params(shifts), payload)
@@ -638,7 +471,7 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
         native = _roll(raw.astype(np.float32), shifts, 1)
         words = _roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
-        got = _encode_quant2(native, words, float_step, level)
+        got = _encode_quant2(native, words, float_step, level, coder)
         if got is not None:
             predictor, extra, masked, step, payload = got
             shuffled = None
@@ -653,8 +486,8 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
         np.frombuffer(block, f"<u{size}")))
 
 
-def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
-                  float_step: float | None = 0.001) -> bytes:
+def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
+                  float_step: float | None = 0.001, coder: ResidualCoder | None = None) -> bytes:
     """Compress a LidarScan losslessly (format above).
 
     Args:
@@ -662,10 +495,15 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
             datatypes, counts and byte order.
         info: its LidarInfo, optional: a staggered scan is then predicted in destaggered order
             (``pixel_shift_by_row``; the shifts travel in the format, decoding needs no info).
-        level: zstd level of every part (1..22; 3 is the measured speed/size balance).
+        level: zstd level of every part (1..22). 1, the default, is the measured best: on the
+            residual symbols (one byte per pixel, few repeats) higher levels search for
+            matches that are not there, taking 2-8x the time for the same or more bytes.
         float_step: grid of float32 channels in their unit (0.001: metres from millimetres;
             a multiple of it when every value is on that coarser grid, e.g. 0.004 for 4 mm
             units); None codes float32 channels by byte shuffle only.
+        coder: the residual coding's implementation (:class:`ResidualCoder`): None = the numpy
+            reference; converters pass the compiled one (``converters._kernels.select("codec")``).
+            Every coder writes the same bytes.
 
     Returns:
         The compressed bytes; :func:`decompress_scan` restores the scan bit for bit.
@@ -676,6 +514,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
     from lidarscan.cdr import encode
     from lidarscan.scan import data_view
     from lidarscan.types import LidarScan as ScanDC
+    coder = coder or NUMPY
 
     data = data_view(scan)
     data_len = int(data.size)
@@ -713,7 +552,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 3,
         for offset, length, desc in layout:
             gap(pos, offset)
             method, params, payload = _encode_block(raw[offset:offset + length], desc, scan,
-                                                    level, float_step, shifts, refs)
+                                                    level, float_step, shifts, refs, coder)
             segs.append((offset, length, method, params, payload))
             pos = offset + length
         gap(pos, data_len)
@@ -792,7 +631,7 @@ def _encode_columns(times: np.ndarray[Any, Any], azimuths: np.ndarray[Any, Any],
     def delta(words: np.ndarray[Any, Any]) -> bytes:
         r = words.copy()
         r[1:] -= words[:-1]
-        return _zc(level).compress(_planes(_zigzag(r)))
+        return _zc(level).compress(_planes(zigzag(r)))
     head = struct.pack("<II", times.size, azimuths.size)
     return head + _parts(delta(times.view(np.uint64)), delta(azimuths.view(np.uint64)))
 
@@ -805,12 +644,13 @@ def _decode_columns(buf: bytes) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, A
     out = []
     for n, part in zip((n_time, n_az), _split(buf[8:], 2, "columns"), strict=True):
         z = _unplanes(_zd(part, 8 * n, "columns"), 8, n, "columns").view(np.uint64)
-        out.append(np.cumsum(_unzigzag(z), dtype=np.uint64))
+        out.append(np.cumsum(unzigzag(z), dtype=np.uint64))
     return out[0].view(np.int64), out[1].view(np.float64)
 
 
 def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes,
-                    payload: bytes, data: np.ndarray[Any, Any]) -> bytes:
+                    payload: bytes, data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY
+                    ) -> bytes:
     """The bytes of segment i; ``data``: the scan's data, decoded up to ``offset``."""
     what = f"segment {i}"
     if method == RAW:
@@ -823,28 +663,10 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
         size = params[0]
         out = _unplanes(_zd(payload, length, what), size, length // size, what).tobytes()
     elif method in (PREDICT, QUANT):
-        if len(params) < _GRID.size:
-            raise DecodeError(f"{what} params", len(params), f"at least {_GRID.size} bytes")
-        datatype, big, h, w, c, predictor, rolled = _GRID.unpack_from(params)
-        base = _GRID.size + (8 if method == QUANT else 0)
-        want = base + (4 * h if rolled else 0)
-        if len(params) != want:
-            raise DecodeError(f"{what} params", len(params), f"{want} bytes")
-        ok_type = datatype in _INT_CODES if method == PREDICT else datatype == _FLOAT32
-        if not ok_type or predictor > PLANAR or h * w * c * _SIZES.get(datatype, 0) != length:
-            raise DecodeError(f"{what} params", (datatype, h, w, c, predictor),
-                              f"a grid of {length} bytes with a known datatype and predictor")
-        shifts = (np.frombuffer(params, "<i4", h, base).astype(np.int64) if rolled else None)
-        if method == PREDICT:
-            size = _SIZES[datatype]
-            u = _roll(_unpredict(payload, (h, w, c), size, predictor, what), shifts, -1)
-            out = u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
-        else:
-            (step,) = struct.unpack_from("<d", params, _GRID.size)
-            bits = _unquant(payload, (h, w, c), predictor, step, bool(big), what)
-            out = _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
+        from lidarscan._codec_v1 import decode_v1
+        out = decode_v1(what, length, method, params, payload)
     elif method in (PREDICT2, QUANT2):
-        out = _decode_v2(what, offset, length, method, params, payload, data)
+        out = _decode_v2(what, offset, length, method, params, payload, data, coder)
     else:
         raise DecodeError(f"{what} method", method,
                           "0..6 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2)")
@@ -854,7 +676,7 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
 
 
 def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
-               data: np.ndarray[Any, Any]) -> bytes:
+               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> bytes:
     if len(params) < _GRID2.size:
         raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
     datatype, big, h, w, c, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
@@ -880,23 +702,29 @@ def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, 
             grid = np.frombuffer(data[ref_offset:ref_offset + length].tobytes(),
                                  (">" if big else "<") + f"u{size}").reshape(h, w, c)
             ref = _roll(_as_unsigned(grid), shifts, 1)
-        u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref)
+        u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref,
+                         coder)
         u = _roll(u, shifts, -1)
         return u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
     (step,) = struct.unpack_from("<d", params, _GRID2.size)
     bits = _decode_quant2(payload, (h, w, c), predictor, extra, bool(masked), step, bool(big),
-                          what)
+                          what, coder)
     return _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
 
 
-def decompress_scan(buf: bytes) -> Any:
+def decompress_scan(buf: bytes, *, coder: ResidualCoder | None = None) -> Any:
     """The LidarScan of :func:`compress_scan`'s bytes, as a :class:`lidarscan.types.LidarScan`
     (``data`` a read-only uint8 array) whose CDR equals the original's byte for byte.
+
+    Args:
+        buf: the compressed bytes.
+        coder: as for :func:`compress_scan` (None: the numpy reference); same result.
 
     Raises:
         DecodeError: not this format, another version, or a damaged buffer.
     """
     from lidarscan.cdr import decode_scan
+    coder = coder or NUMPY
     skeleton, columns, data_len, segs = _parse(buf)
     try:
         skel = decode_scan(_zd(skeleton, 1 << 30, "skeleton"))
@@ -907,7 +735,7 @@ def decompress_scan(buf: bytes) -> Any:
     data = np.empty(data_len, np.uint8)
     for i, (offset, length, method, params, payload) in enumerate(segs):
         data[offset:offset + length] = np.frombuffer(
-            _decode_segment(i, offset, length, method, params, payload, data), np.uint8)
+            _decode_segment(i, offset, length, method, params, payload, data, coder), np.uint8)
     data.flags.writeable = False
     if columns is None:
         return dataclasses.replace(skel, data=data)

@@ -4,7 +4,9 @@ Layers: golden bytes of the format (version 2 decoded, and re-encoded with the z
 were made with; version 1 still decoded), loop-based oracles of the predictors, zigzag, masked
 pixels' fill and the bit-length coding, round trips on hypothesis scans (shapes,
 every datatype, counts, both byte orders, arbitrary bytes including NaN payloads, +-Inf, -0,
-padding bytes and trailing bytes), round trips of the real Ouster frames, and damaged buffers.
+padding bytes and trailing bytes), round trips of the real Ouster frames, and damaged buffers;
+the compiled residual coder (numba, ``converters._kernels.select("codec")``) against the numpy
+reference step by step and scan by scan (same bytes), also through the MCAP writer.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import lidarscan as ls
+from lidarscan import _codec_bits as cbits
 from lidarscan import codec
 from lidarscan.errors import DecodeError
 from lidarscan.types import LidarChannel, LidarScan
@@ -148,7 +151,7 @@ def test_second_returns_are_predicted_from_the_first_and_roundtrip(
 
 def test_golden_bytes_are_what_the_encoder_writes() -> None:
     import zstandard
-    out = codec.compress_scan(_golden_scan_v2())
+    out = codec.compress_scan(_golden_scan_v2(), level=3)
     assert out[:8] == GOLDEN_V2[:8]
     assert [(s["offset"], s["length"], s["method"], s["params"]) for s in codec.segments(out)] \
         == [(s["offset"], s["length"], s["method"], s["params"])
@@ -187,15 +190,15 @@ def _loop_residual(x: np.ndarray[Any, Any], predictor: int) -> list[int]:
 def test_residuals_match_a_loop_and_invert(predictor: int, dtype: Any,
                                            rng: np.random.Generator) -> None:
     x = rng.integers(0, np.iinfo(dtype).max, (4, 5, 2), dtype=dtype, endpoint=True)
-    r = codec._residual(x, predictor)
+    r = cbits.residual(x, predictor)
     assert r.reshape(-1).tolist() == _loop_residual(x, predictor)
-    assert np.array_equal(codec._unresidual(r, predictor), x)
+    assert np.array_equal(cbits.unresidual(r, predictor), x)
 
 
 def test_zigzag_matches_the_definition() -> None:
     values = np.array([0, -1, 1, -2, 2, 127, -128], np.int8).view(np.uint8)
-    assert codec._zigzag(values).tolist() == [0, 1, 2, 3, 4, 254, 255]
-    assert np.array_equal(codec._unzigzag(codec._zigzag(values)), values)
+    assert cbits.zigzag(values).tolist() == [0, 1, 2, 3, 4, 254, 255]
+    assert np.array_equal(cbits.unzigzag(cbits.zigzag(values)), values)
 
 
 def test_quant_keeps_grid_values_and_marks_everything_else_as_exception() -> None:
@@ -257,12 +260,12 @@ def test_masked_pixels_hold_their_prediction_and_cost_no_residual(
         predictor: int, dtype: Any, rng: np.random.Generator) -> None:
     x = rng.integers(0, np.iinfo(dtype).max, (5, 7, 2), dtype=dtype, endpoint=True)
     valid = rng.random(x.shape) < 0.6
-    f = codec._predicted_fill(x, valid, predictor)
+    f = cbits.predicted_fill(x, valid, predictor)
     assert np.array_equal(f, _loop_fill(x, valid, predictor))
-    assert not codec._residual(f, predictor)[~valid].any()
-    z = codec._masked_residuals(x, valid, predictor)
+    assert not cbits.residual(f, predictor)[~valid].any()
+    z = cbits.masked_residuals(x, valid, predictor)
     assert z.size == valid.sum()
-    back = codec._unmask_residuals(z, valid, x.shape, predictor)
+    back = cbits.unmask_residuals(z, valid, x.shape, predictor)
     assert np.array_equal(back[valid], x[valid])
 
 
@@ -324,6 +327,89 @@ def test_roundtrip_is_bit_exact(scan: Any, step: float | None, level: int,
     back = codec.decompress_scan(buf)
     _same(back, scan)
     assert back.data.tobytes() == scan.data.tobytes()
+
+
+# -------------------------------------------------------------- compiled residual coder
+
+def _compiled() -> Any:
+    pytest.importorskip("numba")
+    from converters._kernels import select
+    coder = select("codec").numba
+    if coder is None:
+        pytest.skip("numba disabled (LIDARSCAN_NUMBA=0)")
+    return coder
+
+
+@given(st.lists(st.integers(0, 2**32 - 1) | st.integers(0, 300) | st.just(0), max_size=300))
+def test_compiled_coder_matches_the_numpy_reference(values: list[int]) -> None:
+    from lidarscan._codec_bits import NUMPY, bitlen_table
+    coder = _compiled()
+    z = np.array(values, np.uint32)
+    ref = NUMPY.symbols(z, bitlen_table())
+    got = coder.symbols(z, bitlen_table())
+    for a, b in zip(ref, got, strict=True):
+        assert a.dtype == b.dtype and a.tolist() == b.tolist()
+    for extra, sym, k in ((1, ref[0], ref[1]), (2, ref[2], ref[3])):
+        low = NUMPY.pack_low(z, k)
+        assert coder.pack_low(z, k).tobytes() == low.tobytes()
+        counts = NUMPY.low_counts(sym, extra)
+        assert coder.low_counts(sym, extra).tolist() == counts.tolist()
+        assert coder.unpack(sym, extra, counts, low).tolist() == values
+        assert NUMPY.unpack(sym, extra, counts, low).tolist() == values
+
+
+@given(st.integers(1, 5), st.integers(1, 7), st.integers(1, 2), st.sampled_from(["u1", "u2", "u4"]),
+       st.integers(0, 4), st.booleans(), st.integers(0, 2**32 - 1))
+def test_compiled_prediction_matches_the_numpy_reference(h: int, w: int, c: int, dtype: str,
+                                                         predictor: int, masked: bool,
+                                                         seed: int) -> None:
+    from lidarscan._codec_bits import NUMPY
+    coder = _compiled()
+    rng = np.random.default_rng(seed)
+    x = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True)
+    ref = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True) \
+        if predictor == cbits.REF else None
+    valid = rng.random((h, w, c)) < 0.7 if masked else None
+    z = NUMPY.residuals(x, valid, predictor, ref)
+    assert z.dtype == np.uint32
+    costs = NUMPY.costs(x, valid, ref)
+    assert costs[predictor] == sum(int(v).bit_length() for v in z.tolist())
+    assert (costs[cbits.REF] == -1) == (ref is None)
+    assert coder.costs(x, valid, ref).tolist() == costs.tolist()
+    assert coder.residuals(x, valid, predictor, ref).tolist() == z.tolist()
+    want = NUMPY.unresiduals(z, valid, predictor, ref, np.empty_like(x))
+    got = coder.unresiduals(z, valid, predictor, ref, np.empty_like(x))
+    assert got.tolist() == want.tolist()
+    if valid is not None:
+        assert np.array_equal(want[valid], x[valid])
+    else:
+        assert np.array_equal(want, x)
+
+
+@given(_scans(), st.sampled_from([None, 0.001]))
+def test_compiled_coder_writes_the_reference_bytes_and_roundtrips(scan: Any,
+                                                                  step: float | None) -> None:
+    coder = _compiled()
+    buf = codec.compress_scan(scan, float_step=step, coder=coder)
+    assert buf == codec.compress_scan(scan, float_step=step)
+    _same(codec.decompress_scan(buf, coder=coder), scan)
+
+
+def test_compiled_coder_on_a_real_frame_and_its_switch(monkeypatch: Any) -> None:
+    from converters._kernels import select
+    from converters.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.ouster import scan_from_frame
+    coder = _compiled()
+    meta, path = next((m, p) for m, p in ouster_files() if p is not None)
+    info = ouster_info(meta)
+    scan = scan_from_frame(load_frame(path), info, as_dataclass=True)
+    buf = codec.compress_scan(scan, info, coder=coder)
+    assert buf == codec.compress_scan(scan, info)
+    _same(codec.decompress_scan(buf, coder=coder), scan)
+    assert codec.decompress_scan(GOLDEN_V2, coder=coder).data.tobytes() == \
+        _golden_scan_v2().data.tobytes()
+    monkeypatch.setenv("LIDARSCAN_NUMBA", "0")
+    assert select("codec").numba is None
 
 
 def test_roundtrip_of_overlapping_and_out_of_range_channels_falls_back_to_zstd() -> None:
@@ -446,6 +532,22 @@ def test_mcap_writer_compresses_scans_and_the_reader_decompresses(tmp_path: Any)
             if s["method"] in ("predict2", "quant2")} == {1}
     assert all(ls.encode(m.decode()) == ls.encode(scan) for m in scans)
     assert [ls.encode(s) for s, _ in read_scans(path)] == [ls.encode(scan)] * 2
+
+
+def test_mcap_writer_and_records_take_the_compiled_coder(tmp_path: Any) -> None:
+    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter, read_messages
+    coder = _compiled()
+    info, scan = _ouster_pair()
+    payloads = []
+    for name, given in (("ref.mcap", None), ("fast.mcap", coder)):
+        with McapWriter(tmp_path / name, scan_encoding=CODEC_ENCODING,
+                        codec_coder=given) as writer:
+            writer.write("/info", info)
+            writer.write("/scan", scan)
+        record = next(m for m in read_messages(tmp_path / name) if m.msgtype == SCAN_TYPE)
+        assert ls.encode(record.decode(coder)) == ls.encode(scan)
+        payloads.append(record.payload)
+    assert payloads[0] == payloads[1]
 
 
 def test_mcap_writer_refuses_another_encoding_or_a_compressed_non_scan(tmp_path: Any) -> None:

@@ -26,6 +26,9 @@ numba       :mod:`.velodyne`                ``pip install numba``    Velodyne pa
 numba       :mod:`.cloud_slices`            ``pip install numba``    unstructured PointCloud2 ->
                                             (extra ``fast``)         slices
                                                                      (converters.cloud_slices)
+numba       :mod:`.codec`                   ``pip install numba``    residual coding of
+                                            (extra ``fast``)         lidarscan.codec (passed as
+                                                                     its ``coder=``)
 numpy       the converters themselves       --                       everything (the reference)
 ==========  ==============================  =======================  ============================
 
@@ -86,7 +89,8 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
     Args:
         task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"``, ``"merger"`` or
             ``"cloud_slices"`` (chosen by ``backend``), ``"hesai"`` / ``"velodyne"`` (packet
-            decoding: numba when enabled).
+            decoding: numba when enabled), ``"codec"`` (the :class:`lidarscan.codec.ResidualCoder`
+            to pass to ``compress_scan`` / ``decompress_scan``: numba when enabled).
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy); ``"numba"``: numba only (an
             error when it is missing); ``"numpy"``: the reference.
@@ -111,9 +115,12 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
     if task == "velodyne":
         from converters._kernels import velodyne
         return Backends(numba=velodyne.fill_kernel() if numba_enabled() else None)
+    if task == "codec":
+        from converters._kernels import codec
+        return Backends(numba=codec.coder() if numba_enabled() else None)
     if task not in ("slices", "merger", "cloud_slices"):
-        raise ConfigError("task", task, "'cloud', 'slices', 'merger', 'cloud_slices', 'hesai' "
-                          "or 'velodyne'")
+        raise ConfigError("task", task, "'cloud', 'slices', 'merger', 'cloud_slices', 'hesai', "
+                          "'velodyne' or 'codec'")
     if backend not in ("auto", "numba", "numpy"):
         raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
     if task == "cloud_slices":

@@ -41,7 +41,7 @@ import numpy as np
 __all__ = ["TASKS", "probe_cloud", "probe_info", "probe_scan", "specialisations", "warm"]
 
 #: What :func:`warm` can prepare.
-TASKS = ("cloud", "slices", "merger")
+TASKS = ("cloud", "slices", "merger", "codec")
 
 #: (height, width, tilt about y in radians) of the synthetic sensors: >= 32768 rays upright,
 #: the same tilted, and a small one (the general kernel's one-call path).
@@ -140,6 +140,16 @@ def _warm_merger() -> None:
     merger.merge({"a": laser, "b": laser})
 
 
+def _warm_codec() -> None:
+    from converters._kernels import select
+    from lidarscan import codec
+
+    coder = select("codec").numba
+    if coder is not None:
+        scan = probe_scan(probe_info(8, 64))
+        codec.decompress_scan(codec.compress_scan(scan, coder=coder), coder=coder)
+
+
 def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = None,
          slice_options: Mapping[str, Any] | None = None,
          cloud_options: Mapping[str, Any] | None = None) -> dict[str, float]:
@@ -147,7 +157,8 @@ def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = Non
 
     Args:
         tasks: "cloud" (LidarScan -> PointCloud2: the C kernel), "slices" (height slices: the
-            numba kernels the configuration can reach), "merger" (the merger's kernels).
+            numba kernels the configuration can reach), "merger" (the merger's kernels),
+            "codec" (the residual coder of :mod:`lidarscan.codec`).
         slices: the slice configuration a node will use (name -> SliceSpec or dict), as
             :class:`converters.laserscan.SliceConverter` takes it; None = one slice.
         slice_options, cloud_options: keyword options of the slice / PointCloud2 converters
@@ -165,7 +176,7 @@ def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = Non
     steps: dict[str, Callable[[], None]] = {
         "cloud": lambda: _warm_cloud(cloud_options or {}),
         "slices": lambda: _warm_slices(slices, slice_options or {}),
-        "merger": _warm_merger}
+        "merger": _warm_merger, "codec": _warm_codec}
     chosen = list(tasks)
     for task in chosen:
         if task not in steps:
@@ -201,7 +212,7 @@ def main() -> int:
                           ("10 slices, 2 grids", nine_grids)):
         took = warm(("slices",), slices=config)
         print(f"slices ({label}): {took['slices']:.2f} s", flush=True)
-    for task, took in warm(("cloud", "merger")).items():
+    for task, took in warm(("cloud", "merger", "codec")).items():
         print(f"{task}: {took:.2f} s", flush=True)
     compiled = specialisations()
     print(f"kernels ready in {time.perf_counter() - total:.1f} s: "

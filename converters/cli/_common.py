@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from collections.abc import Iterator
@@ -11,6 +12,23 @@ from typing import IO, Any
 
 
 EXIT_OK, EXIT_BAD, EXIT_FATAL, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+@functools.cache
+def codec_coder() -> Any:
+    """The compiled residual coder of :mod:`lidarscan.codec` (same bytes as its numpy
+    reference, faster), or None when numba is missing or switched off; loaded on first use."""
+    from converters._kernels import select
+    return select("codec").numba
+
+
+def decode_item(item: Any) -> Any:
+    """Decode one recorded message (an :class:`lidarscan.mcap.McapMessage`); a LidarScan
+    stored as a :mod:`lidarscan.codec` buffer is decompressed with :func:`codec_coder`."""
+    from lidarscan.mcap import CODEC_ENCODING
+    if getattr(item, "encoding", "cdr") == CODEC_ENCODING:
+        return item.decode(codec_coder())
+    return item.decode()
 
 
 class Progress:

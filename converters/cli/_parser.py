@@ -19,10 +19,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"lidarscan {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("demo", help="simulate a robot in a room, convert, record and draw",
-                       description="Simulated robot with a 3D lidar (real Ouster OS-1-128 "
-                                   "geometry) and a 2D lidar in a room with a table and an "
-                                   "overhanging shelf. Writes DIR/demo.mcap and PNG views.")
+    p = sub.add_parser(
+        "demo", help="simulate a robot in a room (3D + 2D lidar, depth camera), convert, "
+                     "record and draw",
+        description="Simulated robot with a 3D lidar (real Ouster OS-1-128 geometry), a 2D "
+                    "lidar and a depth camera (424x240 16UC1) in a room with a table, an "
+                    "overhanging shelf and a stairwell going down. Converts every frame "
+                    "(PointCloud2, height slices, the camera's slice with hole detection: the "
+                    "stairwell's edge is an obstacle no lidar band sees, the merged scan) and "
+                    "writes DIR/demo.mcap and PNG views (range_image, birdseye_slices, "
+                    "merged_scan, depth_camera, pointcloud_topview).")
     p.add_argument("--out", default="demo_out", help="output folder (default: ./demo_out)")
     p.add_argument("--frames", type=_positive_int, default=10, help="frames at 10 Hz (10)")
     p.add_argument("--no-images", action="store_true", help="skip the PNG views")

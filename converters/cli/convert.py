@@ -18,6 +18,7 @@ from converters.cli._common import (
     _err,
     _namespace,
     _open_input,
+    codec_coder,
 )
 from converters.cli.convert_inputs import (
     _convert_clouds,
@@ -182,7 +183,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
     writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20,
                         level=args.zstd_level,
-                        scan_encoding=CODEC_ENCODING if args.compress else "cdr")
+                        scan_encoding=CODEC_ENCODING if args.compress else "cdr",
+                        codec_coder=codec_coder())  # also decompresses codec input
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
     progress = Progress(size, f"converting {src.name}",
                         enabled=True if args.progress else (None if not args.quiet else False))

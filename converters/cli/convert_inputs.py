@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from converters.cli._common import Progress, _Input, _err, _namespace
+from converters.cli._common import Progress, _Input, _err, _namespace, decode_item
 from converters.cli.convert_pipeline import (
     ConvertReport,
     _Plan,
@@ -38,7 +38,7 @@ def _convert_scans(source: _Input, writer: Any, args: argparse.Namespace, plan: 
         try:
             ready: list[Any] = []
             if item.msgtype in (INFO_TYPE, SCAN_TYPE):
-                msg = item.decode()
+                msg = decode_item(item)
                 if item.msgtype == INFO_TYPE:
                     ready = pipeline.core.resolver.add_info(msg)
                 else:

@@ -7,7 +7,7 @@ import argparse
 from dataclasses import dataclass, field
 from typing import Any
 
-from converters.cli._common import EXIT_BAD, EXIT_OK, _fmt_stamp, _open_input
+from converters.cli._common import EXIT_BAD, EXIT_OK, _fmt_stamp, _open_input, decode_item
 
 
 @dataclass
@@ -85,7 +85,7 @@ def cmd_info(args: argparse.Namespace) -> int:
                 layout = (scan.frame_id, "")
             elif item.msgtype in (INFO_TYPE, SCAN_TYPE, "sensor_msgs/msg/LaserScan",
                                   "sensor_msgs/msg/PointCloud2"):
-                msg = item.decode()
+                msg = decode_item(item)
                 layout = _layout(item.msgtype, msg)
                 if item.msgtype == INFO_TYPE:
                     lidarscan.validate_info(msg)

@@ -16,7 +16,8 @@ Hesai integer range units, every return of a dual sensor in its own channel) are
   Nebula fills them) raw, lz4, zstd-3 and zstd-19;
 * LidarScan: raw, lz4 / zstd-3 / zstd-19 of the whole ``data`` buffer (what an MCAP chunk
   compressor does), byte shuffle + zstd-3 per block, the project's codec
-  (:mod:`lidarscan.codec`, zstd level 3), and the image codecs of ``imagecodecs``: 16-bit PNG
+  (:mod:`lidarscan.codec`, its defaults, with the compiled residual coder when numba is
+  there), and the image codecs of ``imagecodecs``: 16-bit PNG
   and lossless JPEG-XL of every 8/16-bit channel and of the range in integer millimetres (split
   into its low and high 16-bit words when it exceeds 65.535 m, so the images stay lossless).
 
@@ -275,7 +276,9 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
     from lidarscan import channel as ls_channel
     from lidarscan import codec
     from lidarscan.scan import data_view
+    from converters._kernels import select
     from converters.pointcloud2 import to_pointcloud2
+    coder = select("codec").numba  # the compiled residual coder (same bytes), None without
     out = []
     for label, preset, load in sources():
         info, scan = load()
@@ -308,8 +311,8 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
         enc_s, _ = CODECS["shuffle+zstd-3"]()
         rec["scan"]["shuffle+zstd-3 per block"] = sum(len(enc_s(a))
                                                      for a in _blocks_of(scan).values())
-        packed = codec.compress_scan(scan, info)
-        back = codec.decompress_scan(packed)
+        packed = codec.compress_scan(scan, info, coder=coder)
+        back = codec.decompress_scan(packed, coder=coder)
         if data_view(back).tobytes() != data:
             raise AssertionError(f"{label}: lidarscan.codec is not lossless")
         rec["scan"]["lidarscan.codec"] = len(packed)
@@ -319,8 +322,8 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
                                                if s["offset"] == offsets["range"])
         if timing:
             rec["times"]["scan lidarscan.codec"] = (
-                time_call(lambda: codec.compress_scan(scan, info), repeat=5),
-                time_call(lambda: codec.decompress_scan(packed), repeat=5))
+                time_call(lambda: codec.compress_scan(scan, info, coder=coder), repeat=5),
+                time_call(lambda: codec.decompress_scan(packed, coder=coder), repeat=5))
         if _have("imagecodecs"):
             planes = _image_planes(scan)
             for kind in ("PNG", "JPEG-XL"):
