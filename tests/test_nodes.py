@@ -661,6 +661,40 @@ def test_console_script_stops_cleanly_on_ctrl_c(script: str, tmp_path: Path) -> 
             proc.wait()
 
 
+_CTRL_C_WHILE_BUILDING = """
+import os, signal, sys, time
+import rclpy
+from converters.nodes.common import run_node
+
+def make_node():
+    node = rclpy.create_node("ctrl_c_while_building")
+    deadline = time.monotonic() + 10
+    try:
+        os.kill(os.getpid(), signal.SIGINT)  # as a user's Ctrl-C during the kernel warm-up
+        while rclpy.ok() and time.monotonic() < deadline:
+            time.sleep(0.01)
+    except KeyboardInterrupt:
+        pass  # lost on the way, as in a real warm-up (it happened): only the shutdown remains
+    while rclpy.ok() and time.monotonic() < deadline:
+        time.sleep(0.01)                     # rclpy's signal thread shuts the context down
+    print("context ok after SIGINT:", rclpy.ok(), flush=True)
+    return node
+
+sys.exit(run_node(make_node, [sys.argv[0]]))
+"""
+
+
+@pytest.mark.ros
+def test_ctrl_c_while_the_node_is_built_stops_cleanly() -> None:
+    # rclpy's SIGINT handler shuts the context down instead of raising KeyboardInterrupt, so a
+    # Ctrl-C during a node's construction used to end in an RCLError traceback from spin().
+    done = subprocess.run([sys.executable, "-c", _CTRL_C_WHILE_BUILDING], check=False,
+                          capture_output=True, text=True, env=_env(), timeout=60)
+    assert "context ok after SIGINT: False" in done.stdout, done.stdout + done.stderr
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+
+
 @pytest.mark.ros
 def test_console_script_rejects_bad_parameters() -> None:
     done = subprocess.run(_script("lidarscan-merger"), check=False, capture_output=True, text=True,

@@ -329,12 +329,19 @@ def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) ->
     status = 0
     try:
         node = make_node()
-        rclpy.spin(node)
+        # Ctrl-C while the node was being built (its kernel warm-up can take seconds) is
+        # handled by rclpy's own SIGINT handler: it shuts the context down instead of raising,
+        # so spinning now would fail with "context is not valid". That is a normal stop.
+        if rclpy.ok():
+            rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except LidarScanError as err:
         print(f"error: {err}", file=sys.stderr)
         status = 2
+    except Exception:
+        if rclpy.ok():     # a real failure, not the shutdown above racing the check
+            raise
     finally:
         if node is not None:
             with contextlib.suppress(Exception):  # never mask the original exit path
