@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -203,6 +204,22 @@ def test_console_script_help() -> None:
     assert done.returncode == 0
     for command in ("demo", "info", "convert", "view"):
         assert command in done.stdout
+
+
+def test_info_into_a_closed_pipe_exits_quietly() -> None:
+    """`lidarscan info REC | head -1` with the reader gone before the text is written: exit 0,
+    nothing on stderr (it printed "error: [Errno 32] Broken pipe" and exited 2)."""
+    exe = Path(sys.executable).parent / "lidarscan"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "converters.cli"]
+    bag = Path(__file__).parent / "data" / "nebula" / "velodyne_vls128" / "bag"
+    read_end, write_end = os.pipe()
+    os.close(read_end)                                   # nobody reads: the first write fails
+    try:
+        done = subprocess.run(cmd + ["info", str(bag)], check=False, stdout=write_end,
+                              stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert (done.returncode, done.stderr) == (0, ""), done.stderr
 
 
 # ------------------------------------------------------- inputs checked before anything is written

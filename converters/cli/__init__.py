@@ -37,6 +37,8 @@ inputs) and the argparse parser in :mod:`._parser`.
 
 from __future__ import annotations
 
+import os
+import sys
 from collections.abc import Sequence
 
 from converters.cli._common import (
@@ -68,6 +70,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _err("interrupted")
         return EXIT_INTERRUPTED
+    except BrokenPipeError:   # `lidarscan info REC | head`: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no flush error at exit
+        return EXIT_OK
     except LidarScanError as err:
         _err(f"lidarscan {args.command}: error: {err}")
         return EXIT_FATAL
