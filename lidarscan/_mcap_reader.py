@@ -535,7 +535,6 @@ class _Reader:
 
     # -------------------------------------------------------------------------- main
     def messages(self) -> Iterator[McapMessage | BadMessage]:
-        start = self.pos
         head = self.read(8)
         if head != _MAGIC:
             kind = describe_bytes(head)

@@ -400,7 +400,7 @@ def test_huge_record_length_in_a_file_is_not_allocated(tmp_path: Path) -> None:
 def test_schema_name_with_a_nul_byte_is_a_bad_message_not_a_crash() -> None:
     # Found by bench/fuzz.py (mcap case 4198): a damaged schema name was registered as a new
     # type and decoding its messages raised ValueError from dataclasses.make_dataclass. Fixed in
-    # lidarscan/mcap.py (type names are checked before registration).
+    # lidarscan/_mcap_reader.py (type names are checked before registration).
     from lidarscan.mcap import BadMessage, read_messages
     blob = MCAPS["none"][0]
     name = b"lidarscan_msgs/msg/LidarInfo"

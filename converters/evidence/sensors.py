@@ -372,7 +372,7 @@ def _pct(x: float) -> str:
 def _sizes(record: dict[str, Any]) -> tuple[int, list[str]]:
     """(LidarScan CDR bytes, ['driver: bytes'])."""
     from lidarscan import encode
-    scan, info = record["scan"], record["info"]
+    scan = record["scan"]
     ours = len(encode(scan))
     n = record["n_truth"]
     if record["reference"] == "Nebula":
