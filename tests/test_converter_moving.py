@@ -191,3 +191,78 @@ def test_node_parameters_document_moving_and_tf_wait() -> None:
     node, _ = converter_node._specs()
     by_name = {s.name: s for s in node}
     assert by_name["moving"].default is False and by_name["tf_wait"].default == 0.1
+
+
+# --------------------------------------------------------------------- real DDS graph
+
+def _tf(parent: str, child: str, matrix: np.ndarray, stamp: int) -> Any:
+    from geometry_msgs.msg import TransformStamped
+
+    from converters.transforms import quaternion_from_matrix
+    from lidarscan.stamps import time_msg
+
+    t = TransformStamped()
+    t.header.frame_id, t.child_frame_id = parent, child
+    t.header.stamp = time_msg(stamp)
+    t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = \
+        (float(v) for v in matrix[:3, 3])
+    q = quaternion_from_matrix(matrix)
+    t.transform.rotation.x, t.transform.rotation.y = float(q[0]), float(q[1])
+    t.transform.rotation.z, t.transform.rotation.w = float(q[2]), float(q[3])
+    return t
+
+
+@pytest.mark.ros
+def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # noqa: F811
+    """The real node: /tf_static (arm) + /tf (pan joint, 200 Hz) published after each sweep;
+    every slice equals SliceConverter's with the track of the same /tf messages."""
+    from lidarscan_msgs.msg import LidarInfo, LidarScan
+    from sensor_msgs.msg import LaserScan
+
+    from converters.nodes.converter_node import ConverterNode
+    from test_nodes import overrides, same_floats, small_info, small_scan
+
+    tf2_msgs = pytest.importorskip("tf2_msgs.msg")
+    info = small_info(frame="os_sensor")                  # 128 columns x 781.25 us = 100 ms
+    ref_buf = TransformBuffer()
+    static = tf2_msgs.TFMessage(transforms=[_tf("pan_link", "os_sensor", ARM, 0)])
+    ref_buf.add_message(static, static=True)
+    graph.publisher(tf2_msgs.TFMessage, "/tf_static", "latched").publish(static)
+    graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
+    tf_pub = graph.publisher(tf2_msgs.TFMessage, "/tf", "reliable")
+    scan_pub = graph.publisher(LidarScan, "lidar_scan", "reliable")
+    out = graph.collect(LaserScan, "slices/band")
+    node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
+        target_frame="base_link", slice_names=["band"], slices__band__min_height=0.7,
+        slices__band__max_height=1.5, scan_qos="reliable", moving=True, tf_wait=1.0,
+        extrinsics=[9.0, 9.0, 9.0, 0.0, 0.0, 0.0])))
+    assert graph.wait(lambda: node.tf_buffer.is_static("pan_link", "os_sensor") and
+                      node.core.resolver.latest_stamp_ns is not None and
+                      tf_pub.get_subscription_count() > 0 and
+                      scan_pub.get_subscription_count() > 0 and
+                      node.slice_pubs["band"].get_subscription_count() > 0)
+    scans = {}
+    for k in range(3):
+        stamp = STAMP + k * SCAN_NS
+        scans[stamp] = small_scan(info, stamp, seed=k)
+        scan_pub.publish(scans[stamp])                     # the sweep before its /tf
+        for t in range(stamp - 10 * MS if k == 0 else stamp + 5 * MS,
+                       stamp + SCAN_NS + 5 * MS, STEP):
+            msg = tf2_msgs.TFMessage(transforms=[_tf("base_link", "pan_link", pan(t), t)])
+            ref_buf.add_message(msg)
+            tf_pub.publish(msg)
+    assert graph.wait(lambda: len(out) >= 3, timeout=15.0)
+    track = TransformTrack()
+    for t, matrix in ref_buf.samples("base_link", "os_sensor"):
+        track.add(t, matrix)
+    slicer = SliceConverter(info, {"band": SliceConfig("band", 0.7, 1.5).spec()},
+                            extrinsics=track, frame_id="base_link")
+    for msg in out:
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        want = slicer.convert(scans[stamp])["band"]
+        assert msg.header.frame_id == "base_link"
+        assert same_floats(msg.ranges, want.ranges)
+        assert same_floats(msg.intensities, want.intensities)
+    assert node.stats.dropped_no_pose == 0 and not node.core.held
+    names = [s.name for s in node._diagnose()]
+    assert "moving mount" in names
