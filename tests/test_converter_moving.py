@@ -26,6 +26,7 @@ from grid_reference import pose
 from lidarscan.errors import ConfigError
 from test_laserscan import make_sensor
 from test_moving_slices import STAMP, moving_room_scan
+from test_moving_mounts import _tf_message
 from test_nodes import graph  # noqa: F401 - the rclpy graph fixture
 
 MS = 1_000_000
@@ -195,23 +196,6 @@ def test_node_parameters_document_moving_and_tf_wait() -> None:
 
 # --------------------------------------------------------------------- real DDS graph
 
-def _tf(parent: str, child: str, matrix: np.ndarray, stamp: int) -> Any:
-    from geometry_msgs.msg import TransformStamped
-
-    from converters.transforms import quaternion_from_matrix
-    from lidarscan.stamps import time_msg
-
-    t = TransformStamped()
-    t.header.frame_id, t.child_frame_id = parent, child
-    t.header.stamp = time_msg(stamp)
-    t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = \
-        (float(v) for v in matrix[:3, 3])
-    q = quaternion_from_matrix(matrix)
-    t.transform.rotation.x, t.transform.rotation.y = float(q[0]), float(q[1])
-    t.transform.rotation.z, t.transform.rotation.w = float(q[2]), float(q[3])
-    return t
-
-
 @pytest.mark.ros
 def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # noqa: F811
     """The real node: /tf_static (arm) + /tf (pan joint, 200 Hz) published after each sweep;
@@ -225,7 +209,7 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
     tf2_msgs = pytest.importorskip("tf2_msgs.msg")
     info = small_info(frame="os_sensor")                  # 128 columns x 781.25 us = 100 ms
     ref_buf = TransformBuffer()
-    static = tf2_msgs.TFMessage(transforms=[_tf("pan_link", "os_sensor", ARM, 0)])
+    static = tf2_msgs.TFMessage(transforms=[_tf_message("pan_link", "os_sensor", ARM, 0)])
     ref_buf.add_message(static, static=True)
     graph.publisher(tf2_msgs.TFMessage, "/tf_static", "latched").publish(static)
     graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
@@ -248,7 +232,7 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
         scan_pub.publish(scans[stamp])                     # the sweep before its /tf
         for t in range(stamp - 10 * MS if k == 0 else stamp + 5 * MS,
                        stamp + SCAN_NS + 5 * MS, STEP):
-            msg = tf2_msgs.TFMessage(transforms=[_tf("base_link", "pan_link", pan(t), t)])
+            msg = tf2_msgs.TFMessage(transforms=[_tf_message("base_link", "pan_link", pan(t), t)])
             ref_buf.add_message(msg)
             tf_pub.publish(msg)
     assert graph.wait(lambda: len(out) >= 3, timeout=15.0)

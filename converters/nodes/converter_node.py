@@ -101,10 +101,10 @@ the first scan after ready costs about what the next ones cost (bench/bench_star
 ``lidarscan-converter --help`` prints every parameter with its default, rule and description
 (from the one table in :func:`_specs`) without starting ROS. Topics, QoS, ``slice_names``,
 ``slices.NAME.topic``, ``slices_file``, ``target_frame``, ``moving``, ``tf_wait`` and
-``pointcloud2.enabled`` are read-only (a restart is needed); the others may be changed while running (``ros2 param set``):
-each change is checked by the parameter's rule and then by building the converters with it
-(:meth:`ConverterCore.check`), and refused with the reason otherwise; an accepted change applies
-from the next scan.
+``pointcloud2.enabled`` are read-only (a restart is needed); the others may be changed while
+running (``ros2 param set``): each change is checked by the parameter's rule and then by
+building the converters with it (:meth:`ConverterCore.check`), and refused with the reason
+otherwise; an accepted change applies from the next scan.
 
 Behaviour: no conversion work while no output has a subscriber (``get_subscription_count``);
 a malformed, unlinked or inconsistent message is dropped with one log line (rate-limited) and
@@ -940,7 +940,14 @@ def _node_class() -> type:
 
         def _on_tf(self, cleared: bool) -> None:
             """New /tf (moving mount): extend the tracks, convert the pairs they release."""
-            self._publish(self.core.update_tracks(cleared), held=True)
+            try:
+                ready = self.core.update_tracks(cleared)
+            except Exception as err:  # noqa: BLE001 - a node must survive any input
+                self.stats.count(f"internal: {type(err).__name__}")
+                self._log(f"moving mount: poses not updated ({type(err).__name__}: {err})",
+                          "moving")
+                return
+            self._publish(ready, held=True)
 
         def _publish(self, pairs: list[tuple[Any, Any]], want_cloud: bool | None = None,
                      want_slices: list[str] | None = None, held: bool = False) -> None:
@@ -986,7 +993,7 @@ def _node_class() -> type:
                         self.stats.slices_published += 1
                 self._latency.add(self.get_clock().now().nanoseconds - to_ns(scan.header.stamp))
 
-        def _extrinsics(self, scan: Any, info: Any) -> np.ndarray[Any, Any] | None:
+        def _extrinsics(self, scan: Any, info: Any) -> Any:
             """target_from_sensor: TF at the scan stamp, else the parameter, else identity; a
             moving mount's track (pose at every pixel's time)."""
             if not self.target_frame:
