@@ -165,8 +165,7 @@ def test_a_time_jump_back_clears_the_track_and_waits_afresh() -> None:
     core = make_core(buf, tf_wait_ns=50 * MS)
     core.add_info(info)
     feed(buf, STAMP + 10 * SCAN_NS, STAMP + 11 * SCAN_NS)
-    core.hold([])
-    core.track("os_sensor")
+    assert core.track("os_sensor").span == (STAMP + 10 * SCAN_NS, STAMP + 11 * SCAN_NS)
     buf.clear()                                          # as TfListener does on a jump back
     assert core.update_tracks(cleared=True) == []
     assert core.track("os_sensor").span is None
@@ -179,9 +178,10 @@ def test_a_time_jump_back_clears_the_track_and_waits_afresh() -> None:
 def test_moving_needs_a_target_frame_and_hold_is_transparent_when_fixed() -> None:
     with pytest.raises(ConfigError, match="moving"):
         ConverterCore(slices=SLICES, moving=True)
-    fixed = ConverterCore(slices=SLICES, target_frame="base_link")
     pairs = [(object(), object())]
-    assert fixed.hold(pairs) == pairs and not fixed.held
+    for core in (ConverterCore(slices=SLICES, target_frame="base_link"),
+                 ConverterCore(target_frame="base_link", moving=True)):   # cloud only
+        assert core.hold(pairs) == pairs and not core.held
 
 
 def test_node_parameters_document_moving_and_tf_wait() -> None:
@@ -248,5 +248,14 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
         assert same_floats(msg.ranges, want.ranges)
         assert same_floats(msg.intensities, want.intensities)
     assert node.stats.dropped_no_pose == 0 and not node.core.held
-    names = [s.name for s in node._diagnose()]
-    assert "moving mount" in names
+    status = {s.name: s for s in node._diagnose()}["moving mount"]
+    assert status.message == "ok" and status.values["held"] == 0
+    # a sweep /tf never covers: held, then dropped once data time is tf_wait past it
+    late = STAMP + 3 * SCAN_NS
+    scan_pub.publish(small_scan(info, late))
+    assert graph.wait(lambda: len(node.core.held) == 1)
+    scan_pub.publish(small_scan(info, late + 12 * SCAN_NS))      # 1.2 s later > tf_wait
+    assert graph.wait(lambda: node.stats.dropped_no_pose == 1)
+    status = {s.name: s for s in node._diagnose()}["moving mount"]
+    assert status.values["dropped_last_period"] == 1 and "did not cover" in status.message
+    assert node.stats.reasons["no pose"] == 1 and len(out) == 3

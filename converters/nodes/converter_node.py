@@ -74,10 +74,11 @@ pixel time), for at most ``tf_wait`` seconds of data time past its last pixel (t
 or pose stamp seen) and at most ``max_pending`` scans; one that is still not covered then, or
 whose sweep starts before the oldest pose kept, is dropped: one log line, counted
 (``dropped_no_pose``, reason ``no pose``) and reported by the ``moving mount`` diagnostics
-status (also the number held). The PointCloud2 of a held scan waits with it. The ``extrinsics``
-parameter is not used. The chain must contain a ``/tf`` (dynamic) edge: a mount known only from
-``/tf_static`` gives no poses (every scan dropped); leave ``moving`` false for it. ``moving``
-false (the default) is the fixed-mount path above, unchanged.
+status (also the number held). The PointCloud2 of a held scan waits with it (without slices
+nothing is held: the cloud needs no pose). The ``extrinsics`` parameter is not used. The chain
+must contain a ``/tf`` (dynamic) edge: a mount known only from ``/tf_static`` gives no poses
+(every scan dropped); leave ``moving`` false for it. ``moving`` false (the default) is the
+fixed-mount path above, unchanged.
 
 Depth camera (``depth.enabled`` [false], needs ``target_frame``): ``sensor_msgs/Image``
 (``depth.image_topic`` [``depth/image_rect``], 16UC1 millimetres or 32FC1 metres) and its
@@ -386,8 +387,9 @@ class ConverterCore:
     def hold(self, pairs: Iterable[tuple[Any, Any]]) -> list[tuple[Any, Any]]:
         """Moving mount: queue linked pairs until the track covers each scan's sweep (every
         pixel's time, :meth:`lidarscan.geometry.Projector.pixel_times`); returns the pairs
-        now ready, oldest first (see :meth:`update_tracks`). Without ``moving``: ``pairs``."""
-        if not self.moving:
+        now ready, oldest first (see :meth:`update_tracks`). Without ``moving`` or without
+        slices (the cloud needs no pose): ``pairs``."""
+        if not self.moving or not self.slices:
             return list(pairs)
         from lidarscan.geometry import make_projector
         from lidarscan.stamps import to_ns
