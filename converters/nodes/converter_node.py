@@ -53,12 +53,32 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
   changes) rebuilds the slice tables for every scan;
 * ``extrinsics`` [[]]: ``target_frame <- sensor`` as 6 (x y z roll pitch yaw), 7
   (x y z qx qy qz qw) or 16 (row-major 4x4) numbers; [] = identity;
+* ``moving`` [false]: the sensor's mount moves during a sweep (below); ``tf_wait`` [0.1] s:
+  how long (data time) a scan waits for ``/tf`` to cover its sweep;
 * ``max_pending`` [16] scans held while their LidarInfo is missing, for at most
   ``max_wait`` [2.0] seconds; ``max_infos`` [8] LidarInfo versions kept pairable (see
   :mod:`lidarscan.linkage` for what happens to older ones: dropped, never mispaired);
 * ``allow_unknown_parameters`` [false]: a parameter this node does not declare (a typo such as
   ``target_fram``) stops it at start-up with the list and a suggestion, unless true;
 * ``depth.*``: a depth camera input (below).
+
+**Moving mount** (``moving: true``, needs ``target_frame``; a lidar on a pan unit, an arm or a
+nodding head): the slices' extrinsics are a :class:`converters.TransformTrack` ``target_frame <-
+scan frame`` filled from ``/tf`` (each time a dynamic transform of the chain arrives, the chained
+transform at its stamp is added; static edges compose in,
+:meth:`converters.nodes.tf.TransformBuffer.samples`), looked up at every pixel's time
+(:mod:`converters.laserscan`, **Moving mounts**: interpolated, linear translation and slerp,
+never extrapolated), as the merger's moving inputs do. ``/tf`` usually arrives a little after a
+sweep ends, so a linked scan is held until the track covers its whole sweep (first to last
+pixel time), for at most ``tf_wait`` seconds of data time past its last pixel (the newest scan
+or pose stamp seen) and at most ``max_pending`` scans; one that is still not covered then, or
+whose sweep starts before the oldest pose kept, is dropped: one log line, counted
+(``dropped_no_pose``, reason ``no pose``) and reported by the ``moving mount`` diagnostics
+status (also the number held). The PointCloud2 of a held scan waits with it (without slices
+nothing is held: the cloud needs no pose). The ``extrinsics`` parameter is not used. The chain
+must contain a ``/tf`` (dynamic) edge: a mount known only from ``/tf_static`` gives no poses
+(every scan dropped); leave ``moving`` false for it. ``moving`` false (the default) is the
+fixed-mount path above, unchanged.
 
 Depth camera (``depth.enabled`` [false], needs ``target_frame``): ``sensor_msgs/Image``
 (``depth.image_topic`` [``depth/image_rect``], 16UC1 millimetres or 32FC1 metres) and its
@@ -81,11 +101,11 @@ the first scan after ready costs about what the next ones cost (bench/bench_star
 
 ``lidarscan-converter --help`` prints every parameter with its default, rule and description
 (from the one table in :func:`_specs`) without starting ROS. Topics, QoS, ``slice_names``,
-``slices.NAME.topic``, ``slices_file``, ``target_frame`` and ``pointcloud2.enabled`` are
-read-only (a restart is needed); the others may be changed while running (``ros2 param set``):
-each change is checked by the parameter's rule and then by building the converters with it
-(:meth:`ConverterCore.check`), and refused with the reason otherwise; an accepted change applies
-from the next scan.
+``slices.NAME.topic``, ``slices_file``, ``target_frame``, ``moving``, ``tf_wait`` and
+``pointcloud2.enabled`` are read-only (a restart is needed); the others may be changed while
+running (``ros2 param set``): each change is checked by the parameter's rule and then by
+building the converters with it (:meth:`ConverterCore.check`), and refused with the reason
+otherwise; an accepted change applies from the next scan.
 
 Behaviour: no conversion work while no output has a subscriber (``get_subscription_count``);
 a malformed, unlinked or inconsistent message is dropped with one log line (rate-limited) and
@@ -96,8 +116,8 @@ from __future__ import annotations
 
 import functools
 import sys
-from collections import OrderedDict
-from collections.abc import Iterable, Mapping, Sequence
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -125,6 +145,7 @@ class ConverterStats:
     conversion_errors: int = 0   # a pair that failed to convert (e.g. no transform)
     clouds_published: int = 0
     slices_published: int = 0
+    dropped_no_pose: int = 0     # moving mount: /tf never covered the scan's sweep
     reasons: dict[str, int] = field(default_factory=dict)
 
     def count(self, reason: str) -> None:
@@ -145,17 +166,32 @@ class ConverterCore:
         slice_options: common keyword options of :class:`converters.laserscan.SliceConverter`
             (e.g. ``intensity_channel``).
         max_pending, max_wait_ns, max_infos: bounds of the linkage resolver
-            (:class:`lidarscan.linkage.InfoResolver`).
+            (:class:`lidarscan.linkage.InfoResolver`); ``max_pending`` also bounds the pairs
+            held for a moving mount's poses.
         on_event: one line per notable event (drops, info changes).
+        moving: the sensor's mount moves (module docstring, **Moving mount**): linked pairs
+            go through :meth:`hold` and are converted with :meth:`track` as extrinsics.
+        tf_samples: ``(target frame, sensor frame, after_ns) -> [(stamp_ns, 4x4), ...]``
+            (:meth:`converters.nodes.tf.TransformBuffer.samples`) that fills the tracks;
+            None: fill :attr:`tracks` yourself.
+        tf_wait_ns: how long (data time: the newest scan or pose stamp seen) a pair waits for
+            the poses of its whole sweep.
+
+    Raises:
+        ConfigError: ``moving`` without a ``target_frame``.
     """
 
     def __init__(self, *, cloud_options: Mapping[str, Any] | None = None,
                  slices: Sequence[SliceConfig] = (), target_frame: str = "",
                  slice_options: Mapping[str, Any] | None = None, max_pending: int = 16,
                  max_wait_ns: int | None = 2_000_000_000, max_infos: int = 8,
-                 on_event: Any = None) -> None:
+                 on_event: Any = None, moving: bool = False,
+                 tf_samples: Callable[[str, str, int | None], Any] | None = None,
+                 tf_wait_ns: int = 100_000_000) -> None:
         from lidarscan.linkage import InfoResolver
 
+        if moving and not target_frame:
+            raise ConfigError("moving", True, "a target_frame (the frame the mount moves in)")
         self.stats = ConverterStats()
         self.cloud_options = dict(cloud_options or {})
         self.slices = list(slices)
@@ -168,6 +204,14 @@ class ConverterCore:
         self._slicers: OrderedDict[Any, Any] = OrderedDict()
         #: the last LidarInfo added (decoded), for :meth:`prepare`
         self.last_info: Any = None
+        self.moving = bool(moving)
+        self.tf_samples = tf_samples
+        self.tf_wait_ns = int(tf_wait_ns)
+        #: moving mount: sensor frame -> TransformTrack ``target_frame <- sensor frame``
+        self.tracks: dict[str, Any] = {}
+        #: moving mount: (scan, info, first pixel time, last pixel time) waiting for poses
+        self.held: deque[tuple[Any, Any, int, int]] = deque()
+        self._data_clock: int | None = None
 
     def reconfigure(self, *, cloud_options: Mapping[str, Any], slices: Sequence[SliceConfig],
                     slice_options: Mapping[str, Any], max_pending: int,
@@ -310,6 +354,95 @@ class ConverterCore:
         self.resolver.expire()
         self._collect_drops()
 
+    # --------------------------------------------------------------------- moving mount
+    def track(self, frame: str) -> Any:
+        """The :class:`converters.TransformTrack` ``target_frame <- frame`` of a moving mount
+        (created, and filled from ``tf_samples``, on first use)."""
+        from converters.transforms import TransformTrack
+
+        frame = str(frame).lstrip("/")
+        found = self.tracks.get(frame)
+        if found is None:
+            if len(self.tracks) >= 8:                   # bounded: frames seen lately
+                self.tracks.pop(next(iter(self.tracks)))
+            found = self.tracks[frame] = TransformTrack(name=f"{self.target_frame} <- {frame}")
+            self._fill(frame)
+        return found
+
+    def _fill(self, frame: str) -> None:
+        """Extend a track with the chained /tf samples newer than it holds."""
+        if self.tf_samples is None:
+            return
+        track = self.tracks[frame]
+        span = track.span
+        for stamp, matrix in self.tf_samples(self.target_frame, frame,
+                                             None if span is None else span[1]):
+            track.add(stamp, matrix)
+            self._tick(stamp)
+
+    def _tick(self, stamp: int) -> None:
+        if self._data_clock is None or stamp > self._data_clock:
+            self._data_clock = stamp
+
+    def hold(self, pairs: Iterable[tuple[Any, Any]]) -> list[tuple[Any, Any]]:
+        """Moving mount: queue linked pairs until the track covers each scan's sweep (every
+        pixel's time, :meth:`lidarscan.geometry.Projector.pixel_times`); returns the pairs
+        now ready, oldest first (see :meth:`update_tracks`). Without ``moving`` or without
+        slices (the cloud needs no pose): ``pairs``."""
+        if not self.moving or not self.slices:
+            return list(pairs)
+        from lidarscan.geometry import make_projector
+        from lidarscan.stamps import to_ns
+
+        for scan, info in pairs:
+            stamp = to_ns(scan.header.stamp)
+            times = make_projector(info).pixel_times(scan)
+            self.held.append((scan, info, stamp + int(times.min()), stamp + int(times.max())))
+            self._tick(stamp)
+            self.track(info.header.frame_id)
+        return self._release()
+
+    def update_tracks(self, cleared: bool = False) -> list[tuple[Any, Any]]:
+        """New /tf arrived (``cleared``: its time jumped back and the buffer was cleared):
+        extend the tracks, then return the held pairs now covered, oldest first. A held pair
+        that can never be covered (its sweep starts before the track), that waited
+        ``tf_wait_ns`` of data time past its last pixel, or that overflows ``max_pending``
+        and is not covered is dropped: counted in ``stats.dropped_no_pose`` and in
+        ``stats.reasons`` ("no pose"), and reported to ``on_event``."""
+        if cleared:
+            self._data_clock = None                  # a new timeline: wait afresh
+        for frame, track in self.tracks.items():
+            if cleared:
+                track.clear()
+            self._fill(frame)
+        return self._release()
+
+    def _release(self) -> list[tuple[Any, Any]]:
+        out = []
+        while self.held:
+            scan, info, lo, hi = self.held[0]
+            track = self.track(info.header.frame_id)
+            span = track.span
+            covered = span is not None and span[0] <= lo and hi <= span[1] + track.tolerance_ns
+            never = span is not None and lo < span[0]
+            waited = self._data_clock is not None and self._data_clock - hi > self.tf_wait_ns
+            full = len(self.held) > max(self.resolver.max_pending, 1)
+            if not (covered or never or waited or full):
+                break
+            self.held.popleft()
+            if covered:
+                out.append((scan, info))
+                continue
+            why = "its sweep starts before the oldest pose" if never else \
+                "held too long" if waited else "too many scans held"
+            self.stats.dropped_no_pose += 1
+            self.stats.count("no pose: /tf does not cover the sweep")
+            self._on_event(f"moving mount: scan {lo} dropped: /tf does not cover its sweep "
+                           f"[{lo}, {hi}] ns ({track.name}: poses "
+                           f"{'none' if span is None else list(span)}; {why}; tf_wait "
+                           f"{self.tf_wait_ns / 1e9:g} s)")
+        return out
+
     # -------------------------------------------------------------------------- convert
     def convert(self, scan: Any, info: Any, *, cloud: bool = True,
                 slices: Iterable[str] | None = None,
@@ -320,14 +453,17 @@ class ConverterCore:
             scan, info: a pair released by :meth:`add_scan` / :meth:`add_info`.
             cloud: produce the PointCloud2.
             slices: names of the slices to produce (default all).
-            extrinsics: 4x4 ``target_frame <- sensor`` for the slices; None: the slices are in
-                the info's frame (only allowed when ``target_frame`` is "" or that frame).
+            extrinsics: 4x4 ``target_frame <- sensor`` for the slices, or a moving mount's
+                :class:`converters.TransformTrack` / callable ``stamp_ns -> 4x4`` (looked up
+                at every pixel's time, e.g. :meth:`track`); None: the slices are in the info's
+                frame (only allowed when ``target_frame`` is "" or that frame).
 
         Returns:
             (PointCloud2 or None, {slice name: LaserScan}).
 
         Raises:
-            LidarScanError: the converters refused the pair.
+            LidarScanError: the converters refused the pair (a moving mount's pose missing at
+                a pixel's time: :class:`converters.transforms.TransformLookupError`).
         """
         from lidarscan import channel_names
         from lidarscan.geometry import info_key
@@ -340,15 +476,17 @@ class ConverterCore:
         wanted = [s for s in self.slices if slices is None or s.name in set(slices)]
         out_slices: dict[str, Any] = {}
         if wanted:
-            matrix = None if extrinsics is None else np.asarray(extrinsics, np.float64)
+            if callable(extrinsics):            # a moving mount: keyed by the track itself
+                matrix, mount = extrinsics, extrinsics
+            else:
+                matrix = None if extrinsics is None else np.asarray(extrinsics, np.float64)
+                mount = None if matrix is None else matrix.tobytes()
             names = tuple(s.name for s in wanted)
             intensity = self.slice_options.get("intensity_channel", "intensity")
             if intensity and intensity not in channel_names(scan):
                 intensity = None  # e.g. a range-only scan: empty intensities, not an error
-            slicer = self._cached(
-                self._slicers,
-                (key, names, None if matrix is None else matrix.tobytes(), intensity),
-                lambda: self._make_slicer(info, wanted, matrix, intensity))
+            slicer = self._cached(self._slicers, (key, names, mount, intensity),
+                                  lambda: self._make_slicer(info, wanted, matrix, intensity))
             out_slices = dict(slicer.convert(scan))
         self.stats.scans_converted += 1
         return out_cloud, out_slices
@@ -370,8 +508,8 @@ class ConverterCore:
 
         return PointCloud2Converter(info, **self.cloud_options)
 
-    def _make_slicer(self, info: Any, specs: Sequence[SliceConfig],
-                     extrinsics: np.ndarray[Any, Any] | None, intensity: str | None) -> Any:
+    def _make_slicer(self, info: Any, specs: Sequence[SliceConfig], extrinsics: Any,
+                     intensity: str | None) -> Any:
         from converters.laserscan import SliceConverter
 
         frame = self.target_frame or info.header.frame_id
@@ -415,6 +553,11 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
           "frame); z up, moving with the robot", read_only=True),
         S("extrinsics", (), "target_frame <- sensor when TF has none: 6 (x y z roll pitch "
           "yaw), 7 (x y z qx qy qz qw) or 16 numbers; [] = identity", kind="float_list"),
+        S("moving", False, "the sensor's mount moves (pan unit, arm): slices use its pose in "
+          "target_frame from /tf at every pixel's time; a scan waits tf_wait for /tf to cover "
+          "its sweep, else it is dropped and counted", read_only=True),
+        S("tf_wait", 0.1, "seconds (data time) a scan of a moving mount waits for /tf to cover "
+          "its sweep", low=0.0, high=60.0, read_only=True),
         S("max_pending", 16, "scans held while their LidarInfo is missing", low=0,
           high=100_000),
         S("max_wait", 2.0, "seconds a scan may wait for its LidarInfo", low=0.0, high=3600.0),
@@ -605,9 +748,15 @@ def _node_class() -> type:
             self.target_frame = config["target_frame"]
             self.fallback_extrinsics = config.pop("extrinsics")
             self._have_fallback = bool(values["extrinsics"])
-            self.core = ConverterCore(**config, on_event=lambda line: self._log(line, "linkage"))
+            self.moving = bool(values["moving"])
+            self.tf_buffer = TransformBuffer()
+            self.core = ConverterCore(**config, on_event=lambda line: self._log(line, "linkage"),
+                                      moving=self.moving, tf_samples=self.tf_buffer.samples,
+                                      tf_wait_ns=round(values["tf_wait"] * 1e9))
             self.core.check(probe_info(), np.eye(4) if self.target_frame else None)
             self.stats = self.core.stats
+            self._no_pose_seen = 0
+            self._converted_seen = 0
             self.guard = P.ParameterGuard(
                 self, {s.name: s for s in (*node_specs, *slice_specs)}, values,
                 self._validate, self._apply)
@@ -628,9 +777,9 @@ def _node_class() -> type:
             self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
                                      P.qos_profile(values["info_qos"]), raw=True)
             self._prepared: set[Any] = set()
-            self.tf_buffer = TransformBuffer()
             self.tf_listener = TfListener(self, self.tf_buffer,
-                                          on_error=lambda line: self._log(line, "tf")) \
+                                          on_error=lambda line: self._log(line, "tf"),
+                                          on_message=self._on_tf if self.moving else None) \
                 if self.target_frame else None
             self._lookup_error = TransformLookupError
             self.create_timer(0.5, self.core.expire)
@@ -644,7 +793,8 @@ def _node_class() -> type:
                      f"{', slices ' + ', '.join(s.name + '->' + s.topic for s in specs) if specs else ''}"
                      f"; target frame {self.target_frame or '(sensor frame)'}"
                      + (f"; depth images {self.resolve_topic_name(values['depth.image_topic'])!r}"
-                        if self.depth_sync is not None else ""))
+                        if self.depth_sync is not None else "")
+                     + ("; moving mount (pose from /tf per pixel)" if self.moving else ""))
             self.startup = warm_up(
                 self, {"kernels": lambda: self.core.warm(cloud=self.cloud_pub is not None)},
                 self.diagnostics)
@@ -707,9 +857,30 @@ def _node_class() -> type:
             if state["conflicting"]:
                 linkage.worse(WARN, f"{state['conflicting']} LidarInfo stamp(s) re-published "
                               "with different geometry (their scans are dropped)")
-            if self.depth_sync is None:
-                return [io, linkage]
-            return [io, linkage, self._diagnose_depth()]
+            statuses = [io, linkage]
+            if self.moving:
+                statuses.append(self._diagnose_moving(Status, WARN, ERROR))
+            if self.depth_sync is not None:
+                statuses.append(self._diagnose_depth())
+            return statuses
+
+        def _diagnose_moving(self, Status: Any, WARN: Any, ERROR: Any) -> Any:  # noqa: N803
+            """The ``moving mount`` status: scans held for /tf, dropped without a pose."""
+            dropped = self.stats.dropped_no_pose - self._no_pose_seen
+            self._no_pose_seen = self.stats.dropped_no_pose
+            spans = {f"poses {frame}": "none" if t.span is None else list(t.span)
+                     for frame, t in self.core.tracks.items()}
+            st = Status("moving mount", {"held": len(self.core.held),
+                                         "tf_wait_s": self.core.tf_wait_ns / 1e9,
+                                         "dropped_no_pose": self.stats.dropped_no_pose,
+                                         "dropped_last_period": dropped, **spans})
+            if dropped:
+                converted = self.stats.scans_converted - self._converted_seen
+                st.worse(ERROR if not converted else WARN,
+                         f"{dropped} scan(s) dropped: /tf did not cover their sweep within "
+                         "tf_wait (see the log)")
+            self._converted_seen = self.stats.scans_converted
+            return st
 
         # ------------------------------------------------------------------- callbacks
         def _on_info(self, raw: bytes) -> None:
@@ -736,7 +907,7 @@ def _node_class() -> type:
             self._prepared.add(key)
             start = self.get_clock().now().nanoseconds
             extrinsics = None
-            if self.target_frame:
+            if self.target_frame and not self.moving:   # a moving mount: the cloud only
                 try:
                     extrinsics = self._mount(
                         info.header.frame_id, to_ns(info.header.stamp),
@@ -769,8 +940,23 @@ def _node_class() -> type:
                 return
             self._publish(ready, want_cloud, want_slices)
 
+        def _on_tf(self, cleared: bool) -> None:
+            """New /tf (moving mount): extend the tracks, convert the pairs they release."""
+            try:
+                ready = self.core.update_tracks(cleared)
+            except Exception as err:  # noqa: BLE001 - a node must survive any input
+                self.stats.count(f"internal: {type(err).__name__}")
+                self._log(f"moving mount: poses not updated ({type(err).__name__}: {err})",
+                          "moving")
+                return
+            self._publish(ready, held=True)
+
         def _publish(self, pairs: list[tuple[Any, Any]], want_cloud: bool | None = None,
-                     want_slices: list[str] | None = None) -> None:
+                     want_slices: list[str] | None = None, held: bool = False) -> None:
+            """Convert and publish linked pairs (a moving mount's go through
+            :meth:`ConverterCore.hold` first unless ``held``: released by it)."""
+            if self.moving and not held and pairs:
+                pairs = self.core.hold(pairs)
             if not pairs:
                 return
             from lidarscan.stamps import to_ns
@@ -809,10 +995,13 @@ def _node_class() -> type:
                         self.stats.slices_published += 1
                 self._latency.add(self.get_clock().now().nanoseconds - to_ns(scan.header.stamp))
 
-        def _extrinsics(self, scan: Any, info: Any) -> np.ndarray[Any, Any] | None:
-            """target_from_sensor: TF at the scan stamp, else the parameter, else identity."""
+        def _extrinsics(self, scan: Any, info: Any) -> Any:
+            """target_from_sensor: TF at the scan stamp, else the parameter, else identity; a
+            moving mount's track (pose at every pixel's time)."""
             if not self.target_frame:
                 return None
+            if self.moving:
+                return self.core.track(info.header.frame_id)
             from lidarscan.stamps import to_ns
 
             return self._mount(info.header.frame_id, to_ns(scan.header.stamp),
