@@ -653,7 +653,9 @@ def test_console_script_stops_cleanly_on_ctrl_c(script: str, tmp_path: Path) -> 
             time.sleep(0.1)
         assert "->" in log.read_text(), log.read_text()
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=15) == 0, log.read_text()
+        # a Ctrl-C during the kernel warm-up is honoured when the warm-up ends (seconds when
+        # the machine is loaded), then the node stops cleanly
+        assert proc.wait(timeout=60) == 0, log.read_text()
         assert "Traceback" not in log.read_text()
     finally:
         if proc.poll() is None:
