@@ -22,8 +22,8 @@ hole_depth`` (or, with ``hole_no_return``, got no return at all) reports an obst
 *edge*: the point where its ray crosses the floor plane, at that point's planar range and bin,
 when that range is ``<= hole_range_max`` (default: the slice's ``range_max``). The edge is a point
 like any other for the REP 117 classes, the limits and the ties (it carries the pixel's tie key
-and intensity); the height band does not apply to it. Exact rules: :mod:`converters._grid`
-(**Holes**). This is the cliff detection of the multi-laserscan toolbox's depth converter (its
+and intensity); the height band does not apply to it. Exact rules: :mod:`converters._holes`.
+This is the cliff detection of the multi-laserscan toolbox's depth converter (its
 ``cliff_height`` is ``floor_height - hole_depth``), for any LidarScan: a lidar or a depth image
 (:func:`converters.from_depth_image`).
 
@@ -65,7 +65,7 @@ row-ordered case (streams the scan in pixel order). All give identical slices (u
 within an ulp of a bin edge, where numpy's SIMD ``atan2`` may differ from libm's in the last
 bit). Inputs reach the kernels in native byte order (:func:`lidarscan.channel`, ``native=True``).
 With holes enabled in any slice the C kernel is not used: the numba row-ordered kernel adds the
-hole edges in the same call (static per-pixel tables, :class:`converters._grid.HolePlan`: only
+hole edges in the same call (static per-pixel tables, :class:`converters._holes.HolePlan`: only
 the height test runs per scan); elsewhere the bands are fused by the other kernels (or numpy),
 the holes are then added to the same reduction array by numpy
 (:meth:`SliceConverter._add_holes`), and the result is decoded.
@@ -90,10 +90,11 @@ from typing import Any
 
 import numpy as np
 
-from converters import _grid, _kernels, options
+from converters import _grid, _holes, _kernels, options
 from converters._kernels import slices as _cslices
 from converters._kernels.slices_numba import Bands, Rays
-from converters._grid import AngleGrid, HoleOptions, OutputOptions
+from converters._grid import AngleGrid, OutputOptions
+from converters._holes import HoleOptions
 from converters.frames import check_extrinsics, check_poses, transform_rays
 from converters.options import IfPresent, resolve_channel
 from converters.transforms import TransformTrack
@@ -157,7 +158,7 @@ class _Tables:
 
     Rays ``p = r*D + O`` in the target frame (float32 components, arithmetic in float64); per
     distinct grid the far-field bin and ``r_thr``; per slice the +Inf/NaN/-Inf qualifiers and,
-    for slices with holes, their :class:`converters._grid.HoleEdges`.
+    for slices with holes, their :class:`converters._holes.HoleEdges`.
     """
 
     def __init__(self, d: np.ndarray[Any, Any], o: np.ndarray[Any, Any],
@@ -190,10 +191,10 @@ class _Tables:
             self.q_far.append(q_far & ok)
             self.q_near.append(q_near & ok)
         #: (slice index, edges) of the slices with holes
-        self.holes = [(i, _grid.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
+        self.holes = [(i, _holes.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
                                            s.options.range_max))
                       for i, s in enumerate(slices) if s.holes is not None]
-        self.hole_plan = _grid.HolePlan.create(self.holes, self.key)
+        self.hole_plan = _holes.HolePlan.create(self.holes, self.key)
         self.k_r_thr = np.ascontiguousarray(np.stack([_grid.round_up_f32(t) for t in self.r_thr]))
         #: the tables as the general compiled kernels take them
         self.kernel_rays = Rays(
@@ -675,7 +676,7 @@ class SliceConverter:
         """Fuse the hole edges of this scan into the reduction array ``best`` (in place; the
         same numpy code after every backend's band fusion)."""
         for i, edges in tables.holes:
-            hit = _grid.hole_hits(r[edges.index], edges)
+            hit = _holes.hole_hits(r[edges.index], edges)
             pixels = edges.index[hit]
             _grid.merge_min(best, edges.bins[hit] + self._offsets[i], edges.codes[hit],
                             tables.key(pixels))

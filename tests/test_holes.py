@@ -3,9 +3,10 @@ seen by a lidar and by a depth camera with the reported edge checked analyticall
 default (bit-identical to the slicer without holes), a tilted sensor with target-frame limits,
 backend parity, validation, and a Hypothesis property against the oracle.
 
-``ref_slice`` below is written from the rules in converters/_grid.py's docstring (**Holes** and
-the conventions before it), one pixel at a time. Scenes are axis-aligned boxes ray-cast from the
-projector's own beam tables (:meth:`converters.demo.Scene.cast`), so every geometry is exact.
+``ref_slice`` below is written from the rules in the docstrings of converters/_holes.py and
+converters/_grid.py (the conventions a hole edge follows), one pixel at a time. Scenes are
+axis-aligned boxes ray-cast from the projector's own beam tables
+(:meth:`converters.demo.Scene.cast`), so every geometry is exact.
 """
 
 from __future__ import annotations

@@ -28,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY, HolePlan
+from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
+from converters._holes import HolePlan
 
 __all__ = ["Bands", "Compiled", "Rays", "SORTED_CHUNK", "kernels"]
 
@@ -762,8 +763,8 @@ def _row_convert(r: Any, src: Any, keys: Any, dx: Any, dy: Any, ox: Any, oy: Any
                  h_slice: Any, h_pixel: Any, h_bin: Any, h_value: Any, h_dz: Any,
                  h_oz: Any) -> Any:  # pragma: no cover - compiled
     """:func:`_row_fuse` into a fresh reduction array of ``total`` elements, the hole edges
-    (``h_*``: the arrays of :class:`converters._grid.HolePlan`, empty without holes; the rule
-    of :func:`converters._grid.hole_hits`), then :func:`_decode_slices`, in one compiled call
+    (``h_*``: the arrays of :class:`converters._holes.HolePlan`, empty without holes; the rule
+    of :func:`converters._holes.hole_hits`), then :func:`_decode_slices`, in one compiled call
     (one dispatch less per scan).
 
     Returns:
