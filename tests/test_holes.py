@@ -27,6 +27,7 @@ from converters.depth import OPTICAL_FROM_BODY, from_depth_image
 from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
 from lidarscan.errors import ConfigError, LidarScanError
 from grid_reference import pose, ref_slice
+from test_laserscan import SPECIALS, draw_image
 
 TWO_PI = 2 * math.pi
 F32 = np.float32
@@ -439,9 +440,6 @@ def test_hole_options_from_a_mapping_and_infinite_edge_limit(small_info: Any) ->
 
 # ------------------------------------------------------------------------------ property
 
-SPECIALS = [np.inf, -np.inf, np.nan, 0.0, -2.0]
-
-
 @st.composite
 def hole_case(draw: Any) -> tuple[Any, Any, dict[str, Any]]:
     height = draw(st.integers(1, 5))
@@ -455,12 +453,9 @@ def hole_case(draw: Any) -> tuple[Any, Any, dict[str, Any]]:
     info = lidarscan.make_info(stamp_ns=3, frame_id="l", vertical_angles=vert,
                                horizontal_angles=TWO_PI * (1 - np.arange(width) / width)
                                + draw(st.floats(-1, 1)), as_dataclass=True, **fields)
-    n = height * width
-    r = np.array(draw(st.lists(st.one_of(st.floats(0.015625, 10, width=32),
-                                         st.sampled_from(SPECIALS)), min_size=n, max_size=n)),
-                 np.float32).reshape(height, width)
-    inten = np.array(draw(st.lists(st.integers(0, 3), min_size=n, max_size=n)),
-                     np.float32).reshape(height, width)
+    r = draw_image(draw, height, width, st.one_of(st.floats(0.015625, 10, width=32),
+                                                  st.sampled_from(SPECIALS)), np.float32)
+    inten = draw_image(draw, height, width, st.integers(0, 3), np.float32)
     scan = lidarscan.make_scan(info, {"range": r, "intensity": inten}, 0, as_dataclass=True)
     zmin = draw(st.floats(-0.5, 1.5))
     amin = draw(st.floats(-4, 1))
