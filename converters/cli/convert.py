@@ -184,7 +184,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
     writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20,
                         level=args.zstd_level,
                         scan_encoding=CODEC_ENCODING if args.compress else "cdr",
-                        codec_coder=codec_coder())  # also decompresses codec input
+                        # the compiled coder (numba: ~0.4 s to import) only where a scan may be
+                        # coded: --compress, or LidarScans that may come in codec-compressed
+                        codec_coder=codec_coder() if args.compress
+                        or SCAN_TYPE in topics.values() else None)
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
     progress = Progress(size, f"converting {src.name}",
                         enabled=True if args.progress else (None if not args.quiet else False))
