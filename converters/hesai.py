@@ -109,6 +109,7 @@ model, vendor_metadata (a JSON line with the detected format, return mode and rp
 from __future__ import annotations
 
 import calendar
+import dataclasses
 import functools
 import json
 import math
@@ -186,6 +187,9 @@ class PacketDecoder:
         self.calibration = load_calibration(calibration)
         self._order = self.calibration.order          # laser index of each row
         self._rows = np.argsort(self._order)          # row of each laser index
+        calib = self.calibration
+        self._calib_key = (calib.laser_ids.tobytes(), calib.elevation_deg.tobytes(),
+                           calib.azimuth_deg.tobytes())
         self.frame_id = frame_id
         self.time_source = time_source
         self.firing_rotation = bool(firing_rotation)
@@ -522,6 +526,26 @@ class PacketDecoder:
         key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
         if self._info is not None and key == self._info_key:
             return self._info
+        if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
+            stamp = self._last_info_stamp + 1
+        # a version already built (and validated) by a decoder of this process with the same
+        # geometry: the same frozen dataclass fields under a new header stamp
+        cache_key = (self._calib_key, key, self.frame_id, self.firing_rotation,
+                     self.range_limits)
+        template = _INFO_TEMPLATES.get(cache_key) if self.as_dataclass else None
+        if template is not None:
+            info = _restamped(template, stamp)
+        else:
+            info = self._make_info(stream, width, stamp)
+            if self.as_dataclass:
+                if len(_INFO_TEMPLATES) >= 16:
+                    _INFO_TEMPLATES.pop(next(iter(_INFO_TEMPLATES)))
+                _INFO_TEMPLATES[cache_key] = info
+        self._info, self._info_key, self._last_info_stamp = info, key, stamp
+        return info
+
+    def _make_info(self, stream: _Stream, width: int, stamp: int) -> Any:
+        """A new LidarInfo (make_info, validated) of the stream's geometry at ``stamp``."""
         fmt = stream.fmt
         calib = self.calibration
         order = self._order
@@ -530,8 +554,6 @@ class PacketDecoder:
         beta = -np.deg2rad(calib.azimuth_deg[order])
         if self.firing_rotation:
             beta = beta - 2.0 * np.pi * stream.rpm / 60.0 * beam_time * 1e-9
-        if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
-            stamp = self._last_info_stamp + 1
         lo, hi = self.range_limits
         nominal_width = 60e9 / (stream.rpm * fmt.firing_period_ns)
         meta = {"format": fmt.model, "return_mode": "+".join(RETURN_MODES[stream.mode]),
@@ -550,8 +572,21 @@ class PacketDecoder:
             range_max=fmt.range_limits[1] if hi is None else float(hi),
             vendor="Hesai", model=fmt.model, vendor_metadata=json.dumps(meta, sort_keys=True),
             as_dataclass=self.as_dataclass)
-        self._info, self._info_key, self._last_info_stamp = info, key, stamp
         return info
+
+
+#: validated LidarInfo dataclasses by geometry (calibration, format, mode, dis unit, rpm,
+#: width, frame, options), reused under a new header stamp (they are frozen and read-only)
+_INFO_TEMPLATES: dict[tuple[Any, ...], Any] = {}
+
+
+def _restamped(info: Any, stamp: int) -> Any:
+    """The LidarInfo dataclass ``info`` with header.stamp ``stamp`` (int ns)."""
+    from lidarscan import types
+    from lidarscan.stamps import split_ns
+    sec, nanosec = split_ns(stamp)
+    return dataclasses.replace(info, header=types.Header(types.Time(sec, nanosec),
+                                                         info.header.frame_id))
 
 
 _U16 = struct.Struct("<H")
@@ -622,15 +657,6 @@ def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, An
     return rows.view(_packet_dtype(fmt, rows.shape[1]))[:, 0]
 
 
-@functools.lru_cache(maxsize=None)
-def _unit_offsets(fmt: HesaiFormat, returns: int) -> np.ndarray[Any, Any]:
-    """(firings, returns, lasers) int64 byte offset of each unit (distance) in a payload."""
-    firings = fmt.blocks // returns
-    block = np.arange(firings * returns).reshape(firings, returns, 1)
-    return (fmt.body + block * fmt.block_size + fmt.azimuth_at + 2
-            + np.arange(fmt.lasers) * fmt.unit_size).astype(np.int64)
-
-
 def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
            rows: np.ndarray[Any, Any],
            grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
@@ -646,10 +672,31 @@ def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _St
     if fill is None:
         _units_numpy(pieces, stream, rows, grids)
         return
-    offsets = _unit_offsets(stream.fmt, stream.returns)
+    fmt = stream.fmt
+    returns = stream.returns
+    firings = fmt.blocks // returns
+    width = grids[0][0].shape[1]
+    rowbase = rows.astype(np.uint64) * np.uint64(width)
+    flat = [(dist.reshape(-1), refl.reshape(-1)) for dist, refl in grids]
+    base = fmt.body + fmt.azimuth_at + 2
     for payloads, first, count, col in pieces:
-        for r, (dist, refl) in enumerate(grids):
-            fill(payloads, first, count, col, offsets, r, rows, dist, refl)
+        src, stride = _flat_rows(payloads)
+        for r, (dist, refl) in enumerate(flat):
+            fill(src, stride, first, count, col, base, fmt.block_size, fmt.unit_size, returns,
+                 r, firings, rowbase, dist, refl)
+
+
+def _flat_rows(rows: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], int]:
+    """(1-D uint8 view from the first byte of row 0 to the last byte of the last row, row
+    stride) of payload rows (P, size) whose rows are contiguous (no copy)."""
+    n, size = rows.shape
+    stride = rows.strides[0]
+    if n > 1 and stride < size:
+        rows = np.ascontiguousarray(rows)
+        stride = size
+    span = (n - 1) * stride + size if n else 0
+    return np.lib.stride_tricks.as_strided(rows, shape=(span,), strides=(1,),
+                                           writeable=False), int(stride)
 
 
 def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
