@@ -152,10 +152,31 @@ class _Stream:
     packet_size: int
     last_firing_at: int       # byte offset of the last firing's first block from block 0
 
-    @property
+    @functools.cached_property
     def first_channel_ns(self) -> int:
         """Firing time of the earliest channel relative to its firing's start (ns)."""
         return int(round(min(self.fmt.channel_ns)))
+
+    @functools.cached_property
+    def firings(self) -> int:
+        """Firings per packet."""
+        return self.fmt.blocks // self.returns
+
+    @functools.cached_property
+    def block_start_ns(self) -> np.ndarray[Any, Any]:
+        """(firings,) int64 start of each firing of a packet relative to its t0 (ns)."""
+        return self.fmt.block_start_ns(np.arange(self.firings), self.firings)
+
+    @functools.cached_property
+    def channels(self) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+        """(range, intensity) names of each block of a firing; the scan's channel dtypes in
+        channel order."""
+        names = _channel_names(_block_kinds(self.fmt, self.mode))
+        specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
+                 for k, name in enumerate(pair)}
+        if self.fmt.pixel_tables:
+            specs["t"] = np.int32
+        return names, {k: specs[k] for k in sorted(specs, key=_channel_rank)}
 
 
 class PacketDecoder:
@@ -432,15 +453,18 @@ class PacketDecoder:
         fmt = stream.fmt
         self._join_packets()
         recs = [_records(seg[1], fmt) for seg in self._segs]
-        firings = fmt.blocks // stream.returns
         azimuth = np.concatenate([rec["b"]["az"][:, ::stream.returns] for rec in recs])
         us = np.concatenate([rec["us"] for rec in recs]).astype(np.int64)
         dates = np.concatenate([rec["date"] for rec in recs])            # (P, 6) uint8
-        starts = np.flatnonzero(np.r_[True, (dates[1:] != dates[:-1]).any(1)])
-        secs = np.array([_date_seconds(bytes(dates[i])) for i in starts], np.int64)
-        secs = np.repeat(secs, np.diff(np.r_[starts, len(dates)]))
+        changes = np.flatnonzero((dates[1:] != dates[:-1]).any(1)) + 1
+        if changes.size:
+            starts = np.concatenate(([0], changes))
+            secs = np.array([_date_seconds(bytes(dates[i])) for i in starts], np.int64)
+            secs = np.repeat(secs, np.diff(np.append(starts, len(dates))))
+        else:
+            secs = _date_seconds(bytes(dates[0]))
         t0 = secs * 1_000_000_000 + us * 1000
-        times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
+        times = t0[:, None] + stream.block_start_ns[None, :]
         cols = {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
                 "t0": t0, "stamp": np.concatenate([seg[0] for seg in self._segs])}
         if fmt.pixel_tables:
@@ -507,13 +531,8 @@ class PacketDecoder:
             if a < b:
                 pieces.append((seg[1], a - at, b - a, a - lo))
             at += n
-        names = _channel_names(_block_kinds(fmt, stream.mode))
-        specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
-                 for k, name in enumerate(pair)}
-        if fmt.pixel_tables:
-            specs["t"] = np.int32
-        buf = ScanBuffer(info, {k: specs[k] for k in sorted(specs, key=_channel_rank)},
-                         as_dataclass=self.as_dataclass)
+        names, specs = stream.channels
+        buf = ScanBuffer(info, specs, as_dataclass=self.as_dataclass)
         grids = [tuple(buf.views[name] for name in pair) for pair in names]
         _units(pieces, stream, self._rows, grids)
         if fmt.pixel_tables:
@@ -608,6 +627,7 @@ def _first_last(last_firing_at: int) -> Any:
     return struct.Struct(f"<H{last_firing_at - 2}xH")
 
 
+@functools.lru_cache(maxsize=64)
 def _date_seconds(date: bytes) -> int:
     """POSIX seconds of a tail date-time (year - 1900, month, day, hour, minute, second; UTC)."""
     y, mo, d, h, mi, s = date
