@@ -90,7 +90,7 @@ Conventions
   recordings, checked outside the test suite, which does not ship them) 11 um at most, every
   ground-truth point matched. Not expressible in LidarInfo: the QT128/128-series per-firing
   channel delays (QT128: the ``t`` channel; 128 series: not applied, stated in
-  vendor_metadata).
+  vendor_metadata; its block times and high-resolution mode: :mod:`converters._hesai_formats`).
 
 * Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
   (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
@@ -124,8 +124,8 @@ from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from lidarscan.scan import ScanBuffer, make_info
 from converters._hesai_formats import (  # noqa: F401 (the tables are re-exported for tests)
     _P40P_BEFORE_END_US, _P64_BEFORE_END_NS, _QT64_AFTER_START_NS, _QT128_LOOPS, FORMATS,
-    RETURN_MODES, HesaiFormat, _block_kinds, _channel_names, _channel_rank,
-    detect_format, load_calibration)
+    OPERATIONAL_STATES, RETURN_MODES, HesaiFormat, _block_kinds, _channel_names,
+    _channel_rank, detect_format, hires_format, load_calibration)
 from converters._packets import payload_bytes
 
 __all__ = [
@@ -151,6 +151,7 @@ class _Stream:
     rpm: int
     packet_size: int
     last_firing_at: int       # byte offset of the last firing's first block from block 0
+    state: int = -1           # 128 series: the tail's operational state; -1: none
 
     @functools.cached_property
     def first_channel_ns(self) -> int:
@@ -245,7 +246,7 @@ class PacketDecoder:
         data = packet if type(packet) is bytes else payload_bytes(packet)
         fast = self._fast
         if (fast is not None and len(data) == fast[0] and data.startswith(fast[1])
-                and data[fast[2]] == fast[3]):
+                and data[fast[2]] == fast[3] and data[fast[7]] == fast[8]):
             first, last = fast[4].unpack_from(data, fast[5])
             if first < 36000 and last < 36000 and data.startswith(self._date, fast[6]):
                 wrapped = first < self._last_az - 18000 or last < first - 18000
@@ -261,7 +262,9 @@ class PacketDecoder:
         new = None
         if (stream is None or len(data) != stream.packet_size
                 or data[:len(self._key)] != self._key
-                or data[stream.fmt.return_mode_at] != stream.mode):
+                or data[stream.fmt.return_mode_at] != stream.mode
+                or (stream.fmt.state_at is not None
+                    and data[stream.fmt.state_at] != stream.state)):
             new = self._stream_of(data)           # raises before any state changes
             stream = new
         fmt = stream.fmt
@@ -279,8 +282,11 @@ class PacketDecoder:
             if self._stream is not None and new != self._stream:
                 out = self.flush()
             self._stream, self._key = new, data[:max(2, fmt.body)]
+            state_at, state = ((fmt.return_mode_at, new.mode) if fmt.state_at is None
+                               else (fmt.state_at, new.state))
             self._fast = (new.packet_size, self._key, fmt.return_mode_at, new.mode,
-                          _first_last(new.last_firing_at), at, fmt.datetime_at)
+                          _first_last(new.last_firing_at), at, fmt.datetime_at, state_at,
+                          state)
         wrapped = first < self._last_az - 18000 or last < first - 18000
         self._packets.append(data)
         self._stamps.append(stamp_ns)
@@ -308,8 +314,16 @@ class PacketDecoder:
         if self.calibration.laser_ids.size != fmt.lasers:
             raise DecodeError("calibration lasers", self.calibration.laser_ids.size,
                               f"{fmt.lasers} (the {fmt.model} packets' laser count)")
+        state = -1
+        if fmt.state_at is not None:
+            state = data[fmt.state_at]
+            if state not in OPERATIONAL_STATES:
+                raise DecodeError(f"{fmt.model} operational state", state, "0 (high "
+                                  "resolution), 1 (shutdown), 2 (standard), 3 (energy saving)")
+            if state == 0:
+                fmt = hires_format(fmt)
         return _Stream(fmt, mode, returns, dis * 1e-3, rpm, len(data),
-                       (fmt.blocks - returns) * fmt.block_size)
+                       (fmt.blocks - returns) * fmt.block_size, state)
 
     # ------------------------------------------------------------------------------ batches
     def push_many(self, stamps_ns: Any, payloads: Any,
@@ -399,12 +413,13 @@ class PacketDecoder:
         fast, stream = self._fast, self._stream
         if fast is None or stream is None or rows.shape[1] != fast[0]:
             return 0, np.empty(0, np.int32), np.empty(0, np.int32)
-        size, key, mode_at, mode, _, at, date_at = fast
+        size, key, mode_at, mode, _, at, date_at, state_at, state = fast
         az = rows[:, at:at + 2].view("<u2")[:, 0].astype(np.int32)
         at2 = at + stream.last_firing_at
         az2 = rows[:, at2:at2 + 2].view("<u2")[:, 0].astype(np.int32)
         ok = ((rows[:, :len(key)] == np.frombuffer(key, np.uint8)).all(1)
-              & (rows[:, mode_at] == mode) & (az < 36000) & (az2 < 36000)
+              & (rows[:, mode_at] == mode) & (rows[:, state_at] == state)
+              & (az < 36000) & (az2 < 36000)
               & (rows[:, date_at:date_at + 6] == np.frombuffer(self._date, np.uint8)).all(1))
         bad = np.flatnonzero(~ok)
         return (int(bad[0]) if bad.size else rows.shape[0]), az, az2
@@ -542,7 +557,8 @@ class PacketDecoder:
                          column_azimuth_angles=angles), info
 
     def _info_for(self, stream: _Stream, width: int, stamp: int) -> Any:
-        key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
+        key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width,
+               stream.state)
         if self._info is not None and key == self._info_key:
             return self._info
         if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
@@ -579,6 +595,8 @@ class PacketDecoder:
                 "return_mode_byte": stream.mode, "rpm": stream.rpm,
                 "dis_unit_m": stream.dis_unit_m, "firing_rotation": self.firing_rotation,
                 "channel_timing": fmt.channel_timing}
+        if stream.state >= 0:
+            meta["operational_state"] = OPERATIONAL_STATES[stream.state]
         info = make_info(
             stamp_ns=stamp, frame_id=self.frame_id,
             vertical_angles=np.deg2rad(calib.elevation_deg[order]),
