@@ -229,6 +229,7 @@ class PacketDecoder:
         self._last_az = -1
         self._date = b""                    # last tail date-time bytes seen valid
         self._fast: tuple[Any, ...] | None = None   # what push() compares on its fast path
+        self._checks: tuple[Any, ...] = (b"", None, None)   # _plain_rows: (date, where, value)
         self._info: Any = None
         self._info_key: tuple[Any, ...] | None = None
         self._last_info_stamp: int | None = None
@@ -284,6 +285,7 @@ class PacketDecoder:
             self._stream, self._key = new, data[:max(2, fmt.body)]
             state_at, state = ((fmt.return_mode_at, new.mode) if fmt.state_at is None
                                else (fmt.state_at, new.state))
+            self._checks = (b"", None, None)
             self._fast = (new.packet_size, self._key, fmt.return_mode_at, new.mode,
                           _first_last(new.last_firing_at), at, fmt.datetime_at, state_at,
                           state)
@@ -417,10 +419,12 @@ class PacketDecoder:
         az = rows[:, at:at + 2].view("<u2")[:, 0].astype(np.int32)
         at2 = at + stream.last_firing_at
         az2 = rows[:, at2:at2 + 2].view("<u2")[:, 0].astype(np.int32)
-        ok = ((rows[:, :len(key)] == np.frombuffer(key, np.uint8)).all(1)
-              & (rows[:, mode_at] == mode) & (rows[:, state_at] == state)
-              & (az < 36000) & (az2 < 36000)
-              & (rows[:, date_at:date_at + 6] == np.frombuffer(self._date, np.uint8)).all(1))
+        if self._checks[0] != self._date:     # the bytes every plain row has, and where
+            where = np.r_[0:len(key), mode_at, state_at, date_at:date_at + 6]
+            value = np.frombuffer(key + bytes([mode, state]) + self._date, np.uint8)
+            self._checks = (self._date, where, value)
+        _, where, value = self._checks
+        ok = (rows[:, where] == value).all(1) & (az < 36000) & (az2 < 36000)
         bad = np.flatnonzero(~ok)
         return (int(bad[0]) if bad.size else rows.shape[0]), az, az2
 
