@@ -22,8 +22,6 @@ Run ``python tests/test_hesai_golden.py`` to print the digests of the current de
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,36 +32,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 
 from converters import hesai  # noqa: E402
+from test_velodyne_golden import digest  # noqa: E402  (the same hash of every field)
 
 DATA = Path(__file__).parent / "data" / "nebula"
 REAL = {"hesai_pandar64": "Pandar64.csv", "hesai_xt32": "PandarXT32.csv",
         "hesai_qt64": "PandarQT64.csv"}
-
-
-def _update(h: Any, value: Any) -> None:
-    if isinstance(value, np.ndarray):
-        h.update(f"{value.dtype.str}{value.shape}".encode())
-        h.update(np.ascontiguousarray(value).tobytes())
-    elif dataclasses.is_dataclass(value):
-        for field in dataclasses.fields(value):
-            h.update(field.name.encode())
-            _update(h, getattr(value, field.name))
-    elif isinstance(value, (list, tuple)):
-        h.update(f"[{len(value)}".encode())
-        for item in value:
-            _update(h, item)
-    else:
-        h.update(repr(value).encode())
-
-
-def digest(results: list[tuple[Any, Any]]) -> str:
-    """sha256 (first 16 hex digits) of every scan and info field of the decoded rotations."""
-    h = hashlib.sha256()
-    h.update(f"{len(results)}".encode())
-    for scan, info in results:
-        _update(h, scan)
-        _update(h, info)
-    return h.hexdigest()[:16]
 
 
 def _three_ways(packets: list[tuple[int, bytes]], calib: Any, **kw: Any) -> list[str]:
