@@ -103,7 +103,8 @@ What each LidarInfo field carries: vertical_angles, beam_azimuth_offsets (calibr
 beam_time_offsets (firing table), column_time_increment (firing period), beam_ids (laser ids),
 range_multiplier (dis unit), range_min/range_max (the model's limits or the options),
 horizontal_angles (nominal pi/2 - 2 pi c / W'; scans carry the measured ones), vendor "Hesai",
-model, vendor_metadata (a JSON line with the detected format, return mode and rpm).
+model, vendor_metadata (a JSON line with the detected format, return mode and rpm; the 128
+series also its operational state).
 """
 
 from __future__ import annotations
