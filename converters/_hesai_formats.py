@@ -39,9 +39,9 @@ sensor with irregular pixel timing can add a ``t`` channel"; ``Projector.pixel_t
 the PointCloud2 time fields add it).
 
 128 series (protocol 1.4), from the Pandar128E3X user manual (doc version 128-en-240310),
-appendix "Absolute Time and Laser Firing Time": the tail's Operational State byte (0 high
-performance = high resolution, 1 shutdown, 2 standard, 3 energy saving) sets the horizontal
-resolution. "Start Time of Each Block": single return, block 2 starts at t0 + 3.148 us and
+appendix "Absolute Time and Laser Firing Time": the tail's Operational State byte sets the
+horizontal resolution (its values, from the Pandar128 manual's Tail table: 0 high performance
+= high resolution, 1 shutdown, 2 standard, 3 energy saving). "Start Time of Each Block": single return, block 2 starts at t0 + 3.148 us and
 block 1 at t0 + 3.148 - 27.778 us (high resolution) or t0 + 3.148 - 2 * 27.778 us (standard);
 dual return, both blocks at t0 + 3.148 us. So the firing period, ``column_time_increment``
 and the width are 27.778 us and twice the columns in high resolution mode, 55.556 us
@@ -305,7 +305,7 @@ def _format_v1(model: str, major: int, lasers: int, blocks: int, flags: int) -> 
         dual_orders=_ORDERS_12B, sizes=(size,), **extra)
 
 
-#: operational states of the 128 series (tail byte; Pandar128E3X manual, Tail table)
+#: operational states of the 128 series (tail byte; the Pandar128 manual's Tail table)
 OPERATIONAL_STATES = {0: "high resolution", 1: "shutdown", 2: "standard", 3: "energy saving"}
 #: firing period (ns) of the 128 series in high resolution mode (Pandar128E3X manual, "Start
 #: Time of Each Block": block 1 starts 27.778 us before block 2 in single return mode)
