@@ -3,8 +3,10 @@
 Run: ``.venv/bin/python bench/bench_hesai.py [--rounds N] [--baseline FILE]``. Prints medians and
 ratios measured in one run (no assertions). Target: >= 50x real time. ``--baseline`` times
 another version of ``converters/hesai.py`` beside this one, interleaved in the same run (e.g.
-``git show main:converters/hesai.py > /tmp/hesai_main.py``; it must run against this tree's
-``lidarscan`` and kernels).
+``git show main:converters/hesai.py > /tmp/hesai_main.py``; it runs against this tree's
+``lidarscan``); ``--baseline-kernel FILE`` gives it its own version of
+``converters/_kernels/hesai.py`` (needed when the kernel's arguments changed, e.g.
+``git show main:converters/_kernels/hesai.py > /tmp/hesai_kernel_main.py``).
 
 Input: the real Pandar64 recording of ``tests/data/nebula/hesai_pandar64`` (2400 packets of
 1198 bytes in 25 PandarScan messages, 0.4 s of sensor time at 600 rpm, dual return 0x39), read
@@ -106,9 +108,17 @@ def loop_decode(packets: list[tuple[int, bytes]], elevation: list[float],
     return len(xs)
 
 
-def load_baseline(path: Path) -> Any:
-    """``path`` (another version of converters/hesai.py) imported as a separate module."""
-    spec = importlib.util.spec_from_file_location("hesai_baseline", path)
+def load_baseline(path: Path, kernel: Path | None = None) -> Any:
+    """``path`` (another version of converters/hesai.py) imported as a separate module; with
+    ``kernel`` (another version of converters/_kernels/hesai.py), using that kernel."""
+    module = _load(path, "hesai_baseline")
+    if kernel is not None and module._kernel() is not None:
+        module._KERNEL = _load(kernel, "hesai_baseline_kernel").kernel()
+    return module
+
+
+def _load(path: Path, name: str) -> Any:
+    spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module            # its dataclasses look their module up
@@ -142,6 +152,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--baseline", type=Path, default=None,
                         help="another version of converters/hesai.py to time beside this one")
+    parser.add_argument("--baseline-kernel", type=Path, default=None,
+                        help="the baseline's version of converters/_kernels/hesai.py")
     args = parser.parse_args()
     packets, messages = read_packets()
     cal = hesai.load_calibration(DATA / "Pandar64.csv")
@@ -151,7 +163,7 @@ def main() -> None:
     candidates = decoders(hesai, packets, messages)
     names = list(candidates)
     if args.baseline is not None:
-        base = decoders(load_baseline(args.baseline), packets, messages)
+        base = decoders(load_baseline(args.baseline, args.baseline_kernel), packets, messages)
         candidates.update({f"{name} (baseline)": fn for name, fn in base.items()})
         names = [n for name in names for n in (f"{name} (baseline)", name)]
     candidates["loop (300 packets)"] = lambda: loop_decode(

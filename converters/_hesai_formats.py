@@ -29,18 +29,36 @@ PandarXT16: the XT block times, 0.368 us + 3.024 us per channel; PandarXT32M: th
 times, channels 1-16 and 17-32 fired in pairs, 0.368 us + 2.888 us per pair (as tabulated in
 Nebula). PandarQT128 and the 128 series fire a channel at a time that changes from firing to
 firing, which per-beam ``beam_time_offsets`` cannot express; for these models they are 0 and
-``column_time_offsets`` are the firings' trigger times (QT128: t0 + 9 us - 111.11 us per later
-firing; 128 series: t0 - 55.56 us per later firing, the manual's "absolute time is the trigger
-time of the firing in the last block"). The QT128 has two firing loops with different channel
+``column_time_offsets`` are the firings' start times (QT128: t0 + 9 us - 111.11 us per later
+firing; 128 series: see below). The QT128 has two firing loops with different channel
 sets and delays (``_QT128_LOOPS``; single return: block 1 loop 1, block 2 loop 2; dual: the
 tail's mode flag): its scans carry an extra channel ``t`` (INT32 ns, the delay of each pixel's
 channel after its column's time, 0 where the channel does not fire), so a pixel's time is
 ``stamp + column_time_offsets[c] + beam_time_offsets[u] + t[u, c]`` (the msgs README's "a
 sensor with irregular pixel timing can add a ``t`` channel"; ``Projector.pixel_times`` and
-the PointCloud2 time fields add it). The 128E3X/E4X delays depend on the tail's azimuth and
-operational states (and, on the 128E3X, on near/far-field firing by distance), and the packet
-does not say whether it is a 128E3X or a 128E4X, whose tables differ: their channel delays (up
-to 55 us) are not applied. ``vendor_metadata``'s ``channel_timing`` says which case a scan is.
+the PointCloud2 time fields add it).
+
+128 series (protocol 1.4), from the Pandar128E3X user manual (doc version 128-en-240310),
+appendix "Absolute Time and Laser Firing Time": the tail's Operational State byte sets the
+horizontal resolution (its values, from the Pandar128 manual's Tail table: 0 high performance
+= high resolution, 1 shutdown, 2 standard, 3 energy saving). "Start Time of Each Block": single return, block 2 starts at t0 + 3.148 us and
+block 1 at t0 + 3.148 - 27.778 us (high resolution) or t0 + 3.148 - 2 * 27.778 us (standard);
+dual return, both blocks at t0 + 3.148 us. So the firing period, ``column_time_increment``
+and the width are 27.778 us and twice the columns in high resolution mode, 55.556 us
+otherwise. Where the manual is silent, this module states its choice: energy saving and
+shutdown are timed as standard (the manual's block table has only the two resolutions, and
+energy saving has standard's azimuth-flag range 0..1); dual-return packets in high resolution
+mode are counted at the high-resolution period (a rotation with more firings than the width
+is still never cut: it gets a wider info version); another state byte raises a DecodeError.
+A state change starts a new LidarInfo version. "Firing Time Offset of Each Channel": a
+channel fires ``dt(n)`` after its block's start, looked up by operational state, the block's
+azimuth flag (tail, bits 15:14 block 1, 13:12 block 2) and near/far-field firing (distance
+<= 2.85 m); the tables themselves could not be obtained for this module, and the packet does
+not say whether it is a 128E3X or a 128E4X/OT128, whose tables differ: these delays are not
+applied (``beam_time_offsets`` 0; a pixel's time is its block's start, early by up to the
+firing period). The OT128 (128E4X) manual was not available either: its block times are taken
+to be the 128E3X's (same protocol 1.4 packet). ``vendor_metadata``'s ``channel_timing`` and
+``operational_state`` say which case a scan is.
 
 Dual-return block order (what blocks 1 and 2 of a firing hold): Pandar40P and Pandar64 0x39: last,
 strongest (manuals; confirmed on the Pandar64 recording: block 1 is never nearer than block 2);
@@ -58,6 +76,7 @@ the byte. Single modes (0x33 first, 0x37 strongest, 0x38 last) are accepted for 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import io
 import os
@@ -175,6 +194,9 @@ class HesaiFormat:
     #: per firing state (QT128: loop 1, loop 2): delay (ns) of each channel after the firing's
     #: trigger, -1 = the channel does not fire; () = channel_ns per beam
     pixel_tables: tuple[tuple[int, ...], ...] = ()
+    #: tail byte of the operational state (128 series: 0 high performance = high resolution,
+    #: 1 shutdown, 2 standard, 3 energy saving), None: the format has none
+    state_at: int | None = None
 
     def block_start_ns(self, firing: np.ndarray[Any, Any], firings: int) -> np.ndarray[Any, Any]:
         """Start of each firing (index ``firing`` of ``firings`` per packet) relative to t0."""
@@ -266,12 +288,14 @@ def _format_v1(model: str, major: int, lasers: int, blocks: int, flags: int) -> 
         limits = (0.05, 50.0)
         extra = dict(mode_flag_at=tail + 5, pixel_tables=_QT128_LOOPS,
                      channel_timing=_PER_PIXEL)
-    else:                # 128E3X/E4X: 2 firings of 55.56 us, the last one triggered at t0
-        period, base = 55556.0, 0.0
-        why = ("azimuth state and operational state of the tail, near/far-field firing on "
-               "the 128E3X; the packet does not tell 128E3X and 128E4X apart")
+    else:                # 128E3X/E4X: block 2 (or both, dual) starts at t0 + 3.148 us; block
+        # 1 one firing period earlier: 55.556 us in standard mode (this format), 27.778 us in
+        # high resolution mode (hires_format)
+        period, base = 55556.0, 3148.0
+        why = ("the tail's operational state, the block's azimuth flag and near/far-field "
+               "firing (distance <= 2.85 m); the packet does not tell 128E3X and 128E4X apart")
         limits = (0.1, 230.0)
-        extra = dict(channel_timing=_NOT_PER_BEAM.format(why))
+        extra = dict(channel_timing=_NOT_PER_BEAM.format(why), state_at=tail + 11)
     return HesaiFormat(
         model=model, lasers=lasers, blocks=blocks, body=12, block_size=block_size,
         azimuth_at=0, unit_size=unit, size=size, return_mode_at=tail + 12,
@@ -279,6 +303,20 @@ def _format_v1(model: str, major: int, lasers: int, blocks: int, flags: int) -> 
         firing_period_ns=period, block_base_ns=base, block_ref_last=True,
         channel_ns=(0.0,) * lasers, dis_unit_at=9, range_limits=limits,
         dual_orders=_ORDERS_12B, sizes=(size,), **extra)
+
+
+#: operational states of the 128 series (tail byte; the Pandar128 manual's Tail table)
+OPERATIONAL_STATES = {0: "high resolution", 1: "shutdown", 2: "standard", 3: "energy saving"}
+#: firing period (ns) of the 128 series in high resolution mode (Pandar128E3X manual, "Start
+#: Time of Each Block": block 1 starts 27.778 us before block 2 in single return mode)
+HIRES_PERIOD_NS = 27778.0
+
+
+@functools.lru_cache(maxsize=None)
+def hires_format(fmt: HesaiFormat) -> HesaiFormat:
+    """The 128-series format ``fmt`` in high resolution mode (operational state 0): firings
+    27.778 us apart instead of 55.556 us (twice the columns per rotation)."""
+    return dataclasses.replace(fmt, firing_period_ns=HIRES_PERIOD_NS)
 
 
 FORMATS["PandarXT16"] = _xt_format(

@@ -90,7 +90,7 @@ Conventions
   recordings, checked outside the test suite, which does not ship them) 11 um at most, every
   ground-truth point matched. Not expressible in LidarInfo: the QT128/128-series per-firing
   channel delays (QT128: the ``t`` channel; 128 series: not applied, stated in
-  vendor_metadata).
+  vendor_metadata; its block times and high-resolution mode: :mod:`converters._hesai_formats`).
 
 * Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
   (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
@@ -103,12 +103,14 @@ What each LidarInfo field carries: vertical_angles, beam_azimuth_offsets (calibr
 beam_time_offsets (firing table), column_time_increment (firing period), beam_ids (laser ids),
 range_multiplier (dis unit), range_min/range_max (the model's limits or the options),
 horizontal_angles (nominal pi/2 - 2 pi c / W'; scans carry the measured ones), vendor "Hesai",
-model, vendor_metadata (a JSON line with the detected format, return mode and rpm).
+model, vendor_metadata (a JSON line with the detected format, return mode and rpm; the 128
+series also its operational state).
 """
 
 from __future__ import annotations
 
 import calendar
+import dataclasses
 import functools
 import json
 import math
@@ -123,8 +125,8 @@ from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from lidarscan.scan import ScanBuffer, make_info
 from converters._hesai_formats import (  # noqa: F401 (the tables are re-exported for tests)
     _P40P_BEFORE_END_US, _P64_BEFORE_END_NS, _QT64_AFTER_START_NS, _QT128_LOOPS, FORMATS,
-    RETURN_MODES, HesaiFormat, _block_kinds, _channel_names, _channel_rank,
-    detect_format, load_calibration)
+    OPERATIONAL_STATES, RETURN_MODES, HesaiFormat, _block_kinds, _channel_names,
+    _channel_rank, detect_format, hires_format, load_calibration)
 from converters._packets import payload_bytes
 
 __all__ = [
@@ -150,11 +152,33 @@ class _Stream:
     rpm: int
     packet_size: int
     last_firing_at: int       # byte offset of the last firing's first block from block 0
+    state: int = -1           # 128 series: the tail's operational state; -1: none
 
-    @property
+    @functools.cached_property
     def first_channel_ns(self) -> int:
         """Firing time of the earliest channel relative to its firing's start (ns)."""
         return int(round(min(self.fmt.channel_ns)))
+
+    @functools.cached_property
+    def firings(self) -> int:
+        """Firings per packet."""
+        return self.fmt.blocks // self.returns
+
+    @functools.cached_property
+    def block_start_ns(self) -> np.ndarray[Any, Any]:
+        """(firings,) int64 start of each firing of a packet relative to its t0 (ns)."""
+        return self.fmt.block_start_ns(np.arange(self.firings), self.firings)
+
+    @functools.cached_property
+    def channels(self) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+        """(range, intensity) names of each block of a firing; the scan's channel dtypes in
+        channel order."""
+        names = _channel_names(_block_kinds(self.fmt, self.mode))
+        specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
+                 for k, name in enumerate(pair)}
+        if self.fmt.pixel_tables:
+            specs["t"] = np.int32
+        return names, {k: specs[k] for k in sorted(specs, key=_channel_rank)}
 
 
 class PacketDecoder:
@@ -186,6 +210,9 @@ class PacketDecoder:
         self.calibration = load_calibration(calibration)
         self._order = self.calibration.order          # laser index of each row
         self._rows = np.argsort(self._order)          # row of each laser index
+        calib = self.calibration
+        self._calib_key = (calib.laser_ids.tobytes(), calib.elevation_deg.tobytes(),
+                           calib.azimuth_deg.tobytes())
         self.frame_id = frame_id
         self.time_source = time_source
         self.firing_rotation = bool(firing_rotation)
@@ -203,6 +230,7 @@ class PacketDecoder:
         self._last_az = -1
         self._date = b""                    # last tail date-time bytes seen valid
         self._fast: tuple[Any, ...] | None = None   # what push() compares on its fast path
+        self._checks: tuple[Any, ...] = (b"", None, None)   # _plain_rows: (date, where, value)
         self._info: Any = None
         self._info_key: tuple[Any, ...] | None = None
         self._last_info_stamp: int | None = None
@@ -220,7 +248,7 @@ class PacketDecoder:
         data = packet if type(packet) is bytes else payload_bytes(packet)
         fast = self._fast
         if (fast is not None and len(data) == fast[0] and data.startswith(fast[1])
-                and data[fast[2]] == fast[3]):
+                and data[fast[2]] == fast[3] and data[fast[7]] == fast[8]):
             first, last = fast[4].unpack_from(data, fast[5])
             if first < 36000 and last < 36000 and data.startswith(self._date, fast[6]):
                 wrapped = first < self._last_az - 18000 or last < first - 18000
@@ -236,7 +264,9 @@ class PacketDecoder:
         new = None
         if (stream is None or len(data) != stream.packet_size
                 or data[:len(self._key)] != self._key
-                or data[stream.fmt.return_mode_at] != stream.mode):
+                or data[stream.fmt.return_mode_at] != stream.mode
+                or (stream.fmt.state_at is not None
+                    and data[stream.fmt.state_at] != stream.state)):
             new = self._stream_of(data)           # raises before any state changes
             stream = new
         fmt = stream.fmt
@@ -254,8 +284,12 @@ class PacketDecoder:
             if self._stream is not None and new != self._stream:
                 out = self.flush()
             self._stream, self._key = new, data[:max(2, fmt.body)]
+            state_at, state = ((fmt.return_mode_at, new.mode) if fmt.state_at is None
+                               else (fmt.state_at, new.state))
+            self._checks = (b"", None, None)
             self._fast = (new.packet_size, self._key, fmt.return_mode_at, new.mode,
-                          _first_last(new.last_firing_at), at, fmt.datetime_at)
+                          _first_last(new.last_firing_at), at, fmt.datetime_at, state_at,
+                          state)
         wrapped = first < self._last_az - 18000 or last < first - 18000
         self._packets.append(data)
         self._stamps.append(stamp_ns)
@@ -283,8 +317,16 @@ class PacketDecoder:
         if self.calibration.laser_ids.size != fmt.lasers:
             raise DecodeError("calibration lasers", self.calibration.laser_ids.size,
                               f"{fmt.lasers} (the {fmt.model} packets' laser count)")
+        state = -1
+        if fmt.state_at is not None:
+            state = data[fmt.state_at]
+            if state not in OPERATIONAL_STATES:
+                raise DecodeError(f"{fmt.model} operational state", state, "0 (high "
+                                  "resolution), 1 (shutdown), 2 (standard), 3 (energy saving)")
+            if state == 0:
+                fmt = hires_format(fmt)
         return _Stream(fmt, mode, returns, dis * 1e-3, rpm, len(data),
-                       (fmt.blocks - returns) * fmt.block_size)
+                       (fmt.blocks - returns) * fmt.block_size, state)
 
     # ------------------------------------------------------------------------------ batches
     def push_many(self, stamps_ns: Any, payloads: Any,
@@ -374,13 +416,16 @@ class PacketDecoder:
         fast, stream = self._fast, self._stream
         if fast is None or stream is None or rows.shape[1] != fast[0]:
             return 0, np.empty(0, np.int32), np.empty(0, np.int32)
-        size, key, mode_at, mode, _, at, date_at = fast
+        size, key, mode_at, mode, _, at, date_at, state_at, state = fast
         az = rows[:, at:at + 2].view("<u2")[:, 0].astype(np.int32)
         at2 = at + stream.last_firing_at
         az2 = rows[:, at2:at2 + 2].view("<u2")[:, 0].astype(np.int32)
-        ok = ((rows[:, :len(key)] == np.frombuffer(key, np.uint8)).all(1)
-              & (rows[:, mode_at] == mode) & (az < 36000) & (az2 < 36000)
-              & (rows[:, date_at:date_at + 6] == np.frombuffer(self._date, np.uint8)).all(1))
+        if self._checks[0] != self._date:     # the bytes every plain row has, and where
+            where = np.r_[0:len(key), mode_at, state_at, date_at:date_at + 6]
+            value = np.frombuffer(key + bytes([mode, state]) + self._date, np.uint8)
+            self._checks = (self._date, where, value)
+        _, where, value = self._checks
+        ok = (rows[:, where] == value).all(1) & (az < 36000) & (az2 < 36000)
         bad = np.flatnonzero(~ok)
         return (int(bad[0]) if bad.size else rows.shape[0]), az, az2
 
@@ -428,15 +473,18 @@ class PacketDecoder:
         fmt = stream.fmt
         self._join_packets()
         recs = [_records(seg[1], fmt) for seg in self._segs]
-        firings = fmt.blocks // stream.returns
         azimuth = np.concatenate([rec["b"]["az"][:, ::stream.returns] for rec in recs])
         us = np.concatenate([rec["us"] for rec in recs]).astype(np.int64)
         dates = np.concatenate([rec["date"] for rec in recs])            # (P, 6) uint8
-        starts = np.flatnonzero(np.r_[True, (dates[1:] != dates[:-1]).any(1)])
-        secs = np.array([_date_seconds(bytes(dates[i])) for i in starts], np.int64)
-        secs = np.repeat(secs, np.diff(np.r_[starts, len(dates)]))
+        changes = np.flatnonzero((dates[1:] != dates[:-1]).any(1)) + 1
+        if changes.size:
+            starts = np.concatenate(([0], changes))
+            secs = np.array([_date_seconds(bytes(dates[i])) for i in starts], np.int64)
+            secs = np.repeat(secs, np.diff(np.append(starts, len(dates))))
+        else:
+            secs = _date_seconds(bytes(dates[0]))
         t0 = secs * 1_000_000_000 + us * 1000
-        times = t0[:, None] + fmt.block_start_ns(np.arange(firings), firings)[None, :]
+        times = t0[:, None] + stream.block_start_ns[None, :]
         cols = {"azimuth": azimuth.reshape(-1).astype(np.int32), "time": times.reshape(-1),
                 "t0": t0, "stamp": np.concatenate([seg[0] for seg in self._segs])}
         if fmt.pixel_tables:
@@ -503,13 +551,8 @@ class PacketDecoder:
             if a < b:
                 pieces.append((seg[1], a - at, b - a, a - lo))
             at += n
-        names = _channel_names(_block_kinds(fmt, stream.mode))
-        specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
-                 for k, name in enumerate(pair)}
-        if fmt.pixel_tables:
-            specs["t"] = np.int32
-        buf = ScanBuffer(info, {k: specs[k] for k in sorted(specs, key=_channel_rank)},
-                         as_dataclass=self.as_dataclass)
+        names, specs = stream.channels
+        buf = ScanBuffer(info, specs, as_dataclass=self.as_dataclass)
         grids = [tuple(buf.views[name] for name in pair) for pair in names]
         _units(pieces, stream, self._rows, grids)
         if fmt.pixel_tables:
@@ -519,9 +562,30 @@ class PacketDecoder:
                          column_azimuth_angles=angles), info
 
     def _info_for(self, stream: _Stream, width: int, stamp: int) -> Any:
-        key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width)
+        key = (stream.fmt.model, stream.mode, stream.dis_unit_m, stream.rpm, width,
+               stream.state)
         if self._info is not None and key == self._info_key:
             return self._info
+        if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
+            stamp = self._last_info_stamp + 1
+        # a version already built (and validated) by a decoder of this process with the same
+        # geometry: the same frozen dataclass fields under a new header stamp
+        cache_key = (self._calib_key, key, self.frame_id, self.firing_rotation,
+                     self.range_limits)
+        template = _INFO_TEMPLATES.get(cache_key) if self.as_dataclass else None
+        if template is not None:
+            info = _restamped(template, stamp)
+        else:
+            info = self._make_info(stream, width, stamp)
+            if self.as_dataclass:
+                if len(_INFO_TEMPLATES) >= 16:
+                    _INFO_TEMPLATES.pop(next(iter(_INFO_TEMPLATES)))
+                _INFO_TEMPLATES[cache_key] = info
+        self._info, self._info_key, self._last_info_stamp = info, key, stamp
+        return info
+
+    def _make_info(self, stream: _Stream, width: int, stamp: int) -> Any:
+        """A new LidarInfo (make_info, validated) of the stream's geometry at ``stamp``."""
         fmt = stream.fmt
         calib = self.calibration
         order = self._order
@@ -530,14 +594,14 @@ class PacketDecoder:
         beta = -np.deg2rad(calib.azimuth_deg[order])
         if self.firing_rotation:
             beta = beta - 2.0 * np.pi * stream.rpm / 60.0 * beam_time * 1e-9
-        if self._last_info_stamp is not None and stamp <= self._last_info_stamp:
-            stamp = self._last_info_stamp + 1
         lo, hi = self.range_limits
         nominal_width = 60e9 / (stream.rpm * fmt.firing_period_ns)
         meta = {"format": fmt.model, "return_mode": "+".join(RETURN_MODES[stream.mode]),
                 "return_mode_byte": stream.mode, "rpm": stream.rpm,
                 "dis_unit_m": stream.dis_unit_m, "firing_rotation": self.firing_rotation,
                 "channel_timing": fmt.channel_timing}
+        if stream.state >= 0:
+            meta["operational_state"] = OPERATIONAL_STATES[stream.state]
         info = make_info(
             stamp_ns=stamp, frame_id=self.frame_id,
             vertical_angles=np.deg2rad(calib.elevation_deg[order]),
@@ -550,8 +614,21 @@ class PacketDecoder:
             range_max=fmt.range_limits[1] if hi is None else float(hi),
             vendor="Hesai", model=fmt.model, vendor_metadata=json.dumps(meta, sort_keys=True),
             as_dataclass=self.as_dataclass)
-        self._info, self._info_key, self._last_info_stamp = info, key, stamp
         return info
+
+
+#: validated LidarInfo dataclasses by geometry (calibration, format, mode, dis unit, rpm,
+#: width, frame, options), reused under a new header stamp (they are frozen and read-only)
+_INFO_TEMPLATES: dict[tuple[Any, ...], Any] = {}
+
+
+def _restamped(info: Any, stamp: int) -> Any:
+    """The LidarInfo dataclass ``info`` with header.stamp ``stamp`` (int ns)."""
+    from lidarscan import types
+    from lidarscan.stamps import split_ns
+    sec, nanosec = split_ns(stamp)
+    return dataclasses.replace(info, header=types.Header(types.Time(sec, nanosec),
+                                                         info.header.frame_id))
 
 
 _U16 = struct.Struct("<H")
@@ -573,6 +650,7 @@ def _first_last(last_firing_at: int) -> Any:
     return struct.Struct(f"<H{last_firing_at - 2}xH")
 
 
+@functools.lru_cache(maxsize=64)
 def _date_seconds(date: bytes) -> int:
     """POSIX seconds of a tail date-time (year - 1900, month, day, hour, minute, second; UTC)."""
     y, mo, d, h, mi, s = date
@@ -622,15 +700,6 @@ def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, An
     return rows.view(_packet_dtype(fmt, rows.shape[1]))[:, 0]
 
 
-@functools.lru_cache(maxsize=None)
-def _unit_offsets(fmt: HesaiFormat, returns: int) -> np.ndarray[Any, Any]:
-    """(firings, returns, lasers) int64 byte offset of each unit (distance) in a payload."""
-    firings = fmt.blocks // returns
-    block = np.arange(firings * returns).reshape(firings, returns, 1)
-    return (fmt.body + block * fmt.block_size + fmt.azimuth_at + 2
-            + np.arange(fmt.lasers) * fmt.unit_size).astype(np.int64)
-
-
 def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
            rows: np.ndarray[Any, Any],
            grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
@@ -646,10 +715,31 @@ def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _St
     if fill is None:
         _units_numpy(pieces, stream, rows, grids)
         return
-    offsets = _unit_offsets(stream.fmt, stream.returns)
+    fmt = stream.fmt
+    returns = stream.returns
+    firings = fmt.blocks // returns
+    width = grids[0][0].shape[1]
+    rowbase = rows.astype(np.uint64) * np.uint64(width)
+    flat = [(dist.reshape(-1), refl.reshape(-1)) for dist, refl in grids]
+    base = fmt.body + fmt.azimuth_at + 2
     for payloads, first, count, col in pieces:
-        for r, (dist, refl) in enumerate(grids):
-            fill(payloads, first, count, col, offsets, r, rows, dist, refl)
+        src, stride = _flat_rows(payloads)
+        for r, (dist, refl) in enumerate(flat):
+            fill(src, stride, first, count, col, base, fmt.block_size, fmt.unit_size, returns,
+                 r, firings, rowbase, dist, refl)
+
+
+def _flat_rows(rows: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], int]:
+    """(1-D uint8 view from the first byte of row 0 to the last byte of the last row, row
+    stride) of payload rows (P, size) whose rows are contiguous (no copy)."""
+    n, size = rows.shape
+    stride = rows.strides[0]
+    if n > 1 and stride < size:
+        rows = np.ascontiguousarray(rows)
+        stride = size
+    span = (n - 1) * stride + size if n else 0
+    return np.lib.stride_tricks.as_strided(rows, shape=(span,), strides=(1,),
+                                           writeable=False), int(stride)
 
 
 def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,

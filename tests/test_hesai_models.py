@@ -63,7 +63,7 @@ def _unit_size(model: str, flags: int) -> int:
 def build_packet(model: str, mode: int, azimuths: list[int], dist: np.ndarray,
                  refl: np.ndarray, *, flags: int = 0x01, dis_mm: int = 4, rpm: int = 600,
                  us: int = US, date: tuple[int, ...] = DATE, mode_flag: int = 0,
-                 azimuth_state: int = 0, op_state: int = 0) -> bytes:
+                 azimuth_state: int = 0, op_state: int = 2) -> bytes:
     """One UDP payload written field by field (manual section 3.1.2 of each model).
 
     ``dist``/``refl``: (blocks, lasers) raw distance (Dis Unit) and reflectivity; one azimuth
@@ -114,16 +114,21 @@ def build_packet(model: str, mode: int, azimuths: list[int], dist: np.ndarray,
 
 
 # ------------------------------------------------------------------------ the loop oracle
-def _firing_ns(model: str, k: int, firings: int, ch: int, loop: int = 0) -> int:
+def _firing_ns(model: str, k: int, firings: int, ch: int, loop: int = 0, state: int = 2
+               ) -> int:
     """Firing time of channel index ``ch`` in firing ``k`` of a packet, relative to t0
-    (``loop``: the QT128 firing loop 0 or 1 of that firing)."""
+    (``loop``: the QT128 firing loop 0 or 1 of that firing; ``state``: the 128 series'
+    operational state)."""
     if model == "PandarXT16":      # last firing t0 + 5.632 us, 50 us apart; 3.024 us/channel
         return 5632 - 50000 * (firings - 1 - k) + 368 + 3024 * ch
     if model == "PandarXT32M":     # channels 1-16 / 17-32 in pairs, 2.888 us apart
         return 5632 - 50000 * (firings - 1 - k) + 368 + 2888 * (ch % 16)
     if model == "PandarQT128":     # trigger + the channel's delay in its firing loop
         return 9000 - 111110 * (firings - 1 - k) + max(0, hesai._QT128_LOOPS[loop][ch])
-    return -55556 * (firings - 1 - k)
+    # 128E3X manual, "Start Time of Each Block": the last block starts at t0 + 3.148 us, block
+    # 1 (single return) 27.778 us earlier in high resolution mode (state 0), 2 * 27.778 us
+    # earlier in standard mode; channel delays not applied (see the module under test)
+    return 3148 - (27778 if state == 0 else 55556) * (firings - 1 - k)
 
 
 def oracle(packets: list[bytes], csv: str) -> list[tuple[int, int, str, float, float, float]]:
@@ -144,6 +149,7 @@ def oracle(packets: list[bytes], csv: str) -> list[tuple[int, int, str, float, f
         at = tail + (10 if fam == "xt" else 12)
         mode = pk[at]
         mode_flag = pk[tail + 5] if fam == "qt128" else 0
+        state = pk[tail + 11] if fam == "128" else 2
         y, mo, d, h, mi, s = pk[at + 3:at + 9]
         t0 = (calendar.timegm((1900 + y, mo, d, h, mi, s, 0, 0, 0)) * 10**9
               + struct.unpack_from("<I", pk, at + 9)[0] * 1000)
@@ -170,7 +176,8 @@ def oracle(packets: list[bytes], csv: str) -> list[tuple[int, int, str, float, f
                 dist = raw * dis_mm * 1e-3
                 a = math.radians(az + cal.azimuth_deg[ch])
                 e = math.radians(cal.elevation_deg[ch])
-                out.append((t0 + _firing_ns(model, k, firings, ch, loop), ch + 1, names[r],
+                out.append((t0 + _firing_ns(model, k, firings, ch, loop, state), ch + 1,
+                            names[r],
                             dist * math.cos(e) * math.sin(a), dist * math.cos(e) * math.cos(a),
                             dist * math.sin(e)))
     return out
@@ -381,3 +388,62 @@ def test_push_many_and_messages_equal_push(model: str, mode: int) -> None:
     for (a, _), (b, _) in zip(ref, msgs):
         assert bytes(a.data) == bytes(b.data)
         assert [c.name for c in a.channels] == [c.name for c in b.channels]
+
+
+# ------------------------------------------------- 128 series: operational state and block times
+#: Pandar128E3X user manual (doc version 128-en-240310), Appendix "Absolute Time and Laser Firing
+#: Time", "Start Time of Each Block" (us after the packet's absolute time t0), by return mode and
+#: horizontal resolution (operational state 0 = high performance = high resolution mode)
+MANUAL_128_BLOCK_START_US = {
+    ("single", "high resolution"): (3.148 - 27.778, 3.148),
+    ("single", "standard"): (3.148 - 27.778 * 2, 3.148),
+    ("dual", "high resolution"): (3.148, 3.148),
+    ("dual", "standard"): (3.148, 3.148),
+}
+STATES = {0: "high resolution", 2: "standard", 3: "energy saving"}
+
+
+@pytest.mark.parametrize("mode", [0x37, 0x39])
+@pytest.mark.parametrize("state", [0, 2, 3])
+def test_128_block_start_times_and_width_follow_the_operational_state(mode: int,
+                                                                      state: int) -> None:
+    model = "Pandar128E3X/E4X"
+    csv = _calibration_csv(128, seed=6)
+    packets = _stream(model, mode, packets=40, op_state=state)
+    results = list(hesai.decode_packets(packets, csv, as_dataclass=True))
+    _compare(oracle([p for _, p in packets], csv), _decoded(results))
+    # the manual's table, read directly: the first packet's blocks
+    resolution = "high resolution" if state == 0 else "standard"   # energy saving: standard
+    starts = MANUAL_128_BLOCK_START_US[("single" if mode == 0x37 else "dual", resolution)]
+    scan, info = results[0]
+    stamp = lidarscan.stamps.to_ns(scan.header.stamp)
+    t0 = calendar.timegm((1900 + DATE[0], *DATE[1:], 0, 0, 0)) * 10**9 + US * 1000
+    times = stamp + np.asarray(scan.column_time_offsets) + np.asarray(info.beam_time_offsets)[0]
+    firings = len(set(starts)) if mode == 0x37 else 1
+    expected = [t0 + round(1000 * us) for us in starts][-firings:]
+    assert times[:firings].tolist() == expected
+    period = 27778 if state == 0 else 55556
+    assert info.column_time_increment == period
+    assert info.width == math.ceil(1.02 * 60e9 / (600 * period))     # 3672 or 1836 at 600 rpm
+    assert json.loads(info.vendor_metadata)["operational_state"] == hesai.OPERATIONAL_STATES[
+        state]
+    assert np.asarray(info.beam_time_offsets).tolist() == [0] * 128  # delays not applied
+
+
+def test_128_operational_state_change_starts_a_new_info_version() -> None:
+    csv = _calibration_csv(128, seed=7)
+    first = _stream("Pandar128E3X/E4X", 0x37, packets=20, op_state=2, start=1000)
+    second = [(t + 10**7, p) for t, p in _stream("Pandar128E3X/E4X", 0x37, packets=20,
+                                                    op_state=0, start=2000, seed=4)]
+    results = _one_by_one(first + second, csv)
+    assert [r[1].width for r in results] == [1836, 3672]
+    assert results[0][1].header.stamp != results[1][1].header.stamp
+    stamps, rows = _rows(first + second)
+    dec = hesai.PacketDecoder(csv, as_dataclass=True)
+    _same(results, dec.push_many(stamps, rows) + dec.flush())
+
+
+def test_128_unknown_operational_state_raises() -> None:
+    packets = _stream("Pandar128E3X/E4X", 0x37, packets=2, op_state=7)
+    with pytest.raises(DecodeError, match="operational state"):
+        list(hesai.decode_packets(packets, _calibration_csv(128)))
