@@ -5,12 +5,13 @@ the chunk compression level can be chosen (``mcap.writer`` compresses zstd at th
 default level, the largest cost of ``lidarscan convert``) and so message payloads reach the file
 without Python-side copies: a chunk's records are kept as a list of byte pieces (record headers
 and the callers' payloads), joined once for the compressor (or written as they are without
-compression), the compressed chunk goes to the stream as it is.
+compression), the compressed chunk goes to the stream as it is. Closed chunks can be compressed
+and written by background threads (``threads``): the file's bytes do not depend on it.
 
 The file layout is what ``mcap.writer.Writer`` writes with its defaults (so every MCAP reader,
 ``mcap``'s Python reader, the Go ``mcap`` CLI and Foxglove, reads it): magic, Header; Schema and
 Channel records inside the chunks where they are first used; per chunk a Chunk record (CRC-32 of
-its uncompressed records) followed by one MessageIndex per channel; DataEnd (no data-section
+its uncompressed records, or 0, "not computed", with ``crc=False``) followed by one MessageIndex per channel; DataEnd (no data-section
 CRC); a summary of every Schema, Channel, Statistics, ChunkIndex and MetadataIndex with their
 SummaryOffsets; the Footer (CRC-32 of the summary) and the magic. The zstd and lz4 frames state
 their content size. All integers are little-endian.
