@@ -11,10 +11,10 @@ and written by background threads (``threads``): the file's bytes do not depend 
 The file layout is what ``mcap.writer.Writer`` writes with its defaults (so every MCAP reader,
 ``mcap``'s Python reader, the Go ``mcap`` CLI and Foxglove, reads it): magic, Header; Schema and
 Channel records inside the chunks where they are first used; per chunk a Chunk record (CRC-32 of
-its uncompressed records, or 0, "not computed", with ``crc=False``) followed by one MessageIndex per channel; DataEnd (no data-section
-CRC); a summary of every Schema, Channel, Statistics, ChunkIndex and MetadataIndex with their
-SummaryOffsets; the Footer (CRC-32 of the summary) and the magic. The zstd and lz4 frames state
-their content size. All integers are little-endian.
+its uncompressed records; 0, "not computed", with ``crc=False``) followed by one MessageIndex per
+channel; DataEnd (no data-section CRC); a summary of every Schema, Channel, Statistics,
+ChunkIndex and MetadataIndex with their SummaryOffsets; the Footer (CRC-32 of the summary) and
+the magic. The zstd and lz4 frames state their content size. All integers are little-endian.
 """
 
 from __future__ import annotations
@@ -242,8 +242,8 @@ class ChunkedMcapWriter:
             self._finish_chunk()
 
     def _finish_chunk(self) -> None:
-        """Close the open chunk: its records go to :meth:`_write_chunk`, in this thread or, with
-        ``background=True``, in the writer thread (same bytes, same order)."""
+        """Close the open chunk: it is packed and written in this thread, or handed to the
+        writer threads (``threads`` > 1; same bytes, same order)."""
         if not self._chunk_times:
             return  # no message yet: its Schema/Channel records wait for the next chunk
         start, end = self._chunk_times
