@@ -186,3 +186,33 @@ def test_convert_writes_the_same_file_with_any_number_of_threads(
         meta = next(m for m in reader.iter_metadata() if m.name == "rosbag2")
     assert "- out.mcap" in meta.metadata["serialized_metadata"]
     assert ".partial" not in meta.metadata["serialized_metadata"]
+
+
+@pytest.mark.parametrize("threads", ["1", "2", "3"])
+def test_a_failing_output_stops_the_threads_and_leaves_no_file(
+        threads: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The disk fills up while the chunks are written (in the writer threads, or in the caller's
+    with --threads 1): exit 2 naming the error, no output or temporary file, no thread left."""
+    import threading
+
+    from lidarscan import _mcapfile
+
+    real = _mcapfile.ChunkedMcapWriter._write_chunk
+    calls = {"n": 0}
+
+    def write_chunk(self: Any, *args: Any) -> None:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(28, "No space left on device")
+        real(self, *args)
+
+    monkeypatch.setattr(_mcapfile.ChunkedMcapWriter, "_write_chunk", write_chunk)
+    before = threading.active_count()
+    name = "velodyne_vls128"
+    out = tmp_path / "out.mcap"
+    status = cli.main(["convert", str(DATA / name / "bag"), str(out), "--calibration",
+                       str(DATA / name / RECORDINGS[name][0]), "-q", "--threads", threads])
+    assert status == 2 and "No space left on device" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    assert threading.active_count() == before
