@@ -1,8 +1,9 @@
 """Benchmark: the whole ``lidarscan convert`` of a long raw-packet recording, vs real time.
 
-Run: ``.venv/bin/python bench/bench_convert.py [--seconds S] [--profile N]``. Prints, per
-recording, the convert time as a multiple of real time (sensor seconds / wall seconds) beside a
-baseline measured in the same run, and optionally the cProfile top entries. No assertions.
+Run: ``.venv/bin/python bench/bench_convert.py [--seconds S] [--repeat N] [--threads N]
+[--base DIR] [--profile N]``. Prints, per recording, the convert time as a multiple of real time
+(sensor seconds / seconds) beside baselines measured in the same run, and optionally the
+cProfile top entries (of ``--threads 1``). No assertions.
 Target (issue "Real sensors in"): >= 20x real time.
 
 Input: the real VLS-128 (single return, 6 250 packets/s) and Pandar64 (dual return) recordings of
@@ -16,22 +17,33 @@ continuous recording (with an azimuth jump at each seam). An empty ``serializati
 (the VLS-128 bag) is written as "cdr" (rosbags refuses the empty one; ``converters.bags`` reads
 both).
 
-Candidates (the bag already on disk, page cache warm), timed in interleaved rounds (CPU time,
-median of ``--repeat`` rounds; ratios against ``convert`` in the same round):
+Candidates (the bag already on disk, page cache warm, one untimed convert of the small
+recording first), timed in interleaved rounds (medians of ``--repeat`` rounds; ratios against
+``convert`` in the same round). Each is timed three ways: process CPU (every thread), the main
+thread's CPU (``time.thread_time``) and wall; from these the **2-core bound**: sensor seconds /
+max(main-thread CPU, CPU / 2, the output threads' CPU / their number), the real-time factor the
+run would reach on 2 free cores (the wall time of a shared machine says little):
 
+- ``main``: with ``--base DIR``, the default ``convert`` of the source tree DIR (e.g.
+  ``git archive main | tar -x -C DIR`` with the compiled modules copied in) in a child process
+  that hides this environment's editable install (start-up and a warm-up run excluded).
 - ``convert``: ``converters.cli.main(["convert", BAG, OUT.mcap, "--calibration", FILE, "-q"])``
   in this process (no interpreter start-up), the default options: read the .db3, parse the packet
   messages, decode every rotation to LidarScan + LidarInfo, write the MCAP file (zstd chunks at
-  the default level).
-- ``zstd:1`` / ``zstd:3`` / ``lz4`` / ``none``: the same with ``--zstd-level 1`` /
-  ``--zstd-level 3`` (the ``mcap`` package's level, the default before) /
-  ``--chunk-compression lz4`` / ``none``.
-- ``--compress``: the default chunks with every LidarScan compressed by lidarscan.codec.
+  the default level, compressed by two threads beside the main one: ``--threads 3``).
+- ``threads:1`` / ``threads:2``: the same in one thread / with one writer thread.
+- ``lz4`` / ``none`` / ``none,threads:1``: ``--chunk-compression lz4`` / ``none`` (and in one
+  thread).
+- with ``--more``: ``zstd:1`` / ``zstd:3`` / ``--compress`` (``--zstd-level 1`` / ``3``, every
+  LidarScan compressed by lidarscan.codec).
 - ``decode``: the decoder alone (``PacketDecoder.push_many`` on the parsed packets of every
   message, no output): the part of ``convert`` the decoders own; the rest is reading, parsing,
-  serialising and writing.
+  serialising, compressing and writing.
 - ``rosbags``: read the same bag with rosbags and deserialise every message into Python objects
   (what a Python tool does before any decoding): no decode, no output.
+
+Printed after them: the split decode / the rest of ``--threads 1`` and the decoder CPU that 20x
+would need, on one core and on 2 free cores with the default threads.
 
 The output size is printed beside each convert candidate.
 """
