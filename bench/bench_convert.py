@@ -1,8 +1,9 @@
 """Benchmark: the whole ``lidarscan convert`` of a long raw-packet recording, vs real time.
 
-Run: ``.venv/bin/python bench/bench_convert.py [--seconds S] [--profile N]``. Prints, per
-recording, the convert time as a multiple of real time (sensor seconds / wall seconds) beside a
-baseline measured in the same run, and optionally the cProfile top entries. No assertions.
+Run: ``.venv/bin/python bench/bench_convert.py [--seconds S] [--repeat N] [--threads N]
+[--base DIR] [--profile N]``. Prints, per recording, the convert time as a multiple of real time
+(sensor seconds / seconds) beside baselines measured in the same run, and optionally the
+cProfile top entries (of ``--threads 1``). No assertions.
 Target (issue "Real sensors in"): >= 20x real time.
 
 Input: the real VLS-128 (single return, 6 250 packets/s) and Pandar64 (dual return) recordings of
@@ -16,22 +17,33 @@ continuous recording (with an azimuth jump at each seam). An empty ``serializati
 (the VLS-128 bag) is written as "cdr" (rosbags refuses the empty one; ``converters.bags`` reads
 both).
 
-Candidates (the bag already on disk, page cache warm), timed in interleaved rounds (CPU time,
-median of ``--repeat`` rounds; ratios against ``convert`` in the same round):
+Candidates (the bag already on disk, page cache warm, one untimed convert of the small
+recording first), timed in interleaved rounds (medians of ``--repeat`` rounds; ratios against
+``convert`` in the same round). Each is timed three ways: process CPU (every thread), the main
+thread's CPU (``time.thread_time``) and wall; from these the **2-core bound**: sensor seconds /
+max(main-thread CPU, CPU / 2, the output threads' CPU / their number), the real-time factor the
+run would reach on 2 free cores (the wall time of a shared machine says little):
 
+- ``main``: with ``--base DIR``, the default ``convert`` of the source tree DIR (e.g.
+  ``git archive main | tar -x -C DIR`` with the compiled modules copied in) in a child process
+  that hides this environment's editable install (start-up and a warm-up run excluded).
 - ``convert``: ``converters.cli.main(["convert", BAG, OUT.mcap, "--calibration", FILE, "-q"])``
   in this process (no interpreter start-up), the default options: read the .db3, parse the packet
   messages, decode every rotation to LidarScan + LidarInfo, write the MCAP file (zstd chunks at
-  the default level).
-- ``zstd:1`` / ``zstd:3`` / ``lz4`` / ``none``: the same with ``--zstd-level 1`` /
-  ``--zstd-level 3`` (the ``mcap`` package's level, the default before) /
-  ``--chunk-compression lz4`` / ``none``.
-- ``--compress``: the default chunks with every LidarScan compressed by lidarscan.codec.
+  the default level, compressed by two threads beside the main one: ``--threads 3``).
+- ``threads:1`` / ``threads:2``: the same in one thread / with one writer thread.
+- ``lz4`` / ``none`` / ``none,threads:1``: ``--chunk-compression lz4`` / ``none`` (and in one
+  thread).
+- with ``--more``: ``zstd:1`` / ``zstd:3`` / ``--compress`` (``--zstd-level 1`` / ``3``, every
+  LidarScan compressed by lidarscan.codec).
 - ``decode``: the decoder alone (``PacketDecoder.push_many`` on the parsed packets of every
   message, no output): the part of ``convert`` the decoders own; the rest is reading, parsing,
-  serialising and writing.
+  serialising, compressing and writing.
 - ``rosbags``: read the same bag with rosbags and deserialise every message into Python objects
   (what a Python tool does before any decoding): no decode, no output.
+
+Printed after them: the split decode / the rest of ``--threads 1`` and the decoder CPU that 20x
+would need, on one core and on 2 free cores with the default threads.
 
 The output size is printed beside each convert candidate.
 """
@@ -164,9 +176,22 @@ def build_bag(name: str, seconds: float, where: Path) -> tuple[Path, float, int,
 
 
 #: candidate -> extra ``convert`` options
-CONVERTS = {"convert": [], "zstd:1": ["--zstd-level", "1"], "zstd:3": ["--zstd-level", "3"],
-            "lz4": ["--chunk-compression", "lz4"], "none": ["--chunk-compression", "none"],
-            "--compress": ["--compress"]}
+CONVERTS = {"convert": [], "threads:1": ["--threads", "1"], "threads:2": ["--threads", "2"],
+            "lz4": ["--chunk-compression", "lz4"],
+            "none": ["--chunk-compression", "none"],
+            "none,threads:1": ["--chunk-compression", "none", "--threads", "1"]}
+#: more candidates with ``--more``
+MORE = {"zstd:1": ["--zstd-level", "1"], "zstd:3": ["--zstd-level", "3"],
+        "--compress": ["--compress"]}
+
+
+#: ``convert --threads`` default
+DEFAULT_THREADS = 3
+
+
+def _threads(options: list[str]) -> int:
+    return int(options[options.index("--threads") + 1]) if "--threads" in options \
+        else DEFAULT_THREADS
 
 
 def run_convert(bag: Path, calibration: Path, out: Path, extra: list[str] | None = None) -> None:
@@ -178,13 +203,47 @@ def run_convert(bag: Path, calibration: Path, out: Path, extra: list[str] | None
         raise RuntimeError(f"lidarscan convert {bag} exited with {status}")
 
 
+#: the child that times another tree's ``convert`` (``--base``): its editable install is
+#: hidden so that the tree given wins; one untimed run on the small recording first (imports,
+#: cached kernels), then the timed one; prints [process CPU, main-thread CPU, wall]
+_BASE_CHILD = """
+import json, sys, time
+sys.meta_path[:] = [f for f in sys.meta_path if "editable" not in repr(f)]
+sys.path.insert(0, sys.argv[1])
+from converters import cli
+warm, timed = json.loads(sys.argv[2]), json.loads(sys.argv[3])
+assert cli.main(["convert", *warm, "-q"]) == 0
+c0, t0, w0 = time.process_time(), time.thread_time(), time.perf_counter()
+assert cli.main(["convert", *timed, "-q"]) == 0
+print(json.dumps([time.process_time() - c0, time.thread_time() - t0, time.perf_counter() - w0]))
+"""
+
+
+def run_base(base: Path, folder: str, bag: Path, calibration: Path, out: Path
+             ) -> tuple[float, float, float]:
+    """(process CPU, main-thread CPU, wall) of the default ``convert`` of the tree ``base``
+    (e.g. ``git archive main``), in a child process, start-up excluded."""
+    import json
+    import subprocess
+    out.unlink(missing_ok=True)
+    small = [str(DATA / folder / "bag"), str(out.with_suffix(".warm.mcap")),
+             "--calibration", str(calibration)]
+    timed = [str(bag), str(out), "--calibration", str(calibration)]
+    done = subprocess.run([sys.executable, "-c", _BASE_CHILD, str(base), json.dumps(small),
+                           json.dumps(timed)], check=True, capture_output=True, text=True,
+                          cwd=tempfile.gettempdir())
+    cpu, main_cpu, wall = json.loads(done.stdout.strip().splitlines()[-1])
+    return float(cpu), float(main_cpu), float(wall)
+
+
 def run_decode(bag: Path, calibration: Path) -> int:
-    """The decoder alone on every packet message of the bag (parsed beforehand): scans made."""
+    """The decoder alone on every packet message of the bag (parsed beforehand): scans made
+    (dataclasses, as ``convert`` asks for)."""
     from converters.bags import PACKET_TYPES, open_bag
     batches = [(PACKET_TYPES[m.msgtype][1](m.payload)) for m in open_bag(bag).messages()
                if getattr(m, "msgtype", "") in PACKET_TYPES]
     module = __import__(PACKET_TYPES[_packet_type(bag)][0], fromlist=["PacketDecoder"])
-    decoder = module.PacketDecoder(str(calibration), frame_id="lidar")
+    decoder = module.PacketDecoder(str(calibration), frame_id="lidar", as_dataclass=True)
     count = 0
     with _clock() as spent:
         for packets in batches:
@@ -240,9 +299,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=30.0, help="sensor time per bag")
     parser.add_argument("--repeat", type=int, default=3, help="timed rounds (median)")
     parser.add_argument("--profile", type=int, default=0, metavar="N",
-                        help="print the N top cProfile entries (cumulative) of one convert")
+                        help="print the N top cProfile entries (cumulative) of one convert "
+                             "--threads 1")
     parser.add_argument("--only", choices=sorted(RECORDINGS), action="append")
+    parser.add_argument("--threads", type=int, action="append", metavar="N",
+                        help="only convert --threads N (repeatable; N = 3 is the default "
+                             "'convert'); default: every candidate")
+    parser.add_argument("--more", action="store_true",
+                        help="also --zstd-level 1 and 3 and --compress")
+    parser.add_argument("--base", type=Path, metavar="DIR",
+                        help="also time the default convert of the source tree DIR (e.g. "
+                             "`git archive main | tar -x -C DIR`, compiled modules copied in) "
+                             "in a child process: the 'before' of a change")
     args = parser.parse_args(argv)
+    converts = {**CONVERTS, **(MORE if args.more else {})}
+    if args.threads:
+        converts = {"convert" if t == DEFAULT_THREADS else f"threads:{t}":
+                    ["--threads", str(t)] for t in args.threads}
     with tempfile.TemporaryDirectory(prefix="bench_convert_") as tmp:
         where = Path(tmp)
         for name in args.only or RECORDINGS:
@@ -254,40 +327,66 @@ def main(argv: list[str] | None = None) -> int:
                   f"packets, {mb:.0f} MB bag (built in {time.perf_counter() - start:.1f} s)")
             out = where / f"{folder}.mcap"
             cal = DATA / folder / calib
-            labels = [*CONVERTS, "decode", "rosbags"]
-            cpu: dict[str, list[float]] = {label: [] for label in labels}
+            labels = [*(["main"] if args.base else []), *converts, "decode", "rosbags"]
+            # label -> [(process CPU, main-thread CPU, wall)] per round
+            times: dict[str, list[tuple[float, float, float]]] = {label: [] for label in labels}
             sizes: dict[str, int] = {}
 
             def convert(label: str) -> None:
-                run_convert(bag, cal, out, CONVERTS[label])
+                run_convert(bag, cal, out, converts[label])
                 sizes[label] = out.stat().st_size
 
-            def decode() -> None:
-                run_decode(bag, cal)
-
-            runs = [(label, lambda label=label: convert(label)) for label in CONVERTS] + \
-                [("decode", decode), ("rosbags", lambda: run_rosbags(bag))]
+            runs = [(label, lambda label=label: convert(label)) for label in converts] + \
+                [("decode", lambda: run_decode(bag, cal)), ("rosbags", lambda: run_rosbags(bag))]
+            run_convert(DATA / folder / "bag", cal, out)   # imports, cached kernels: untimed
+            loads = []
             for _ in range(args.repeat):  # interleaved: the machine's load hits all alike
+                if args.base:
+                    times["main"].append(run_base(args.base, folder, bag, cal, out))
+                    sizes["main"] = out.stat().st_size
                 for label, fn in runs:
                     _DECODE_CPU.clear()
-                    c0 = time.process_time()
+                    c0, t0, w0 = time.process_time(), time.thread_time(), time.perf_counter()
                     fn()
-                    # decode: the decoder's own CPU only (not the parsing before it)
-                    cpu[label].append(_DECODE_CPU[0] if label == "decode"
-                                      else time.process_time() - c0)
-            base = statistics.median(cpu["convert"])
+                    cpu, main_cpu = time.process_time() - c0, time.thread_time() - t0
+                    if label == "decode":   # the decoder's own CPU only (not the parsing)
+                        cpu = main_cpu = _DECODE_CPU[0]
+                    times[label].append((cpu, main_cpu, time.perf_counter() - w0))
+                loads.append(os.getloadavg()[0])
+            med = {label: [statistics.median(t[k] for t in times[label]) for k in range(3)]
+                   for label in labels}
+            base = med["convert" if "convert" in med else labels[0]][0]
+            print(f"  load average {min(loads):.1f}-{max(loads):.1f} on {os.cpu_count()} cores; "
+                  f"medians of {args.repeat} interleaved rounds; x = sensor seconds / seconds")
             for label in labels:
-                proc = statistics.median(cpu[label])
-                size = f"; output {sizes[label] / 1e6:6.1f} MB" if label in sizes else ""
-                print(f"  {label:11s} CPU {proc:6.2f} s = {sensor_s / proc:5.1f}x real time "
-                      f"(/ convert {proc / base:4.2f}){size}")
-            decode_share = statistics.median(cpu["decode"]) / base
-            print(f"  split of convert: decode {100 * decode_share:.0f} %, the rest (read, parse, "
-                  f"serialise, write) {100 * (1 - decode_share):.0f} %; load average "
-                  f"{os.getloadavg()[0]:.1f}")
+                cpu, main_cpu, wall = med[label]
+                size = f"; {sizes[label] / 1e6:6.1f} MB" if label in sizes else ""
+                # on 2 free cores a run takes at least its CPU / 2, its main thread's CPU,
+                # and its output threads' CPU / their number
+                helpers = _threads(converts.get(label, [])) - 1 if label != "main" else 0
+                bound = max(main_cpu, cpu / 2, (cpu - main_cpu) / max(helpers, 1))
+                print(f"  {label:15s} CPU {cpu:6.2f} s = {sensor_s / cpu:5.1f}x (/ convert "
+                      f"{cpu / base:4.2f}); main thread {main_cpu:5.2f} s; 2-core bound "
+                      f"{sensor_s / bound:5.1f}x; wall {wall:6.2f} s = {sensor_s / wall:5.1f}x"
+                      f"{size}")
+            if "threads:1" in med and "decode" in med:
+                one, dec = med["threads:1"][0], med["decode"][0]
+                print(f"  split of convert --threads 1: decode {100 * dec / one:.0f} %, the rest "
+                      f"(read, parse, serialise, compress, write) {100 * (1 - dec / one):.0f} %; "
+                      f"20x on one core needs decode <= {sensor_s / 20 - (one - dec):.2f} s")
+            if "convert" in med and "decode" in med:
+                cpu, main_cpu, _ = med["convert"]
+                dec = med["decode"][0]
+                # the 2-core bound of convert is 20x when main <= T/20 and CPU / 2 <= T/20
+                need = min(sensor_s / 20 - (main_cpu - dec), sensor_s / 10 - (cpu - dec))
+                print(f"  convert ({DEFAULT_THREADS} threads): main thread {main_cpu:.2f} s "
+                      f"(decode {dec:.2f} s, the rest {main_cpu - dec:.2f} s), output threads "
+                      f"{cpu - main_cpu:.2f} s; 20x on 2 free cores needs decode <= "
+                      f"{need:.2f} s ({dec / max(need, 1e-9):.1f}x faster)" if need > 0 else
+                      f"  convert: 20x on 2 free cores is out of reach whatever the decoder")
             if args.profile:
                 prof = cProfile.Profile()
-                prof.runcall(run_convert, bag, cal, out)
+                prof.runcall(run_convert, bag, cal, out, ["--threads", "1"])
                 text = io.StringIO()
                 pstats.Stats(prof, stream=text).sort_stats("cumulative").print_stats(args.profile)
                 print("\n".join(line for line in text.getvalue().splitlines()[6:] if line))

@@ -11,13 +11,38 @@ from collections.abc import Iterator
 from typing import IO, Any
 
 from lidarscan._mcap_reader import CODEC_ENCODING, INFO_TYPE, SCAN_TYPE
-from lidarscan.cdr import decode, encode
+from lidarscan.cdr import decode, encode, encode_pieces
 from lidarscan.errors import SchemaError
 from lidarscan.msgdef import normalize_type, schema_text
 from lidarscan.stamps import to_ns
 from lidarscan.types import msgtype_of
 
 __all__ = ["McapWriter"]
+
+#: serialised pieces of at least this many bytes that are read-only (a decoder's data block,
+#: arrays decoded from a recording) are kept by reference until their chunk is written
+_BORROW = 1 << 16
+
+
+def _payload(pieces: list[Any]) -> Any:
+    """CDR pieces (:func:`lidarscan.cdr.encode_pieces`) -> the payload the chunk writer keeps:
+    small pieces joined, large read-only buffers by reference, large writable ones copied (the
+    caller may change them after :meth:`McapWriter.write` returns)."""
+    out: list[Any] = []
+    run: list[Any] = []
+    for piece in pieces:
+        if not isinstance(piece, bytes):
+            view = memoryview(piece)
+            if view.nbytes >= _BORROW:
+                if run:
+                    out.append(b"".join(run))
+                    run = []
+                out.append(view if view.readonly else bytes(view))
+                continue
+        run.append(piece)
+    if run:
+        out.append(b"".join(run))
+    return out[0] if len(out) == 1 else out
 
 
 @contextlib.contextmanager
@@ -75,12 +100,26 @@ class McapWriter:
         qos: recorded QoS per topic: a name of :data:`lidarscan.rosbag2.QOS_PROFILES`
             ("sensor_data", "best_effort", "reliable", "latched"), a
             :class:`lidarscan.rosbag2.QosProfile`, rosbag2's dict form, or a list of these.
+        threads: 1 (default): everything in the caller's thread; 2: the chunks are compressed
+            and written by one background thread (overlapping the caller's work on a second
+            core); N > 2: N - 1 threads compress chunks side by side, written in order. Same
+            file bytes for every N; at most a few chunks queued, then :meth:`write` waits; an
+            error of those threads is raised by a later :meth:`write` or by :meth:`close`.
+        crc: compute each chunk's CRC-32 (default); False writes 0 ("not computed" in MCAP:
+            readers skip the check).
+        file_name: the storage file name the rosbag2 metadata record lists (default: the
+            output's; a caller writing to a temporary name gives the final one).
+
+    Serialised arrays of 64 KiB or more that are read-only (a packet decoder's scan data, a
+    recording's decoded arrays) are kept by reference until their chunk is written: they
+    must not be changed (writable ones are copied by :meth:`write`).
     """
 
     def __init__(self, output: str | os.PathLike[str] | IO[bytes], *, compression: str = "zstd",
                  chunk_size: int = 4 * 1024 * 1024, qos: dict[str, Any] | None = None,
                  scan_encoding: str = "cdr", level: int | None = None,
-                 codec_coder: Any = None) -> None:
+                 codec_coder: Any = None, threads: int = 1, crc: bool = True,
+                 file_name: str | None = None) -> None:
         from lidarscan._mcapfile import COMPRESSIONS, ChunkedMcapWriter
         from lidarscan.rosbag2 import qos_profile
 
@@ -92,16 +131,20 @@ class McapWriter:
             raise ConfigError("compression", compression, "one of 'zstd', 'lz4', 'none'")
         if level is not None and not (isinstance(level, int) and -131072 <= level <= 22):
             raise ConfigError("level", level, "a zstd level: an integer from -131072 to 22")
+        if not isinstance(threads, int) or not 1 <= threads <= 64:
+            raise ConfigError("threads", threads, "an integer from 1 (no thread) to 64")
         if scan_encoding not in ("cdr", CODEC_ENCODING):
             raise ConfigError("scan_encoding", scan_encoding, f"'cdr' or {CODEC_ENCODING!r}")
         self.scan_encoding = scan_encoding
+        self._file_name = file_name
         self._coder = codec_coder
         self._infos: dict[int, Any] = {}  # info stamp ns -> LidarInfo, for compress_scan
         self._own = not hasattr(output, "write")
         target: Any = output
         self._stream: Any = open(target, "wb") if self._own else target  # noqa: SIM115
         self._writer = ChunkedMcapWriter(self._stream, chunk_size=chunk_size,
-                                         compression=compression, level=level)
+                                         compression=compression, level=level,
+                                         threads=threads, crc=crc)
         self._writer.start(profile="ros2", library="lidarscan")
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str, str], int] = {}
@@ -158,7 +201,7 @@ class McapWriter:
             full, payload = normalize_type(msgtype), bytes(msg)
         else:
             full = normalize_type(msgtype) if msgtype else msgtype_of(msg)
-            payload, encoding = encode(msg, full), "cdr"
+            payload, encoding = _payload(encode_pieces(msg, full)), "cdr"
         if encoding not in ("cdr", CODEC_ENCODING) or (encoding != "cdr" and full != SCAN_TYPE):
             raise SchemaError("encoding", encoding,
                               f"'cdr', or {CODEC_ENCODING!r} for a {SCAN_TYPE}")
@@ -197,7 +240,8 @@ class McapWriter:
         """The rosbag2 metadata of what was written so far (see :mod:`lidarscan.rosbag2`)."""
         from lidarscan.rosbag2 import TopicRecord, bag_metadata
 
-        name = getattr(self._stream, "name", "")
+        name = self._file_name if self._file_name is not None else \
+            getattr(self._stream, "name", "")
         topics = [TopicRecord(topic, msgtype, offered, self._sequence.get(channel_id, 0),
                               serialization_format=encoding)
                   for channel_id, (topic, msgtype, offered, encoding) in self._topics.items()]
@@ -213,14 +257,16 @@ class McapWriter:
         self._closed = True
         from lidarscan.rosbag2 import metadata_yaml
 
-        with _interrupts_deferred():
-            try:
-                self._writer.add_metadata("rosbag2", {
-                    "serialized_metadata": metadata_yaml(self.bag_metadata(), root=False)})
-            finally:
-                self._writer.finish()
-        if self._own:
-            self._stream.close()
+        try:
+            with _interrupts_deferred():
+                try:
+                    self._writer.add_metadata("rosbag2", {
+                        "serialized_metadata": metadata_yaml(self.bag_metadata(), root=False)})
+                finally:
+                    self._writer.finish()
+        finally:
+            if self._own:
+                self._stream.close()
 
     def __enter__(self) -> McapWriter:
         return self

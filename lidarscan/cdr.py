@@ -490,7 +490,14 @@ def encode(msg: Any, msgtype: str | None = None) -> bytes:
     Raises:
         EncodeError: a value does not fit its field (range, length of a fixed array, type).
     """
+    return b"".join(encode_pieces(msg, msgtype))
+
+
+def encode_pieces(msg: Any, msgtype: str | None = None) -> list[Any]:
+    """:func:`encode` as the list of pieces its bytes join from (bytes, and buffers that *view*
+    the message's arrays: no copy of them), for writers that keep the pieces until they write
+    them (the message must then not change). Raises as :func:`encode`."""
     full = normalize_type(msgtype) if msgtype else msgtype_of(msg)
-    out: list[bytes] = [CDR_LE_HEADER]
+    out: list[Any] = [CDR_LE_HEADER]
     _struct_writer(full)(msg, out, 0)
-    return b"".join(out)
+    return out

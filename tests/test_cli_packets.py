@@ -160,3 +160,59 @@ def test_cut_angle_is_refused_where_it_cannot_apply(name: str, error: str, tmp_p
     err = capsys.readouterr().err
     assert status == 2 and "--cut-angle" in err and error in err, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["velodyne_vls128", "hesai_pandar64"])
+def test_convert_writes_the_same_file_with_any_number_of_threads(
+        name: str, tmp_path: Path) -> None:
+    """--threads 1 (everything in one thread), 2 (one writer thread) and the default (chunks
+    compressed side by side) give the same bytes, read by the `mcap` package with CRCs checked;
+    the rosbag2 metadata names the output file (not the temporary one it was written as)."""
+    from mcap.reader import make_reader
+
+    calibration = DATA / name / RECORDINGS[name][0]
+    files = []
+    for threads in ([], ["--threads", "1"], ["--threads", "2"],
+                    ["--threads", "2", "--chunk-compression", "lz4"]):
+        out = tmp_path / (threads[-1] if threads else "default") / "out.mcap"
+        out.parent.mkdir(exist_ok=True)
+        assert cli.main(["convert", str(DATA / name / "bag"), str(out), "--calibration",
+                         str(calibration), "-q", *threads]) == 0
+        files.append(out.read_bytes())
+    assert files[0] == files[1] == files[2] != files[3]
+    with open(tmp_path / "default" / "out.mcap", "rb") as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        assert sum(1 for _ in reader.iter_messages()) > 1
+        meta = next(m for m in reader.iter_metadata() if m.name == "rosbag2")
+    assert "- out.mcap" in meta.metadata["serialized_metadata"]
+    assert ".partial" not in meta.metadata["serialized_metadata"]
+
+
+@pytest.mark.parametrize("threads", ["1", "2", "3"])
+def test_a_failing_output_stops_the_threads_and_leaves_no_file(
+        threads: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The disk fills up while the chunks are written (in the writer threads, or in the caller's
+    with --threads 1): exit 2 naming the error, no output or temporary file, no thread left."""
+    import threading
+
+    from lidarscan import _mcapfile
+
+    real = _mcapfile.ChunkedMcapWriter._write_chunk
+    calls = {"n": 0}
+
+    def write_chunk(self: Any, *args: Any) -> None:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(28, "No space left on device")
+        real(self, *args)
+
+    monkeypatch.setattr(_mcapfile.ChunkedMcapWriter, "_write_chunk", write_chunk)
+    before = threading.active_count()
+    name = "velodyne_vls128"
+    out = tmp_path / "out.mcap"
+    status = cli.main(["convert", str(DATA / name / "bag"), str(out), "--calibration",
+                       str(DATA / name / RECORDINGS[name][0]), "-q", "--threads", threads])
+    assert status == 2 and "No space left on device" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    assert threading.active_count() == before

@@ -28,9 +28,10 @@ def _messages(n: int = 40) -> list[tuple[int, int, bytes]]:
 
 
 def _write(compression: str, level: int | None, messages: list[tuple[int, int, bytes]],
-           chunk_size: int = 4096) -> bytes:
+           chunk_size: int = 4096, **options: Any) -> bytes:
     buf = io.BytesIO()
-    writer = ChunkedMcapWriter(buf, chunk_size=chunk_size, compression=compression, level=level)
+    writer = ChunkedMcapWriter(buf, chunk_size=chunk_size, compression=compression, level=level,
+                               **options)
     writer.start("ros2", "test")
     schema = writer.register_schema("pkg/msg/A", "ros2msg", b"int32 a")
     for topic in ("/a", "/b"):
@@ -146,3 +147,137 @@ def test_mcap_writer_levels_read_back_with_ours_and_theirs(tmp_path: Any,
 def test_mcap_writer_refuses_a_level_zstd_does_not_have(tmp_path: Any, level: Any) -> None:
     with pytest.raises(ConfigError, match="level"):
         McapWriter(tmp_path / "x.mcap", level=level)
+
+
+# ------------------------------------------------------------------- threads, CRC, payloads
+
+@pytest.mark.parametrize(("compression", "level"), CASES)
+@pytest.mark.parametrize("threads", [2, 3, 5])
+def test_the_writer_threads_write_the_same_bytes(compression: str, level: int | None,
+                                                 threads: int) -> None:
+    messages = _messages(120)
+    alone = _write(compression, level, messages)
+    assert _write(compression, level, messages, threads=threads, queue_chunks=1) == alone
+    # a payload given as pieces is the same message as their join
+    pieces = [(c, t, [p[:7], memoryview(p)[7:]]) for c, t, p in messages]
+    assert _write(compression, level, pieces, threads=threads) == alone  # type: ignore[arg-type]
+
+
+class _FailingStream(io.BytesIO):
+    """A stream whose writes fail once ``limit`` bytes were written (a full disk)."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__()
+        self.limit = limit
+
+    def write(self, data: Any) -> int:
+        if self.tell() + memoryview(data).nbytes > self.limit:
+            raise OSError(28, "No space left on device")
+        return super().write(data)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_an_error_of_the_writer_thread_is_raised_in_the_caller(threads: int) -> None:
+    import threading
+
+    before = threading.active_count()
+    stream = _FailingStream(20_000)
+    writer = ChunkedMcapWriter(stream, chunk_size=4096, compression="none", threads=threads)
+    writer.start("ros2", "test")
+    schema = writer.register_schema("pkg/msg/A", "ros2msg", b"int32 a")
+    writer.register_channel("/a", "cdr", schema, {})
+    with pytest.raises(OSError, match="No space left"):
+        for seq in range(1000):   # 3 MB: fails long before the end
+            writer.add_message(channel_id=1, log_time=seq, data=bytes(3000), publish_time=seq,
+                               sequence=seq)
+        writer.finish()
+    assert seq < 1000
+    writer.finish()     # after the error: the threads stop, nothing more is written, no raise
+    assert stream.tell() <= 20_000
+    assert threading.active_count() == before
+
+
+def test_the_queue_of_closed_chunks_is_bounded() -> None:
+    """A stream that does not take the bytes (a slow disk): the caller waits once a few
+    closed chunks are queued, and goes on when the stream does."""
+    import threading
+
+    class Stalled(io.BytesIO):
+        def __init__(self) -> None:
+            super().__init__()
+            self.go = threading.Event()
+
+        def write(self, data: Any) -> int:
+            if threading.current_thread().name == "mcap-chunk-writer":   # the chunks wait
+                self.go.wait(30)
+            return super().write(data)
+
+    stream = Stalled()
+    writer = ChunkedMcapWriter(stream, chunk_size=1000, compression="zstd", threads=2,
+                               queue_chunks=3)
+    writer.start("ros2", "test")
+    writer.register_channel("/a", "cdr", 0, {})
+    added: list[int] = []
+
+    def produce() -> None:
+        for seq in range(50):           # one chunk per message
+            writer.add_message(channel_id=1, log_time=seq, data=bytes(1500), publish_time=seq)
+            added.append(seq)
+
+    producer = threading.Thread(target=produce)
+    producer.start()
+    producer.join(1.0)
+    assert producer.is_alive() and len(added) <= 3 + 2  # queued + the thread's + the caller's
+    stream.go.set()
+    producer.join(30)
+    assert not producer.is_alive() and len(added) == 50
+    writer.finish()
+    assert len(list(read_messages(io.BytesIO(stream.getvalue())))) == 50
+
+
+def test_chunks_without_crc_read_with_crc_checks_on() -> None:
+    from mcap.reader import make_reader
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    messages = _messages()
+    data = _write("zstd", None, messages, crc=False)
+    chunks = [r for r in StreamReader(io.BytesIO(data), emit_chunks=True).records
+              if isinstance(r, Chunk)]
+    assert chunks and {c.uncompressed_crc for c in chunks} == {0}  # 0: not computed
+    got = [m.data for _, _, m in make_reader(io.BytesIO(data), validate_crcs=True)
+           .iter_messages(log_time_order=False)]
+    assert got == [p for _, _, p in messages]
+
+
+def test_mcap_writer_keeps_read_only_arrays_and_copies_writable_ones(tmp_path: Any) -> None:
+    """A read-only array is written as it is when its chunk closes; a writable one as it was
+    when write() was called (the caller may reuse it)."""
+    import numpy as np
+
+    from lidarscan import types
+    from lidarscan.mcap import McapWriter as Writer
+
+    def scan(data: Any) -> Any:
+        return types.LidarScan(header=types.Header(types.Time(1, 0), "lidar"),
+                               lidar_info_time=types.Time(1, 0), height=1,
+                               width=data.size // 4, channels=(types.LidarChannel(
+                                   "range", 0, 7, 1),), data=data)
+
+    writable = np.arange(1 << 17, dtype=np.uint8)
+    frozen = np.arange(1 << 17, dtype=np.uint8)[::-1].copy()
+    frozen.flags.writeable = False
+    path = tmp_path / "x.mcap"
+    with Writer(path, threads=2) as writer:
+        writer.write("/a", scan(writable), log_time_ns=1)
+        writer.write("/b", scan(frozen), log_time_ns=2)
+        expected = writable.copy()
+        writable[:] = 0                      # changed before its chunk was written
+    got = {m.topic: m.decode().data for m in read_messages(path)}
+    assert bytes(got["/a"]) == expected.tobytes() and bytes(got["/b"]) == frozen.tobytes()
+
+
+@pytest.mark.parametrize("threads", [0, 65, 1.5])
+def test_mcap_writer_refuses_a_thread_count_it_cannot_use(tmp_path: Any, threads: Any) -> None:
+    with pytest.raises(ConfigError, match="threads"):
+        McapWriter(tmp_path / "x.mcap", threads=threads)

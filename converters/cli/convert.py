@@ -182,7 +182,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     emit = _err  # bad messages are always reported, also with --quiet
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
     writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20,
-                        level=args.zstd_level,
+                        level=args.zstd_level, threads=args.threads, file_name=dst.name,
                         scan_encoding=CODEC_ENCODING if args.compress else "cdr",
                         # the compiled coder (numba: ~0.4 s to import) only where a scan may be
                         # coded: --compress, or LidarScans that may come in codec-compressed

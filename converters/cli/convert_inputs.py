@@ -235,7 +235,8 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
             decoder = active.get(item.topic)
             if decoder is None:  # built on first use: the frame comes from the messages
                 decoder = decoders[item.topic](args.calibration,
-                                               frame_id=packets.frame_id or "lidar")
+                                               frame_id=packets.frame_id or "lidar",
+                                               **_dataclass_option(decoders[item.topic]))
                 active[item.topic] = decoder
             payloads = packets.payloads
             if payloads is not None and hasattr(decoder, "push_many"):
@@ -263,6 +264,19 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
         log_time, index = last.get(topic, (0, -1))
         emit_scans(topic, decoder.flush(), log_time, index)
     pipeline.finish()
+
+
+def _dataclass_option(decoder: Any) -> dict[str, Any]:
+    """``as_dataclass=True`` for a decoder that takes it: its scans are then
+    :mod:`lidarscan.types` dataclasses over the decoder's read-only data block, which the
+    writer serialises without building an rclpy message or copying the block."""
+    import inspect
+
+    try:
+        takes = "as_dataclass" in inspect.signature(decoder).parameters
+    except (TypeError, ValueError):
+        takes = False
+    return {"as_dataclass": True} if takes else {}
 
 
 def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
