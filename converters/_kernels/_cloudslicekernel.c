@@ -94,7 +94,7 @@ typedef struct {
     double *x, *y, *z, *rho; /* (CAP) target-frame coordinates, planar range */
     int64_t *key;            /* (CAP) point index in the cloud */
     int64_t *value;          /* (CAP) code << 32 | key for the limits of slice 0 */
-    int32_t *sel;            /* (CAP) scratch: candidates inside a band */
+    int32_t *sel;            /* (CAP + 8) scratch: candidates inside a band */
     int32_t *bins;           /* (G, CAP) bin per grid; -1 outside a sector */
     int32_t *col;            /* (BLOCK + 8) scan output: columns in the block */
 } lcs_buf;
@@ -188,24 +188,39 @@ LCS_INLINE int64_t lcs_scan(const double *m, double lo, double hi, const char *x
 }
 
 /* 2. the scanned points (columns col[0 .. n-1] after u0 in a row, cloud index key0 + column)
- * transformed into the buffers from position c on, the non-finite ones dropped; returns the new
- * count */
+ * transformed into the buffers at positions c .. c + n - 1; a point with a non-finite
+ * coordinate gets height NaN (inside no band) and x = y = 1 (a harmless bin); returns c + n */
 LCS_INLINE int64_t lcs_take(const double *m, const char *xr, const char *yr, const char *zr,
                             int64_t step, int32_t type, int64_t u0, const int32_t *col,
                             int64_t n, int64_t key0, lcs_buf *b, int64_t c)
 {
-    double *restrict bx = b->x, *restrict by = b->y, *restrict bz = b->z;
-    int64_t *restrict bk = b->key;
+    double *restrict bx = b->x + c, *restrict by = b->y + c, *restrict bz = b->z + c;
+    int64_t *restrict bk = b->key + c;
     int64_t q;
     for (q = 0; q < n; ++q) {
         const int64_t u = u0 + col[q];
         const double x = lcs_load(xr + u * step, type), y = lcs_load(yr + u * step, type);
         const double z = lcs_load(zr + u * step, type);
-        bx[c] = ((m[0] * x + m[1] * y) + m[2] * z) + m[9];
-        by[c] = ((m[3] * x + m[4] * y) + m[5] * z) + m[10];
-        bz[c] = ((m[6] * x + m[7] * y) + m[8] * z) + m[11];
-        bk[c] = key0 + u;
-        c += (fabs(x) <= DBL_MAX) & (fabs(y) <= DBL_MAX) & (fabs(z) <= DBL_MAX);
+        const int ok = (fabs(x) <= DBL_MAX) & (fabs(y) <= DBL_MAX) & (fabs(z) <= DBL_MAX);
+        const double px = ((m[0] * x + m[1] * y) + m[2] * z) + m[9];
+        const double py = ((m[3] * x + m[4] * y) + m[5] * z) + m[10];
+        const double pz = ((m[6] * x + m[7] * y) + m[8] * z) + m[11];
+        bx[q] = ok ? px : 1.0;
+        by[q] = ok ? py : 1.0;
+        bz[q] = ok ? pz : NAN;
+        bk[q] = key0 + u;
+    }
+    return c + n;
+}
+
+/* the positions j < n of the heights inside [lo, hi], into sel; returns how many */
+LCS_INLINE int64_t lcs_band(const double *restrict bz, int64_t n, double lo, double hi,
+                            int32_t *restrict sel)
+{
+    int64_t j, c = 0;
+    for (j = 0; j < n; ++j) {
+        sel[c] = (int32_t)j;
+        c += (bz[j] >= lo) & (bz[j] <= hi);
     }
     return c;
 }
@@ -332,6 +347,144 @@ LCS_TARGET static int64_t lcs_scan_avx2(const double *m, double lo, double hi, c
     }
 }
 
+/* float32 [zl, zh] holding every z whose height m8 * z + m11 (float64, upright target) lies in
+ * [lo, hi], widened by far more than the rounding of those two operations: a prefilter (the
+ * exact band tests come later, on the transformed height) */
+static void lcs_z_bounds(const double *m, double lo, double hi, float *zl, float *zh)
+{
+    const double shift = fabs(m[11] / m[8]);
+    double a = (lo - m[11]) / m[8], b = (hi - m[11]) / m[8];
+    float fa, fb;
+    if (m[8] < 0.0) {
+        const double t = a;
+        a = b, b = t;
+    }
+    a -= 1e-6 * (1.0 + fabs(a) + shift);
+    b += 1e-6 * (1.0 + fabs(b) + shift);
+    fa = (float)a, fb = (float)b;
+    if ((double)fa > a) fa = nextafterf(fa, -INFINITY);
+    if ((double)fb < b) fb = nextafterf(fb, INFINITY);
+    *zl = fa, *zh = fb;
+}
+
+/* lcs_scan of packed 16-byte points with a float32 z, upright target: a superset of the points
+ * in the hull (lcs_z_bounds), eight points from four contiguous loads (lanes in the order
+ * 0 2 4 6 1 3 5 7: the fusion does not depend on the order of the points) */
+LCS_TARGET static int64_t lcs_scan16_avx2(const char *zr, int64_t u0, int64_t u1, float zl,
+                                          float zh, int32_t *col)
+{
+    const __m256i order = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
+    const __m256 vlo = _mm256_set1_ps(zl), vhi = _mm256_set1_ps(zh);
+    int64_t u, c = 0;
+    /* (u + 8 < u1: the last load reads up to 15 bytes of point u + 8, which exists) */
+    for (u = u0; u + 8 < u1; u += 8) {
+        const float *z = (const float *)(const void *)(zr + 16 * u);
+        const __m256 a = _mm256_loadu_ps(z), b = _mm256_loadu_ps(z + 8);
+        const __m256 c_ = _mm256_loadu_ps(z + 16), d = _mm256_loadu_ps(z + 24);
+        const __m256 zv = _mm256_shuffle_ps(_mm256_shuffle_ps(a, b, 0), _mm256_shuffle_ps(c_, d, 0),
+                                            _MM_SHUFFLE(2, 0, 2, 0));
+        const int mask = _mm256_movemask_ps(_mm256_and_ps(_mm256_cmp_ps(zv, vlo, _CMP_GE_OQ),
+                                                          _mm256_cmp_ps(zv, vhi, _CMP_LE_OQ)));
+        const __m256i perm =
+            _mm256_cvtepu8_epi32(_mm_cvtsi64_si128((long long)lcs_compact[mask]));
+        _mm256_storeu_si256((__m256i *)(void *)(col + c),
+                            _mm256_add_epi32(_mm256_permutevar8x32_epi32(order, perm),
+                                             _mm256_set1_epi32((int32_t)(u - u0))));
+        c += __builtin_popcount((unsigned)mask);
+    }
+    for (; u < u1; ++u) {
+        float z;
+        memcpy(&z, zr + 16 * u, sizeof z);
+        col[c] = (int32_t)(u - u0);
+        c += (z >= zl) & (z <= zh);
+    }
+    return c;
+}
+
+/* lcs_take of float32 fields, eight points per step (gathers; the same formulas lane by
+ * lane) */
+LCS_TARGET static int64_t lcs_take_avx2(const double *m, const char *xr, const char *yr,
+                                        const char *zr, int64_t step, int64_t u0,
+                                        const int32_t *col, int64_t n, int64_t key0,
+                                        lcs_buf *b, int64_t c)
+{
+    const __m256i vstep = _mm256_set1_epi32((int32_t)step);
+    const __m256i first = _mm256_set1_epi64x(key0 + u0);
+    const __m256d m0 = _mm256_set1_pd(m[0]), m1 = _mm256_set1_pd(m[1]);
+    const __m256d m2 = _mm256_set1_pd(m[2]), m3 = _mm256_set1_pd(m[3]);
+    const __m256d m4 = _mm256_set1_pd(m[4]), m5 = _mm256_set1_pd(m[5]);
+    const __m256d m6 = _mm256_set1_pd(m[6]), m7 = _mm256_set1_pd(m[7]);
+    const __m256d m8 = _mm256_set1_pd(m[8]), m9 = _mm256_set1_pd(m[9]);
+    const __m256d m10 = _mm256_set1_pd(m[10]), m11 = _mm256_set1_pd(m[11]);
+    const __m256d one = _mm256_set1_pd(1.0), nan = _mm256_set1_pd(NAN);
+    const __m256d big = _mm256_set1_pd(DBL_MAX);
+    const __m256d abs_mask = _mm256_castsi256_pd(_mm256_set1_epi64x(0x7FFFFFFFFFFFFFFFLL));
+    const float *xb = (const float *)(const void *)(xr + u0 * step);
+    const float *yb = (const float *)(const void *)(yr + u0 * step);
+    const float *zb = (const float *)(const void *)(zr + u0 * step);
+    int64_t q;
+    if (step > (1 << 20)) return lcs_take(m, xr, yr, zr, step, LCS_F32, u0, col, n, key0, b, c);
+#define LCS_FINITE(v) _mm256_cmp_pd(_mm256_and_pd(v, abs_mask), big, _CMP_LE_OQ)
+#define LCS_ROW(a, b_, c_, t) \
+    _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(a, x), _mm256_mul_pd(b_, y)), \
+                                _mm256_mul_pd(c_, z)), t)
+    for (q = 0; q + 8 <= n; q += 8) {
+        const __m256i cols = _mm256_loadu_si256((const __m256i *)(const void *)(col + q));
+        const __m256i offsets = _mm256_mullo_epi32(cols, vstep);
+        const __m256 xv = _mm256_i32gather_ps(xb, offsets, 1);
+        const __m256 yv = _mm256_i32gather_ps(yb, offsets, 1);
+        const __m256 zv = _mm256_i32gather_ps(zb, offsets, 1);
+        int h;
+        for (h = 0; h < 2; ++h) {
+            const int64_t at = c + q + 4 * h;
+            const __m128 xs = h ? _mm256_extractf128_ps(xv, 1) : _mm256_castps256_ps128(xv);
+            const __m128 ys = h ? _mm256_extractf128_ps(yv, 1) : _mm256_castps256_ps128(yv);
+            const __m128 zs = h ? _mm256_extractf128_ps(zv, 1) : _mm256_castps256_ps128(zv);
+            const __m128i cs = h ? _mm256_extracti128_si256(cols, 1)
+                                 : _mm256_castsi256_si128(cols);
+            const __m256d x = _mm256_cvtps_pd(xs), y = _mm256_cvtps_pd(ys);
+            const __m256d z = _mm256_cvtps_pd(zs);
+            const __m256d ok = _mm256_and_pd(_mm256_and_pd(LCS_FINITE(x), LCS_FINITE(y)),
+                                             LCS_FINITE(z));
+            _mm256_storeu_pd(b->x + at, _mm256_blendv_pd(one, LCS_ROW(m0, m1, m2, m9), ok));
+            _mm256_storeu_pd(b->y + at, _mm256_blendv_pd(one, LCS_ROW(m3, m4, m5, m10), ok));
+            _mm256_storeu_pd(b->z + at, _mm256_blendv_pd(nan, LCS_ROW(m6, m7, m8, m11), ok));
+            _mm256_storeu_si256((__m256i *)(void *)(b->key + at),
+                                _mm256_add_epi64(_mm256_cvtepi32_epi64(cs), first));
+        }
+    }
+#undef LCS_FINITE
+#undef LCS_ROW
+    return lcs_take(m, xr, yr, zr, step, LCS_F32, u0, col + q, n - q, key0, b, c + q);
+}
+
+/* lcs_band, eight heights per step (compaction by permutation) */
+LCS_TARGET static int64_t lcs_band_avx2(const double *bz, int64_t n, double lo, double hi,
+                                        int32_t *sel)
+{
+    const __m256i lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    const __m256d vlo = _mm256_set1_pd(lo), vhi = _mm256_set1_pd(hi);
+    int64_t j, c = 0, k;
+    for (j = 0; j + 8 <= n; j += 8) {
+        const __m256d z0 = _mm256_loadu_pd(bz + j), z1 = _mm256_loadu_pd(bz + j + 4);
+        const int mask =
+            _mm256_movemask_pd(_mm256_and_pd(_mm256_cmp_pd(z0, vlo, _CMP_GE_OQ),
+                                             _mm256_cmp_pd(z0, vhi, _CMP_LE_OQ))) |
+            (_mm256_movemask_pd(_mm256_and_pd(_mm256_cmp_pd(z1, vlo, _CMP_GE_OQ),
+                                              _mm256_cmp_pd(z1, vhi, _CMP_LE_OQ)))
+             << 4);
+        const __m256i perm =
+            _mm256_cvtepu8_epi32(_mm_cvtsi64_si128((long long)lcs_compact[mask]));
+        _mm256_storeu_si256((__m256i *)(void *)(sel + c),
+                            _mm256_add_epi32(_mm256_permutevar8x32_epi32(lanes, perm),
+                                             _mm256_set1_epi32((int32_t)j)));
+        c += __builtin_popcount((unsigned)mask);
+    }
+    k = lcs_band(bz + j, n - j, lo, hi, sel + c);
+    for (; k > 0; --k, ++c) sel[c] += (int32_t)j;
+    return c;
+}
+
 /* rho[j] = sqrt(x*x + y*y) for j < n (a multiple of 4): sqrt sets errno in C, so the compiler
  * keeps that loop scalar */
 LCS_TARGET static void lcs_rho_avx2(const double *bx, const double *by, int64_t n, double *rho)
@@ -428,11 +581,13 @@ LCS_INLINE void lcs_flush(const lcs_plan *p, lcs_buf *b, int64_t n, int64_t *bes
         const int32_t *restrict bins = b->bins + p->sgrid[s] * LCS_CAP;
         int64_t *const row = best + p->soff[s];
         const int same = rl == rl0 && rh == rh0;
-        int64_t scratch = LCS_EMPTY, n_in = 0, q;
-        for (j = 0; j < n; ++j) {
-            sel[n_in] = (int32_t)j;
-            n_in += (bz[j] >= lo) & (bz[j] <= hi);
-        }
+        int64_t scratch = LCS_EMPTY, n_in, q;
+#if LCS_AVX2
+        if (avx2)
+            n_in = lcs_band_avx2(bz, n, lo, hi, sel);
+        else
+#endif
+            n_in = lcs_band(bz, n, lo, hi, sel);
         for (q = 0; q < n_in; ++q) {
             const int32_t k = sel[q], bn = bins[k];
             const int64_t v = same ? value[k] : lcs_value(rho[k], rl, rh, key[k]);
@@ -481,7 +636,13 @@ LCS_INLINE void lcs_fuse_impl(const lcs_plan *p, int64_t h, int64_t w, const lcs
 {
     const int64_t step = zf->step;
     const int32_t type = zf->type;
+    const int packed16 = avx2 && type == LCS_F32 && step == 16 && p->m[6] == 0.0 &&
+                         p->m[7] == 0.0;
+    float zl = 0.0f, zh = 0.0f;
     int64_t v, u0, c = 0;
+#if LCS_AVX2
+    if (packed16) lcs_z_bounds(p->m, p->zall_lo, p->zall_hi, &zl, &zh);
+#endif
     for (v = 0; v < h; ++v) {
         const char *xr = xf->base + v * xf->row_step, *yr = yf->base + v * yf->row_step;
         const char *zr = zf->base + v * zf->row_step;
@@ -489,13 +650,20 @@ LCS_INLINE void lcs_fuse_impl(const lcs_plan *p, int64_t h, int64_t w, const lcs
             const int64_t u1 = w - u0 < LCS_BLOCK ? w : u0 + LCS_BLOCK;
             int64_t n;
 #if LCS_AVX2
-            if (avx2 && type == LCS_F32)
+            if (packed16)
+                n = lcs_scan16_avx2(zr, u0, u1, zl, zh, b->col);
+            else if (avx2 && type == LCS_F32)
                 n = lcs_scan_avx2(p->m, p->zall_lo, p->zall_hi, xr, yr, zr, step, u0, u1, b->col);
             else
 #endif
                 n = lcs_scan(p->m, p->zall_lo, p->zall_hi, xr, yr, zr, step, type, u0, u1,
                              b->col);
-            c = lcs_take(p->m, xr, yr, zr, step, type, u0, b->col, n, v * w, b, c);
+#if LCS_AVX2
+            if (avx2 && type == LCS_F32)
+                c = lcs_take_avx2(p->m, xr, yr, zr, step, u0, b->col, n, v * w, b, c);
+            else
+#endif
+                c = lcs_take(p->m, xr, yr, zr, step, type, u0, b->col, n, v * w, b, c);
             if (c > LCS_CAP - LCS_BLOCK) {
                 lcs_flush(p, b, c, best, avx2);
                 c = 0;
@@ -568,13 +736,13 @@ LCS_EXPORT int64_t lcs_slices(const lcs_plan *p, int64_t h, int64_t w, const cha
     if (h > 0 && w > 0) {
         mem = (char *)malloc((size_t)LCS_CAP * (4 * sizeof(double) + 2 * sizeof(int64_t) +
                                                 (1 + (size_t)g_n) * sizeof(int32_t)) +
-                             (LCS_BLOCK + 8) * sizeof(int32_t));
+                             (LCS_BLOCK + 16) * sizeof(int32_t));
         if (!mem) return -1;
         b.x = (double *)(void *)mem, b.y = b.x + LCS_CAP, b.z = b.y + LCS_CAP;
         b.rho = b.z + LCS_CAP;
         b.key = (int64_t *)(void *)(b.rho + LCS_CAP), b.value = b.key + LCS_CAP;
-        b.sel = (int32_t *)(void *)(b.value + LCS_CAP), b.bins = b.sel + LCS_CAP;
-        b.col = b.bins + g_n * LCS_CAP;
+        b.bins = (int32_t *)(void *)(b.value + LCS_CAP), b.col = b.bins + g_n * LCS_CAP;
+        b.sel = b.col + LCS_BLOCK + 8; /* (each with 8 entries of slack for vector stores) */
 #if LCS_AVX2
         if (simd && lcs_avx2_ok())
             lcs_fuse_avx2(p, h, w, &xf, &yf, &zf, &b, best);
