@@ -7,23 +7,30 @@
  * One pass over the points, in blocks of LCS_BLOCK points of one row:
  *   1. scan: the points whose target-frame height lies in the hull of the bands (from z alone
  *      for an upright target: m[6] == m[7] == 0; a NaN height is never inside), as their
- *      column in the block (branch-free compaction; with AVX2 eight points per step: a gather
- *      of the strided float32 field, two compares, a permutation from a table);
+ *      column in the block (branch-free compaction). With AVX2, packed 16-byte points with a
+ *      float32 z (x, y, z, intensity: the usual driver layout) upright: eight points from four
+ *      contiguous loads against float32 bounds widened beyond any rounding (a superset of the
+ *      hull: every band is tested exactly later), compacted by a permutation from a table;
  *   2. take: their x, y, z read and transformed once (float64, R @ p + t evaluated as
- *      ((m0*x + m1*y) + m2*z) + t, as the reference), the non-finite ones dropped, into buffers
- *      of up to LCS_CAP candidates; when full:
- *   3. bins: per distinct grid, the bin of every candidate from an odd polynomial of atan
- *      (error < EPS = 1e-7 rad): exact whenever the approximate angle is more than 2 * EPS from
- *      every bin edge (and a sector's wrap point), else (about 4e-7 / increment of the points,
- *      and the origin) from libm's atan2 with the reference's formula;
+ *      ((m0*x + m1*y) + m2*z) + t, as the reference) into buffers of up to LCS_CAP points; a
+ *      point with a non-finite coordinate gets a NaN height (inside no band). With AVX2 and
+ *      float32 fields, eight points per step from gathers. When the buffers are full:
+ *   3. bins: per distinct grid, the bin of every buffered point from an odd polynomial of atan
+ *      (error < EPS = 1e-7 rad; a loop the compiler vectorises): exact whenever the approximate
+ *      angle is more than 2 * EPS from every bin edge (and a sector's wrap point), else (about
+ *      4e-7 / increment of the points, and the origin) from libm's atan2 with the reference's
+ *      formula;
  *   4. planar range rho = sqrt(x*x + y*y) and its float32 code (beyond float32: +Inf);
- *   5. per slice: the candidates inside its band (branch-free compaction), then the minimum of
- *      code << 32 | point index in the reduction array (branch-free store);
+ *   5. per slice: the buffered points inside its band (branch-free compaction; with AVX2 by
+ *      permutation), then the minimum of code << 32 | point index in the reduction array
+ *      (branch-free store; the order of the points does not matter);
  *   6. decoding: published ranges and the winners' intensities (any element type, cast to
  *      float32 as numpy's astype).
  * The arithmetic has no fused multiply-add and no reassociation (-ffp-contract=off, never
- * -ffast-math), so the scalar build and the AVX2 build (the same C, compiled twice, plus the
- * AVX2 scan) give the same bits; `simd = 0` forces the scalar one (tests run both). The Python
+ * -ffast-math), so the scalar build and the AVX2 build (the same C compiled twice, plus the
+ * AVX2 functions below, which compute the same formulas lane by lane) give the same bits;
+ * `simd = 0` forces the scalar one (tests run both). A gather-based AVX2 scan of any float32
+ * layout was no faster than the scalar loop here and was dropped (bench/README.md). The Python
  * module part is empty: converters/_kernels/cloud_slices.py loads this shared object with
  * ctypes; lcs_slices() is called with the GIL released.
  */
@@ -293,59 +300,6 @@ static const uint64_t lcs_compact[256] = {
     0x0000000706050403ULL, 0x0000070605040300ULL, 0x0000070605040301ULL, 0x0007060504030100ULL,
     0x0000070605040302ULL, 0x0007060504030200ULL, 0x0007060504030201ULL, 0x0706050403020100ULL,
 };
-
-/* lcs_scan of float32 fields, eight points per step: the same formulas, lane by lane (a
- * gather of each strided field, the height in float64, a compaction by permutation) */
-LCS_TARGET static int64_t lcs_scan_avx2(const double *m, double lo, double hi, const char *xr,
-                                        const char *yr, const char *zr, int64_t step,
-                                        int64_t u0, int64_t u1, int32_t *col)
-{
-    const __m256i lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-    const __m256d vlo = _mm256_set1_pd(lo), vhi = _mm256_set1_pd(hi);
-    const __m256d m6 = _mm256_set1_pd(m[6]), m7 = _mm256_set1_pd(m[7]);
-    const __m256d m8 = _mm256_set1_pd(m[8]), m11 = _mm256_set1_pd(m[11]);
-    const int upright = m[6] == 0.0 && m[7] == 0.0;
-    __m256i offsets;
-    int64_t u = u0, c = 0;
-    if (step > (1 << 24)) return lcs_scan(m, lo, hi, xr, yr, zr, step, LCS_F32, u0, u1, col);
-    offsets = _mm256_mullo_epi32(lanes, _mm256_set1_epi32((int32_t)step));
-#define LCS_GATHER(r) _mm256_i32gather_ps((const float *)(const void *)((r) + u * step), offsets, 1)
-#define LCS_HEIGHT(part)                                                                       \
-    (upright ? _mm256_add_pd(_mm256_mul_pd(m8, part(zv)), m11)                                 \
-             : _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(m6, part(xv)),          \
-                                                         _mm256_mul_pd(m7, part(yv))),         \
-                                           _mm256_mul_pd(m8, part(zv))),                       \
-                             m11))
-#define LCS_LOW(v) _mm256_cvtps_pd(_mm256_castps256_ps128(v))
-#define LCS_HIGH(v) _mm256_cvtps_pd(_mm256_extractf128_ps(v, 1))
-    for (; u + 8 <= u1; u += 8) {
-        const __m256 zv = LCS_GATHER(zr);
-        const __m256 xv = upright ? zv : LCS_GATHER(xr), yv = upright ? zv : LCS_GATHER(yr);
-        const __m256d p0 = LCS_HEIGHT(LCS_LOW), p1 = LCS_HEIGHT(LCS_HIGH);
-        const int mask =
-            _mm256_movemask_pd(_mm256_and_pd(_mm256_cmp_pd(p0, vlo, _CMP_GE_OQ),
-                                             _mm256_cmp_pd(p0, vhi, _CMP_LE_OQ))) |
-            (_mm256_movemask_pd(_mm256_and_pd(_mm256_cmp_pd(p1, vlo, _CMP_GE_OQ),
-                                              _mm256_cmp_pd(p1, vhi, _CMP_LE_OQ)))
-             << 4);
-        const __m256i perm =
-            _mm256_cvtepu8_epi32(_mm_cvtsi64_si128((long long)lcs_compact[mask]));
-        _mm256_storeu_si256((__m256i *)(void *)(col + c),
-                            _mm256_add_epi32(_mm256_permutevar8x32_epi32(lanes, perm),
-                                             _mm256_set1_epi32((int32_t)(u - u0))));
-        c += __builtin_popcount((unsigned)mask);
-    }
-#undef LCS_GATHER
-#undef LCS_HEIGHT
-#undef LCS_LOW
-#undef LCS_HIGH
-    {   /* the last columns one by one (their columns counted from u, shifted to u0) */
-        const int64_t n = lcs_scan(m, lo, hi, xr, yr, zr, step, LCS_F32, u, u1, col + c);
-        int64_t q;
-        for (q = c; q < c + n; ++q) col[q] += (int32_t)(u - u0);
-        return c + n;
-    }
-}
 
 /* float32 [zl, zh] holding every z whose height m8 * z + m11 (float64, upright target) lies in
  * [lo, hi], widened by far more than the rounding of those two operations: a prefilter (the
@@ -652,8 +606,6 @@ LCS_INLINE void lcs_fuse_impl(const lcs_plan *p, int64_t h, int64_t w, const lcs
 #if LCS_AVX2
             if (packed16)
                 n = lcs_scan16_avx2(zr, u0, u1, zl, zh, b->col);
-            else if (avx2 && type == LCS_F32)
-                n = lcs_scan_avx2(p->m, p->zall_lo, p->zall_hi, xr, yr, zr, step, u0, u1, b->col);
             else
 #endif
                 n = lcs_scan(p->m, p->zall_lo, p->zall_hi, xr, yr, zr, step, type, u0, u1,
