@@ -48,6 +48,8 @@ setup(
     ext_modules=[Extension("converters._kernels._cloudkernel",
                            ["converters/_kernels/_cloudkernel.c"], optional=True),
                  Extension("converters._kernels._slicekernel",
-                           ["converters/_kernels/_slicekernel.c"], optional=True)],
+                           ["converters/_kernels/_slicekernel.c"], optional=True),
+                 Extension("converters._kernels._cloudslicekernel",
+                           ["converters/_kernels/_cloudslicekernel.c"], optional=True)],
     cmdclass={"build_ext": BuildExt, "build_py": BuildPy},
 )

@@ -17,7 +17,8 @@ low 0.02-0.3; full circle at 2*pi/1024.
 Candidates:
 
 * ``ours``: :meth:`converters.cloud_slices.CloudSliceConverter.convert`, all 4 slices in one
-  pass including the 4 rclpy LaserScan messages (numba kernel; also the numpy reference);
+  pass including the 4 rclpy LaserScan messages (the C kernel, its AVX2 build where the CPU has
+  it, and its scalar build; also the numpy reference);
 * baseline: the plain per-point loop for one slice, compiled with numba, run once per slice as
   four ``cloud_to_laserscan`` calls would: read x, y, z (the same strided fields of the cloud),
   skip non-finite, transform into base_link, band test, planar range, ``math.atan2``, nearest
@@ -25,7 +26,8 @@ Candidates:
   are checked equal to ours. Fields are extracted and messages built outside its timing (free
   for the baseline);
 * for the decomposition: ours with one slice per converter, four converters (what the
-  polynomial atan2 gains without the one pass).
+  polynomial atan2 gains without the one pass), and the kernel alone
+  (:meth:`CloudSliceConverter.fuse`: no decoding, no messages).
 """
 
 from __future__ import annotations
@@ -125,23 +127,35 @@ def main() -> None:
         baseline()
         candidates["baseline: 4 x one-slice loop (numba)"] = baseline
 
+    from converters._kernels import cloud_slices as kernel
+
     ours: dict[str, Any] = {}
-    if have_numba:
-        conv = CloudSliceConverter(specs, backend="numba", **common)
-        ours["ours, one pass (numba kernel)"] = lambda: conv.convert(cloud)
-        singles = [CloudSliceConverter({k: v}, backend="numba", **common)
-                   for k, v in specs.items()]
-        ours["ours, 4 x one slice (numba kernel)"] = lambda: [c.convert(cloud) for c in singles]
+    conv = CloudSliceConverter(specs, **common)
+    if kernel.available():
+        def scalar() -> Any:
+            kernel.SIMD = 0
+            try:
+                return conv.convert(cloud)
+            finally:
+                kernel.SIMD = 1
+        build = "AVX2" if kernel.vectorised() else "scalar"
+        ours[f"ours, one pass (C kernel, {build})"] = lambda: conv.convert(cloud)
+        if kernel.vectorised():
+            ours["ours, one pass (C kernel, scalar build)"] = scalar
+        singles = [CloudSliceConverter({k: v}, **common) for k, v in specs.items()]
+        ours["ours, 4 x one slice (C kernel)"] = lambda: [c.convert(cloud) for c in singles]
+        ours["ours, kernel alone (fuse, no messages)"] = lambda: conv.fuse(cloud)
     conv_np = CloudSliceConverter(specs, backend="numpy", **common)
     ours["ours, one pass (numpy reference)"] = lambda: conv_np.convert(cloud)
     candidates.update(ours)
 
     ref = conv_np.fuse(cloud)
-    if have_numba:
+    if kernel.available():
         got = conv.fuse(cloud)
+        print(f"  outputs: C kernel == numpy reference: {np.array_equal(got, ref)}")
+    if have_numba:
         base = np.concatenate([outs[k] for k in BANDS])
-        print(f"  outputs: numba == numpy reference: {np.array_equal(got, ref)}; "
-              f"baseline == numpy reference: {np.array_equal(base, ref)} "
+        print(f"  baseline == numpy reference: {np.array_equal(base, ref)} "
               f"({int(np.sum(base != ref))} bins differ)")
 
     times = interleaved_times(candidates, args.repeat, clock=time.process_time)
@@ -153,7 +167,7 @@ def main() -> None:
           f"{MOUNT_Z} m above base_link; CPU time, median of {args.repeat} runs, python "
           f"{sys.version.split()[0]}, load average {os.getloadavg()[0]:.1f}")
     for name, ms in med.items():
-        print(f"  {name:40s} median {ms:7.2f} ms   min {low[name]:7.2f} ms")
+        print(f"  {name:42s} median {ms:7.2f} ms   min {low[name]:7.2f} ms")
     for mine in ours:
         for base_name in (k for k in candidates if k.startswith("baseline")):
             print(f"  ratio {base_name} / {mine}: {med[base_name] / med[mine]:.1f}x "

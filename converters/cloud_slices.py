@@ -32,18 +32,20 @@ with all slices back to back, as :func:`converters._grid.reduce_min` defines it,
 :func:`converters._grid.decode` and :func:`converters._grid.make_laserscan` per slice).
 
 Backends (:func:`converters._kernels.select`, ``"cloud_slices"``): the numpy reference here
-(:func:`_fuse_numpy`) and the numba kernel of :mod:`converters._kernels.cloud_slices` (reads the
-fields in place, no copy unless the cloud is big-endian or its rows are padded; decoding in one
-compiled call). They give identical slices up to
-points within an ulp of a bin edge (numpy's SIMD ``arctan2`` and libm's ``atan2`` may differ
-in the last bit).
+(:func:`_fuse_numpy`, then :func:`converters._grid.decode` per slice) and the optional C kernel
+of :mod:`converters._kernels.cloud_slices` (fusion and decoding in one call; it reads the
+fields in place in the cloud's buffer, a copy only for a big-endian cloud or x, y, z of mixed
+types). They give identical slices (the kernel's module says where numpy's own SIMD
+``arctan2``, on AVX-512 CPUs, may differ from libm's by an ulp at a bin edge). What the kernel
+needs of a cloud's field layout is worked out once per layout and kept.
 """
 
 from __future__ import annotations
 
+import array
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -53,7 +55,7 @@ from converters.cloud_layout import read_points
 from converters.frames import check_extrinsics
 from converters.laserscan import _OVERRIDES, SliceSpec, _as_spec, _Slice
 from converters.options import IfPresent
-from lidarscan.datatypes import FLOAT32, FLOAT64
+from lidarscan.datatypes import FLOAT32, FLOAT64, dtype_of
 from lidarscan.errors import ConfigError, ConversionError
 from lidarscan.stamps import to_ns
 
@@ -64,8 +66,6 @@ __all__ = ["DEFAULT_ANGLE_INCREMENT", "CloudSliceConverter", "cloud_points",
 DEFAULT_ANGLE_INCREMENT = math.pi / 360.0
 _F32_MAX = float(np.finfo(np.float32).max)
 _MAX_POINTS = 1 << 32            # tie keys are 32 bits
-_NO_VALUES = np.zeros(0, np.float32)
-_NO_KEYS = np.zeros(0, np.int64)
 
 
 def cloud_points(cloud: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any],
@@ -214,18 +214,15 @@ class CloudSliceConverter:
                                       "intensity_channel": None, "range_channel": "range",
                                       "backend": backend})
         options.name("intensity_field", intensity_field, allow_none=True)
-        self._kernel = _kernels.select("cloud_slices", backend=backend).numba
+        kernel = _kernels.select("cloud_slices", backend=backend).c
         self.extrinsics = check_extrinsics(extrinsics)
         self._frame_id = frame_id
         self.intensity_field = intensity_field
         self.slices = [self._build_slice(name, spec, common) for name, spec in specs.items()]
         self._size, self._offsets, self._grids, self._slice_grid = _grid.output_layout(
             [s.grid for s in self.slices])
-        self._args = self._kernel_args()
-        self._decode_args = (np.asarray(self._offsets, np.int64),
-                             np.array([x.grid.size for x in self.slices], np.int64),
-                             np.array([x.options.inf_value for x in self.slices], np.float32),
-                             np.array([x.options.fill_value for x in self.slices], np.float32))
+        self._plan = None if kernel is None else self._kernel_plan()
+        self._layouts: dict[Any, _Layout] = {}
 
     @staticmethod
     def _build_slice(name: str, spec: SliceSpec, common: Mapping[str, Any]) -> _Slice:
@@ -246,20 +243,20 @@ class CloudSliceConverter:
                                    opts["fill"])
         return _Slice(name, float(spec.min_height), float(spec.max_height), grid, out)
 
-    def _kernel_args(self) -> tuple[Any, ...]:
-        """The configuration as the compiled kernel takes it (after the points)."""
+    def _kernel_plan(self) -> Any:
+        """The configuration as the compiled kernel takes it."""
+        from converters._kernels.cloud_slices import CloudSlicePlan
+
         m = self.extrinsics
         s, g = self.slices, self._grids
-        return (np.ascontiguousarray(np.r_[m[:3, :3].reshape(-1), m[:3, 3]], np.float64),
-                np.array([x.min_z for x in s]), np.array([x.max_z for x in s]),
-                np.array([x.options.range_min for x in s]),
-                np.array([x.options.range_max for x in s]),
-                np.array(self._slice_grid, np.int64), np.asarray(self._offsets, np.int64),
-                np.array([x.angle_min for x in g]), np.array([x.increment for x in g]),
-                np.array([1.0 / x.increment for x in g]),
-                np.array([x.size for x in g], np.int64),
-                np.array([x.full_circle for x in g], np.bool_),
-                min(x.min_z for x in s), max(x.max_z for x in s))
+        return CloudSlicePlan(
+            m=np.r_[m[:3, :3].reshape(-1), m[:3, 3]], zlo=[x.min_z for x in s],
+            zhi=[x.max_z for x in s], rlo=[x.options.range_min for x in s],
+            rhi=[x.options.range_max for x in s], sgrid=self._slice_grid, soff=self._offsets,
+            inf_value=[x.options.inf_value for x in s],
+            fill_value=[x.options.fill_value for x in s], gmin=[x.angle_min for x in g],
+            ginc=[x.increment for x in g], gsize=[x.size for x in g],
+            gfull=[x.full_circle for x in g], size=self._size)
 
     def fuse(self, cloud: Any) -> np.ndarray[Any, np.dtype[np.int64]]:
         """(total bins,) int64 reduction array of all slices back to back (diagnostics, tests).
@@ -267,18 +264,17 @@ class CloudSliceConverter:
         Raises:
             ConversionError: see :func:`cloud_points`; more than 2**32 points.
         """
-        return self._fuse(*cloud_points(cloud))
+        if self._plan is not None:
+            return self._run(cloud, decode=False)[0]
+        return self._fuse_numpy(read_points(cloud), cloud)
 
-    def _fuse(self, x: np.ndarray[Any, Any], y: np.ndarray[Any, Any],
-              z: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.int64]]:
+    def _fuse_numpy(self, points: np.ndarray[Any, Any], cloud: Any
+                    ) -> np.ndarray[Any, np.dtype[np.int64]]:
+        x, y, z = _xyz(cloud, points)
         if x.size >= _MAX_POINTS:
             raise ConversionError("PointCloud2 height * width", x.size, f"< {_MAX_POINTS}")
-        if self._kernel is None:
-            return _fuse_numpy(x, y, z, self.extrinsics, self.slices, self._grids,
-                               self._slice_grid, self._offsets, self._size)
-        best = np.full(self._size, _grid.EMPTY, np.int64)
-        self._kernel(x, y, z, *self._args, best)
-        return best
+        return _fuse_numpy(x, y, z, self.extrinsics, self.slices, self._grids,
+                           self._slice_grid, self._offsets, self._size)
 
     def convert(self, cloud: Any) -> dict[str, Any]:
         """All slices of one cloud.
@@ -296,11 +292,11 @@ class CloudSliceConverter:
                 intensity field that is missing.
         """
         stamp = to_ns(cloud.header.stamp, field="PointCloud2.header.stamp")
-        points = read_points(cloud)
-        best = self._fuse(*_xyz(cloud, points))
-        intensity = _intensity(cloud, points, self.intensity_field)
+        if self._plan is not None:
+            _, ranges, ints = self._run(cloud, decode=True)
+        else:
+            ranges, ints = self._decode_numpy(cloud)
         frame = self._frame_id or str(cloud.header.frame_id)
-        ranges, ints = self._decode(best, intensity)
         out: dict[str, Any] = {}
         for s, off in zip(self.slices, self._offsets):
             part = slice(off, off + s.grid.size)
@@ -309,25 +305,15 @@ class CloudSliceConverter:
                 intensities=None if ints is None else ints[part], options=s.options)
         return out
 
-    def _decode(self, best: np.ndarray[Any, Any], intensity: np.ndarray[Any, Any] | None
-                ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
-        """Published ranges and winners' intensities (float32, all slices back to back; None
-        without intensity): the ranges in one compiled call (the slices'
-        :func:`converters._kernels.slices_numba._decode_slices`) and the intensities gathered
-        by numpy when numba is used, else :func:`converters._grid.decode` per slice."""
-        from converters._kernels import slices_numba
-
-        kernels = None if self._kernel is None else slices_numba.kernels()
+    def _decode_numpy(self, cloud: Any
+                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
+        """The reference: published ranges and winners' intensities (float32, all slices back
+        to back; None without intensity), :func:`converters._grid.decode` per slice."""
+        points = read_points(cloud)
+        best = self._fuse_numpy(points, cloud)
+        intensity = _intensity(cloud, points, self.intensity_field)
         ranges = np.empty(self._size, np.float32)
         ints = None if intensity is None else np.zeros(self._size, np.float32)
-        if kernels is not None:
-            kernels.decode_slices(best, *self._decode_args, _NO_VALUES, _NO_KEYS, ranges,
-                                  _NO_VALUES)
-            if ints is not None and intensity is not None:
-                # the winners' values straight from the (strided) field: no copy of it
-                hit = np.flatnonzero(best != _grid.EMPTY)
-                ints[hit] = intensity[best[hit] & 0xFFFFFFFF]
-            return ranges, ints
         for s, off in zip(self.slices, self._offsets):
             part = slice(off, off + s.grid.size)
             ranges[part], winners = _grid.decode(best[part], s.options)
@@ -335,6 +321,129 @@ class CloudSliceConverter:
                 hit = winners >= 0
                 ints[part][hit] = intensity[winners[hit]].astype(np.float32)
         return ranges, ints
+
+    def _layout(self, cloud: Any) -> _Layout:
+        """What the kernel needs of the cloud's field layout (validated, then kept per
+        layout)."""
+        fields = tuple((str(f.name), int(f.offset), int(f.datatype), int(f.count))
+                       for f in cloud.fields)
+        key = (fields, int(cloud.point_step), bool(cloud.is_bigendian))
+        layout = self._layouts.get(key)
+        if layout is None:
+            layout = _Layout.of(cloud, self.intensity_field)
+            if len(self._layouts) > 64:
+                self._layouts.clear()
+            self._layouts[key] = layout
+        return layout
+
+    def _run(self, cloud: Any, decode: bool
+             ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
+        """The compiled kernel on one cloud: (reduction array, published ranges or an empty
+        array without ``decode``, winners' intensities or None)."""
+        layout = self._layout(cloud)
+        height, width = int(cloud.height), int(cloud.width)
+        if height * width >= _MAX_POINTS:
+            raise ConversionError("PointCloud2 height * width", height * width,
+                                  f"< {_MAX_POINTS}")
+        step, row_step = layout.step, int(cloud.row_step)
+        addr, nbytes, keep = _address(cloud.data)
+        if height and width:
+            if row_step < step * width:
+                raise ConversionError("row_step", row_step, f">= point_step * width = "
+                                      f"{step * width}")
+            need = (height - 1) * row_step + width * step
+            if nbytes < need:
+                raise ConversionError("data", f"length {nbytes}",
+                                      f">= {need} bytes for {height}x{width} points")
+        inten = layout.intensity
+        if layout.direct:
+            xyz = (addr + layout.xyz[0], addr + layout.xyz[1], addr + layout.xyz[2])
+            xyz_type = layout.xyz_type
+            intensity = None if inten is None else (addr + inten[0], step, row_step, inten[1])
+        else:             # big-endian, or x, y, z of different types: native copies
+            points = read_points(cloud)
+            keep = np.empty((height * width, 3), np.float64)
+            for k, values in enumerate(_xyz(cloud, points)):
+                keep[:, k] = values
+            base = keep.__array_interface__["data"][0]
+            xyz, xyz_type = (base, base + 8, base + 16), 1
+            step, row_step = 24, 24 * width
+            values = _intensity(cloud, points, self.intensity_field)
+            intensity = None
+            if values is not None:
+                values = np.ascontiguousarray(values)
+                code = _loader_type_code(values)
+                intensity = (values.__array_interface__["data"][0], values.itemsize,
+                             values.itemsize * width, code)
+                keep = (keep, values)
+        best = np.empty(self._size, np.int64)
+        ranges = np.empty(self._size if decode else 0, np.float32)
+        ints = np.empty(self._size, np.float32) if decode and intensity is not None else None
+        self._plan.run(height, width, xyz, step, row_step, xyz_type, intensity, best,
+                       ranges if decode else None, ints)
+        del keep
+        return best, ranges, ints
+
+
+def _loader_type_code(values: np.ndarray[Any, Any]) -> int:
+    """The kernels' type code of a native array (:data:`converters._kernels._loader.TYPE_CODES`)."""
+    from converters._kernels._loader import type_code
+
+    code = type_code(values)
+    if code is None:                               # not a PointField type: never happens
+        raise ConversionError("intensity_field", str(values.dtype), "a PointField datatype")
+    return code
+
+
+def _address(data: Any) -> tuple[int, int, Any]:
+    """(address, size in bytes, the object to keep alive) of a cloud's ``data``."""
+    if isinstance(data, array.array):
+        addr, n = data.buffer_info()
+        return addr, n * data.itemsize, data
+    if isinstance(data, np.ndarray):
+        buf = np.ascontiguousarray(data).reshape(-1).view(np.uint8)
+    else:
+        buf = np.frombuffer(data, np.uint8)
+    return buf.__array_interface__["data"][0], buf.nbytes, buf
+
+
+class _Layout(NamedTuple):
+    """What the kernel needs of one field layout (:meth:`CloudSliceConverter._layout`).
+
+    Attributes:
+        direct: the kernel reads the cloud's buffer in place (native byte order, x, y, z of
+            one type); else it reads native float64 copies.
+        step: point_step.
+        xyz: byte offsets of x, y, z; xyz_type: their type code (0 float32, 1 float64).
+        intensity: (byte offset, type code) of the intensity field's first element, or None.
+    """
+
+    direct: bool
+    step: int
+    xyz: tuple[int, int, int]
+    xyz_type: int
+    intensity: tuple[int, int] | None
+
+    @classmethod
+    def of(cls, cloud: Any, wanted: str | None) -> _Layout:
+        """Validated as :func:`cloud_points` and :func:`_intensity` do (their errors)."""
+        from converters._kernels._loader import TYPE_CODES
+
+        points = read_points(cloud)
+        _xyz(cloud, points)
+        _intensity(cloud, points, wanted)
+        fields = {str(f.name): f for f in cloud.fields}
+        types = {int(fields[a].datatype) for a in "xyz"}
+        bigendian = bool(cloud.is_bigendian)
+        intensity = None
+        name = None if wanted is None else str(wanted)
+        if name is not None and name in fields:
+            f = fields[name]
+            intensity = (int(f.offset), TYPE_CODES[dtype_of(int(f.datatype)).str[1:]])
+        return cls(direct=not bigendian and len(types) == 1, step=int(cloud.point_step),
+                   xyz=(int(fields["x"].offset), int(fields["y"].offset),
+                        int(fields["z"].offset)),
+                   xyz_type=0 if types == {FLOAT32} else 1, intensity=intensity)
 
 
 def cloud_to_laserscan(cloud: Any, *, min_height: float, max_height: float,

@@ -6,8 +6,9 @@ configuration errors, the compiled kernel's binning, and Hypothesis cases.
 
 from __future__ import annotations
 
-import importlib.util
+import contextlib
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from converters._kernels import cloud_slices as cloud_kernel
 from converters.cloud_slices import CloudSliceConverter, cloud_points, cloud_to_laserscan
 from converters.laserscan import SliceSpec
 from grid_reference import RANK, pose, ref_bin, ref_grid, ref_output
@@ -22,13 +24,37 @@ from lidarscan.errors import ConfigError, ConversionError, LidarScanError
 from test_nodes import graph  # noqa: F401 - the DDS graph fixture of the node tests
 
 F32 = np.float32
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
-BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
-    not HAVE_NUMBA, reason="numba not installed"))]
+HAVE_KERNEL = cloud_kernel.available()
+#: the numpy reference, the C kernel's AVX2 build (where the CPU has it) and its scalar build
+VARIANTS = ["numpy", "kernel", "kernel scalar"]
 
 
-def backends() -> list[str]:
-    return ["numpy"] + (["numba"] if HAVE_NUMBA else [])
+@contextlib.contextmanager
+def variant(name: str) -> Iterator[str]:
+    """The ``backend=`` of variant ``name``, with the kernel's build chosen (skips the test
+    when the kernel is not built)."""
+    if name == "numpy":
+        yield "numpy"
+        return
+    if not HAVE_KERNEL:
+        pytest.skip("the C cloud slices kernel is not built")
+    old = cloud_kernel.SIMD
+    cloud_kernel.SIMD = int(name == "kernel")
+    try:
+        yield "auto"
+    finally:
+        cloud_kernel.SIMD = old
+
+
+@pytest.fixture(params=VARIANTS)
+def backend(request: pytest.FixtureRequest) -> Iterator[str]:
+    """Each variant in turn (:func:`variant`)."""
+    with variant(request.param) as name:
+        yield name
+
+
+def variants() -> list[str]:
+    return ["numpy"] + (["kernel", "kernel scalar"] if HAVE_KERNEL else [])
 
 
 # ----------------------------------------------------------------------------- clouds
@@ -37,7 +63,7 @@ def backends() -> list[str]:
 LIVOX = [("x", 7, 0), ("y", 7, 4), ("z", 7, 8), ("intensity", 7, 12), ("tag", 2, 16),
          ("line", 2, 17), ("timestamp", 8, 18)]
 XYZI = [("x", 7, 0), ("y", 7, 4), ("z", 7, 8), ("intensity", 7, 12)]
-_NUMPY = {2: "u1", 4: "u2", 7: "f4", 8: "f8"}
+_NUMPY = {1: "i1", 2: "u1", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
 
 def make_cloud(xyz: Any, intensity: Any = None, *, layout: Any = None, step: int | None = None,
@@ -136,7 +162,6 @@ ORACLE_CASES = {
 }
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("case", list(ORACLE_CASES))
 def test_slices_match_the_loop_oracle(case: str, backend: str,
                                       rng: np.random.Generator) -> None:
@@ -164,9 +189,9 @@ def test_slices_match_the_loop_oracle(case: str, backend: str,
                                        backend=backend, **kw), ref)
 
 
-def test_backends_agree_on_the_real_os2_frame() -> None:
-    """The real OS-2-128 frame (tests/data/ouster) as one unstructured cloud: numba == numpy."""
-    pytest.importorskip("numba")
+def os2_cloud() -> Any:
+    """The real OS-2-128 frame (tests/data/ouster) as one unstructured (height 1) cloud: x, y,
+    z, intensity float32 in 16-byte points, NaN points where there is no return."""
     from converters.evidence._common import load_frame, ouster_files, ouster_info
     from converters.ouster import scan_from_frame
     from converters.pointcloud2 import to_pointcloud2
@@ -176,18 +201,95 @@ def test_backends_agree_on_the_real_os2_frame() -> None:
     cloud = to_pointcloud2(scan_from_frame(load_frame(path), info, as_dataclass=True), info)
     n = cloud.height * cloud.width
     cloud.height, cloud.width, cloud.row_step = 1, n, n * cloud.point_step
-    specs = {"floor": SliceSpec(0.05, 0.5), "table": SliceSpec(0.5, 0.8),
-             "head": SliceSpec(0.8, 1.8), "sector": SliceSpec(-0.2, 0.3, angle_min=-1.0,
-                                                               angle_max=1.0)}
-    common = {"extrinsics": pose(z=1.8, yaw=0.1), "frame_id": "base_link",
-              "angle_increment": 2 * math.pi / 1024}
-    a = CloudSliceConverter(specs, backend="numba", **common)
-    b = CloudSliceConverter(specs, backend="numpy", **common)
-    best = a.fuse(cloud)
-    np.testing.assert_array_equal(best, b.fuse(cloud))
-    assert np.count_nonzero(best != np.iinfo(np.int64).max) > 2000   # the bins are not empty
-    for name, msg in a.convert(cloud).items():
-        assert_same(msg, arrays(b.convert(cloud)[name]))
+    return cloud
+
+
+OS2_SLICES = {"floor": SliceSpec(0.05, 0.5), "table": SliceSpec(0.5, 0.8),
+              "head": SliceSpec(0.8, 1.8), "sector": SliceSpec(-0.2, 0.3, angle_min=-1.0,
+                                                                angle_max=1.0),
+              "near": SliceSpec(0.0, 1.0, range_min=0.5, range_max=4.0)}
+
+
+@pytest.mark.parametrize("mount", ["upright", "tilted"])
+def test_backends_agree_on_the_real_os2_frame(mount: str) -> None:
+    """The real OS-2-128 frame: both builds of the C kernel == the numpy reference, bit for bit
+    (reduction arrays, ranges and intensities), upright (the height from z alone) and tilted."""
+    if not HAVE_KERNEL:
+        pytest.skip("the C cloud slices kernel is not built")
+    cloud = os2_cloud()
+    ext = pose(z=1.8, yaw=0.1) if mount == "upright" else pose(z=1.8, pitch=0.05, roll=-0.03)
+    common = {"extrinsics": ext, "frame_id": "base_link", "angle_increment": 2 * math.pi / 1024}
+    b = CloudSliceConverter(OS2_SLICES, backend="numpy", **common)
+    ref_best, ref = b.fuse(cloud), b.convert(cloud)
+    assert np.count_nonzero(ref_best != np.iinfo(np.int64).max) > 2000   # bins not empty
+    for name in ("kernel", "kernel scalar"):
+        with variant(name) as backend:
+            a = CloudSliceConverter(OS2_SLICES, backend=backend, **common)
+            assert a._plan is not None
+            np.testing.assert_array_equal(a.fuse(cloud), ref_best)
+            for key, msg in a.convert(cloud).items():
+                assert_same(msg, arrays(ref[key]))
+
+
+#: PointField layouts [(name, datatype, offset)], point_step: every x/y/z type, intensity
+#: types, odd offsets and steps
+LAYOUTS = {
+    "xyzi f32": (XYZI, 16),
+    "livox packed": (LIVOX, 26),
+    "f64 xyz, u16 intensity, padded": ([("intensity", 4, 0), ("z", 8, 2), ("x", 8, 10),
+                                        ("y", 8, 18)], 29),
+    "f32 xyz, f64 intensity, odd step": ([("y", 7, 1), ("x", 7, 5), ("z", 7, 9),
+                                          ("intensity", 8, 13)], 23),
+    "mixed x f64, y z f32, i8 intensity": ([("x", 8, 0), ("y", 7, 8), ("z", 7, 12),
+                                            ("intensity", 1, 16)], 17),
+    "u32 intensity": ([("x", 7, 0), ("y", 7, 4), ("z", 7, 8), ("intensity", 6, 12)], 16),
+    "i32 intensity, no padding": ([("x", 7, 0), ("y", 7, 4), ("z", 7, 8),
+                                   ("intensity", 5, 12)], 16),
+}
+
+
+@pytest.mark.parametrize("bigendian", [False, True])
+@pytest.mark.parametrize("layout", list(LAYOUTS))
+def test_kernel_equals_numpy_on_every_layout(layout: str, bigendian: bool,
+                                             rng: np.random.Generator) -> None:
+    """Random clouds with NaN / Inf coordinates, exact duplicates (ties), points at the
+    origin, on the z axis and exactly on bin edges, organized with padded rows, in every field
+    layout and byte order: both builds of the kernel give the numpy reference's reduction
+    array, ranges and intensities bit for bit."""
+    if not HAVE_KERNEL:
+        pytest.skip("the C cloud slices kernel is not built")
+    fields, step = LAYOUTS[layout]
+    n = 4 * 1500
+    xyz = random_points(rng, n).astype(np.float64)
+    theta = (np.arange(200) + 0.5) * (2 * math.pi / 360) - math.pi     # on bin edges
+    xyz[100:300, 0], xyz[100:300, 1] = 2.0 * np.cos(theta), 2.0 * np.sin(theta)
+    xyz[300:310] = (0.0, 0.0, 0.4)                                    # the z axis
+    xyz[310:320] = xyz[320:330]                                       # more ties
+    xyz[330:340, 2] = -np.inf
+    inten = rng.integers(0, 120, n)
+    cloud = make_cloud(xyz, inten, layout=fields, step=step, bigendian=bigendian, height=4)
+    cloud.row_step = step * (n // 4) + 7                               # padded rows
+    data = np.zeros(cloud.row_step * 4, np.uint8)
+    packed = np.frombuffer(bytes(cloud.data), np.uint8).reshape(4, -1)
+    data.reshape(4, -1)[:, :packed.shape[1]] = packed
+    cloud.data = data.tobytes()
+    before = bytes(cloud.data)
+    specs = {"low": SliceSpec(-0.2, 0.3), "mid": SliceSpec(0.3, 1.0),
+             "all": SliceSpec(-math.inf, math.inf, range_min=0.5, range_max=3.0),
+             "sector": SliceSpec(0.0, 2.0, angle_min=2.5, angle_max=3.8, angle_increment=0.05),
+             "fine": SliceSpec(-1.0, 1.0, angle_increment=2 * math.pi / 360, fill=math.nan,
+                               use_inf=False)}
+    for ext in (None, pose(x=0.2, y=-0.1, z=0.4, yaw=0.7), pose(z=1.0, pitch=0.3, roll=-0.2)):
+        kw = {"extrinsics": ext, "frame_id": None if ext is None else "base_link"}
+        ref = CloudSliceConverter(specs, backend="numpy", **kw)
+        ref_best, ref_out = ref.fuse(cloud), ref.convert(cloud)
+        for name in ("kernel", "kernel scalar"):
+            with variant(name) as backend:
+                conv = CloudSliceConverter(specs, backend=backend, **kw)
+                np.testing.assert_array_equal(conv.fuse(cloud), ref_best)
+                for key, msg in conv.convert(cloud).items():
+                    assert_same(msg, arrays(ref_out[key]))
+    assert bytes(cloud.data) == before
 
 
 # ---------------------------------------------------------- the structured slicer's cloud
@@ -228,7 +330,6 @@ def test_agrees_with_to_laserscan_on_a_structured_scans_own_cloud() -> None:
 
 # ---------------------------------------------------------------------------- layouts
 
-@pytest.mark.parametrize("backend", BACKENDS)
 def test_livox_26_byte_points(backend: str, rng: np.random.Generator) -> None:
     xyz = random_points(rng, 500)
     inten = rng.integers(0, 255, len(xyz)).astype(np.float32)
@@ -241,7 +342,6 @@ def test_livox_26_byte_points(backend: str, rng: np.random.Generator) -> None:
     assert got.scan_time == 0.0 and got.time_increment == 0.0
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
 def test_big_endian_cloud_gives_identical_slices(backend: str,
                                                  rng: np.random.Generator) -> None:
     xyz = random_points(rng, 800)
@@ -256,7 +356,6 @@ def test_big_endian_cloud_gives_identical_slices(backend: str,
     assert bytes(big.data) == before                       # the caller's buffer is untouched
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
 def test_float64_xyz_padding_and_organized_rows(backend: str,
                                                 rng: np.random.Generator) -> None:
     xyz = rng.uniform(-3, 3, (6 * 50, 3))
@@ -268,7 +367,6 @@ def test_float64_xyz_padding_and_organized_rows(backend: str,
     assert_same(got, ref_cloud_slice(xyz, np.arange(len(xyz)) % 7, zmin=-1.0, zmax=1.0))
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("kind", ["empty", "all NaN", "none in the band"])
 def test_clouds_without_points_in_the_band(kind: str, backend: str) -> None:
     xyz = {"empty": np.zeros((0, 3)), "all NaN": np.full((40, 3), np.nan),
@@ -284,7 +382,6 @@ def test_clouds_without_points_in_the_band(kind: str, backend: str) -> None:
 
 # ------------------------------------------------------------------------- conventions
 
-@pytest.mark.parametrize("backend", BACKENDS)
 def test_inclusive_limits_ties_and_classes(backend: str) -> None:
     # bin of angle 0 (x axis); rho 1.0 twice (tie: the first point, intensity 7, wins),
     # a point at z == max_height and rho == range_max, one too close, one beyond
@@ -388,7 +485,6 @@ def test_atan2_polynomial_is_within_its_bound() -> None:
     assert np.max(np.abs(u * p - np.arctan(u))) < k.EPS / 2
 
 
-@pytest.mark.skipif(not HAVE_NUMBA, reason="numba not installed")
 @pytest.mark.parametrize("grid", [(-math.pi, math.pi, 2 * math.pi / 1024),
                                   (0.3, 0.3 + 2 * math.pi, 0.01),
                                   (2.5, 3.8, 0.05), (-1.0, 1.0, math.pi / 360)])
@@ -407,8 +503,9 @@ def test_kernel_bins_equal_atan2_bins_at_the_edges(grid: tuple[float, float, flo
     cloud = make_cloud(xyz, layout=[("x", 8, 0), ("y", 8, 8), ("z", 8, 16)])
     kw = {"angle_min": amin, "angle_max": amax, "angle_increment": inc, "intensity_field": None}
     exact = ref_cloud_slice(xyz, None, zmin=-1, zmax=1, amin=amin, amax=amax, inc=inc)[0]
-    for backend in ("numba", "numpy"):
-        got = cloud_to_laserscan(cloud, min_height=-1, max_height=1, backend=backend, **kw)
+    for name in variants():
+        with variant(name) as backend:
+            got = cloud_to_laserscan(cloud, min_height=-1, max_height=1, backend=backend, **kw)
         np.testing.assert_array_equal(arrays(got)[0], exact)
 
 
@@ -441,11 +538,12 @@ def test_property_matches_the_oracle(case: Any) -> None:
     ref = ref_cloud_slice(xyz, inten, zmin=o["zmin"], zmax=o["zmax"], ext=o["ext"],
                           amin=o["amin"], amax=o["amax"], inc=o["inc"], rmin=o["rmin"],
                           rmax=o["rmax"])
-    for backend in backends():
-        got = cloud_to_laserscan(cloud, min_height=o["zmin"], max_height=o["zmax"],
-                                 extrinsics=o["ext"], frame_id="b", angle_min=o["amin"],
-                                 angle_max=o["amax"], angle_increment=o["inc"],
-                                 range_min=o["rmin"], range_max=o["rmax"], backend=backend)
+    for name in variants():
+        with variant(name) as backend:
+            got = cloud_to_laserscan(cloud, min_height=o["zmin"], max_height=o["zmax"],
+                                     extrinsics=o["ext"], frame_id="b", angle_min=o["amin"],
+                                     angle_max=o["amax"], angle_increment=o["inc"],
+                                     range_min=o["rmin"], range_max=o["rmax"], backend=backend)
         assert_same(got, ref)
 
 

@@ -16,6 +16,11 @@ C slices    ``_slicekernel.c`` via          a C compiler at          slices, row
                                             AVX-512 to be chosen     resolution, upright mount)
                                             by ``"auto"`` when
                                             numba is installed
+C cloud     ``_cloudslicekernel.c`` via     a C compiler at          unstructured PointCloud2 ->
+slices      :mod:`.cloud_slices` (ctypes)   ``pip install``          slices
+                                                                     (converters.cloud_slices;
+                                                                     AVX2 build chosen at run
+                                                                     time)
 numba       :mod:`.slices_numba`            ``pip install numba``    slices (row-ordered,
                                             (extra ``fast``)         bin-ordered and general
                                                                      kernels) and the merger
@@ -23,9 +28,6 @@ numba       :mod:`.hesai`                   ``pip install numba``    Hesai packe
                                             (extra ``fast``)         (converters.hesai)
 numba       :mod:`.velodyne`                ``pip install numba``    Velodyne packets -> grids
                                             (extra ``fast``)         (converters.velodyne)
-numba       :mod:`.cloud_slices`            ``pip install numba``    unstructured PointCloud2 ->
-                                            (extra ``fast``)         slices
-                                                                     (converters.cloud_slices)
 numba       :mod:`.codec`                   ``pip install numba``    residual coding of
                                             (extra ``fast``)         lidarscan.codec (passed as
                                                                      its ``coder=``)
@@ -33,7 +35,7 @@ numpy       the converters themselves       --                       everything 
 ==========  ==============================  =======================  ============================
 
 Switches, read here and nowhere else (at the first use of a backend in the process):
-``LIDARSCAN_NO_KERNEL`` set to anything but "" / "0" disables both C kernels;
+``LIDARSCAN_NO_KERNEL`` set to anything but "" / "0" disables the C kernels;
 ``LIDARSCAN_NUMBA=0`` disables numba. Per object, ``kernel=`` (PointCloud2: None = when built,
 False = numpy, True = required) and ``backend=`` (slices and merger: ``"auto"``, ``"numba"``,
 ``"numpy"``) choose among what is enabled.
@@ -75,7 +77,8 @@ class Backends:
 
     Attributes:
         c: the C kernel's entry points (:class:`.cloud.Kernels` for "cloud"; True for
-            "slices", whose plans bind :func:`.slices.library` themselves), or None.
+            "slices", whose plans bind :func:`.slices.library` themselves; ``lcs_slices`` of
+            :mod:`.cloud_slices` for "cloud_slices"), or None.
         numba: the compiled numba kernels (:func:`.slices_numba.kernels`), or None.
     """
 
@@ -92,8 +95,9 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
             decoding: numba when enabled), ``"codec"`` (the :class:`lidarscan.codec.ResidualCoder`
             to pass to ``compress_scan`` / ``decompress_scan``: numba when enabled).
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
-            runs or numba is missing, else numba, else numpy); ``"numba"``: numba only (an
-            error when it is missing); ``"numpy"``: the reference.
+            runs or numba is missing, else numba, else numpy; cloud slices: the C kernel, else
+            numpy); ``"numba"``: numba only (an error when it is missing, and for the cloud
+            slices, which have no numba kernel); ``"numpy"``: the reference.
         kernel: PointCloud2 only: None = the C kernel when built and enabled, False = numpy,
             True = the C kernel or an error.
 
@@ -124,12 +128,11 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
     if backend not in ("auto", "numba", "numpy"):
         raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
     if task == "cloud_slices":
+        if backend == "numba":
+            raise ConfigError("backend", backend, "'auto' (the compiled C kernel when it is "
+                              "built) or 'numpy': the cloud slices have no numba kernel")
         from converters._kernels import cloud_slices
-        fn = cloud_slices.kernel() if backend != "numpy" and numba_enabled() else None
-        if backend == "numba" and fn is None:
-            raise ConfigError("backend", backend, "numba installed (pip install numba) and "
-                              "LIDARSCAN_NUMBA not 0")
-        return Backends(numba=fn)
+        return Backends(c=cloud_slices.kernel() if backend == "auto" else None)
     numba = None
     if backend != "numpy":
         from converters._kernels import slices_numba
