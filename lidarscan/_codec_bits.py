@@ -24,8 +24,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 __all__ = ["LEFT", "NONE", "NUMPY", "PLANAR", "REF", "UP", "ResidualCoder", "bitlen",
-           "bitlen_table", "fill", "masked_residuals", "predicted_fill", "residual", "roll", "unpack",
-           "symbol_tables", "unmask_residuals", "unresidual", "unzigzag", "zigzag"]
+           "bitlen_table", "fill", "masked_residuals", "predicted_fill", "residual", "roll",
+           "symbol_tables", "unmask_residuals", "unpack", "unresidual", "unzigzag", "zigzag"]
 
 #: Predictors (format header of :mod:`lidarscan.codec`).
 NONE, LEFT, UP, PLANAR, REF = 0, 1, 2, 3, 4

@@ -101,6 +101,7 @@ from __future__ import annotations
 
 import dataclasses
 import struct
+import threading
 from typing import Any
 
 import numpy as np
@@ -154,9 +155,19 @@ _HEAD = struct.Struct("<4sBBH")
 
 # ----------------------------------------------------------------------------- zstd
 
+_LOCAL = threading.local()
+
+
 def _zc(level: int) -> Any:
-    import zstandard
-    return zstandard.ZstdCompressor(level=level, write_checksum=True)
+    """This thread's zstd compressor of ``level`` (content checksums on), made once: its
+    context is reused from frame to frame."""
+    made = getattr(_LOCAL, "compressors", None)
+    if made is None:
+        made = _LOCAL.compressors = {}
+    if level not in made:
+        import zstandard
+        made[level] = zstandard.ZstdCompressor(level=level, write_checksum=True)
+    return made[level]
 
 
 def _zd(frame: bytes, limit: int, what: str) -> bytes:
@@ -248,10 +259,10 @@ def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = 
     sym1, k1, sym2, k2, bits1, bits2 = coder.symbols(z, bitlen_table())
     options = []
     for extra, sym, k, bits in ((1, sym1, k1, bits1), (2, sym2, k2, bits2)):
-        frame = _zc(level).compress(sym.tobytes())
+        frame = _zc(level).compress(sym)
         options.append((len(frame) + (int(bits) + 7) // 8, extra, frame, k))
     _, extra, frame, k = min(options, key=lambda option: option[0])
-    return extra, frame, _zc(level).compress(coder.pack_low(z, k).tobytes())
+    return extra, frame, _zc(level).compress(coder.pack_low(z, k))
 
 
 def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
@@ -373,10 +384,12 @@ def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], ste
     if got is None:
         return None
     q, exc = got
-    values = np.abs(q[~exc]).astype(np.int64)
-    common = int(np.gcd.reduce(values[:4096])) if values.size else 0
-    if common > 1:  # the gcd of all divides that of the first ones: 1 there is 1 overall
-        common = int(np.gcd.reduce(values))
+    common = 0  # gcd of the grid values; exceptions are 0 (gcd(0, a) = a)
+    flat = q.reshape(-1)
+    for stop in (8192, flat.size):  # the gcd of all divides that of the first ones: 1 there
+        common = int(np.gcd.reduce(np.abs(flat[:stop].astype(np.int64))))  # is 1 overall
+        if common == 1:
+            break
     if common > 1:  # e.g. 4 mm units in metres: the coarser grid, if it is as exact
         coarse = _quantise(v, step * common, coder)
         if coarse is not None and int(coarse[1].sum()) <= int(exc.sum()):
@@ -428,7 +441,7 @@ def _layout(scan: Any, data_len: int) -> list[tuple[int, int, Any]] | None:
     return [b for b in blocks if b[1] > 0]
 
 
-def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: float | None,
+def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_step: float | None,
                   shifts: np.ndarray[Any, Any] | None,
                   refs: dict[int, np.ndarray[Any, Any]], coder: ResidualCoder = NUMPY
                   ) -> tuple[int, bytes, bytes]:
@@ -455,7 +468,7 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
                 + ref_param + _shift_params(shifts), payload)
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
-        native = coder.roll(raw.astype(np.float32), shifts, 1)
+        native = coder.roll(raw.astype(np.float32, copy=False), shifts, 1)
         words = coder.roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
         got = _encode_quant2(native, words, float_step, level, coder)
         if got is not None:
@@ -515,7 +528,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
                               np.asarray(scan.column_azimuth_angles, np.float64), level)
     if data_len >= 2**32:
         raise EncodeError("scan.data", data_len, "fewer than 2**32 bytes")
-    raw = data.tobytes()
+    raw = memoryview(np.ascontiguousarray(data, np.uint8)).cast("B")
     segs: list[tuple[int, int, int, bytes, bytes]] = []
 
     def gap(start: int, stop: int) -> None:
@@ -636,8 +649,9 @@ def _decode_columns(buf: bytes) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, A
 
 def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes,
                     payload: bytes, data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY
-                    ) -> bytes:
-    """The bytes of segment i; ``data``: the scan's data, decoded up to ``offset``."""
+                    ) -> bytes | np.ndarray[Any, Any]:
+    """The bytes of segment i (bytes or a uint8 array); ``data``: the scan's data, decoded up
+    to ``offset``."""
     what = f"segment {i}"
     if method == RAW:
         out = payload
@@ -647,7 +661,7 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
         if len(params) != 1 or params[0] not in (1, 2, 4, 8) or length % params[0]:
             raise DecodeError(f"{what} params", params, "one itemsize byte dividing the length")
         size = params[0]
-        out = _unplanes(_zd(payload, length, what), size, length // size, what).tobytes()
+        out = _unplanes(_zd(payload, length, what), size, length // size, what)
     elif method in (PREDICT, QUANT):
         from lidarscan._codec_v1 import decode_v1
         out = decode_v1(what, length, method, params, payload)
@@ -656,13 +670,13 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
     else:
         raise DecodeError(f"{what} method", method,
                           "0..6 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2)")
-    if len(out) != length:
-        raise DecodeError(f"{what} length", len(out), f"{length} bytes")
+    if memoryview(out).nbytes != length:
+        raise DecodeError(f"{what} length", memoryview(out).nbytes, f"{length} bytes")
     return out
 
 
 def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
-               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> bytes:
+               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
     if len(params) < _GRID2.size:
         raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
     datatype, big, h, w, c, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
@@ -691,11 +705,13 @@ def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, 
         u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref,
                          coder)
         u = coder.roll(u, shifts, -1)
-        return u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
+        return u.astype(u.dtype.newbyteorder(">" if big else "<"), copy=False).reshape(
+            -1).view(np.uint8)
     (step,) = struct.unpack_from("<d", params, _GRID2.size)
     bits = _decode_quant2(payload, (h, w, c), predictor, extra, bool(masked), step, bool(big),
                           what, coder)
-    return coder.roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
+    return coder.roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).reshape(
+        -1).view(np.uint8)
 
 
 def decompress_scan(buf: bytes, *, coder: ResidualCoder | None = None) -> Any:

@@ -66,30 +66,48 @@ def _symbols(z: Any, table: Any) -> Any:  # pragma: no cover - compiled
 
 def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     """The low-bit stream: values grouped by k ascending (value order inside a group), each
-    value's k low bits most significant first, packed MSB first, zero padded."""
+    value's k low bits most significant first, packed MSB first, zero padded. One 64-bit
+    accumulator per group, flushed 4 bytes at a time into the group's bytes (ORed: a group's
+    first and last byte may hold bits of its neighbours)."""
     counts = np.zeros(33, np.int64)
     for i in range(k.shape[0]):
         counts[k[i]] += 1
-    start = np.zeros(33, np.int64)
+    pos = np.zeros(33, np.int64)
+    nb = np.zeros(33, np.int64)
+    acc = np.zeros(33, np.uint64)
     bit = 0
     for w in range(33):
-        start[w] = bit
+        pos[w] = bit >> 3
+        nb[w] = bit & 7
         bit += counts[w] * w
     nbytes = (bit + 7) // 8
-    out = np.zeros(nbytes + 5, np.uint8)  # + 5: a 40-bit window never leaves the array
+    out = np.zeros(nbytes + 8, np.uint8)
     for i in range(z.shape[0]):
         w = np.int64(k[i])
-        if w == 0:
-            continue
-        p = start[w]
-        start[w] = p + w
-        win = (np.int64(z[i]) & ((np.int64(1) << w) - 1)) << (40 - (p & 7) - w)
-        at = p >> 3
-        out[at] |= np.uint8(win >> 32)
-        out[at + 1] |= np.uint8((win >> 24) & 0xFF)
-        out[at + 2] |= np.uint8((win >> 16) & 0xFF)
-        out[at + 3] |= np.uint8((win >> 8) & 0xFF)
-        out[at + 4] |= np.uint8(win & 0xFF)
+        n = nb[w] + w
+        a = (acc[w] << np.uint64(w)) | np.uint64(np.int64(z[i]) & ((np.int64(1) << w) - 1))
+        if n >= 32:
+            n -= 32
+            top = a >> np.uint64(n)
+            p = pos[w]
+            out[p] |= np.uint8((top >> np.uint64(24)) & np.uint64(0xFF))
+            out[p + 1] |= np.uint8((top >> np.uint64(16)) & np.uint64(0xFF))
+            out[p + 2] |= np.uint8((top >> np.uint64(8)) & np.uint64(0xFF))
+            out[p + 3] |= np.uint8(top & np.uint64(0xFF))
+            pos[w] = p + 4
+            a &= (np.uint64(1) << np.uint64(n)) - np.uint64(1)
+        acc[w] = a
+        nb[w] = n
+    for w in range(1, 33):  # the rest of each group, left-aligned in its last bytes
+        n = nb[w]
+        a = acc[w]
+        p = pos[w]
+        while n >= 8:
+            n -= 8
+            out[p] |= np.uint8((a >> np.uint64(n)) & np.uint64(0xFF))
+            p += 1
+        if n:
+            out[p] |= np.uint8((a << np.uint64(8 - n)) & np.uint64(0xFF))
     return out[:nbytes]
 
 
@@ -149,56 +167,70 @@ def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, 
 def _costs_all(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, table: Any
                ) -> Any:  # pragma: no cover - compiled
     """The sums of the residuals' bit lengths under predictors 0 .. 3 (and 4 when ``nref``)
-    in one pass (int64[5], -1 for REF without a reference); masked pixels hold each
-    predictor's own prediction (one fill grid per predictor)."""
+    of the valid pixels, in one pass (int64[5], -1 for REF without a reference); a masked
+    pixel holds each predictor's own prediction (one fill grid per predictor: left, up,
+    planar)."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
     row = w * c
-    out = np.zeros(5, np.int64)
-    npred = 5 if nref else 4
-    g = np.empty((4, x.shape[0]), np.int64)  # fill grids of left, up, planar (row 0 unused)
+    g1 = np.empty(x.shape[0], np.int64)
+    g2 = np.empty(x.shape[0], np.int64)
+    g3 = np.empty(x.shape[0], np.int64)
+    s0 = s1 = s2 = s3 = s4 = np.int64(0)
     for r in range(h):
         base = r * row
         for i in range(base, base + row):
-            v = np.int64(x[i])
-            ok = valid is None or valid[i]
-            for p in range(npred):
-                if p == 0:
-                    pred = np.int64(0)
-                elif p == 4:
-                    pred = np.int64(ref[i])
-                else:
-                    pred = np.int64(0)
-                    if p == 1:
-                        if i - base >= c:
-                            pred = g[1, i - c]
+            inner = i - base >= c
+            p1 = g1[i - c] if inner else np.int64(0)
+            p2 = g2[i - row] if r > 0 else np.int64(0)
+            p3 = np.int64(0)
+            if inner:
+                p3 += g3[i - c]
+                if r > 0:
+                    p3 -= g3[i - row - c]
+            if r > 0:
+                p3 += g3[i - row]
+            p3 &= mask
+            if valid[i]:
+                v = np.int64(x[i])
+                for p in range(5):
+                    if p == 0:
+                        d = v
+                    elif p == 1:
+                        d = v - p1
                     elif p == 2:
-                        if r > 0:
-                            pred = g[2, i - row]
+                        d = v - p2
+                    elif p == 3:
+                        d = v - p3
                     else:
-                        if i - base >= c:
-                            pred += g[3, i - c]
-                            if r > 0:
-                                pred -= g[3, i - row - c]
-                        if r > 0:
-                            pred += g[3, i - row]
-                        pred &= mask
-                if ok:
-                    d = (v - pred) & mask
-                    if d >= half:
-                        d -= mask + 1
+                        if not nref:
+                            break
+                        d = v - np.int64(ref[i])
+                    d = ((d & mask) ^ half) - half
                     zz = ((d << 1) ^ (d >> 63)) & mask
                     hi = zz >> 16
-                    out[p] += np.int64(table[hi]) + 16 if hi else np.int64(table[zz])
-                    if 0 < p < 4:
-                        g[p, i] = v
-                elif 0 < p < 4:
-                    g[p, i] = pred
-    if not nref:
-        out[4] = -1
+                    b = np.int64(table[hi]) + 16 if hi else np.int64(table[zz])
+                    if p == 0:
+                        s0 += b
+                    elif p == 1:
+                        s1 += b
+                    elif p == 2:
+                        s2 += b
+                    elif p == 3:
+                        s3 += b
+                    else:
+                        s4 += b
+                g1[i] = v
+                g2[i] = v
+                g3[i] = v
+            else:
+                g1[i] = p1
+                g2[i] = p2
+                g3[i] = p3
+    out = np.empty(5, np.int64)
+    out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
-
 
 def _unpack_grid(symbols: Any, sbase: Any, kk: Any, counts: Any, low: Any, valid: Any,
                  d: Any) -> int:  # pragma: no cover - compiled
