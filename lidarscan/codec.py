@@ -172,8 +172,11 @@ def _zc(level: int) -> Any:
 
 def _zd(frame: bytes, limit: int, what: str) -> bytes:
     import zstandard
+    made = getattr(_LOCAL, "decompressor", None)
+    if made is None:
+        made = _LOCAL.decompressor = zstandard.ZstdDecompressor()
     try:
-        out = zstandard.ZstdDecompressor().decompress(frame, max_output_size=limit)
+        out = made.decompress(frame, max_output_size=limit)
     except zstandard.ZstdError as err:
         raise DecodeError(what, len(frame), f"a zstd frame ({err})") from None
     return out
