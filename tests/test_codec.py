@@ -375,6 +375,7 @@ def test_compiled_prediction_matches_the_numpy_reference(h: int, w: int, c: int,
     ref = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True) \
         if predictor == cbits.REF else None
     valid = rng.random((h, w, c)) < 0.7 if masked else None
+    x.setflags(write=False)  # as a view of a message's data: read, never written
     z = NUMPY.residuals(x, valid, predictor, ref)
     assert z.dtype == np.uint32
     costs = NUMPY.costs(x, valid, ref)

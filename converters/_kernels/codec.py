@@ -164,74 +164,6 @@ def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, 
     return j
 
 
-def _costs_all(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, table: Any
-               ) -> Any:  # pragma: no cover - compiled
-    """The sums of the residuals' bit lengths under predictors 0 .. 3 (and 4 when ``nref``)
-    of the valid pixels, in one pass (int64[5], -1 for REF without a reference); a masked
-    pixel holds each predictor's own prediction (one fill grid per predictor: left, up,
-    planar)."""
-    bits = x.itemsize * 8
-    mask = (np.int64(1) << bits) - 1
-    half = np.int64(1) << (bits - 1)
-    row = w * c
-    g1 = np.empty(x.shape[0], np.int64)
-    g2 = np.empty(x.shape[0], np.int64)
-    g3 = np.empty(x.shape[0], np.int64)
-    s0 = s1 = s2 = s3 = s4 = np.int64(0)
-    for r in range(h):
-        base = r * row
-        for i in range(base, base + row):
-            inner = i - base >= c
-            p1 = g1[i - c] if inner else np.int64(0)
-            p2 = g2[i - row] if r > 0 else np.int64(0)
-            p3 = np.int64(0)
-            if inner:
-                p3 += g3[i - c]
-                if r > 0:
-                    p3 -= g3[i - row - c]
-            if r > 0:
-                p3 += g3[i - row]
-            p3 &= mask
-            if valid[i]:
-                v = np.int64(x[i])
-                for p in range(5):
-                    if p == 0:
-                        d = v
-                    elif p == 1:
-                        d = v - p1
-                    elif p == 2:
-                        d = v - p2
-                    elif p == 3:
-                        d = v - p3
-                    else:
-                        if not nref:
-                            break
-                        d = v - np.int64(ref[i])
-                    d = ((d & mask) ^ half) - half
-                    zz = ((d << 1) ^ (d >> 63)) & mask
-                    hi = zz >> 16
-                    b = np.int64(table[hi]) + 16 if hi else np.int64(table[zz])
-                    if p == 0:
-                        s0 += b
-                    elif p == 1:
-                        s1 += b
-                    elif p == 2:
-                        s2 += b
-                    elif p == 3:
-                        s3 += b
-                    else:
-                        s4 += b
-                g1[i] = v
-                g2[i] = v
-                g3[i] = v
-            else:
-                g1[i] = p1
-                g2[i] = p2
-                g3[i] = p3
-    out = np.empty(5, np.int64)
-    out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
-    return out
-
 def _unpack_grid(symbols: Any, sbase: Any, kk: Any, counts: Any, low: Any, valid: Any,
                  d: Any) -> int:  # pragma: no cover - compiled
     """The signed residuals d (int64, one per pixel, 0 at invalid ones) from the symbols and
@@ -319,9 +251,13 @@ def _dequantise(q: Any, step: float, out: Any) -> None:  # pragma: no cover - co
         out[i] = np.float32(np.float64(q[i]) * step)
 
 
-def _costs_plain(x: Any, ref: Any, nref: int, h: int, w: int, c: int, table: Any
-                 ) -> Any:  # pragma: no cover - compiled
-    """:func:`_costs_all` without a mask: the predictions read x itself, one pass."""
+def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, table: Any,
+           g1: Any, g2: Any, g3: Any) -> Any:  # pragma: no cover - compiled
+    """The sums of the residuals' bit lengths under predictors 0 .. 3 (and 4 when ``nref``)
+    of the valid pixels, in one pass (int64[5], -1 for REF without a reference). The left, up
+    and planar predictions read g1, g2, g3: with a mask, one fill grid each (int64, written:
+    a masked pixel holds each predictor's own prediction); without one (valid None), x
+    itself."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
@@ -330,41 +266,57 @@ def _costs_plain(x: Any, ref: Any, nref: int, h: int, w: int, c: int, table: Any
     for r in range(h):
         base = r * row
         for i in range(base, base + row):
-            v = np.int64(x[i])
-            left = np.int64(x[i - c]) if i - base >= c else np.int64(0)
-            up = np.int64(x[i - row]) if r > 0 else np.int64(0)
-            ul = np.int64(x[i - row - c]) if r > 0 and i - base >= c else np.int64(0)
-            for p in range(5):
-                if p == 0:
-                    d = v
-                elif p == 1:
-                    d = v - left
-                elif p == 2:
-                    d = v - up
-                elif p == 3:
-                    d = v - left - up + ul
-                else:
-                    if not nref:
-                        break
-                    d = v - np.int64(ref[i])
-                d = ((d & mask) ^ half) - half
-                zz = ((d << 1) ^ (d >> 63)) & mask
-                hi = zz >> 16
-                b = np.int64(table[hi]) + 16 if hi else np.int64(table[zz])
-                if p == 0:
-                    s0 += b
-                elif p == 1:
-                    s1 += b
-                elif p == 2:
-                    s2 += b
-                elif p == 3:
-                    s3 += b
-                else:
-                    s4 += b
+            inner = i - base >= c
+            p1 = np.int64(g1[i - c]) if inner else np.int64(0)
+            p2 = np.int64(g2[i - row]) if r > 0 else np.int64(0)
+            p3 = np.int64(0)
+            if inner:
+                p3 += np.int64(g3[i - c])
+                if r > 0:
+                    p3 -= np.int64(g3[i - row - c])
+            if r > 0:
+                p3 += np.int64(g3[i - row])
+            p3 &= mask
+            if valid is None or valid[i]:
+                v = np.int64(x[i])
+                for p in range(5):
+                    if p == 0:
+                        d = v
+                    elif p == 1:
+                        d = v - p1
+                    elif p == 2:
+                        d = v - p2
+                    elif p == 3:
+                        d = v - p3
+                    else:
+                        if not nref:
+                            break
+                        d = v - np.int64(ref[i])
+                    d = ((d & mask) ^ half) - half
+                    zz = ((d << 1) ^ (d >> 63)) & mask
+                    hi = zz >> 16
+                    b = np.int64(table[hi]) + 16 if hi else np.int64(table[zz])
+                    if p == 0:
+                        s0 += b
+                    elif p == 1:
+                        s1 += b
+                    elif p == 2:
+                        s2 += b
+                    elif p == 3:
+                        s3 += b
+                    else:
+                        s4 += b
+                if valid is not None:
+                    g1[i] = v
+                    g2[i] = v
+                    g3[i] = v
+            else:
+                g1[i] = p1
+                g2[i] = p2
+                g3[i] = p3
     out = np.empty(5, np.int64)
     out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
-
 
 def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c: int
                      ) -> None:  # pragma: no cover - compiled
@@ -429,13 +381,13 @@ def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
 
 def _load() -> Any:
     fns = [numba_jit(fn, boundscheck=False) for fn in (
-        _symbols, _pack_low, _low_counts, _grid, _costs_all, _unpack_grid, _quantise,
-        _dequantise, _costs_plain, _residuals_plain, _roll_rows, _unpredict)]
+        _symbols, _pack_low, _low_counts, _grid, _costs, _unpack_grid, _quantise,
+        _dequantise, _residuals_plain, _roll_rows, _unpredict)]
     if fns[0] is None:
         return None
     from lidarscan._codec_bits import ResidualCoder, bitlen_table, roll, symbol_tables
-    (symbols, pack_low, low_counts, grid, costs_all, unpack_grid, quantise, dequantise,
-     costs_plain, residuals_plain, roll_rows, unpredict) = fns
+    (symbols, pack_low, low_counts, grid, costs, unpack_grid, quantise, dequantise,
+     residuals_plain, roll_rows, unpredict) = fns
 
     def flat(a: Any) -> Any:
         return None if a is None else np.ascontiguousarray(a).reshape(-1)
@@ -455,11 +407,11 @@ def _load() -> Any:
         return low_counts(symbols_, symbol_tables(extra)[1])
 
     def costs_of(x: Any, valid: Any, ref: Any) -> Any:
-        if valid is None:
-            return costs_plain(flat(x), flat(x if ref is None else ref), 0 if ref is None else 1,
-                               *x.shape, bitlen_table())
-        return costs_all(flat(x), flat(valid), flat(x if ref is None else ref),
-                         0 if ref is None else 1, *x.shape, bitlen_table())
+        flat_x = flat(x)
+        g = (flat_x,) * 3 if valid is None else tuple(np.empty(x.size, np.int64)
+                                                         for _ in range(3))
+        return costs(flat_x, flat(valid), flat(x if ref is None else ref),
+                     0 if ref is None else 1, *x.shape, bitlen_table(), *g)
 
     def decode_of(symbols_: Any, extra: int, counts: Any, low: Any, valid: Any,
                   predictor: int, ref: Any, out: Any) -> Any:
