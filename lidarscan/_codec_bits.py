@@ -99,7 +99,7 @@ def unresidual(r: np.ndarray[Any, Any], predictor: int,
 
 
 def roll(x: np.ndarray[Any, Any], shifts: np.ndarray[Any, Any] | None, sign: int
-          ) -> np.ndarray[Any, Any]:
+         ) -> np.ndarray[Any, Any]:
     """Rotate row r of (H, W, C) right by sign * shifts[r] (None: unchanged); rows sharing a
     shift are moved together (spinning sensors have a handful of distinct shifts)."""
     if shifts is None:
@@ -251,7 +251,7 @@ def _low_counts(symbols: np.ndarray[Any, Any], extra: int) -> np.ndarray[Any, An
 
 
 def unpack(symbols: np.ndarray[Any, Any], extra: int, counts: np.ndarray[Any, Any],
-            low_bytes: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+           low_bytes: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     """The zigzag residuals (uint32) of the symbols and the low-bit stream (``counts``:
     values per low-bit count, :attr:`ResidualCoder.low_counts`)."""
     b, e, k = _parts(symbols, extra)

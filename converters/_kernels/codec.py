@@ -25,6 +25,7 @@ x for an absent reference grid (only predictor 4 reads it).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -32,9 +33,10 @@ import numpy as np
 from converters._kernels._loader import LoadOnce, numba_jit
 
 
-def _symbols(z: Any, table: Any) -> Any:  # pragma: no cover - compiled
+def _symbols(z: Any, table: Any, small: Any) -> Any:  # pragma: no cover - compiled
     """z (n,) uint32 -> (sym1, k1, sym2, k2) (n,) uint8 each and the low-bit totals (bits1,
-    bits2) (see the reference)."""
+    bits2) (see the reference); ``small``: those four bytes of every value below 2**16
+    packed in a uint32 (sym1 | k1 << 8 | sym2 << 16 | k2 << 24, :func:`_small_symbols`)."""
     n = z.shape[0]
     sym1 = np.empty(n, np.uint8)
     k1 = np.empty(n, np.uint8)
@@ -43,26 +45,32 @@ def _symbols(z: Any, table: Any) -> Any:  # pragma: no cover - compiled
     bits1 = bits2 = np.int64(0)
     for i in range(n):
         v = np.int64(z[i])
-        hi = v >> 16
-        b = np.int64(table[hi]) + 16 if hi else np.int64(table[v])
-        below = b - 1 if b > 0 else 0
-        e2 = below if below < 2 else 2
-        kk2 = below - e2
-        top2 = (v >> kk2) & ((1 << e2) - 1)
-        if below >= 2:
-            top1 = top2 >> 1
-            kk1 = kk2 + 1
-        else:
-            top1 = top2
-            kk1 = kk2
-        sym1[i] = np.uint8(((b << 1) | top1) & 0xFF)
+        if v < 65536:
+            p = np.int64(small[v])
+            s1, kk1, s2, kk2 = p & 0xFF, (p >> 8) & 0xFF, (p >> 16) & 0xFF, p >> 24
+        else:  # bit length b > 16: e = 2 (extra 2) and 1 (extra 1)
+            b = np.int64(table[v >> 16]) + 16
+            kk2 = b - 3
+            top2 = (v >> kk2) & 3
+            s1, kk1, s2 = ((b << 1) | (top2 >> 1)) & 0xFF, kk2 + 1, ((b << 2) | top2) & 0xFF
+        sym1[i] = np.uint8(s1)
         k1[i] = np.uint8(kk1)
-        sym2[i] = np.uint8(((b << 2) | top2) & 0xFF)
+        sym2[i] = np.uint8(s2)
         k2[i] = np.uint8(kk2)
         bits1 += kk1
         bits2 += kk2
     return sym1, k1, sym2, k2, bits1, bits2
 
+
+@functools.lru_cache(maxsize=1)
+def _small_symbols() -> Any:
+    """uint32[65536]: sym1 | k1 << 8 | sym2 << 16 | k2 << 24 of every value below 2**16, from
+    the numpy reference."""
+    from lidarscan._codec_bits import NUMPY, bitlen_table
+    sym1, k1, sym2, k2, _, _ = NUMPY.symbols(np.arange(1 << 16, dtype=np.uint32),
+                                             bitlen_table())
+    return (sym1.astype(np.uint32) | (k1.astype(np.uint32) << 8)
+            | (sym2.astype(np.uint32) << 16) | (k2.astype(np.uint32) << 24))
 
 def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     """The low-bit stream: values grouped by k ascending (value order inside a group), each
@@ -441,7 +449,10 @@ def _load() -> Any:
                   out.reshape(x.shape[0], -1))
         return out
 
-    return ResidualCoder("numba", symbols, pack_low, low_counts_of, residuals_of, costs_of,
+    def symbols_of(z: Any, table: Any) -> Any:
+        return symbols(z, table, _small_symbols())
+
+    return ResidualCoder("numba", symbols_of, pack_low, low_counts_of, residuals_of, costs_of,
                          decode_of, quantise_of, dequantise_of, roll_of)
 
 
