@@ -24,8 +24,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 __all__ = ["LEFT", "NONE", "NUMPY", "PLANAR", "REF", "UP", "ResidualCoder", "bitlen",
-           "bitlen_table", "fill", "masked_residuals", "predicted_fill", "residual",
-           "unmask_residuals", "unresidual", "unzigzag", "zigzag"]
+           "bitlen_table", "fill", "masked_residuals", "predicted_fill", "residual", "roll",
+           "symbol_tables", "unmask_residuals", "unpack", "unresidual", "unzigzag", "zigzag"]
 
 #: Predictors (format header of :mod:`lidarscan.codec`).
 NONE, LEFT, UP, PLANAR, REF = 0, 1, 2, 3, 4
@@ -36,28 +36,35 @@ class ResidualCoder(NamedTuple):
 
     Attributes:
         name: "numpy" (the reference) or the compiled backend's name.
-        symbols: ``(z uint32, table uint8[65536]) -> (sym1, k1, sym2, k2)``: the symbols and
-            low-bit counts (uint8) with extra 1 and with extra 2 (``table``: :func:`bitlen_table`).
+        symbols: ``(z uint32, table uint8[65536]) -> (sym1, k1, sym2, k2, bits1, bits2)``: the
+            symbols and low-bit counts (uint8) with extra 1 and with extra 2 and the total low
+            bits (int) of each (``table``: :func:`bitlen_table`).
         pack_low: ``(z uint32, k uint8) -> uint8``: the packed low-bit stream.
         low_counts: ``(symbols uint8, extra) -> int64[33]``: values per low-bit count k.
-        unpack: ``(symbols uint8, extra, counts int64[33], low uint8) -> uint32``: the values
-            (symbols' bit lengths checked by the caller, ``low`` at least the stream's bytes).
         residuals: ``(x (H, W, C) unsigned, valid bool (H, W, C) or None, predictor, ref (H,
             W, C) or None) -> uint32``: :func:`masked_residuals`.
-        unresiduals: ``(z uint32, valid or None, predictor, ref or None, out (H, W, C)
-            unsigned) -> out``: :func:`unmask_residuals` written into ``out``.
         costs: ``(x, valid or None, ref or None) -> int64[5]``: the sum of the bit lengths of
             the residuals under each predictor 0..4 (-1 for REF without ``ref``).
+        decode: ``(symbols uint8, extra, counts int64[33], low uint8, valid or None,
+            predictor, ref or None, out (H, W, C) unsigned) -> out``: the grid, written into
+            ``out``: :func:`unpack` then :func:`unmask_residuals` (the caller checked the
+            symbols' bit lengths and the stream's size: ``low`` holds at least its bytes).
+        quantise: ``(v float32 (n,), step) -> (q int32, exceptions bool)``: q = rint(v / step)
+            where float32(float64(q) * step) has v's bits, else an exception and q = 0.
+        dequantise: ``(q int32 (n,), step) -> float32``: float32(float64(q) * step).
+        roll: ``(x (H, W, C), shifts int64[H] or None, sign) -> x rolled``: :func:`roll`.
     """
 
     name: str
     symbols: Callable[..., Any]
     pack_low: Callable[..., Any]
     low_counts: Callable[..., Any]
-    unpack: Callable[..., Any]
     residuals: Callable[..., Any]
-    unresiduals: Callable[..., Any]
     costs: Callable[..., Any]
+    decode: Callable[..., Any]
+    quantise: Callable[..., Any]
+    dequantise: Callable[..., Any]
+    roll: Callable[..., Any]
 
 
 # ------------------------------------------------------------------ prediction
@@ -89,6 +96,23 @@ def unresidual(r: np.ndarray[Any, Any], predictor: int,
         for row in range(1, x.shape[0]):
             np.add(x[row], x[row - 1], out=x[row])
     return x
+
+
+def roll(x: np.ndarray[Any, Any], shifts: np.ndarray[Any, Any] | None, sign: int
+         ) -> np.ndarray[Any, Any]:
+    """Rotate row r of (H, W, C) right by sign * shifts[r] (None: unchanged); rows sharing a
+    shift are moved together (spinning sensors have a handful of distinct shifts)."""
+    if shifts is None:
+        return x
+    width = x.shape[1]
+    out = np.empty_like(x)
+    for shift in np.unique(shifts):
+        rows = np.flatnonzero(shifts == shift)
+        k = int(sign * shift) % max(width, 1)
+        src = x[rows]
+        out[rows, k:] = src[:, :width - k]
+        out[rows, :k] = src[:, width - k:]
+    return out
 
 
 def zigzag(r: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
@@ -190,7 +214,9 @@ def _symbols(z: np.ndarray[Any, Any], table: np.ndarray[Any, Any]
     wide = b1 >= 2                                           # e = 2 -> e = 1 drops a bit
     top1 = np.where(wide, top2 >> np.uint8(1), top2)
     k1 = k2 + wide.astype(np.uint8)
-    return (b << np.uint8(1)) | top1, k1, (b << np.uint8(2)) | top2, k2
+    bits2 = int(k2.sum(dtype=np.int64))
+    return ((b << np.uint8(1)) | top1, k1, (b << np.uint8(2)) | top2, k2,
+            bits2 + int(np.count_nonzero(wide)), bits2)
 
 
 def _pack_low(z: np.ndarray[Any, Any], k: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
@@ -224,8 +250,10 @@ def _low_counts(symbols: np.ndarray[Any, Any], extra: int) -> np.ndarray[Any, An
         np.int64)
 
 
-def _unpack(symbols: np.ndarray[Any, Any], extra: int, counts: np.ndarray[Any, Any],
-            low_bytes: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+def unpack(symbols: np.ndarray[Any, Any], extra: int, counts: np.ndarray[Any, Any],
+           low_bytes: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """The zigzag residuals (uint32) of the symbols and the low-bit stream (``counts``:
+    values per low-bit count, :attr:`ResidualCoder.low_counts`)."""
     b, e, k = _parts(symbols, extra)
     n = symbols.size
     top = (symbols & ((np.uint8(1) << e) - np.uint8(1))).astype(np.uint32)
@@ -256,13 +284,6 @@ def _residuals(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, pred
     return masked_residuals(x, valid, predictor, ref).astype(np.uint32)
 
 
-def _unresiduals(z: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, predictor: int,
-                 ref: np.ndarray[Any, Any] | None, out: np.ndarray[Any, Any]
-                 ) -> np.ndarray[Any, Any]:
-    out[...] = unmask_residuals(z.astype(out.dtype), valid, out.shape, predictor, ref)
-    return out
-
-
 def _costs(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
            ref: np.ndarray[Any, Any] | None) -> np.ndarray[Any, Any]:
     out = np.full(5, -1, np.int64)
@@ -271,6 +292,44 @@ def _costs(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
     return out
 
 
+@functools.lru_cache(maxsize=4)
+def symbol_tables(extra: int) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """(value bits above the low bits, low-bit count k) of every symbol byte with ``extra``,
+    int64[256] each (bit lengths above 32 give k = 32: the decoder rejects them first)."""
+    base = np.zeros(256, np.int64)
+    kk = np.zeros(256, np.int64)
+    for s in range(256):
+        b = s >> extra
+        below = max(b - 1, 0)
+        e = min(below, extra)
+        kk[s] = min(below - e, 32)
+        if 0 < b <= 32:
+            base[s] = (1 << below) | ((s & ((1 << e) - 1)) << int(kk[s]))
+    return base, kk
+
+
+def _decode(symbols: np.ndarray[Any, Any], extra: int, counts: np.ndarray[Any, Any],
+            low: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, predictor: int,
+            ref: np.ndarray[Any, Any] | None, out: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    out[...] = unmask_residuals(unpack(symbols, extra, counts, low).astype(out.dtype), valid,
+                                out.shape, predictor, ref)
+    return out
+
+
+def _quantise(v: np.ndarray[Any, Any], step: float
+              ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    with np.errstate(invalid="ignore", over="ignore"):
+        qf = np.rint(v.astype(np.float64) / step)
+        q = np.where(np.abs(qf) < 2**31, qf, 0.0).astype(np.int32)
+    exc = _dequantise(q, step).view(np.uint32) != v.view(np.uint32)
+    q[exc] = 0
+    return q, exc
+
+
+def _dequantise(q: np.ndarray[Any, Any], step: float) -> np.ndarray[Any, Any]:
+    return (q.astype(np.float64) * step).astype(np.float32)
+
+
 #: The reference coder (numpy, one pass per bit width).
-NUMPY = ResidualCoder("numpy", _symbols, _pack_low, _low_counts, _unpack, _residuals,
-                      _unresiduals, _costs)
+NUMPY = ResidualCoder("numpy", _symbols, _pack_low, _low_counts, _residuals, _costs, _decode,
+                      _quantise, _dequantise, roll)

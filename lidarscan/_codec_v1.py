@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan._codec_bits import PLANAR, unresidual, unzigzag
+from lidarscan._codec_bits import PLANAR, roll, unresidual, unzigzag
 from lidarscan.codec import (
     _FLOAT32,
     _GRID,
@@ -21,7 +21,6 @@ from lidarscan.codec import (
     PREDICT,
     QUANT,
     _float_bits,
-    _roll,
     _unmask_frame,
     _unplanes,
     _zd,
@@ -51,11 +50,11 @@ def decode_v1(what: str, length: int, method: int, params: bytes, payload: bytes
     shifts = (np.frombuffer(params, "<i4", h, base).astype(np.int64) if rolled else None)
     if method == PREDICT:
         size = _SIZES[datatype]
-        u = _roll(_unpredict(payload, (h, w, c), size, predictor, what), shifts, -1)
+        u = roll(_unpredict(payload, (h, w, c), size, predictor, what), shifts, -1)
         return u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
     (step,) = struct.unpack_from("<d", params, _GRID.size)
     bits = _unquant(payload, (h, w, c), predictor, step, bool(big), what)
-    return _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
+    return roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
 
 
 def _unpredict(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,

@@ -101,6 +101,7 @@ from __future__ import annotations
 
 import dataclasses
 import struct
+import threading
 from typing import Any
 
 import numpy as np
@@ -154,15 +155,28 @@ _HEAD = struct.Struct("<4sBBH")
 
 # ----------------------------------------------------------------------------- zstd
 
+_LOCAL = threading.local()
+
+
 def _zc(level: int) -> Any:
-    import zstandard
-    return zstandard.ZstdCompressor(level=level, write_checksum=True)
+    """This thread's zstd compressor of ``level`` (content checksums on), made once: its
+    context is reused from frame to frame."""
+    made = getattr(_LOCAL, "compressors", None)
+    if made is None:
+        made = _LOCAL.compressors = {}
+    if level not in made:
+        import zstandard
+        made[level] = zstandard.ZstdCompressor(level=level, write_checksum=True)
+    return made[level]
 
 
 def _zd(frame: bytes, limit: int, what: str) -> bytes:
     import zstandard
+    made = getattr(_LOCAL, "decompressor", None)
+    if made is None:
+        made = _LOCAL.decompressor = zstandard.ZstdDecompressor()
     try:
-        out = zstandard.ZstdDecompressor().decompress(frame, max_output_size=limit)
+        out = made.decompress(frame, max_output_size=limit)
     except zstandard.ZstdError as err:
         raise DecodeError(what, len(frame), f"a zstd frame ({err})") from None
     return out
@@ -195,51 +209,28 @@ def _as_unsigned(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     return native.view(f"u{arr.dtype.itemsize}")
 
 
-def _roll(x: np.ndarray[Any, Any], shifts: np.ndarray[Any, Any] | None, sign: int
-          ) -> np.ndarray[Any, Any]:
-    """Rotate row r of (H, W, C) right by sign * shifts[r] (None: unchanged); rows sharing a
-    shift are moved together (spinning sensors have a handful of distinct shifts)."""
-    if shifts is None:
-        return x
-    width = x.shape[1]
-    out = np.empty_like(x)
-    for shift in np.unique(shifts):
-        rows = np.flatnonzero(shifts == shift)
-        k = int(sign * shift) % max(width, 1)
-        src = x[rows]
-        out[rows, k:] = src[:, :width - k]
-        out[rows, :k] = src[:, width - k:]
-    return out
-
-
 def _shift_params(shifts: np.ndarray[Any, Any] | None) -> bytes:
     return b"" if shifts is None else shifts.astype("<i4").tobytes()
 
 
 # --------------------------------------------------------------------------- QUANT
 
-def _quantise(v: np.ndarray[Any, Any], step: float
+def _quantise(v: np.ndarray[Any, Any], step: float, coder: ResidualCoder = NUMPY
               ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
     """(int32 grid q, 0 at exceptions; exception mask) or None when no value is on the grid.
     v: native float32 (H, W, C)."""
-    with np.errstate(invalid="ignore", over="ignore"):
-        qf = np.rint(v.astype(np.float64) / step)
-        fits = np.abs(qf) < 2**31
-        qf = np.where(fits, qf, 0.0)
-        q = qf.astype(np.int32)
-        back = (q.astype(np.float64) * step).astype(np.float32)
-    exc = back.view(np.uint32) != v.view(np.uint32)
+    q, exc = coder.quantise(np.ascontiguousarray(v, np.float32).reshape(-1), step)
     if exc.all() and v.size:
         return None
-    q[exc] = 0
-    return q, exc
+    return q.reshape(v.shape), exc.reshape(v.shape)
 
 
 def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
-                exc: np.ndarray[Any, Any] | None, words_frame: bytes, what: str) -> bytes:
+                exc: np.ndarray[Any, Any] | None, words_frame: bytes, what: str,
+                coder: ResidualCoder = NUMPY) -> bytes:
     """The float32 bytes of the int32 grid q (value ``float32(float64(q) * step)``) with the
     exception pixels (mask ``exc``) replaced by the words of the zstd frame ``words_frame``."""
-    out = (q.astype(np.float64) * step).astype(np.float32).reshape(-1)
+    out = coder.dequantise(np.ascontiguousarray(q).reshape(-1), step)
     if bigendian:
         out = out.astype(">f4")
     if exc is None:
@@ -265,21 +256,24 @@ def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = 
                     ) -> tuple[int, bytes, bytes]:
     """(extra, zstd frame of the symbols, zstd frame of the low bits) of zigzag residuals
     ``z`` (1-D unsigned, at most 32 bits); extra 1 or 2, whichever is smaller (the coding:
-    :mod:`lidarscan._codec_bits`)."""
+    :mod:`lidarscan._codec_bits`). Both symbol streams are compressed: an order-0 entropy
+    estimate from their histograms picked the larger one on real range grids (bench/README.md)."""
     z = np.ascontiguousarray(z, np.uint32)
-    sym1, k1, sym2, k2 = coder.symbols(z, bitlen_table())
+    sym1, k1, sym2, k2, bits1, bits2 = coder.symbols(z, bitlen_table())
     options = []
-    for extra, sym, k in ((1, sym1, k1), (2, sym2, k2)):
-        frame = _zc(level).compress(sym.tobytes())
-        options.append((len(frame) + (int(k.sum(dtype=np.int64)) + 7) // 8, extra, frame, k))
+    for extra, sym, k, bits in ((1, sym1, k1, bits1), (2, sym2, k2, bits2)):
+        frame = _zc(level).compress(sym)
+        options.append((len(frame) + (int(bits) + 7) // 8, extra, frame, k))
     _, extra, frame, k = min(options, key=lambda option: option[0])
-    return extra, frame, _zc(level).compress(coder.pack_low(z, k).tobytes())
+    return extra, frame, _zc(level).compress(coder.pack_low(z, k))
 
 
 def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
-                      what: str, coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
-    """Inverse of :func:`_pack_residuals`: n zigzag residuals (uint32) of at most
-    ``8 * itemsize`` bits."""
+                      what: str, coder: ResidualCoder = NUMPY
+                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """(symbols, values per low-bit count, low-bit stream) of :func:`_pack_residuals`'s parts
+    for n zigzag residuals of at most ``8 * itemsize`` bits, checked (``coder.decode`` takes
+    them)."""
     symbols = np.frombuffer(_zd(frame, n, what), np.uint8)
     if symbols.size != n:
         raise DecodeError(what, symbols.size, f"{n} residual symbols")
@@ -291,7 +285,7 @@ def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: in
     low = _zd(raw, (total + 7) // 8, what)
     if len(low) != (total + 7) // 8:
         raise DecodeError(what, len(low), f"{(total + 7) // 8} bytes of low bits")
-    return coder.unpack(symbols, extra, counts, np.frombuffer(low, np.uint8))
+    return symbols, counts, np.frombuffer(low, np.uint8)
 
 
 def _choose_masked(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
@@ -375,8 +369,10 @@ def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, pre
     parts = _split(payload, 3 if masked else 2, what)
     valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
     count = n if valid is None else int(valid.sum())
-    z = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what, coder)
-    f = coder.unresiduals(z, valid, predictor, ref, np.empty(shape, f"u{itemsize}"))
+    symbols, counts, low = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what,
+                                             coder)
+    f = coder.decode(symbols, extra, counts, low, valid, predictor, ref,
+                     np.empty(shape, f"u{itemsize}"))
     return f if valid is None else np.where(valid, f, f.dtype.type(0))
 
 
@@ -387,13 +383,18 @@ def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], ste
     when it does not fit the int32 grid; exceptions are masked and kept bit for bit. The step
     is ``step`` times the greatest common divisor of the grid values when that coarser grid
     has no more exceptions."""
-    got = _quantise(v, step)
+    got = _quantise(v, step, coder)
     if got is None:
         return None
     q, exc = got
-    common = int(np.gcd.reduce(np.abs(q[~exc]).astype(np.int64))) if (~exc).any() else 0
+    common = 0  # gcd of the grid values; exceptions are 0 (gcd(0, a) = a)
+    flat = q.reshape(-1)
+    for stop in (8192, flat.size):  # the gcd of all divides that of the first ones: 1 there
+        common = int(np.gcd.reduce(np.abs(flat[:stop].astype(np.int64))))  # is 1 overall
+        if common == 1:
+            break
     if common > 1:  # e.g. 4 mm units in metres: the coarser grid, if it is as exact
-        coarse = _quantise(v, step * common)
+        coarse = _quantise(v, step * common, coder)
         if coarse is not None and int(coarse[1].sum()) <= int(exc.sum()):
             step, (q, exc) = step * common, coarse
     u = q.view(np.uint32)
@@ -414,10 +415,11 @@ def _decode_quant2(payload: bytes, shape: tuple[int, int, int], predictor: int, 
     valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
     count = n if valid is None else int(valid.sum())
     sym, low = (parts[1], parts[2]) if masked else (parts[0], parts[1])
-    z = _unpack_residuals(sym, low, count, 4, extra, what, coder)
-    q = coder.unresiduals(z, valid, predictor, None, np.empty(shape, np.uint32)).view(np.int32)
+    symbols, counts, bits = _unpack_residuals(sym, low, count, 4, extra, what, coder)
+    q = coder.decode(symbols, extra, counts, bits, valid, predictor, None,
+                     np.empty(shape, np.uint32)).view(np.int32)
     return _float_bits(q, step, bigendian, None if valid is None else ~valid,
-                       parts[3] if masked else b"", what)
+                       parts[3] if masked else b"", what, coder)
 
 
 # --------------------------------------------------------------------- segmentation
@@ -442,7 +444,7 @@ def _layout(scan: Any, data_len: int) -> list[tuple[int, int, Any]] | None:
     return [b for b in blocks if b[1] > 0]
 
 
-def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: float | None,
+def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_step: float | None,
                   shifts: np.ndarray[Any, Any] | None,
                   refs: dict[int, np.ndarray[Any, Any]], coder: ResidualCoder = NUMPY
                   ) -> tuple[int, bytes, bytes]:
@@ -455,7 +457,7 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
     rolled = shifts is not None
     if datatype in _INT_CODES:
         u = np.frombuffer(block, np.dtype((">" if big else "<") + f"u{size}")).reshape(shape)
-        u = _roll(_as_unsigned(u), shifts, 1)
+        u = coder.roll(_as_unsigned(u), shifts, 1)
         same = {off: g for off, g in refs.items() if g.dtype == u.dtype and g.shape == u.shape}
         ref_offset = None
         if same:  # the earlier grid closest to this one (a second return's first return)
@@ -469,8 +471,8 @@ def _encode_block(block: bytes, desc: Any, scan: Any, level: int, float_step: fl
                 + ref_param + _shift_params(shifts), payload)
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
-        native = _roll(raw.astype(np.float32), shifts, 1)
-        words = _roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
+        native = coder.roll(raw.astype(np.float32, copy=False), shifts, 1)
+        words = coder.roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
         got = _encode_quant2(native, words, float_step, level, coder)
         if got is not None:
             predictor, extra, masked, step, payload = got
@@ -529,7 +531,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
                               np.asarray(scan.column_azimuth_angles, np.float64), level)
     if data_len >= 2**32:
         raise EncodeError("scan.data", data_len, "fewer than 2**32 bytes")
-    raw = data.tobytes()
+    raw = memoryview(np.ascontiguousarray(data, np.uint8)).cast("B")
     segs: list[tuple[int, int, int, bytes, bytes]] = []
 
     def gap(start: int, stop: int) -> None:
@@ -650,8 +652,9 @@ def _decode_columns(buf: bytes) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, A
 
 def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes,
                     payload: bytes, data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY
-                    ) -> bytes:
-    """The bytes of segment i; ``data``: the scan's data, decoded up to ``offset``."""
+                    ) -> bytes | np.ndarray[Any, Any]:
+    """The bytes of segment i (bytes or a uint8 array); ``data``: the scan's data, decoded up
+    to ``offset``."""
     what = f"segment {i}"
     if method == RAW:
         out = payload
@@ -661,7 +664,7 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
         if len(params) != 1 or params[0] not in (1, 2, 4, 8) or length % params[0]:
             raise DecodeError(f"{what} params", params, "one itemsize byte dividing the length")
         size = params[0]
-        out = _unplanes(_zd(payload, length, what), size, length // size, what).tobytes()
+        out = _unplanes(_zd(payload, length, what), size, length // size, what)
     elif method in (PREDICT, QUANT):
         from lidarscan._codec_v1 import decode_v1
         out = decode_v1(what, length, method, params, payload)
@@ -670,13 +673,13 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
     else:
         raise DecodeError(f"{what} method", method,
                           "0..6 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2)")
-    if len(out) != length:
-        raise DecodeError(f"{what} length", len(out), f"{length} bytes")
+    if memoryview(out).nbytes != length:
+        raise DecodeError(f"{what} length", memoryview(out).nbytes, f"{length} bytes")
     return out
 
 
 def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
-               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> bytes:
+               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
     if len(params) < _GRID2.size:
         raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
     datatype, big, h, w, c, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
@@ -701,15 +704,17 @@ def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, 
                                   f"a block of {length} bytes decoded before offset {offset}")
             grid = np.frombuffer(data[ref_offset:ref_offset + length].tobytes(),
                                  (">" if big else "<") + f"u{size}").reshape(h, w, c)
-            ref = _roll(_as_unsigned(grid), shifts, 1)
+            ref = coder.roll(_as_unsigned(grid), shifts, 1)
         u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref,
                          coder)
-        u = _roll(u, shifts, -1)
-        return u.astype(u.dtype.newbyteorder(">" if big else "<")).tobytes()
+        u = coder.roll(u, shifts, -1)
+        return u.astype(u.dtype.newbyteorder(">" if big else "<"), copy=False).reshape(
+            -1).view(np.uint8)
     (step,) = struct.unpack_from("<d", params, _GRID2.size)
     bits = _decode_quant2(payload, (h, w, c), predictor, extra, bool(masked), step, bool(big),
                           what, coder)
-    return _roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).tobytes()
+    return coder.roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).reshape(
+        -1).view(np.uint8)
 
 
 def decompress_scan(buf: bytes, *, coder: ResidualCoder | None = None) -> Any:

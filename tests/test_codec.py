@@ -231,8 +231,8 @@ def test_bit_length_coding_matches_the_definition_and_inverts(values: list[int])
     assert list(zstandard.ZstdDecompressor().decompress(frame)) == symbols
     stream = zstandard.ZstdDecompressor().decompress(low)
     assert "".join(format(x, "08b") for x in stream) == bits + "0" * (-len(bits) % 8)
-    back = codec._unpack_residuals(frame, low, len(values), 4, extra, "test")
-    assert back.tolist() == values
+    parts = codec._unpack_residuals(frame, low, len(values), 4, extra, "test")
+    assert cbits.unpack(parts[0], extra, parts[1], parts[2]).tolist() == values
 
 
 def _loop_fill(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any], predictor: int
@@ -347,15 +347,20 @@ def test_compiled_coder_matches_the_numpy_reference(values: list[int]) -> None:
     z = np.array(values, np.uint32)
     ref = NUMPY.symbols(z, bitlen_table())
     got = coder.symbols(z, bitlen_table())
-    for a, b in zip(ref, got, strict=True):
+    for a, b in zip(ref[:4], got[:4], strict=True):
         assert a.dtype == b.dtype and a.tolist() == b.tolist()
+    assert [int(ref[4]), int(ref[5])] == [int(got[4]), int(got[5])] \
+        == [int(ref[1].sum()), int(ref[3].sum())]
     for extra, sym, k in ((1, ref[0], ref[1]), (2, ref[2], ref[3])):
         low = NUMPY.pack_low(z, k)
         assert coder.pack_low(z, k).tobytes() == low.tobytes()
         counts = NUMPY.low_counts(sym, extra)
         assert coder.low_counts(sym, extra).tolist() == counts.tolist()
-        assert coder.unpack(sym, extra, counts, low).tolist() == values
-        assert NUMPY.unpack(sym, extra, counts, low).tolist() == values
+        assert cbits.unpack(sym, extra, counts, low).tolist() == values
+        if values:  # the compiled decoder's unpacking, a 1 x n grid predicted by NONE
+            out = np.empty((1, len(values), 1), np.uint32)
+            got_z = coder.decode(sym, extra, counts, low, None, cbits.NONE, None, out)
+            assert got_z.reshape(-1).tolist() == cbits.unzigzag(z).tolist()
 
 
 @given(st.integers(1, 5), st.integers(1, 7), st.integers(1, 2), st.sampled_from(["u1", "u2", "u4"]),
@@ -370,6 +375,7 @@ def test_compiled_prediction_matches_the_numpy_reference(h: int, w: int, c: int,
     ref = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True) \
         if predictor == cbits.REF else None
     valid = rng.random((h, w, c)) < 0.7 if masked else None
+    x.setflags(write=False)  # as a view of a message's data: read, never written
     z = NUMPY.residuals(x, valid, predictor, ref)
     assert z.dtype == np.uint32
     costs = NUMPY.costs(x, valid, ref)
@@ -377,13 +383,41 @@ def test_compiled_prediction_matches_the_numpy_reference(h: int, w: int, c: int,
     assert (costs[cbits.REF] == -1) == (ref is None)
     assert coder.costs(x, valid, ref).tolist() == costs.tolist()
     assert coder.residuals(x, valid, predictor, ref).tolist() == z.tolist()
-    want = NUMPY.unresiduals(z, valid, predictor, ref, np.empty_like(x))
-    got = coder.unresiduals(z, valid, predictor, ref, np.empty_like(x))
-    assert got.tolist() == want.tolist()
+    want = cbits.unmask_residuals(z.astype(x.dtype), valid, x.shape, predictor, ref)
+    shifts = rng.integers(-3 * w, 3 * w, h)
+    for sign in (1, -1):
+        assert coder.roll(x, shifts, sign).tolist() == cbits.roll(x, shifts, sign).tolist()
+    for extra in (1, 2):  # the decoder: unpacking, then the inverse prediction
+        sym, k = NUMPY.symbols(z, cbits.bitlen_table())[2 * extra - 2:2 * extra]
+        counts, low = NUMPY.low_counts(sym, extra), NUMPY.pack_low(z, k)
+        for impl in (NUMPY, coder):
+            out = impl.decode(sym, extra, counts, low, valid, predictor, ref, np.empty_like(x))
+            assert out.tolist() == want.tolist()
     if valid is not None:
         assert np.array_equal(want[valid], x[valid])
     else:
         assert np.array_equal(want, x)
+
+
+_SPECIAL_WORDS = [0x7FC00000, 0xFFC00001, 0x7F800000, 0xFF800000, 0x80000000, 0, 1, 0x4F000000,
+                  0xCF000000, 0x7F7FFFFF]
+
+
+@given(st.lists(st.integers(0, 2**32 - 1) | st.sampled_from(_SPECIAL_WORDS)
+                | st.integers(-3_000_000, 3_000_000).map(
+                    lambda mm: int(np.float32(mm * 0.001).view(np.uint32))), max_size=80),
+       st.sampled_from([0.001, 0.004, 1.0, 1e-7]))
+def test_compiled_quantisation_matches_the_numpy_reference(words: list[int], step: float
+                                                           ) -> None:
+    from lidarscan._codec_bits import NUMPY
+    coder = _compiled()
+    v = np.array(words, np.uint32).view(np.float32)
+    q, exc = NUMPY.quantise(v, step)
+    got_q, got_exc = coder.quantise(v, step)
+    assert got_q.tolist() == q.tolist() and got_exc.tolist() == exc.tolist()
+    back = NUMPY.dequantise(q, step)
+    assert back.view(np.uint32)[~exc].tolist() == v.view(np.uint32)[~exc].tolist()
+    assert coder.dequantise(q, step).view(np.uint32).tolist() == back.view(np.uint32).tolist()
 
 
 @given(_scans(), st.sampled_from([None, 0.001]))

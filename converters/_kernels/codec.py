@@ -2,14 +2,18 @@
 
 The format's version 2 residual coding (methods PREDICT2 and QUANT2, spec in the header of
 :mod:`lidarscan.codec`) predicts every pixel of a channel grid, turns the zigzag residuals into
-one symbol byte per value plus a bit stream of low bits grouped by their width. Its numpy
-reference (:mod:`lidarscan._codec_bits`, the test oracle) makes one pass per predictor step
-and per bit width; the kernels here make one pass over the values and give the same bytes
-(integer arithmetic only: bit-identical by construction, and tested so).
+one symbol byte per value plus a bit stream of low bits grouped by their width; float32
+channels go through an int32 grid first. Its numpy reference (:mod:`lidarscan._codec_bits`,
+the test oracle) makes one pass per predictor step and per bit width; the kernels here make
+one pass over the values and give the same bytes (integer arithmetic, and the same float64
+products and float32 roundings for the float grid: bit-identical by construction, and tested
+so): the predictor costs of all candidates in one pass, residuals with one loop per predictor
+when no pixel is masked, symbols of both symbol splits in one pass, the low-bit packing, the
+float32 grid (quantisation and its inverse), the destaggering roll, and on decoding a
+branch-free unpacking into residuals followed by one loop per predictor.
 
 :func:`coder` bundles them as a :class:`lidarscan.codec.ResidualCoder` (the fields and their
-arguments are documented there: ``symbols``, ``pack_low``, ``low_counts``, ``unpack``,
-``residuals``, ``unresiduals``, ``costs``); ``compress_scan`` / ``decompress_scan`` take it as
+arguments are documented there); ``compress_scan`` / ``decompress_scan`` take it as
 ``coder=``. It is chosen by :func:`converters._kernels.select` (``"codec"``), which reads the
 switches. The core package never imports this module (layering): converters-level entry
 points (the evidence, the bench, ``McapWriter(codec_coder=...)`` from the CLI) pass it.
@@ -29,76 +33,90 @@ import numpy as np
 from converters._kernels._loader import LoadOnce, numba_jit
 
 
-def _symbols(z: Any, table: Any) -> Any:  # pragma: no cover - compiled
-    """z (n,) uint32 -> (sym1, k1, sym2, k2) (n,) uint8 each (see the reference)."""
+def _symbols(z: Any, table: Any, small: Any) -> Any:  # pragma: no cover - compiled
+    """z (n,) uint32 -> (sym1, k1, sym2, k2) (n,) uint8 each and the low-bit totals (bits1,
+    bits2) (see the reference); ``small``: those four bytes of every value below 2**16
+    packed in a uint32 (sym1 | k1 << 8 | sym2 << 16 | k2 << 24, :func:`_small_symbols`)."""
     n = z.shape[0]
     sym1 = np.empty(n, np.uint8)
     k1 = np.empty(n, np.uint8)
     sym2 = np.empty(n, np.uint8)
     k2 = np.empty(n, np.uint8)
+    bits1 = bits2 = np.int64(0)
     for i in range(n):
         v = np.int64(z[i])
-        hi = v >> 16
-        b = np.int64(table[hi]) + 16 if hi else np.int64(table[v])
-        below = b - 1 if b > 0 else 0
-        e2 = below if below < 2 else 2
-        kk2 = below - e2
-        top2 = (v >> kk2) & ((1 << e2) - 1)
-        if below >= 2:
-            top1 = top2 >> 1
-            kk1 = kk2 + 1
-        else:
-            top1 = top2
-            kk1 = kk2
-        sym1[i] = np.uint8(((b << 1) | top1) & 0xFF)
+        if v < 65536:
+            p = np.int64(small[v])
+            s1, kk1, s2, kk2 = p & 0xFF, (p >> 8) & 0xFF, (p >> 16) & 0xFF, p >> 24
+        else:  # bit length b > 16: e = 2 (extra 2) and 1 (extra 1)
+            b = np.int64(table[v >> 16]) + 16
+            kk2 = b - 3
+            top2 = (v >> kk2) & 3
+            s1, kk1, s2 = ((b << 1) | (top2 >> 1)) & 0xFF, kk2 + 1, ((b << 2) | top2) & 0xFF
+        sym1[i] = np.uint8(s1)
         k1[i] = np.uint8(kk1)
-        sym2[i] = np.uint8(((b << 2) | top2) & 0xFF)
+        sym2[i] = np.uint8(s2)
         k2[i] = np.uint8(kk2)
-    return sym1, k1, sym2, k2
+        bits1 += kk1
+        bits2 += kk2
+    return sym1, k1, sym2, k2, bits1, bits2
 
+
+@functools.lru_cache(maxsize=1)
+def _small_symbols() -> Any:
+    """uint32[65536]: sym1 | k1 << 8 | sym2 << 16 | k2 << 24 of every value below 2**16, from
+    the numpy reference."""
+    from lidarscan._codec_bits import NUMPY, bitlen_table
+    sym1, k1, sym2, k2, _, _ = NUMPY.symbols(np.arange(1 << 16, dtype=np.uint32),
+                                             bitlen_table())
+    return (sym1.astype(np.uint32) | (k1.astype(np.uint32) << 8)
+            | (sym2.astype(np.uint32) << 16) | (k2.astype(np.uint32) << 24))
 
 def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     """The low-bit stream: values grouped by k ascending (value order inside a group), each
-    value's k low bits most significant first, packed MSB first, zero padded."""
+    value's k low bits most significant first, packed MSB first, zero padded. One 64-bit
+    accumulator per group, flushed 4 bytes at a time into the group's bytes (ORed: a group's
+    first and last byte may hold bits of its neighbours)."""
     counts = np.zeros(33, np.int64)
     for i in range(k.shape[0]):
         counts[k[i]] += 1
-    start = np.zeros(33, np.int64)
+    pos = np.zeros(33, np.int64)
+    nb = np.zeros(33, np.int64)
+    acc = np.zeros(33, np.uint64)
     bit = 0
     for w in range(33):
-        start[w] = bit
+        pos[w] = bit >> 3
+        nb[w] = bit & 7
         bit += counts[w] * w
     nbytes = (bit + 7) // 8
-    out = np.zeros(nbytes + 5, np.uint8)  # + 5: a 40-bit window never leaves the array
+    out = np.zeros(nbytes + 8, np.uint8)
     for i in range(z.shape[0]):
         w = np.int64(k[i])
-        if w == 0:
-            continue
-        p = start[w]
-        start[w] = p + w
-        win = (np.int64(z[i]) & ((np.int64(1) << w) - 1)) << (40 - (p & 7) - w)
-        at = p >> 3
-        out[at] |= np.uint8(win >> 32)
-        out[at + 1] |= np.uint8((win >> 24) & 0xFF)
-        out[at + 2] |= np.uint8((win >> 16) & 0xFF)
-        out[at + 3] |= np.uint8((win >> 8) & 0xFF)
-        out[at + 4] |= np.uint8(win & 0xFF)
+        n = nb[w] + w
+        a = (acc[w] << np.uint64(w)) | np.uint64(np.int64(z[i]) & ((np.int64(1) << w) - 1))
+        if n >= 32:
+            n -= 32
+            top = a >> np.uint64(n)
+            p = pos[w]
+            out[p] |= np.uint8((top >> np.uint64(24)) & np.uint64(0xFF))
+            out[p + 1] |= np.uint8((top >> np.uint64(16)) & np.uint64(0xFF))
+            out[p + 2] |= np.uint8((top >> np.uint64(8)) & np.uint64(0xFF))
+            out[p + 3] |= np.uint8(top & np.uint64(0xFF))
+            pos[w] = p + 4
+            a &= (np.uint64(1) << np.uint64(n)) - np.uint64(1)
+        acc[w] = a
+        nb[w] = n
+    for w in range(1, 33):  # the rest of each group, left-aligned in its last bytes
+        n = nb[w]
+        a = acc[w]
+        p = pos[w]
+        while n >= 8:
+            n -= 8
+            out[p] |= np.uint8((a >> np.uint64(n)) & np.uint64(0xFF))
+            p += 1
+        if n:
+            out[p] |= np.uint8((a << np.uint64(8 - n)) & np.uint64(0xFF))
     return out[:nbytes]
-
-
-@functools.lru_cache(maxsize=4)
-def _symbol_tables(extra: int) -> tuple[Any, Any]:
-    """(value bits above the low bits, low-bit count k) of every symbol byte, int64[256]."""
-    base = np.zeros(256, np.int64)
-    kk = np.zeros(256, np.int64)
-    for s in range(256):
-        b = s >> extra
-        below = max(b - 1, 0)
-        e = min(below, extra)
-        kk[s] = min(below - e, 32)
-        if 0 < b <= 32:
-            base[s] = (1 << below) | ((s & ((1 << e) - 1)) << int(kk[s]))
-    return base, kk
 
 
 def _low_counts(symbols: Any, kk: Any) -> Any:  # pragma: no cover - compiled
@@ -113,52 +131,12 @@ def _low_counts(symbols: Any, kk: Any) -> Any:  # pragma: no cover - compiled
     return counts
 
 
-def _unpack(symbols: Any, base: Any, kk: Any, counts: Any, low: Any
-            ) -> Any:  # pragma: no cover - compiled
-    """uint32 zigzag residuals of the symbols and the low-bit stream (the caller checked the
-    bit lengths and the stream's size against ``counts``; ``low`` padded with 5 zero bytes;
-    base, kk: :func:`_symbol_tables`)."""
-    start = np.zeros(33, np.int64)
-    bit = 0
-    for w in range(33):
-        start[w] = bit
-        bit += counts[w] * w
-    n = symbols.shape[0]
-    out = np.empty(n, np.uint32)
-    for i in range(n):
-        s = symbols[i]
-        v = base[s]
-        k = kk[s]
-        if k:
-            p = start[k]
-            start[k] = p + k
-            at = p >> 3
-            win = ((np.int64(low[at]) << 32) | (np.int64(low[at + 1]) << 24)
-                   | (np.int64(low[at + 2]) << 16) | (np.int64(low[at + 3]) << 8)
-                   | np.int64(low[at + 4]))
-            v |= (win >> (40 - (p & 7) - k)) & ((np.int64(1) << k) - 1)
-        out[i] = np.uint32(v & 0xFFFFFFFF)
-    return out
-
-
-def _bitsum(z: Any, table: Any) -> Any:  # pragma: no cover - compiled
-    """Sum of the bit lengths (int64) of uint32 values; ``table``: bit lengths of 0..65535."""
-    total = np.int64(0)
-    for i in range(z.shape[0]):
-        v = np.int64(z[i])
-        hi = v >> 16
-        total += np.int64(table[hi]) + 16 if hi else np.int64(table[v])
-    return total
-
-
-def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, decode: bool, h: int,
-          w: int, c: int) -> int:  # pragma: no cover - compiled
-    """Prediction of an unsigned grid (H, W, C flattened; valid likewise, or None: every pixel
-    valid; predictors 0..4: none, left, up, planar, the reference grid ``ref``), in row-major
-    order; an invalid pixel holds its own prediction, and g (like x, written) is the grid the
-    predictions read. Encoding (``decode`` False): the zigzag residuals of the valid pixels of
-    x go to z (uint32). Decoding: g is written from the residuals z (x is not read). Returns
-    the number of valid pixels."""
+def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, w: int, c: int
+          ) -> int:  # pragma: no cover - compiled
+    """The zigzag residuals (uint32, to z) of the valid pixels of an unsigned grid x (H, W, C
+    flattened; valid likewise; predictors 0..4: none, left, up, planar, the reference grid
+    ``ref``), in row-major order; an invalid pixel holds its own prediction, and g (like x,
+    written) is the grid the predictions read. Returns the number of valid pixels."""
     bits = g.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
@@ -184,27 +162,240 @@ def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, decode: 
             elif predictor == 4:
                 p = np.int64(ref[i])
             if valid is None or valid[i]:
-                if decode:
-                    zz = np.int64(z[j])
-                    p += (zz >> 1) ^ -(zz & 1)
-                else:
-                    d = (np.int64(x[i]) - p) & mask
-                    if d >= half:
-                        d -= mask + 1
-                    z[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
-                    p = np.int64(x[i])
+                d = (np.int64(x[i]) - p) & mask
+                if d >= half:
+                    d -= mask + 1
+                z[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                p = np.int64(x[i])
                 j += 1
             g[i] = p & mask
     return j
 
 
+def _unpack_grid(symbols: Any, sbase: Any, kk: Any, counts: Any, low: Any, valid: Any,
+                 d: Any) -> int:  # pragma: no cover - compiled
+    """The signed residuals d (int64, one per pixel, 0 at invalid ones) from the symbols and
+    the low-bit stream (``low`` padded with 5 zero bytes; sbase, kk: ``symbol_tables``),
+    branch-free. Returns the symbols used."""
+    start = np.zeros(33, np.int64)
+    bit = 0
+    for k in range(33):
+        start[k] = bit
+        bit += counts[k] * k
+    j = 0
+    for i in range(d.shape[0]):
+        if valid is None or valid[i]:
+            s = symbols[j]
+            k = kk[s]
+            q = start[k]  # k = 0 reads a window and keeps none of it
+            start[k] = q + k
+            at = q >> 3
+            win = ((np.int64(low[at]) << 32) | (np.int64(low[at + 1]) << 24)
+                   | (np.int64(low[at + 2]) << 16) | (np.int64(low[at + 3]) << 8)
+                   | np.int64(low[at + 4]))
+            zz = sbase[s] | ((win >> (40 - (q & 7) - k)) & ((np.int64(1) << k) - 1))
+            d[i] = (zz >> 1) ^ -(zz & 1)
+            j += 1
+        else:
+            d[i] = 0
+    return j
+
+
+def _unpredict(d: Any, g: Any, predictor: int, ref: Any, h: int, w: int, c: int
+               ) -> None:  # pragma: no cover - compiled
+    """g (unsigned, flattened (H, W, C)) from the signed residuals d of every pixel (0 at
+    masked ones: they hold their prediction), one loop per predictor, wrapping."""
+    mask = (np.int64(1) << (g.itemsize * 8)) - 1
+    row = w * c
+    n = h * row
+    if predictor == 0:
+        for i in range(n):
+            g[i] = d[i] & mask
+    elif predictor == 4:
+        for i in range(n):
+            g[i] = (np.int64(ref[i]) + d[i]) & mask
+    elif predictor == 2:
+        for i in range(row):
+            g[i] = d[i] & mask
+        for i in range(row, n):
+            g[i] = (np.int64(g[i - row]) + d[i]) & mask
+    else:
+        for r in range(h):
+            base = r * row
+            for k in range(c):  # one running sum per count index along the row
+                acc = np.int64(0)
+                for i in range(base + k, base + row, c):
+                    acc += d[i]
+                    if predictor == 3 and r > 0:
+                        g[i] = (acc + np.int64(g[i - row])) & mask
+                    else:
+                        g[i] = acc & mask
+
+
+def _quantise(v: Any, step: float, q: Any, exc: Any) -> int:  # pragma: no cover - compiled
+    """q = rint(v / step) (int32; 0 where it does not fit or the value is an exception) and
+    the exception flags (float32(float64(q) * step) does not have v's bits) of float32 v, as
+    ``lidarscan.codec._quantise``. Returns the number of exceptions."""
+    n_exc = 0
+    bits = v.view(np.uint32)
+    for i in range(v.shape[0]):
+        qf = np.rint(np.float64(v[i]) / step)
+        qi = np.int32(qf) if abs(qf) < 2147483648.0 else np.int32(0)
+        back = np.float32(np.float64(qi) * step)
+        # back is finite and a zero of it is +0.0: equal bits unless v is -0.0
+        bad = not (back == v[i]) or (back == 0 and bits[i] != 0)
+        exc[i] = bad
+        if bad:
+            q[i] = 0
+            n_exc += 1
+        else:
+            q[i] = qi
+    return n_exc
+
+
+def _dequantise(q: Any, step: float, out: Any) -> None:  # pragma: no cover - compiled
+    """out (float32) = float32(float64(q) * step) of the int32 grid q."""
+    for i in range(q.shape[0]):
+        out[i] = np.float32(np.float64(q[i]) * step)
+
+
+def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, table: Any,
+           g1: Any, g2: Any, g3: Any) -> Any:  # pragma: no cover - compiled
+    """The sums of the residuals' bit lengths under predictors 0 .. 3 (and 4 when ``nref``)
+    of the valid pixels, in one pass (int64[5], -1 for REF without a reference). The left, up
+    and planar predictions read g1, g2, g3: with a mask, one fill grid each (int64, written:
+    a masked pixel holds each predictor's own prediction); without one (valid None), x
+    itself."""
+    bits = x.itemsize * 8
+    mask = (np.int64(1) << bits) - 1
+    half = np.int64(1) << (bits - 1)
+    row = w * c
+    s0 = s1 = s2 = s3 = s4 = np.int64(0)
+    for r in range(h):
+        base = r * row
+        for i in range(base, base + row):
+            inner = i - base >= c
+            p1 = np.int64(g1[i - c]) if inner else np.int64(0)
+            p2 = np.int64(g2[i - row]) if r > 0 else np.int64(0)
+            p3 = np.int64(0)
+            if inner:
+                p3 += np.int64(g3[i - c])
+                if r > 0:
+                    p3 -= np.int64(g3[i - row - c])
+            if r > 0:
+                p3 += np.int64(g3[i - row])
+            p3 &= mask
+            if valid is None or valid[i]:
+                v = np.int64(x[i])
+                for p in range(5):
+                    if p == 0:
+                        d = v
+                    elif p == 1:
+                        d = v - p1
+                    elif p == 2:
+                        d = v - p2
+                    elif p == 3:
+                        d = v - p3
+                    else:
+                        if not nref:
+                            break
+                        d = v - np.int64(ref[i])
+                    d = ((d & mask) ^ half) - half
+                    zz = ((d << 1) ^ (d >> 63)) & mask
+                    hi = zz >> 16
+                    b = np.int64(table[hi]) + 16 if hi else np.int64(table[zz])
+                    if p == 0:
+                        s0 += b
+                    elif p == 1:
+                        s1 += b
+                    elif p == 2:
+                        s2 += b
+                    elif p == 3:
+                        s3 += b
+                    else:
+                        s4 += b
+                if valid is not None:
+                    g1[i] = v
+                    g2[i] = v
+                    g3[i] = v
+            else:
+                g1[i] = p1
+                g2[i] = p2
+                g3[i] = p3
+    out = np.empty(5, np.int64)
+    out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
+    return out
+
+def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c: int
+                     ) -> None:  # pragma: no cover - compiled
+    """:func:`_grid` encoding without a mask, one loop per predictor (the predictions read x
+    itself): z = zigzag residuals (uint32) of every pixel."""
+    bits = x.itemsize * 8
+    mask = (np.int64(1) << bits) - 1
+    half = np.int64(1) << (bits - 1)
+    row = w * c
+    n = h * row
+    if predictor == 0:
+        for i in range(n):
+            d = ((np.int64(x[i]) & mask) ^ half) - half
+            z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+    elif predictor == 4:
+        for i in range(n):
+            d = (((np.int64(x[i]) - np.int64(ref[i])) & mask) ^ half) - half
+            z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+    else:
+        for r in range(h):
+            base = r * row
+            for i in range(base, base + c):
+                d = np.int64(x[i])
+                if predictor >= 2 and r > 0:
+                    d -= np.int64(x[i - row])
+                d = ((d & mask) ^ half) - half
+                z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+            if predictor == 1 or (predictor == 3 and r == 0):
+                for i in range(base + c, base + row):
+                    d = (((np.int64(x[i]) - np.int64(x[i - c])) & mask) ^ half) - half
+                    z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+            elif predictor == 2:
+                if r == 0:
+                    for i in range(base + c, base + row):
+                        d = ((np.int64(x[i]) & mask) ^ half) - half
+                        z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                else:
+                    for i in range(base + c, base + row):
+                        d = (((np.int64(x[i]) - np.int64(x[i - row])) & mask) ^ half) - half
+                        z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+            else:
+                for i in range(base + c, base + row):
+                    d = (np.int64(x[i]) - np.int64(x[i - c]) - np.int64(x[i - row])
+                         + np.int64(x[i - row - c]))
+                    d = ((d & mask) ^ half) - half
+                    z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+
+
+def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
+               ) -> None:  # pragma: no cover - compiled
+    """Row r of x (H, W * C: rows of W cells of C values) rotated right by sign * shifts[r]
+    cells into out (as ``lidarscan._codec_bits.roll``)."""
+    h, n = x.shape
+    cells = n // c
+    for r in range(h):
+        k = ((sign * shifts[r]) % cells) * c if cells else 0
+        for i in range(n - k):
+            out[r, i + k] = x[r, i]
+        for i in range(k):
+            out[r, i] = x[r, n - k + i]
+
+
 def _load() -> Any:
-    fns = [numba_jit(fn, boundscheck=False) for fn in (_symbols, _pack_low, _low_counts,
-                                                       _unpack, _grid, _bitsum)]
+    fns = [numba_jit(fn, boundscheck=False) for fn in (
+        _symbols, _pack_low, _low_counts, _grid, _costs, _unpack_grid, _quantise,
+        _dequantise, _residuals_plain, _roll_rows, _unpredict)]
     if fns[0] is None:
         return None
-    from lidarscan._codec_bits import ResidualCoder, bitlen_table
-    symbols, pack_low, low_counts, unpack, grid, bitsum = fns
+    from lidarscan._codec_bits import ResidualCoder, bitlen_table, roll, symbol_tables
+    (symbols, pack_low, low_counts, grid, costs, unpack_grid, quantise, dequantise,
+     residuals_plain, roll_rows, unpredict) = fns
 
     def flat(a: Any) -> Any:
         return None if a is None else np.ascontiguousarray(a).reshape(-1)
@@ -213,35 +404,56 @@ def _load() -> Any:
         # ref None: any array of x's type (only the REF predictor reads it)
         z = np.empty(x.size, np.uint32)
         flat_x = flat(x)
+        if valid is None:
+            residuals_plain(flat_x, z, predictor, flat(x if ref is None else ref), *x.shape)
+            return z
         n = grid(flat_x, np.empty_like(flat_x), z, flat(valid), predictor,
-                 flat(x if ref is None else ref), False, *x.shape)
+                 flat(x if ref is None else ref), *x.shape)
         return z[:n]
 
-    def unresiduals_of(z: Any, valid: Any, predictor: int, ref: Any, out: Any) -> Any:
-        g = out.reshape(-1)
-        grid(g, g, z, flat(valid), predictor, flat(out if ref is None else ref), True,
-             *out.shape)
-        return out
-
     def low_counts_of(symbols_: Any, extra: int) -> Any:
-        return low_counts(symbols_, _symbol_tables(extra)[1])
-
-    def unpack_of(symbols_: Any, extra: int, counts: Any, low: Any) -> Any:
-        return unpack(symbols_, *_symbol_tables(extra), counts,
-                      np.concatenate([low, np.zeros(5, np.uint8)]))
+        return low_counts(symbols_, symbol_tables(extra)[1])
 
     def costs_of(x: Any, valid: Any, ref: Any) -> Any:
-        out = np.full(5, -1, np.int64)
-        flat_x, flat_valid, flat_ref = flat(x), flat(valid), flat(x if ref is None else ref)
-        for predictor in range(5 if ref is not None else 4):
-            z = np.empty(x.size, np.uint32)
-            n = grid(flat_x, np.empty_like(flat_x), z, flat_valid, predictor, flat_ref, False,
-                     *x.shape)
-            out[predictor] = bitsum(z[:n], bitlen_table())
+        flat_x = flat(x)
+        g = (flat_x,) * 3 if valid is None else tuple(np.empty(x.size, np.int64)
+                                                         for _ in range(3))
+        return costs(flat_x, flat(valid), flat(x if ref is None else ref),
+                     0 if ref is None else 1, *x.shape, bitlen_table(), *g)
+
+    def decode_of(symbols_: Any, extra: int, counts: Any, low: Any, valid: Any,
+                  predictor: int, ref: Any, out: Any) -> Any:
+        padded = np.zeros(low.size + 5, np.uint8)
+        padded[:low.size] = low
+        d = np.empty(out.size, np.int64)
+        unpack_grid(symbols_, *symbol_tables(extra), counts, padded, flat(valid), d)
+        unpredict(d, out.reshape(-1), predictor, flat(out if ref is None else ref), *out.shape)
         return out
 
-    return ResidualCoder("numba", symbols, pack_low, low_counts_of, unpack_of, residuals_of,
-                         unresiduals_of, costs_of)
+    def quantise_of(v: Any, step: float) -> Any:
+        q = np.empty(v.size, np.int32)
+        exc = np.empty(v.size, np.bool_)
+        quantise(v, step, q, exc)
+        return q, exc
+
+    def dequantise_of(q: Any, step: float) -> Any:
+        out = np.empty(q.size, np.float32)
+        dequantise(q, step, out)
+        return out
+
+    def roll_of(x: Any, shifts: Any, sign: int) -> Any:
+        if shifts is None or not x.dtype.isnative or x.ndim != 3:
+            return roll(x, shifts, sign)
+        out = np.empty(x.shape, x.dtype)
+        roll_rows(np.ascontiguousarray(x).reshape(x.shape[0], -1), shifts, sign, x.shape[2],
+                  out.reshape(x.shape[0], -1))
+        return out
+
+    def symbols_of(z: Any, table: Any) -> Any:
+        return symbols(z, table, _small_symbols())
+
+    return ResidualCoder("numba", symbols_of, pack_low, low_counts_of, residuals_of, costs_of,
+                         decode_of, quantise_of, dequantise_of, roll_of)
 
 
 _COMPILED = LoadOnce(_load)
