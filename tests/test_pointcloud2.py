@@ -678,6 +678,16 @@ def test_from_pointcloud2_errors() -> None:
     huge.point_step = 2**31
     with pytest.raises(ConversionError):
         pc.from_pointcloud2(huge)
+    # beam numbers that cannot be LidarInfo.beam_ids (uint16): NaN in a float ring field made
+    # np.bincount raise ValueError once (tests/test_fuzz.py, pointcloud2 inconsistency property)
+    rings = np.zeros(8, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("ring", "<f4")]))
+    rings["x"], rings["ring"] = 1.0, np.repeat([0.0, 1.0], 4)
+    for layout, (h, w) in (("organized", (2, 4)), ("ring", (1, 8))):
+        for bad in (np.nan, -1.0, 65536.0):
+            wrong = rings.copy()
+            wrong["ring"][5] = bad
+            with pytest.raises(ConversionError, match="ring="):
+                pc.from_pointcloud2(make_cloud(wrong, height=h, width=w), layout=layout)
 
 
 # ---------------------------------------------------------------------- VLP-16-like ring cloud
