@@ -513,12 +513,13 @@ def validate_info(info: Any) -> None:
                                 np.asarray(transform, float).reshape(4, 4).round(6).tolist(),
                                 "a rigid transform (orthonormal rotation, last row 0 0 0 1), "
                                 "or all zeros for identity")
-    mult, offset = float(info.range_multiplier), float(info.range_offset)
-    range_min, range_max = float(info.range_min), float(info.range_max)
-    for field, value in (("range_multiplier", mult), ("range_offset", offset),
-                         ("range_min", range_min), ("range_max", range_max)):
+    scalars = []
+    for field in ("range_multiplier", "range_offset", "range_min", "range_max"):
+        value = float(getattr(info, field))
         if not math.isfinite(value):
             raise InfoMismatchError(f"LidarInfo.{field}", value, "a finite number")
+        scalars.append(value)
+    mult, _, range_min, range_max = scalars
     if mult < 0:
         raise InfoMismatchError("LidarInfo.range_multiplier", mult,
                                 ">= 0 (0 only when no integer range channel is used)")
