@@ -132,8 +132,9 @@ CONV: dict[str, Any] = {}
 DEEP = {"on": True}  # run the converters too (set per case: they are slow)
 
 
-def exercise_scan(scan: Any, info: Any) -> str:
-    """Validate a (possibly bad) scan; if it passes, read every channel, project, convert."""
+def use_scan(scan: Any, info: Any) -> None:
+    """What a consumer does with a (possibly bad) scan: validate, then read every channel,
+    project, time (also the oracle of ``tests/test_fuzz.py``, which imports it)."""
     ls.validate(scan)
     for desc in scan.channels:
         ls.channel(scan, desc.name)
@@ -142,6 +143,11 @@ def exercise_scan(scan: Any, info: Any) -> str:
     projector = ls.make_projector(info)
     projector.project(scan, info)
     projector.pixel_times(scan)
+
+
+def exercise_scan(scan: Any, info: Any) -> str:
+    """:func:`use_scan`, then (``DEEP``) convert to PointCloud2 and back, and to LaserScan."""
+    use_scan(scan, info)
     if not DEEP["on"]:
         return "projected"
     if "to_pointcloud2" in CONV:

@@ -251,6 +251,15 @@ def _ring_name(names: Sequence[str]) -> str | None:
     return next((n for n in _RING_FIELDS if n in names), None)
 
 
+def _ring_values(ring: np.ndarray[Any, Any], name: str) -> np.ndarray[Any, Any]:
+    """A beam number field's values as int64, refused unless all lie in 0..65535 (the
+    ``LidarInfo.beam_ids`` they become are uint16; NaN in a float field is refused too)."""
+    if ring.size and not (ring.min() >= 0 and ring.max() <= 65535):
+        raise ConversionError(name, f"values from {ring.min()} to {ring.max()}",
+                              "beam numbers from 0 to 65535")
+    return ring.astype(np.int64)
+
+
 def _pick_time_field(names: Sequence[str], time_field: str | None) -> str | None:
     if time_field is not None:
         if time_field not in names:
@@ -348,7 +357,7 @@ def _organized_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: 
     ring_name = _ring_name(names)
     if ring_name is not None:
         ring = pts[ring_name]
-        ring = (ring[..., 0] if ring.ndim == 3 else ring).astype(np.int64)
+        ring = _ring_values(ring[..., 0] if ring.ndim == 3 else ring, ring_name)
         beam_ids = np.array([np.bincount(r - r.min()).argmax() + r.min() for r in ring])
     else:
         beam_ids = np.arange(height)
@@ -394,7 +403,7 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     ok = np.all(np.isfinite(xyz), -1) & np.any(xyz != 0, -1)
     flat, xyz = flat[ok], xyz[ok]
     ring = flat[ring_name]
-    ring = (ring[:, 0] if ring.ndim == 2 else ring).astype(np.int64)
+    ring = _ring_values(ring[:, 0] if ring.ndim == 2 else ring, ring_name)
     rings, row_of = np.unique(ring, return_inverse=True)
     height = rings.size
     _check_grid_size(height, 1, flat.size, f"{ring_name} values")

@@ -57,10 +57,15 @@ def _need(buf: memoryview, pos: int, size: int, what: str) -> None:
                           f"at payload offset {pos})", hint="truncated or corrupt message")
 
 
-def _read_count(buf: memoryview, pos: int, bo: str, what: str) -> tuple[int, int]:
+def _read_count(buf: memoryview, pos: int, bo: str, what: str,
+                bound: int | None = None) -> tuple[int, int]:
+    """A uint32 length (aligned to 4) and the position after it; at most ``bound``."""
     pos += -pos % 4
     _need(buf, pos, 4, what)
-    return _U32[bo].unpack_from(buf, pos)[0], pos + 4
+    n = _U32[bo].unpack_from(buf, pos)[0]
+    if bound is not None and n > bound:
+        raise DecodeError(what, n, f"at most {bound} elements (bounded sequence)")
+    return n, pos + 4
 
 
 def _scalar_reader(code: str, what: str) -> Reader:
@@ -100,9 +105,7 @@ def _array_reader(code: str, count: int | None, bound: int | None, what: str) ->
     def read(buf: memoryview, pos: int, bo: str) -> tuple[Any, int]:
         n = count
         if n is None:
-            n, pos = _read_count(buf, pos, bo, what)
-            if bound is not None and n > bound:
-                raise DecodeError(what, n, f"at most {bound} elements (bounded sequence)")
+            n, pos = _read_count(buf, pos, bo, what, bound)
         if n:
             pos += -pos % size
         _need(buf, pos, n * size, what)
@@ -121,9 +124,7 @@ def _list_reader(elem: Reader, count: int | None, bound: int | None, what: str) 
     def read(buf: memoryview, pos: int, bo: str) -> tuple[Any, int]:
         n = count
         if n is None:
-            n, pos = _read_count(buf, pos, bo, what)
-            if bound is not None and n > bound:
-                raise DecodeError(what, n, f"at most {bound} elements (bounded sequence)")
+            n, pos = _read_count(buf, pos, bo, what, bound)
             if n > len(buf) - pos:  # every element takes at least one byte
                 raise DecodeError(what, n, f"at most {len(buf) - pos} elements "
                                   "(the rest of the payload)", hint="corrupt length")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import array
 import dataclasses
 import itertools
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -422,22 +423,62 @@ def as_array(value: Any, dtype: Any) -> np.ndarray[Any, Any]:
 _as_array = as_array
 
 
-def _check_len(info: Any, field: str, expected: int, allow_empty: bool, dtype: Any = float,
-               finite: bool = False) -> np.ndarray[Any, Any]:
-    arr = as_array(getattr(info, field), dtype)
-    if not (arr.size == expected or (allow_empty and arr.size == 0)):
-        what = f"{expected}" + (" or 0 (empty)" if allow_empty else "")
-        raise InfoMismatchError(f"LidarInfo.{field}", f"length {arr.size}",
-                                f"length {what} for height={info.height}, width={info.width}")
-    if finite and arr.size and not np.all(np.isfinite(arr)):
+#: LidarInfo arrays in check order: field, length (a multiple of "h" height, "w" width, "hw"
+#: pixels, or a fixed number), whether empty is allowed, the dtype of plain sequences (float
+#: arrays must also hold finite values).
+_INFO_ARRAYS: tuple[tuple[str, tuple[str, int], bool, Any], ...] = (
+    ("vertical_angles", ("h", 1), False, float),
+    ("horizontal_angles", ("w", 1), False, float),
+    ("beam_azimuth_offsets", ("h", 1), True, float),
+    ("pixel_azimuth_angles", ("hw", 1), True, float),
+    ("pixel_altitude_angles", ("hw", 1), True, float),
+    ("beam_origins", ("h", 3), True, float),
+    ("beam_range_offsets", ("h", 1), True, float),
+    ("pixel_shift_by_row", ("h", 1), True, np.int32),
+    ("beam_time_offsets", ("h", 1), True, np.int64),
+    ("beam_ids", ("h", 1), True, np.uint16),
+    ("lidar_to_sensor_transform", ("", 16), False, float),
+)
+# np.allclose(a, b, atol) is |a - b| <= atol + 1e-5 * |b|: the bounds of the rigidity test
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+_LAST_ROW_TOL = 1e-9 + 1e-5 * _LAST_ROW
+_EYE3 = np.eye(3)
+_EYE3_TOL = 1e-6 + 1e-5 * _EYE3
+
+
+def _require_finite(arrays: list[tuple[str, np.ndarray[Any, Any]]]) -> None:
+    """Raise for the first non-finite value of the first ``(field, array)`` holding one (one
+    vectorised test over all of them first: the common case, all finite, costs one pass)."""
+    if not arrays:
+        return
+    joined = arrays[0][1] if len(arrays) == 1 else np.concatenate([a for _, a in arrays])
+    if np.isfinite(joined).all():
+        return
+    for field, arr in arrays:
         bad = np.flatnonzero(~np.isfinite(arr))
-        raise InfoMismatchError(f"LidarInfo.{field}[{int(bad[0])}]", float(arr[bad[0]]),
-                                "finite values")
-    return arr
+        if bad.size:
+            raise InfoMismatchError(f"LidarInfo.{field}[{int(bad[0])}]", float(arr[bad[0]]),
+                                    "finite values")
+
+
+def _is_rigid(transform: np.ndarray[Any, Any]) -> bool:
+    """Whether a finite row-major 4x4 is rigid: orthonormal rotation (to 1e-6), det > 0, last
+    row 0 0 0 1 (to 1e-9): ``np.allclose``'s tests, without its overhead."""
+    matrix = np.asarray(transform, float).reshape(4, 4)
+    rot = matrix[:3, :3]
+    if not ((np.abs(matrix[3] - _LAST_ROW) <= _LAST_ROW_TOL).all()
+            and (np.abs(rot @ rot.T - _EYE3) <= _EYE3_TOL).all()):
+        return False
+    (a, b, c), (d, e, f), (g, h, i) = rot.tolist()
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0
 
 
 def validate_info(info: Any) -> None:
     """Check a LidarInfo for internal consistency.
+
+    Each array is read once (a view of a numpy / ``array.array`` field); the finiteness of all
+    float arrays is tested in one pass. Errors come in the order of :data:`_INFO_ARRAYS`: a
+    length error of a later array is raised after the non-finite values of earlier ones.
 
     Raises:
         InfoMismatchError: an array of the wrong length, a non-finite angle/offset, a transform
@@ -445,40 +486,46 @@ def validate_info(info: Any) -> None:
     """
     height, width = int(info.height), int(info.width)
     to_ns(info.header.stamp, field="LidarInfo.header.stamp")
-    _check_len(info, "vertical_angles", height, False, finite=True)
-    _check_len(info, "horizontal_angles", width, False, finite=True)
-    _check_len(info, "beam_azimuth_offsets", height, True, finite=True)
-    pixel_az = _check_len(info, "pixel_azimuth_angles", height * width, True, finite=True)
-    pixel_alt = _check_len(info, "pixel_altitude_angles", height * width, True, finite=True)
-    if pixel_az.size != pixel_alt.size:
-        raise InfoMismatchError("LidarInfo.pixel_altitude_angles", f"length {pixel_alt.size}",
-                                f"the length of pixel_azimuth_angles ({pixel_az.size})")
-    _check_len(info, "beam_origins", 3 * height, True, finite=True)
-    _check_len(info, "beam_range_offsets", height, True, finite=True)
-    _check_len(info, "pixel_shift_by_row", height, True, np.int32)
-    _check_len(info, "beam_time_offsets", height, True, np.int64)
-    _check_len(info, "beam_ids", height, True, np.uint16)
-    transform = _check_len(info, "lidar_to_sensor_transform", 16, False, finite=True)
-    if np.any(transform):
-        matrix = np.asarray(transform, float).reshape(4, 4)
-        rot = matrix[:3, :3]
-        if not (np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9)
-                and np.allclose(rot @ rot.T, np.eye(3), atol=1e-6)
-                and np.linalg.det(rot) > 0):
-            raise InfoMismatchError("LidarInfo.lidar_to_sensor_transform", matrix.round(6).tolist(),
-                                    "a rigid transform (orthonormal rotation, last row 0 0 0 1), "
-                                    "or all zeros for identity")
+    units = {"h": height, "w": width, "hw": height * width, "": 1}
+    floats: list[tuple[str, np.ndarray[Any, Any]]] = []   # still to be tested for finiteness
+    pixel_az_size = 0
+    arr = np.zeros(0)
+    for field, (unit, per_unit), may_be_empty, dtype in _INFO_ARRAYS:
+        arr = as_array(getattr(info, field), dtype)
+        expected = units[unit] * per_unit
+        if arr.size != expected and not (may_be_empty and arr.size == 0):
+            _require_finite(floats)
+            what = f"{expected}" + (" or 0 (empty)" if may_be_empty else "")
+            raise InfoMismatchError(f"LidarInfo.{field}", f"length {arr.size}",
+                                    f"length {what} for height={info.height}, width={info.width}")
+        if dtype is float and arr.size:
+            floats.append((field, arr.reshape(-1)))
+        if field == "pixel_azimuth_angles":
+            pixel_az_size = arr.size
+        elif field == "pixel_altitude_angles" and arr.size != pixel_az_size:
+            _require_finite(floats)
+            raise InfoMismatchError("LidarInfo.pixel_altitude_angles", f"length {arr.size}",
+                                    f"the length of pixel_azimuth_angles ({pixel_az_size})")
+    _require_finite(floats)
+    transform = arr                                       # the last one of _INFO_ARRAYS
+    if transform.any() and not _is_rigid(transform):
+        raise InfoMismatchError("LidarInfo.lidar_to_sensor_transform",
+                                np.asarray(transform, float).reshape(4, 4).round(6).tolist(),
+                                "a rigid transform (orthonormal rotation, last row 0 0 0 1), "
+                                "or all zeros for identity")
+    scalars = []
     for field in ("range_multiplier", "range_offset", "range_min", "range_max"):
         value = float(getattr(info, field))
-        if not np.isfinite(value):
+        if not math.isfinite(value):
             raise InfoMismatchError(f"LidarInfo.{field}", value, "a finite number")
-    if float(info.range_multiplier) < 0:
-        raise InfoMismatchError("LidarInfo.range_multiplier", float(info.range_multiplier),
+        scalars.append(value)
+    mult, _, range_min, range_max = scalars
+    if mult < 0:
+        raise InfoMismatchError("LidarInfo.range_multiplier", mult,
                                 ">= 0 (0 only when no integer range channel is used)")
-    if float(info.range_min) < 0 or (float(info.range_max) > 0
-                                     and float(info.range_min) > float(info.range_max)):
-        raise InfoMismatchError("LidarInfo.range_min", float(info.range_min),
-                                f"0 <= range_min <= range_max ({float(info.range_max)})")
+    if range_min < 0 or (range_max > 0 and range_min > range_max):
+        raise InfoMismatchError("LidarInfo.range_min", range_min,
+                                f"0 <= range_min <= range_max ({range_max})")
     if int(info.column_time_increment) < 0:
         raise InfoMismatchError("LidarInfo.column_time_increment",
                                 int(info.column_time_increment), ">= 0 ns")

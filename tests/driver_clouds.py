@@ -100,7 +100,7 @@ def driver_cloud(scan: Any, info: Any, kind: str) -> tuple[Any, np.ndarray[Any, 
         (cloud, xyz): the sensor_msgs/PointCloud2 and the (N, 3) float64 decoded points it holds,
         in cloud order (the ground truth of the re-import).
     """
-    from test_pointcloud2 import make_cloud
+    from cloud_oracles import make_cloud
 
     proj = lidarscan.make_projector(info)
     tables = proj.tables_for(scan)

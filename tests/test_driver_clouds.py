@@ -26,7 +26,7 @@ from lidarscan.errors import ConversionError  # noqa: E402
 import driver_clouds as dc  # noqa: E402
 from pcd import read_pcd  # noqa: E402
 from test_hesai import nearest_within  # noqa: E402
-from test_pointcloud2 import make_cloud  # noqa: E402
+from cloud_oracles import make_cloud  # noqa: E402
 
 RECORDINGS = ("velodyne_vlp32", "velodyne_vls128", "hesai_xt32", "hesai_pandar64", "hesai_qt64")
 KEPT, MEDIAN, P99 = 0.98, 0.002, 0.020

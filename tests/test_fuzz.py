@@ -25,6 +25,7 @@ import json
 import math
 import os
 import struct
+import sys
 import tracemalloc
 import warnings
 from pathlib import Path
@@ -38,6 +39,9 @@ from hypothesis import strategies as st
 import lidarscan as ls
 from lidarscan import types as lt
 from lidarscan.errors import DecodeError, LidarScanError
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from fuzz_common import use_scan  # noqa: E402  (bench/fuzz.py's consumer, shared)
 
 H, W = 4, 8
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,15 +81,8 @@ INFO_CDR = ls.encode(INFO)
 
 
 def _use_scan(scan: Any, info: Any = INFO) -> None:
-    """What a consumer does with a scan: validate, then read channels, project, time."""
-    ls.validate(scan)
-    for desc in scan.channels:
-        ls.channel(scan, desc.name)
-    ls.validate(scan, info)
-    ls.range_m(scan, info)
-    projector = ls.make_projector(info)
-    projector.project(scan, info)
-    projector.pixel_times(scan)
+    """What a consumer does with a scan: ``use_scan`` of bench/fuzz_common.py (the long run's)."""
+    use_scan(scan, info)
 
 
 def _only_ours(call: Any, *args: Any) -> bool:

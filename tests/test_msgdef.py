@@ -9,7 +9,7 @@ import pytest
 
 import lidarscan
 from lidarscan import msgdef
-from lidarscan.errors import SchemaError
+from lidarscan.errors import DecodeError, SchemaError
 from lidarscan.msgdef import (
     FieldDef,
     find_msg_text,
@@ -177,6 +177,24 @@ def test_register_msg_text_makes_a_new_type_usable(monkeypatch: pytest.MonkeyPat
     # the same text again keeps the caches
     msgdef.register_msg_text(name, "uint16 a\nuint8 extra\nfloat64[] b\nstring c\n")
     assert lidarscan.types.message_class(name) is cls2
+
+
+def test_bounded_sequences_decode_up_to_their_bound(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``T[<=N]``: a primitive array and a list of strings with N elements decode, N + 1 is a
+    DecodeError naming the field and the bound (not an allocation of the declared count)."""
+    monkeypatch.setattr(msgdef, "_registered", {})
+    name = "test_pkg/msg/Bounded"
+    msgdef.register_msg_text(name, "int32[<=2] a\nstring[<=1] b\n")
+    ok = bytes.fromhex("00010000" "02000000" "0100000002000000" "01000000" "020000007a00")
+    back = lidarscan.decode(ok, name)
+    assert back.a.tolist() == [1, 2] and list(back.b) == ["z"]
+    too_many_a = bytes.fromhex("00010000" "03000000" "010000000200000003000000" "00000000")
+    with pytest.raises(DecodeError, match=r"=3: expected at most 2 elements \(bounded"):
+        lidarscan.decode(too_many_a, name)
+    too_many_b = bytes.fromhex("00010000" "00000000" "02000000" "020000007a00" "0000"
+                               "020000007a00")
+    with pytest.raises(DecodeError, match=r"=2: expected at most 1 elements \(bounded"):
+        lidarscan.decode(too_many_b, name)
 
 
 def test_registering_a_new_type_keeps_other_generated_classes(

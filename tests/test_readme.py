@@ -5,6 +5,9 @@ as its working directory (what it writes stays there) in which ``tests`` links t
 checkout's ``tests/`` (the shipped recordings the README names, ``tests/data/...``). A block
 that cannot run here (e.g. one that needs a live ROS graph) is preceded by the HTML comment
 ``<!-- readme-test: skip REASON -->``; the test then reports that reason as its skip reason.
+
+What the prose names must exist too: every path of this checkout it quotes (```code``` or a
+link) and every ``make`` target.
 """
 
 from __future__ import annotations
@@ -65,3 +68,31 @@ def test_readme_block_runs(line: int, code: str, skip: str | None, tmp_path: Pat
     assert done.returncode == 0, f"README.md:{line}\n{code}\n{done.stdout}\n{done.stderr}"
     assert "Traceback" not in done.stderr, done.stderr
     assert done.stdout.strip(), f"README.md:{line}: the block prints what it made"
+
+
+def named_paths(text: str, top: set[str]) -> list[str]:
+    """Paths the text quotes (`code` or a link target) whose first part is one of ``top``."""
+    quoted = re.findall(r"`([^`\s]+)`", text) + re.findall(r"\]\(([^)#\s]+)", text)
+    return sorted({q for q in quoted if "/" in q and q.split("/")[0] in top})
+
+
+def test_every_path_the_readme_names_exists() -> None:
+    ignored = {line.strip().strip("/") for line in
+               (ROOT / ".gitignore").read_text(encoding="utf-8").splitlines()}
+    top = {p.name for p in ROOT.iterdir()
+           if not p.name.startswith(".") and p.name not in ignored}   # not demo_out/, build/
+    assert named_paths("see `lidarscan/scan.py`, [x](msgs/README.md#a), `demo_out/`, `a/b`",
+                       {"lidarscan", "msgs"}) == ["lidarscan/scan.py", "msgs/README.md"]
+    paths = named_paths(README.read_text(encoding="utf-8"), top)
+    assert len(paths) >= 20
+    missing = [p for p in paths if not list(ROOT.glob(p.rstrip("/")))]
+    assert not missing, f"README.md names paths this checkout does not have: {missing}"
+
+
+def test_every_make_target_the_readme_names_exists() -> None:
+    targets = set(re.findall(r"^([\w-]+):", (ROOT / "Makefile").read_text(encoding="utf-8"),
+                             re.M))
+    named = set(re.findall(r"(?:^|`)make ([a-z][\w-]*)", README.read_text(encoding="utf-8"),
+                           re.M))
+    assert {"demo", "test", "install"} <= named
+    assert named <= targets, f"README.md names make targets the Makefile lacks: {named - targets}"

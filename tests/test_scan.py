@@ -544,6 +544,42 @@ def test_info_non_finite(small_info: Any, field: str, index: int, value: float) 
             f"LidarInfo.{field}[{index}]={value!r}", "finite")
 
 
+@pytest.mark.parametrize(("changes", "needle"), [
+    # a non-finite value before a length error: the earlier field's error comes first
+    ({"vertical_angles": np.array([0.1, np.nan, 0.0, -0.1]), "beam_ids": np.zeros(3, np.uint16)},
+     "LidarInfo.vertical_angles[1]=nan"),
+    ({"beam_origins": np.full(12, np.inf), "beam_time_offsets": np.zeros(2, np.int64)},
+     "LidarInfo.beam_origins[0]=inf"),
+    # ... and a length error before a later non-finite value
+    ({"horizontal_angles": np.zeros(7), "beam_origins": np.full(12, np.nan)},
+     "LidarInfo.horizontal_angles='length 7'"),
+    ({"pixel_azimuth_angles": np.zeros(32), "beam_range_offsets": np.full(4, np.nan)},
+     "LidarInfo.pixel_altitude_angles='length 0'"),
+    # every array fine, a transform both non-finite and not rigid: the finiteness error
+    ({"lidar_to_sensor_transform": np.full(16, np.nan)},
+     "LidarInfo.lidar_to_sensor_transform[0]=nan"),
+])
+def test_info_errors_come_in_field_order(small_info: Any, changes: Any, needle: str) -> None:
+    bad = dataclasses.replace(small_info, **changes)
+    _raises(InfoMismatchError, lambda: lidarscan.validate_info(bad), needle)
+
+
+def test_info_arrays_of_other_shapes_are_read_flat(small_info: Any) -> None:
+    """A dataclass built by hand may hold a 4x4 transform or a (H, 3) origins array."""
+    rot = np.eye(4)
+    rot[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+    good = dataclasses.replace(small_info, lidar_to_sensor_transform=rot,
+                               beam_origins=np.zeros((4, 3)))
+    lidarscan.validate_info(good)
+    origins = np.zeros((4, 3))
+    origins[2, 1] = np.nan
+    _raises(InfoMismatchError,
+            lambda: lidarscan.validate_info(dataclasses.replace(good, beam_origins=origins)),
+            "LidarInfo.beam_origins[7]=nan")
+    _raises(InfoMismatchError, lambda: lidarscan.validate_info(
+        dataclasses.replace(good, lidar_to_sensor_transform=2 * rot)), "rigid")
+
+
 @pytest.mark.parametrize("matrix", [
     np.diag([1.0, 1.0, -1.0, 1.0]),                      # reflection
     np.diag([2.0, 1.0, 1.0, 1.0]),                       # scale
