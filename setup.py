@@ -48,6 +48,8 @@ setup(
     ext_modules=[Extension("converters._kernels._cloudkernel",
                            ["converters/_kernels/_cloudkernel.c"], optional=True),
                  Extension("converters._kernels._slicekernel",
-                           ["converters/_kernels/_slicekernel.c"], optional=True)],
+                           ["converters/_kernels/_slicekernel.c"], optional=True),
+                 Extension("converters._kernels._velokernel",
+                           ["converters/_kernels/_velokernel.c"], optional=True)],
     cmdclass={"build_ext": BuildExt, "build_py": BuildPy},
 )

@@ -114,7 +114,7 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
         return Backends(numba=hesai.kernel() if numba_enabled() else None)
     if task == "velodyne":
         from converters._kernels import velodyne
-        return Backends(numba=velodyne.fill_kernel() if numba_enabled() else None)
+        return Backends(c=velodyne.library())
     if task == "codec":
         from converters._kernels import codec
         return Backends(numba=codec.coder() if numba_enabled() else None)
