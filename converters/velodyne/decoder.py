@@ -114,6 +114,7 @@ class PacketDecoder:
         self._tables: _Tables | None = None              # see _tables()
         self._offsets_key: tuple[Any, ...] | None = None
         self._rotation = np.zeros(0)                    # see _nebula_rotation
+        self._rotations: dict[str, np.ndarray[Any, Any]] = {}   # ... per model name
 
     # -------------------------------------------------------------------------------- public
 
@@ -452,7 +453,9 @@ class PacketDecoder:
         lo, hi = self._range
         calib = self._calib_for(model)
         if self._azimuth_model == "nebula":
-            self._rotation = _nebula_rotation(calib, model.lasers)
+            if model.name not in self._rotations:         # the calibration is fixed
+                self._rotations[model.name] = _nebula_rotation(calib, model.lasers)
+            self._rotation = self._rotations[model.name]
             if model.nebula != "vlp32":      # Nebula's VLP-16 and VLS-128 formulas: no offsets
                 calib = {**calib, "lasers": [
                     {**las, "vert_offset_correction": 0.0, "horiz_offset_correction": 0.0}
@@ -532,7 +535,13 @@ def _rates(times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any]) -> tuple[
         return 0.0, 0.0
     dt = np.diff(times.astype(np.float64))
     da = np.mod(np.diff(azimuth), 36000.0)
-    regular = (dt > 0) & (dt < 1.5 * np.median(dt))   # consecutive firings, not gaps
+    half = dt.size // 2                               # np.median(dt), without its overhead
+    if dt.size % 2:
+        median = float(np.partition(dt, half)[half])
+    else:
+        low, high = np.partition(dt, (half - 1, half))[half - 1:half + 1]
+        median = float((low + high) / 2.0)
+    regular = (dt > 0) & (dt < 1.5 * median)          # consecutive firings, not gaps
     if not np.any(regular):
         return 0.0, 0.0
     period = float(dt[regular].mean())
