@@ -10,7 +10,8 @@
  * of each block), then the angle of every point slot of the packet (32 * block + k) in a
  * contiguous loop over the slots (the compiler vectorises it where the CPU has SSE4.1 / AVX:
  * target clones), then for each firing sequence of the packet and each row the distance and
- * reflectivity of each return slot, written at (row, column) with the slot's angle.
+ * reflectivity of each return slot, written at (row, column) with the slot's angle (through
+ * small column tiles: see vdk_fill).
  *
  * Arithmetic, exactly as the reference (build with -ffp-contract=off, never -ffast-math):
  *   term  = gap * f                      (VLP-16: (gap * f) / 110.592f)    float32
@@ -55,8 +56,10 @@
 
 #if defined(__GNUC__) || defined(__clang__)
 #define VDK_INLINE static inline __attribute__((always_inline))
+#define VDK_PREFETCH(p) __builtin_prefetch(p)
 #else
 #define VDK_INLINE static inline
+#define VDK_PREFETCH(p) ((void)(p))
 #endif
 
 #if defined(__x86_64__) && defined(__ELF__) && defined(__has_attribute)
@@ -101,7 +104,7 @@ VDK_EXPORT int64_t vdk_check(const uint8_t *buf, int64_t n, int64_t stride, int3
         const uint8_t *pkt = buf + p * stride;
         if (p + VDK_AHEAD < n)                  /* a strided walk: help the prefetcher */
             for (int64_t b = 0; b < used; ++b)
-                __builtin_prefetch(pkt + VDK_AHEAD * stride + 100 * b);
+                VDK_PREFETCH(pkt + VDK_AHEAD * stride + 100 * b);
         int bad = (((int32_t)pkt[1205] << 8) | pkt[1204]) != key;
         for (int64_t b = 0; b < used; ++b) {
             const uint8_t *head = pkt + 100 * b;
@@ -169,8 +172,11 @@ VDK_CLONES static void vdk_angles(float base, float gap, int64_t vlp16, const fl
  * family 0 VLP-16, 1 VLP-32C / HDL-32E, 2 VLS-128; n_blocks: the blocks Nebula walks.
  *
  * Layout: the columns are taken in tiles of VDK_TILE; a tile is first gathered column by column
- * into small row-major buffers (in L1), then each of their rows is copied into the views with
- * contiguous stores (the identical-pair rule applied on the way, vectorised).
+ * into small row-major buffers (L1/L2; the distance and reflectivity of a point as one
+ * unaligned 32-bit load, the identical-pair rule applied there), then each of their rows is
+ * copied into the views with contiguous stores; the packets a few ahead are prefetched.
+ * Returns 0, -1 for an unsupported shape (more than VDK_ROWS rows, returns not 1 or 2), -2
+ * when the tile buffers cannot be allocated.
  */
 VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
                             int64_t returns, int64_t seqs, int64_t rows, int64_t width,
@@ -181,7 +187,8 @@ VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, in
 {
     uint16_t angle[VDK_SLOTS] = {0};
     float base[VDK_BLOCKS], gap[VDK_BLOCKS];
-    if (count <= 0 || rows > VDK_ROWS || returns < 1 || returns > 2) return -1;
+    if (rows > VDK_ROWS || returns < 1 || returns > 2) return -1;
+    if (count <= 0) return 0;
     uint16_t (*tr)[VDK_ROWS][VDK_TILE] = malloc(sizeof(uint16_t[2][VDK_ROWS][VDK_TILE]) * 2 +
                                                 sizeof(uint8_t[2][VDK_ROWS][VDK_TILE]));
     if (!tr) return -2;
@@ -198,7 +205,7 @@ VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, in
             const uint8_t *pkt = buf + p * VDK_PACKET;
             if (p != packet && (p + VDK_AHEAD + 1) * VDK_PACKET <= end_byte)
                 for (int64_t b = 0; b < VDK_PACKET; b += 64)  /* the packets ahead */
-                    __builtin_prefetch(pkt + VDK_AHEAD * VDK_PACKET + b);
+                    VDK_PREFETCH(pkt + VDK_AHEAD * VDK_PACKET + b);
             if (a0 && p != packet) {
                 vdk_blocks(pkt, family, dual, n_blocks, base, gap);
                 for (int64_t b = 0; b < n_blocks; ++b)

@@ -96,10 +96,15 @@ def fill(lib: Any, plan: Plan, run: np.ndarray[Any, Any], begin: int, count: int
     r0, i0 = views["range"], views["intensity"]
     width = r0.shape[1]
     a0 = views.get("azimuth")
-    lib.vdk_fill(_address(run), begin, count, column, *plan._args, width, *plan._tables,
-                 _address(r0), _address(i0), _address(views.get("range2")),
-                 _address(views.get("intensity2")), _address(a0),
-                 _address(views.get("azimuth2")))
+    status = lib.vdk_fill(_address(run), begin, count, column, *plan._args, width,
+                          *plan._tables, _address(r0), _address(i0),
+                          _address(views.get("range2")), _address(views.get("intensity2")),
+                          _address(a0), _address(views.get("azimuth2")))
+    if status == -2:
+        raise MemoryError("converters._kernels._velokernel: no memory for a column tile")
+    if status != 0:
+        raise ValueError(f"vdk_fill: unsupported plan (returns {plan.returns}, rows "
+                         f"{plan.rows}): status {status}")
 
 
 def first_bad(lib: Any, rows: np.ndarray[Any, Any], key: int, flags: bytes) -> int:
