@@ -1,8 +1,10 @@
 """Build of the optional compiled kernels; all other metadata lives in pyproject.toml.
 
 ``converters/_kernels/_cloudkernel.c`` speeds up LidarScan -> PointCloud2,
-``converters/_kernels/_slicekernel.c`` LidarScan -> LaserScan slices (the table of backends is
-the header of converters/_kernels/__init__.py). Both are optional: without a C compiler the
+``converters/_kernels/_slicekernel.c`` LidarScan -> LaserScan slices,
+``converters/_kernels/_cloudslicekernel.c`` unstructured PointCloud2 -> slices and
+``converters/_kernels/_velokernel.c`` Velodyne packets -> LidarScan (the table of backends is
+the header of converters/_kernels/__init__.py). All are optional: without a C compiler the
 install still succeeds and the numba / numpy paths are used.
 (A setup.py because ``[tool.setuptools] ext-modules`` needs setuptools >= 74.1.)
 """
@@ -50,6 +52,8 @@ setup(
                  Extension("converters._kernels._slicekernel",
                            ["converters/_kernels/_slicekernel.c"], optional=True),
                  Extension("converters._kernels._cloudslicekernel",
-                           ["converters/_kernels/_cloudslicekernel.c"], optional=True)],
+                           ["converters/_kernels/_cloudslicekernel.c"], optional=True),
+                 Extension("converters._kernels._velokernel",
+                           ["converters/_kernels/_velokernel.c"], optional=True)],
     cmdclass={"build_ext": BuildExt, "build_py": BuildPy},
 )

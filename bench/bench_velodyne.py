@@ -10,9 +10,10 @@ per packet, 18 761 packets per second of sensor time), random returns with 20 % 
 built in memory with numpy (the manual's layout). Candidates: the decoder (LidarScan + LidarInfo
 dataclasses, one per rotation) fed (stamp, bytes) pairs through ``decode_packets``; the batch
 API ``PacketDecoder.push_many`` fed (N, 1206) uint8 arrays of one rotation's packets (what a bag
-reader gives for a VelodyneScan message, zero-copy), with the compiled kernels (numba, extra
-``fast``), with ``LIDARSCAN_NUMBA=0``'s numpy path, and with ``azimuth_model="manual"`` (no
-per-pixel azimuth channel: what the default's Nebula azimuths cost); and a plain per-point
+reader gives for a VelodyneScan message, zero-copy), with the C kernel
+(``converters/_kernels/_velokernel.c``, built by ``pip install``), with ``LIDARSCAN_NO_KERNEL=1``'s
+numpy path, and with ``azimuth_model="manual"`` (no per-pixel azimuth channel: what the
+default's Nebula azimuths cost); and a plain per-point
 Python loop that unpacks each point and computes x, y, z with the manual's formula (measured on
 a slice of the packets in the same run, scaled to the same number of packets).
 """
@@ -98,7 +99,8 @@ def main() -> None:
     packets = make_packets(args.seconds)
     calib = calibration()
     span = args.seconds
-    print(f"VLS-128 dual return, 600 rpm: {len(packets)} packets = {span:.2f} s of data")
+    print(f"VLS-128 dual return, 600 rpm: {len(packets)} packets = {span:.2f} s of data; load "
+          f"average at the start {os.getloadavg()[0]:.1f}")
 
     rows = np.frombuffer(b"".join(p for _, p in packets), np.uint8).reshape(-1, 1206)
     stamps = np.array([s for s, _ in packets], np.int64)
@@ -115,15 +117,15 @@ def main() -> None:
         return count + len(dec.flush())
 
     def numpy_batch() -> int:
-        saved = os.environ.get("LIDARSCAN_NUMBA")
-        os.environ["LIDARSCAN_NUMBA"] = "0"                      # the numpy reference path
+        saved = os.environ.get("LIDARSCAN_NO_KERNEL")
+        os.environ["LIDARSCAN_NO_KERNEL"] = "1"                  # the numpy reference path
         try:
             return batch()
         finally:
             if saved is None:
-                del os.environ["LIDARSCAN_NUMBA"]
+                del os.environ["LIDARSCAN_NO_KERNEL"]
             else:
-                os.environ["LIDARSCAN_NUMBA"] = saved
+                os.environ["LIDARSCAN_NO_KERNEL"] = saved
 
     def loop() -> int:
         return loop_baseline(subset, calib)
@@ -132,7 +134,7 @@ def main() -> None:
     def manual_batch() -> int:
         return batch("manual")
 
-    candidates = {"decode_packets (bytes)": decoder, "push_many (arrays)": batch,
+    candidates = {"decode_packets (bytes)": decoder, "push_many (arrays), C": batch,
                   "push_many, numpy path": numpy_batch, "push_many, manual": manual_batch,
                   "per-point loop": loop}
     wall: dict[str, list[float]] = {name: [] for name in candidates}
@@ -149,9 +151,9 @@ def main() -> None:
             wall[name].append((time.perf_counter() - start) * scale)
             cpu[name].append((time.process_time() - start_cpu) * scale)
     from converters._kernels import select
-    kernel = select("velodyne").numba is not None
-    print(f"{rotations} rotations; kernel: {'numba' if kernel else 'none'}; load average "
-          f"{os.getloadavg()[0]:.1f} (2 cores shared: the CPU times are the figures)")
+    kernel = select("velodyne").c is not None
+    print(f"{rotations} rotations; kernel: {'C' if kernel else 'none (numpy)'}; load average "
+          f"{os.getloadavg()[0]:.1f} at the end (2 cores shared: the CPU times are the figures)")
     loop_cpu = statistics.median(cpu["per-point loop"])
     for name in candidates:
         med, low = statistics.median(wall[name]), min(wall[name])

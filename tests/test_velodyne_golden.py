@@ -8,7 +8,8 @@ with ``make_scan``); a faster decoder must reproduce them exactly. Cases: the re
 VLS-128 recordings of ``tests/data/nebula`` (single return) and synthetic streams of every
 model in every return mode, each with ``azimuth_model`` "nebula" and "manual", through
 ``decode_packets`` (``push_many`` of byte runs), ``push`` one packet at a time and
-``push_many`` in odd-sized batches; and the numpy reference path (``LIDARSCAN_NUMBA=0``).
+``push_many`` in odd-sized batches; with the C kernel (``converters/_kernels/_velokernel.c``,
+when built) and with the numpy reference path (``LIDARSCAN_NO_KERNEL=1``).
 
 Run ``python tests/test_velodyne_golden.py`` to print the digests of the current decoder.
 """
@@ -167,8 +168,47 @@ def test_decoder_output_is_bit_identical_to_the_golden_digest(case: str,
                                   "VLP-16/dual/nebula", "HDL-32E/strongest/manual"])
 def test_numpy_reference_path_is_bit_identical(case: str, tmp_path: Path,
                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "1")
     monkeypatch.setenv("LIDARSCAN_NUMBA", "0")
+    from converters._kernels import select
+    assert select("velodyne").c is None
     assert _compute(case, tmp_path) == [GOLDEN[case]] * 3
+
+
+@pytest.mark.parametrize("enabled", [False, True], ids=["numpy", "C kernel"])
+def test_every_golden_digest_with_the_c_kernel_disabled_and_enabled(
+        enabled: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from converters._kernels import select, velodyne
+    monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "0" if enabled else "1")
+    if enabled and velodyne.library() is None:
+        pytest.skip("converters._kernels._velokernel is not built")
+    assert (select("velodyne").c is not None) == enabled
+    for case in _cases():
+        assert _compute(case, tmp_path) == [GOLDEN[case]] * 3, case
+
+
+@pytest.mark.parametrize("turns", [-0.9, 0.9, 1.2])
+def test_c_kernel_rounds_large_rotations_like_the_reference(
+        turns: float, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """rot_correction of +-0.9 * 1e6 centidegrees (the C kernel's float32 rounding still exact)
+    and beyond its limit (1.2e6: the decoder takes the numpy path): the same bytes as numpy."""
+    from converters._kernels import velodyne
+    from test_velodyne_packets import synthetic_stream
+    if velodyne.library() is None:
+        pytest.skip("converters._kernels._velokernel is not built")
+    packets, calib = _synthetic("VLS-128", "dual")
+    rng = np.random.default_rng(7)
+    limit = velodyne.MAX_ROTATION / 100.0 * np.pi / 180.0           # radians
+    for las in calib["lasers"]:
+        las["rot_correction"] = float(turns * limit * rng.uniform(0.9, 1.0))
+    packets = packets[:300] + synthetic_stream(0xA1, 0x39, 200, seed=9, deg_per_sequence=37.0)
+    dec = PacketDecoder(calib, as_dataclass=True)
+    got = [r for s, d in packets for r in dec.push(s, d)] + dec.flush()
+    assert len(got) >= 3 and dec._tables is not None
+    assert (dec._tables.plan is not None) == (abs(turns) < 1.0)     # the kernel, or numpy
+    kernel = digest(got)
+    monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "1")
+    assert digest(list(decode_packets(packets, calib, as_dataclass=True))) == kernel
 
 
 if __name__ == "__main__":

@@ -700,17 +700,61 @@ def test_push_many_errors_and_the_numpy_path(monkeypatch: pytest.MonkeyPatch) ->
             PacketDecoder(calib).push_many(stamps[: len(wrong)], wrong)
     with pytest.raises(DecodeError, match="stamps_ns"):
         PacketDecoder(calib).push_many(stamps[:5].astype(float), rows[:5])
-    # the numpy reference path (LIDARSCAN_NUMBA=0) gives the same bytes as the kernel
-    monkeypatch.setenv("LIDARSCAN_NUMBA", "0")
+    # the numpy reference path (LIDARSCAN_NO_KERNEL=1) gives the same bytes as the kernel
+    monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "1")
     _same_scans(clean, list(decode_packets(packets, calib, as_dataclass=True)))
     for name in ("VLP-16", "VLS-128"):
         product = PRODUCTS[name]
         stream = synthetic_stream(product, 0x39, 120, deg_per_sequence=2.0)
         cal = _random_calibration(MODELS[product].lasers, 13)
         numpy_path = list(decode_packets(stream, cal, as_dataclass=True))
-        monkeypatch.setenv("LIDARSCAN_NUMBA", "1")
+        monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "0")
         _same_scans(numpy_path, list(decode_packets(stream, cal, as_dataclass=True)))
-        monkeypatch.setenv("LIDARSCAN_NUMBA", "0")
+        monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "1")
+
+
+@pytest.mark.parametrize("name", sorted(PRODUCTS))
+def test_c_header_check_finds_the_first_packet_the_numpy_checks_reject(name: str) -> None:
+    """converters._kernels.velodyne.first_bad (one C pass) against PacketDecoder._good_rows
+    (the numpy checks that build the errors): one defect at a time, in a random row."""
+    from converters._kernels import velodyne as kernel
+    lib = kernel.library()
+    if lib is None:
+        pytest.skip("converters._kernels._velokernel is not built")
+    product = PRODUCTS[name]
+    rng = np.random.default_rng(product)
+    for mode in sorted(MODES.values()):
+        layout = velodyne._layout(product, mode)
+        rows = np.frombuffer(b"".join(d for _, d in synthetic_stream(product, mode, 40)),
+                             np.uint8).reshape(-1, 1206).copy()
+        decoder = PacketDecoder(_random_calibration(MODELS[product].lasers, 3))
+        key = product << 8 | mode
+        assert kernel.first_bad(lib, rows, key, layout.flags) == rows.shape[0]
+        used = len(layout.flags)
+        for trial in range(40):
+            bad = rows.copy()
+            row = int(rng.integers(0, bad.shape[0]))
+            block = int(rng.integers(0, used))
+            kind = trial % 5
+            if kind == 0:
+                bad[row, 100 * block] ^= 1 << int(rng.integers(0, 8))   # flag, first byte
+            elif kind == 1:
+                bad[row, 100 * block + 1] ^= 1 << int(rng.integers(0, 8))   # flag, second
+            elif kind == 2:
+                value = int(rng.integers(36000, 65536))                 # azimuth
+                bad[row, 100 * block + 2:100 * block + 4] = (value & 0xFF, value >> 8)
+            elif kind == 3:
+                bad[row, 1204] = 0x37 if mode != 0x37 else 0x38        # another mode
+            else:
+                bad[row, 100 * (used + int(rng.integers(0, 12 - used))) if used < 12
+                    else 1200] ^= 0xFF                                  # unchecked bytes
+            keys = (bad[:, 1205].astype(np.int64) << 8) | bad[:, 1204]
+            good = decoder._good_rows(bad, keys) & (keys == key)
+            expect = int(np.argmin(good)) if not good.all() else bad.shape[0]
+            assert kernel.first_bad(lib, bad, key, layout.flags) == expect, (mode, trial)
+            strided = np.zeros((bad.shape[0], 1300), np.uint8)
+            strided[:, :1206] = bad
+            assert kernel.first_bad(lib, strided[:, :1206], key, layout.flags) == expect
 
 
 def test_vls128_edges_favour_the_manual_firing_times() -> None:

@@ -11,6 +11,9 @@ backend     where                           needs                    used by
 C cloud     ``_cloudkernel.c`` via          a C compiler at          LidarScan -> PointCloud2
             :mod:`.cloud` (ctypes)          ``pip install``          (x, y, z, validity, one
                                                                      channel field)
+C velodyne  ``_velokernel.c`` via           a C compiler at          Velodyne packets -> channel
+            :mod:`.velodyne` (ctypes)       ``pip install``          views and header checks
+                                                                     (converters.velodyne)
 C slices    ``_slicekernel.c`` via          a C compiler at          slices, row-ordered case
             :mod:`.slices` (ctypes)         ``pip install``;         (full circle at the column
                                             AVX-512 to be chosen     resolution, upright mount)
@@ -26,8 +29,6 @@ numba       :mod:`.slices_numba`            ``pip install numba``    slices (row
                                                                      kernels) and the merger
 numba       :mod:`.hesai`                   ``pip install numba``    Hesai packets -> grids
                                             (extra ``fast``)         (converters.hesai)
-numba       :mod:`.velodyne`                ``pip install numba``    Velodyne packets -> grids
-                                            (extra ``fast``)         (converters.velodyne)
 numba       :mod:`.codec`                   ``pip install numba``    residual coding of
                                             (extra ``fast``)         lidarscan.codec (passed as
                                                                      its ``coder=``)
@@ -35,7 +36,8 @@ numpy       the converters themselves       --                       everything 
 ==========  ==============================  =======================  ============================
 
 Switches, read here and nowhere else (at the first use of a backend in the process):
-``LIDARSCAN_NO_KERNEL`` set to anything but "" / "0" disables the C kernels;
+``LIDARSCAN_NO_KERNEL`` set to anything but "" / "0" disables the C kernels (the Velodyne one
+is re-checked at each ``select``, the others at their first use);
 ``LIDARSCAN_NUMBA=0`` disables numba. Per object, ``kernel=`` (PointCloud2: None = when built,
 False = numpy, True = required) and ``backend=`` (slices and merger: ``"auto"``, ``"numba"``,
 ``"numpy"``) choose among what is enabled.
@@ -78,7 +80,8 @@ class Backends:
     Attributes:
         c: the C kernel's entry points (:class:`.cloud.Kernels` for "cloud"; True for
             "slices", whose plans bind :func:`.slices.library` themselves; ``lcs_slices`` of
-            :mod:`.cloud_slices` for "cloud_slices"), or None.
+            :mod:`.cloud_slices` for "cloud_slices"; the ctypes library of :mod:`.velodyne` for
+            "velodyne"), or None.
         numba: the compiled numba kernels (:func:`.slices_numba.kernels`), or None.
     """
 
@@ -91,8 +94,9 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
 
     Args:
         task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"``, ``"merger"`` or
-            ``"cloud_slices"`` (chosen by ``backend``), ``"hesai"`` / ``"velodyne"`` (packet
-            decoding: numba when enabled), ``"codec"`` (the :class:`lidarscan.codec.ResidualCoder`
+            ``"cloud_slices"`` (chosen by ``backend``), ``"hesai"`` (packet decoding: numba
+            when enabled), ``"velodyne"`` (packet decoding: the C kernel, ``c``, when built and
+            enabled), ``"codec"`` (the :class:`lidarscan.codec.ResidualCoder`
             to pass to ``compress_scan`` / ``decompress_scan``: numba when enabled).
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy; cloud slices: the C kernel, else
@@ -118,7 +122,7 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
         return Backends(numba=hesai.kernel() if numba_enabled() else None)
     if task == "velodyne":
         from converters._kernels import velodyne
-        return Backends(numba=velodyne.fill_kernel() if numba_enabled() else None)
+        return Backends(c=velodyne.library())
     if task == "codec":
         from converters._kernels import codec
         return Backends(numba=codec.coder() if numba_enabled() else None)

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from converters._kernels import select
 from converters._packets import payload_bytes
 from converters.velodyne.calibration import info_from_calibration, load_calibration
 from converters.velodyne.packets import (
@@ -26,6 +27,7 @@ from converters.velodyne.packets import (
     _flag_names,
     _flags,
     _Layout,
+    _Tables,
     _layout,
     _nebula_rotation,
     _tables,
@@ -109,9 +111,10 @@ class PacketDecoder:
         self._period = 0.0                              # ns, mean column period of the version
         self._order = np.zeros(0, np.int64)             # laser id of each row
         self._last_info_stamp: int | None = None
-        self._tables: tuple[np.ndarray[Any, Any], ...] = ()   # see _tables()
+        self._tables: _Tables | None = None              # see _tables()
         self._offsets_key: tuple[Any, ...] | None = None
         self._rotation = np.zeros(0)                    # see _nebula_rotation
+        self._rotations: dict[str, np.ndarray[Any, Any]] = {}   # ... per model name
 
     # -------------------------------------------------------------------------------- public
 
@@ -187,8 +190,16 @@ class PacketDecoder:
         n = rows.shape[0]
         if n == 0:
             return []
-        keys = (rows[:, 1205].astype(np.int64) << 8) | rows[:, 1204]
-        good = self._good_rows(rows, keys)
+        out: list[tuple[Any, Any]] = []
+        key = self._uniform_key(rows)
+        if key is not None:                           # one model and mode, every packet valid
+            if key != self._key:
+                out.extend(self.flush())
+                self._key, self._layout = key, self._check_key(key)
+            out.extend(self._push_rows(stamps, rows))
+            n = 0                                     # (nothing left for the general path)
+        keys = (rows[:n, 1205].astype(np.int64) << 8) | rows[:n, 1204]
+        good = self._good_rows(rows, keys) if n else np.ones(0, bool)
         if not good.all():
             bad = np.flatnonzero(~good)
             if errors is None:
@@ -196,9 +207,8 @@ class PacketDecoder:
                 raise DecodeError(f"payloads[{int(bad[0])}]: {err.field}", err.value,
                                   err.expected) from err
             errors.extend((int(i), self._row_error(rows[i])) for i in bad.tolist())
-        out: list[tuple[Any, Any]] = []
         starts = np.flatnonzero((keys[1:] != keys[:-1]) | (good[1:] != good[:-1])) + 1
-        bounds = [0, *starts.tolist(), n]
+        bounds = [0, *starts.tolist(), n] if n else []
         for i, j in itertools.pairwise(bounds):
             if not good[i]:
                 continue
@@ -233,6 +243,24 @@ class PacketDecoder:
                 raise DecodeError("packet.blocks[*].azimuth", worst,
                                   "0..35999 (hundredths of a degree)")
         return key, layout
+
+    def _uniform_key(self, rows: np.ndarray[Any, Any]) -> tuple[int, int] | None:
+        """The (product, mode) of rows (N >= 1, 1206) when the C kernel finds every packet
+        valid and of the same model and mode in one pass; else None (also without the kernel:
+        then :meth:`_good_rows` judges, and it alone builds the exact errors)."""
+        lib = select("velodyne").c
+        if lib is None or rows.strides[1] != 1:
+            return None
+        from converters._kernels.velodyne import first_bad
+        key = (int(rows[0, 1205]), int(rows[0, 1204]))
+        try:
+            layout = self._layout if key == self._key else self._check_key(key)
+        except DecodeError:
+            return None
+        assert layout is not None
+        if first_bad(lib, rows, key[0] << 8 | key[1], layout.flags) != rows.shape[0]:
+            return None
+        return key
 
     def _row_error(self, row: np.ndarray[Any, Any]) -> DecodeError:
         try:
@@ -394,14 +422,16 @@ class PacketDecoder:
         if self._offsets_key != (layout.model.name, layout.dual):
             self._tables = _tables(layout, self._order, self._rotation if nebula else None)
             self._offsets_key = (layout.model.name, layout.dual)
-        returns = self._tables[0].shape[0]
+        tables = self._tables
+        assert tables is not None
+        returns = tables.offsets.shape[0]
         specs = {"range": np.uint16, "intensity": np.uint8}
         if returns == 2:
             specs.update(range2=np.uint16, intensity2=np.uint8)
         if nebula:
             specs.update(azimuth=np.uint16, **({"azimuth2": np.uint16} if returns == 2 else {}))
         buffer = ScanBuffer(info, specs, as_dataclass=self._as_dataclass)
-        _fill_views(runs, begin, count, layout, self._tables, buffer.views)
+        _fill_views(runs, begin, count, layout, tables, buffer.views)
         stamp = int(times[0])
         column_azimuth = -np.deg2rad(np.mod(azimuth, 36000.0) / 100.0)
         scan = buffer.build(stamp, column_azimuth_angles=column_azimuth,
@@ -423,7 +453,9 @@ class PacketDecoder:
         lo, hi = self._range
         calib = self._calib_for(model)
         if self._azimuth_model == "nebula":
-            self._rotation = _nebula_rotation(calib, model.lasers)
+            if model.name not in self._rotations:         # the calibration is fixed
+                self._rotations[model.name] = _nebula_rotation(calib, model.lasers)
+            self._rotation = self._rotations[model.name]
             if model.nebula != "vlp32":      # Nebula's VLP-16 and VLS-128 formulas: no offsets
                 calib = {**calib, "lasers": [
                     {**las, "vert_offset_correction": 0.0, "horiz_offset_correction": 0.0}
@@ -503,7 +535,13 @@ def _rates(times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any]) -> tuple[
         return 0.0, 0.0
     dt = np.diff(times.astype(np.float64))
     da = np.mod(np.diff(azimuth), 36000.0)
-    regular = (dt > 0) & (dt < 1.5 * np.median(dt))   # consecutive firings, not gaps
+    half = dt.size // 2                               # np.median(dt), without its overhead
+    if dt.size % 2:
+        median = float(np.partition(dt, half)[half])
+    else:
+        low, high = np.partition(dt, (half - 1, half))[half - 1:half + 1]
+        median = float((low + high) / 2.0)
+    regular = (dt > 0) & (dt < 1.5 * median)          # consecutive firings, not gaps
     if not np.any(regular):
         return 0.0, 0.0
     period = float(dt[regular].mean())

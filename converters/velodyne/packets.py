@@ -251,44 +251,68 @@ def _offsets(layout: _Layout, order: np.ndarray[Any, Any]) -> np.ndarray[Any, An
     return np.ascontiguousarray(100 * (point // 32) + 4 + 3 * (point % 32), dtype=np.int64)
 
 
+@dataclass(frozen=True)
+class _Tables:
+    """Per-layout tables of one row order (built once per info version).
+
+    Attributes:
+        offsets: (R, S, H) int64 byte offset of the distance of return slot r (0 = the
+            strongest/only slot), sequence s, row h (:func:`_offsets`).
+        rotation: (L,) float64 rot_correction of each laser (:func:`_nebula_rotation`), zeros
+            without an azimuth channel.
+        plan: the C kernel's arguments (``converters._kernels.velodyne.Plan``), or None (no
+            kernel: the numpy references).
+    """
+
+    offsets: np.ndarray[Any, Any]
+    rotation: np.ndarray[Any, Any]
+    plan: Any = None
+
+
 def _tables(layout: _Layout, order: np.ndarray[Any, Any], rotation: np.ndarray[Any, Any] | None
-            ) -> tuple[np.ndarray[Any, Any], ...]:
-    """Per-pixel tables of one layout and row order, each (R, S, H) (return slot, sequence,
-    row): the byte offset of the distance (:func:`_offsets`), and for the azimuth channel
-    (``rotation`` from :func:`_nebula_rotation`; None: no azimuth channel) the point's block,
-    its float32 firing factor (see ``converters._kernels.velodyne._fill``) and its laser's
-    rotation (float64, 0.01 deg); then ``rotation`` itself ((L,), zeros when None)."""
+            ) -> _Tables:
+    """The tables of one layout and row order; ``rotation`` from :func:`_nebula_rotation`, or
+    None: no azimuth channel. The kernel's plan is made when
+    :func:`converters._kernels.select` gives the C kernel (and it can take the rotations)."""
+    from converters._kernels import select
+
     offsets = _offsets(layout, order)
-    blocks = offsets // 100
-    k = (offsets % 100 - 4) // 3
-    laser = _nebula_lasers(layout)[blocks, k]
-    family = layout.model.nebula
-    if family == "vlp16":
-        factors = (k % 16).astype(_F32) * _F32(2.304) + (k // 16).astype(_F32) * _F32(55.296)
-    elif family == "vlp32":
-        factors = k.astype(_F32)
-    else:
-        group = laser // 8
-        factors = (_F32(2.665) / _F32(53.3)) * (group + group // 8).astype(_F32)
+    nebula = rotation is not None
     if rotation is None:
         rotation = np.zeros(layout.model.lasers)
-    return (offsets, blocks, np.ascontiguousarray(factors, _F32),
-            np.ascontiguousarray(rotation[laser], np.float64), rotation)
+    if select("velodyne").c is None:
+        return _Tables(offsets, rotation)
+    from converters._kernels.velodyne import Plan
+
+    laser = _nebula_lasers(layout)                            # (12, 32) laser of each slot
+    k = np.broadcast_to(np.arange(32), laser.shape)
+    family = layout.model.nebula
+    if family == "vlp16":
+        factor = (k % 16).astype(_F32) * _F32(2.304) + (k // 16).astype(_F32) * _F32(55.296)
+    elif family == "vlp32":
+        factor = k.astype(_F32)
+    else:
+        group = laser // 8
+        factor = (_F32(2.665) / _F32(53.3)) * (group + group // 8).astype(_F32)
+    plan = Plan(offsets, factor, rotation[laser], ("vlp16", "vlp32", "vls128").index(family),
+                layout.dual, 8 if family == "vls128" and layout.dual else _BLOCKS)
+    return _Tables(offsets, rotation, plan if plan.angles_ok or not nebula else None)
 
 
 def _fill_views(runs: list[np.ndarray[Any, Any]], begin: int, count: int, layout: _Layout,
-                tables: tuple[np.ndarray[Any, Any], ...], views: Mapping[str, Any]) -> None:
+                tables: _Tables, views: Mapping[str, Any]) -> None:
     """Sequences begin..begin+count-1 of the packet runs into columns 0..count-1 of a
     ScanBuffer's views (``range``, ``intensity``, [``range2``, ``intensity2``], [``azimuth``,
-    [``azimuth2``]]), by the compiled kernel when there is one, else by the numpy reference
-    (:func:`_fill_numpy`); identical results."""
-    from converters._kernels import select
-
-    kernel = select("velodyne").numba
-    offsets, blocks, factors, rotation, _ = tables
+    [``azimuth2``]]), by the C kernel when ``tables`` has its plan, else by the numpy
+    references (:func:`_fill_numpy`, :func:`_azimuths_numpy`); identical results."""
+    lib = None
+    if tables.plan is not None:
+        from converters._kernels import select
+        from converters._kernels.velodyne import fill
+        lib = select("velodyne").c
+    offsets = tables.offsets
     nebula = "azimuth" in views
     seqs = layout.sequences
-    family = ("vlp16", "vlp32", "vls128").index(layout.model.nebula)
     r0, i0 = views["range"], views["intensity"]
     r1, i1 = views.get("range2", r0), views.get("intensity2", i0)
     a0 = views.get("azimuth", r0)
@@ -298,9 +322,8 @@ def _fill_views(runs: list[np.ndarray[Any, Any]], begin: int, count: int, layout
         have = run.shape[0] * seqs - first
         if have > 0 and column < count:
             take = min(have, count - column)
-            if kernel is not None:
-                kernel(run, first, take, column, offsets, blocks, factors, rotation, family,
-                       layout.dual, nebula, r0, i0, r1, i1, a0, a1)
+            if lib is not None:
+                fill(lib, tables.plan, np.ascontiguousarray(run), first, take, column, views)
             else:
                 _fill_numpy(run, first, take, offsets,
                             [(g[:, column:], h[:, column:]) for g, h in ((r0, i0), (r1, i1))])
@@ -309,7 +332,7 @@ def _fill_views(runs: list[np.ndarray[Any, Any]], begin: int, count: int, layout
                                     [a[:, column:] for a in (a0, a1)[:offsets.shape[0]]])
             column += take
         first = max(0, -have)
-    if kernel is None and nebula and "azimuth2" in views:
+    if lib is None and nebula and "azimuth2" in views:
         same = r0 == r1                # Nebula emits an identical pair once, at the last's angle
         a0[same] = a1[same]
 
@@ -332,13 +355,12 @@ def _fill_numpy(buf: np.ndarray[Any, Any], begin: int, count: int, offsets: np.n
 
 
 def _azimuths_numpy(buf: np.ndarray[Any, Any], begin: int, count: int, layout: _Layout,
-                    tables: tuple[np.ndarray[Any, Any], ...],
-                    out: list[np.ndarray[Any, Any]]) -> None:
+                    tables: _Tables, out: list[np.ndarray[Any, Any]]) -> None:
     """Reference: the ``azimuth`` channel(s) of sequences begin..begin+count-1 of buf (Nebula's
     angle of each pixel, :func:`_nebula_azimuths`, counter-clockwise 0.01 deg) into columns
     0..count-1 of each return slot's (H, W) uint16 view in ``out`` (identical pairs: see
     :func:`_fill_views`)."""
-    offsets, rotation = tables[0], tables[-1]
+    offsets, rotation = tables.offsets, tables.rotation
     seqs = layout.sequences
     slots = offsets // 100 * 32 + (offsets % 100 - 4) // 3              # (R, S, H)
     p0, p1 = begin // seqs, (begin + count - 1) // seqs + 1

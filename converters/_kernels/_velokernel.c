@@ -1,0 +1,277 @@
+/*
+ * Optional compiled kernel of converters.velodyne: packet bytes -> a rotation's channel views,
+ * and the per-packet header checks, in one pass over the packets each.
+ *
+ * vdk_fill writes what the numpy reference of converters/velodyne/packets.py computes in several
+ * passes (_fill_numpy: the range / intensity grids; _azimuths_numpy and _nebula_azimuths: the
+ * per-pixel `azimuth` channel, Nebula's angle) straight into the channel views of a
+ * lidarscan.scan.ScanBuffer, with the same integer results (tests/test_velodyne_golden.py
+ * compares the digests of both paths). Per packet: Nebula's block walk (base azimuth and gap
+ * of each block), then the angle of every point slot of the packet (32 * block + k) in a
+ * contiguous loop over the slots (the compiler vectorises it where the CPU has SSE4.1 / AVX:
+ * target clones), then for each firing sequence of the packet and each row the distance and
+ * reflectivity of each return slot, written at (row, column) with the slot's angle (through
+ * small column tiles: see vdk_fill).
+ *
+ * Arithmetic, exactly as the reference (build with -ffp-contract=off, never -ffast-math):
+ *   term  = gap * f                      (VLP-16: (gap * f) / 110.592f)    float32
+ *   value = (double)(float)(base + term) - rotation                        float64
+ *   value = (double)(float)value; if value < 0: value = (double)(float)(value + 36000.0)
+ *   cw    = (int64)floor(value + 0.5) & 0xFFFF, minus 36000 once if >= 36000
+ *   angle = cw ? 36000 - cw : 0                                 (counter-clockwise 0.01 deg)
+ * The caller guarantees |rotation| < VDK_MAX_ROTATION = 1e6 (Python: MAX_ROTATION), so that
+ * every value after the subtraction is below 2^22 in magnitude (base < 65536, |term| < 2^17)
+ * and the steps after it are exact in float32 (vdk_angles).
+ *
+ * The Python module part is empty: converters/_kernels/velodyne.py loads this shared object
+ * with ctypes (which releases the GIL during the calls).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* Bump with any change of a function's signature or semantics. */
+#define VDK_ABI 1
+
+#define VDK_PACKET 1206
+#define VDK_BLOCKS 12
+#define VDK_SLOTS (VDK_BLOCKS * 32)
+#ifndef VDK_TILE
+#define VDK_TILE 32 /* columns per tile */
+#endif
+#define VDK_ROWS 128 /* most rows (lasers) */
+#define VDK_AHEAD 4 /* packets prefetched ahead */
+/* bytes of n elements: a constant for a whole tile (an inlined copy) */
+#define VDK_BYTES(n, type) ((n) == VDK_TILE ? VDK_TILE * sizeof(type) : (size_t)(n) * sizeof(type))
+
+#if defined(_WIN32)
+#define VDK_EXPORT __declspec(dllexport)
+#else
+#define VDK_EXPORT __attribute__((visibility("default")))
+#endif
+
+#if defined(__GNUC__) || defined(__clang__)
+#define VDK_INLINE static inline __attribute__((always_inline))
+#define VDK_PREFETCH(p) __builtin_prefetch(p)
+#else
+#define VDK_INLINE static inline
+#define VDK_PREFETCH(p) ((void)(p))
+#endif
+
+#if defined(__x86_64__) && defined(__ELF__) && defined(__has_attribute)
+#if __has_attribute(target_clones) && ((defined(__clang__) && __clang_major__ >= 14) || \
+                                       (!defined(__clang__) && __GNUC__ >= 8))
+#define VDK_CLONES __attribute__((target_clones("avx", "sse4.1", "default")))
+#endif
+#endif
+#ifndef VDK_CLONES
+#define VDK_CLONES
+#endif
+
+VDK_EXPORT int32_t vdk_abi(void) { return VDK_ABI; }
+
+/* Little-endian u16 at byte o of a packet. */
+VDK_INLINE int64_t vdk_u16(const uint8_t *pkt, int64_t o)
+{
+    return (int64_t)pkt[o] | ((int64_t)pkt[o + 1] << 8);
+}
+
+/* Little-endian u32 at p (unaligned). */
+VDK_INLINE uint32_t vdk_u32(const uint8_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_BIG_ENDIAN__
+    v = __builtin_bswap32(v);
+#endif
+    return v;
+}
+
+/*
+ * The first of n packets (rows of `stride` bytes) that push() would reject under one layout, or
+ * whose factory bytes differ from `key` (product << 8 | return mode); n when every packet passes.
+ * A packet passes when each of its first `used` blocks has the flag 0xFF, flags[b] and an azimuth
+ * below 36000.
+ */
+VDK_EXPORT int64_t vdk_check(const uint8_t *buf, int64_t n, int64_t stride, int32_t key,
+                             const uint8_t *flags, int64_t used)
+{
+    for (int64_t p = 0; p < n; ++p) {
+        const uint8_t *pkt = buf + p * stride;
+        if (p + VDK_AHEAD < n)                  /* a strided walk: help the prefetcher */
+            for (int64_t b = 0; b < used; ++b)
+                VDK_PREFETCH(pkt + VDK_AHEAD * stride + 100 * b);
+        int bad = (((int32_t)pkt[1205] << 8) | pkt[1204]) != key;
+        for (int64_t b = 0; b < used; ++b) {
+            const uint8_t *head = pkt + 100 * b;
+            bad |= (head[0] != 0xFF) | (head[1] != flags[b]) | (vdk_u16(head, 2) >= 36000);
+        }
+        if (bad) return p;
+    }
+    return n;
+}
+
+/* Nebula's block walk of one packet: the float32 base azimuth and gap of its first n_blocks
+ * blocks (see _nebula_azimuths in converters/velodyne/packets.py). */
+VDK_INLINE void vdk_blocks(const uint8_t *pkt, int64_t family, int64_t dual, int64_t n_blocks,
+                           float *base, float *gap)
+{
+    const int64_t step = dual ? 2 : 1;
+    const int64_t zero = VDK_BLOCKS - (family == 0 ? 1 : 4) * (dual ? 1 : 0) - 1;
+    int64_t ahead = 0;
+    float last = 0.0f;
+    for (int64_t i = 0; i < n_blocks; ++i) {
+        const int64_t raw = i == 0 ? vdk_u16(pkt, 2) : ahead;
+        float g;
+        if (i < VDK_BLOCKS - step) {
+            ahead = vdk_u16(pkt, 100 * (i + step) + 2);
+            const int64_t diff = 36000 + ahead - raw;
+            const int64_t mod = llabs(diff) % 36000;              /* C's %: sign of diff */
+            last = (float)(diff >= 0 ? mod : -mod);
+            g = last;
+        } else {
+            g = i == zero ? 0.0f : last;
+        }
+        base[i] = (float)raw;
+        gap[i] = family == 1 ? g * (float)2.304 / (float)55.296 : g;
+    }
+}
+
+/* The counter-clockwise angle (0.01 deg) of the 32 slots of one block. After the float64
+ * subtraction every value is a float32 below 2^22 in magnitude (|rotation| < VDK_MAX_ROTATION),
+ * so the reference's float64 steps (the wrap's (float)(value + 36000.0), value + 0.5, floor)
+ * are exact in float32 and give the same integers. */
+VDK_CLONES static void vdk_angles(float base, float gap, int64_t vlp16, const float *factor,
+                                  const double *rotation, uint16_t *out)
+{
+    const float scale = (float)110.592;
+    for (int k = 0; k < 32; ++k) {
+        const float term = vlp16 ? (gap * factor[k]) / scale : gap * factor[k];
+        float value = (float)((double)(base + term) - rotation[k]);
+        value = value < 0.0f ? value + 36000.0f : value;
+        int32_t cw = (int32_t)floorf(value + 0.5f) & 0xFFFF;
+        cw = cw >= 36000 ? cw - 36000 : cw;
+        out[k] = (uint16_t)(cw ? 36000 - cw : 0);
+    }
+}
+
+/*
+ * Decode `count` firing sequences, from sequence `begin` of the packets `buf` ((n, 1206) uint8,
+ * sequence q = sequence q % S of packet q / S), into columns column .. column + count - 1 of
+ * the (H, width) channel views r0 / i0 (uint16 range, uint8 intensity of return slot 0, the
+ * strongest or only), r1 / i1 (slot 1, the last return; unused when returns == 1) and, unless
+ * a0 is NULL, the uint16 angle views a0 / a1 (a1 unused when returns == 1).
+ *
+ * offsets: (R, S, H) byte offset in a packet of the distance (reflectivity at + 2) of return
+ * slot r, sequence s, row h; slots: (R, S, H) its point slot 32 * block + k; factor (384) float32
+ * firing factor and rotation (384) float64 rot_correction (0.01 deg) of each slot's laser;
+ * family 0 VLP-16, 1 VLP-32C / HDL-32E, 2 VLS-128; n_blocks: the blocks Nebula walks.
+ *
+ * Layout: the columns are taken in tiles of VDK_TILE; a tile is first gathered column by column
+ * into small row-major buffers (L1/L2; the distance and reflectivity of a point as one
+ * unaligned 32-bit load, the identical-pair rule applied there), then each of their rows is
+ * copied into the views with contiguous stores; the packets a few ahead are prefetched.
+ * Returns 0, -1 for an unsupported shape (more than VDK_ROWS rows, returns not 1 or 2), -2
+ * when the tile buffers cannot be allocated.
+ */
+VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
+                            int64_t returns, int64_t seqs, int64_t rows, int64_t width,
+                            const int32_t *offsets, const int16_t *slots, const float *factor,
+                            const double *rotation, int64_t family, int64_t dual,
+                            int64_t n_blocks, uint16_t *r0, uint8_t *i0, uint16_t *r1,
+                            uint8_t *i1, uint16_t *a0, uint16_t *a1)
+{
+    uint16_t angle[VDK_SLOTS] = {0};
+    float base[VDK_BLOCKS], gap[VDK_BLOCKS];
+    if (rows > VDK_ROWS || returns < 1 || returns > 2) return -1;
+    if (count <= 0) return 0;
+    uint16_t (*tr)[VDK_ROWS][VDK_TILE] = malloc(sizeof(uint16_t[2][VDK_ROWS][VDK_TILE]) * 2 +
+                                                sizeof(uint8_t[2][VDK_ROWS][VDK_TILE]));
+    if (!tr) return -2;
+    uint16_t (*ta)[VDK_ROWS][VDK_TILE] = tr + 2;
+    uint8_t (*ti)[VDK_ROWS][VDK_TILE] = (uint8_t (*)[VDK_ROWS][VDK_TILE])(ta + 2);
+    uint16_t *const rv[2] = {r0, r1}, *const av[2] = {a0, a1};
+    uint8_t *const iv[2] = {i0, i1};
+    int64_t packet = -1;
+    const int64_t end_byte = ((begin + count - 1) / seqs + 1) * VDK_PACKET;
+    for (int64_t c0 = 0; c0 < count; c0 += VDK_TILE) {
+        const int64_t n = count - c0 < VDK_TILE ? count - c0 : VDK_TILE;
+        for (int64_t j = 0; j < n; ++j) {                     /* gather the tile's columns */
+            const int64_t q = begin + c0 + j, p = q / seqs, s = q % seqs;
+            const uint8_t *pkt = buf + p * VDK_PACKET;
+            if (p != packet && (p + VDK_AHEAD + 1) * VDK_PACKET <= end_byte)
+                for (int64_t b = 0; b < VDK_PACKET; b += 64)  /* the packets ahead */
+                    VDK_PREFETCH(pkt + VDK_AHEAD * VDK_PACKET + b);
+            if (a0 && p != packet) {
+                vdk_blocks(pkt, family, dual, n_blocks, base, gap);
+                for (int64_t b = 0; b < n_blocks; ++b)
+                    vdk_angles(base[b], gap[b], family == 0, factor + 32 * b,
+                               rotation + 32 * b, angle + 32 * b);
+            }
+            packet = p;
+            const int32_t *off0 = offsets + s * rows, *off1 = off0 + seqs * rows;
+            const int16_t *slot0 = slots + s * rows, *slot1 = slot0 + seqs * rows;
+            if (returns == 1) {
+                for (int64_t h = 0; h < rows; ++h) {   /* distance, reflectivity: one load */
+                    const uint32_t v = vdk_u32(pkt + off0[h]);
+                    tr[0][h][j] = (uint16_t)v;
+                    ti[0][h][j] = (uint8_t)(v >> 16);
+                    if (a0) ta[0][h][j] = angle[slot0[h]];
+                }
+            } else if (a0) {
+                for (int64_t h = 0; h < rows; ++h) {
+                    const uint32_t v = vdk_u32(pkt + off0[h]), w = vdk_u32(pkt + off1[h]);
+                    const uint16_t last = angle[slot1[h]];
+                    tr[0][h][j] = (uint16_t)v;
+                    ti[0][h][j] = (uint8_t)(v >> 16);
+                    tr[1][h][j] = (uint16_t)w;
+                    ti[1][h][j] = (uint8_t)(w >> 16);
+                    ta[1][h][j] = last;
+                    /* an identical pair: the last return's angle */
+                    ta[0][h][j] = (uint16_t)v == (uint16_t)w ? last : angle[slot0[h]];
+                }
+            } else {
+                for (int64_t h = 0; h < rows; ++h) {
+                    const uint32_t v = vdk_u32(pkt + off0[h]), w = vdk_u32(pkt + off1[h]);
+                    tr[0][h][j] = (uint16_t)v;
+                    ti[0][h][j] = (uint8_t)(v >> 16);
+                    tr[1][h][j] = (uint16_t)w;
+                    ti[1][h][j] = (uint8_t)(w >> 16);
+                }
+            }
+        }
+        const int64_t col = column + c0;
+        for (int64_t r = 0; r < returns; ++r)                  /* copy the rows out */
+            for (int64_t h = 0; h < rows; ++h) {
+                memcpy(rv[r] + h * width + col, tr[r][h], VDK_BYTES(n, uint16_t));
+                memcpy(iv[r] + h * width + col, ti[r][h], VDK_BYTES(n, uint8_t));
+            }
+        if (a0)
+            for (int64_t r = 0; r < returns; ++r)
+                for (int64_t h = 0; h < rows; ++h)
+                    memcpy(av[r] + h * width + col, ta[r][h], VDK_BYTES(n, uint16_t));
+    }
+    free(tr);
+    return 0;
+}
+
+/* ------------------------------------------------------------- (empty) Python module */
+
+static struct PyModuleDef vdk_module = {
+    PyModuleDef_HEAD_INIT, "_velokernel",
+    "Compiled Velodyne packet kernel (loaded with ctypes by converters._kernels.velodyne).",
+    -1, NULL, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__velokernel(void)
+{
+    PyObject *module = PyModule_Create(&vdk_module);
+    if (module && PyModule_AddIntConstant(module, "ABI", VDK_ABI) < 0) {
+        Py_DECREF(module);
+        return NULL;
+    }
+    return module;
+}
