@@ -14,7 +14,9 @@ Kernels (drivers in :class:`Compiled`):
   mount, the merger's inputs;
 * bin-ordered (:func:`_sorted_fuse`): one grid and shared range limits;
 * row-ordered (:func:`_row_convert`): the bin-ordered layout of an upright sensor, with exact
-  per-row float32 band intervals, fusion, hole edges and decoding in one call.
+  per-row float32 band intervals, fusion, hole edges and decoding in one call;
+* moving mounts: :func:`_transform_rays` (each ray moved by its pixel's pose, the arithmetic of
+  :func:`converters.frames.transform_rays`), then the general kernel.
 
 The kernels call each other through module globals (``_J_*``), compiled by :func:`kernels`
 before the kernels that use them (numba resolves a global dispatcher at compile time).
@@ -232,13 +234,32 @@ class Compiled:
         self._row_convert = jit(_row_convert)
         self.decode = jit(_decode_kernel)
         self._decode_slices = _J_DECODE_SLICES
+        self._transform = jit(_transform_rays)
 
     def dispatchers(self) -> dict[str, Any]:
         """Every numba dispatcher behind this object, by name (for the warm-up and its
         tests: ``len(d.signatures)`` is how many specialisations each has compiled)."""
         return {"bands": self._bands, "points": self._points, "others": self._others,
                 "small": self._small, "sorted": self._sorted, "row_convert": self._row_convert,
-                "row_fuse": _J_ROW, "decode": self.decode, "decode_slices": self._decode_slices}
+                "row_fuse": _J_ROW, "decode": self.decode, "decode_slices": self._decode_slices,
+                "transform_rays": self._transform}
+
+    def transform_rays(self, d: Any, o: Any, poses: Any, index: Any) -> tuple[Any, ...]:
+        """:func:`converters.frames.transform_rays` with one pose per ray, compiled (same bits).
+
+        Args:
+            d, o: (n, 3) float32 C-contiguous sensor-frame directions and origins.
+            poses: (P, 4, 4) float64 poses; index: (n,) int64 the pose of each ray.
+
+        Returns:
+            (dx, dy, dz, ox, oy, oz): (n,) float32 each, in the target frame.
+        """
+        rows = np.ascontiguousarray(np.asarray(poses, np.float64)[:, :3, :].reshape(-1, 12))
+        n = d.shape[0]
+        out = np.empty((6, n), np.float32)
+        self._transform(np.ascontiguousarray(d, np.float32), np.ascontiguousarray(o, np.float32),
+                        rows, np.ascontiguousarray(index, np.int64), out)
+        return tuple(out)
 
     def decode_slices(self, best: Any, offset: Any, size: Any, inf_value: Any, fill_value: Any,
                       intensity: Any, key_to_pos: Any, ranges: Any, ints: Any) -> None:
@@ -309,6 +330,25 @@ class Compiled:
             key_to_pos, intensity.shape[0] > 0, holes.start, holes.below, holes.no_return,
             holes.slice_start, holes.slice, holes.pixel, holes.bin, holes.value, holes.dz,
             holes.oz)
+
+
+def _transform_rays(d: Any, o: Any, rows: Any, index: Any,
+                    out: Any) -> None:  # pragma: no cover - compiled
+    """``out[0:3]`` = directions, ``out[3:6]`` = origins (float32) of the rays moved by
+    ``rows[index[i]]`` (the top 3x4 of each pose, row-major), in float64 left to right as
+    :func:`converters.frames.transform_rays` writes it (no fused multiply-add)."""
+    for i in range(d.shape[0]):
+        m = rows[index[i]]
+        x = np.float64(d[i, 0])
+        y = np.float64(d[i, 1])
+        z = np.float64(d[i, 2])
+        a = np.float64(o[i, 0])
+        b = np.float64(o[i, 1])
+        c = np.float64(o[i, 2])
+        for k in range(3):
+            out[k, i] = np.float32(m[4 * k] * x + m[4 * k + 1] * y + m[4 * k + 2] * z)
+            out[3 + k, i] = np.float32(m[4 * k] * a + m[4 * k + 1] * b + m[4 * k + 2] * c
+                                       + m[4 * k + 3])
 
 
 def _decode_kernel(best: Any, inf_value: Any, fill_value: Any, ranges: Any,
