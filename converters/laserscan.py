@@ -255,8 +255,9 @@ class _MovingRays:
         qual = np.zeros((n_slices, n), np.uint8)
         if special.size or conv._holes:
             pick = slice(None) if conv._holes else special
-            d64 = np.stack([dx[pick], dy[pick], dz[pick]], 1).astype(np.float64)
-            o64 = np.stack([ox[pick], oy[pick], oz[pick]], 1).astype(np.float64)
+            # (m, 3) float64 with contiguous columns (the numpy functions read them by column)
+            d64 = np.array([dx[pick], dy[pick], dz[pick]], np.float64).T
+            o64 = np.array([ox[pick], oy[pick], oz[pick]], np.float64).T
             #: (slice index, edges) of the slices with holes (as :attr:`_Tables.holes`)
             self.holes = [(i, _holes.hole_edges(d64, o64, s.holes, s.grid,
                                                 s.options.range_min, s.options.range_max))
@@ -277,7 +278,7 @@ class _MovingRays:
         self.kernel_rays = Rays(
             dx, dy, dz, ox, oy, oz,
             keys=np.zeros(0, np.int32) if keys is None else keys.astype(np.int32),
-            qual=qual, bin_far=bin_far, r_thr=np.full((n_grids, n), np.inf, np.float32))
+            qual=qual, bin_far=bin_far, r_thr=conv._no_thresholds(n))
 
     def key(self, index: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
         """Tie keys of pixel indices."""
@@ -503,6 +504,7 @@ class SliceConverter:
         self._moving_cache = None
         self._time_cache = None
         self._rays_cache = None
+        self._inf_thr: np.ndarray[Any, Any] | None = None
         width = int(info.width)
         self.slices = [self._build_slice(name, spec, info, width)
                        for name, spec in self._specs.items()]
@@ -658,6 +660,13 @@ class SliceConverter:
                          self._slice_grid, self._near, self.projector.width)
         self._moving_cache = None if key is None else (key, tables)
         return tables
+
+    def _no_thresholds(self, n: int) -> np.ndarray[Any, Any]:
+        """(G, n) float32 +inf far-field thresholds (atan2 for every point; read only by the
+        kernels, kept)."""
+        if self._inf_thr is None or self._inf_thr.shape != (len(self._grids), n):
+            self._inf_thr = np.full((len(self._grids), n), np.inf, np.float32)
+        return self._inf_thr
 
     def _sensor_rays(self, scan: Any, geometry: tuple[Any, ...]
                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
