@@ -45,11 +45,18 @@ ray is then moved by the mount's pose at *that pixel's* time: ``header.stamp +
 column_time_offsets[c] + beam_time_offsets[u]`` (+ the per-pixel ``t`` channel when the scan has
 one; :meth:`lidarscan.geometry.Projector.pixel_times`), so the sweep is de-skewed pixel by pixel
 (with per-column times only, as most lidars, the pose is per column). The slicing that follows
-is the same in every respect (grid, band, classes, ties, holes, backends); only the tables are
-built per scan (:meth:`SliceConverter._moving_tables`: correct, not fast; a mount that holds
-still over a whole scan reuses them). A track computes the poses in one batch; a callable is
-called once per distinct pixel time and its result checked (a finite rigid 4x4, else
-:class:`lidarscan.errors.ValidationError`). A pose that cannot be found -- a time outside the
+is the same in every respect (grid, band, classes, ties, holes, backends); only the rays are
+moved per scan (:meth:`SliceConverter._moving_tables`). What does not depend on the pose is kept:
+the sensor-frame rays per geometry, the distinct pixel times and each pixel's one per column
+timing (a scan with a ``t`` channel computes its own). A track computes the poses of the distinct
+times in one batch; a callable is called once per distinct pixel time and its result checked (a
+finite rigid 4x4, else :class:`lidarscan.errors.ValidationError`). With the compiled kernels
+the rays are moved by a compiled loop (the bits of :func:`converters.frames.transform_rays`) and
+fused by the general kernel with atan2 for every in-band point; far-field bins and
++Inf/NaN/-Inf qualifiers are computed for the pixels without a finite range only
+(:class:`_MovingRays`); the numpy backend builds the full per-scan tables (the reference; the
+same slices bit for bit, tests/test_moving_slices.py). A mount that holds still over a whole
+scan gets the fixed-mount tables at that pose (every kernel), kept for the next scan. A pose that cannot be found -- a time outside the
 track's span (:class:`converters.transforms.OutOfSpanError`, the track never extrapolates) or
 any :class:`~converters.transforms.TransformLookupError` the callable raises -- is raised by
 :meth:`SliceConverter.convert`; nothing falls back to another pose. The fixed-mount path is

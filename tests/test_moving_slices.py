@@ -355,3 +355,40 @@ def test_pixel_times_are_kept_per_column_times() -> None:
     delayed = moving_room_scan(info, track, delays=np.full((8, 64), 5000))
     conv.convert(delayed)
     assert conv._time_cache is None
+
+
+@NUMBA
+def test_slice_warm_up_leaves_nothing_to_compile_for_a_moving_mount() -> None:
+    """The slice warm-up (as a node runs it) reaches the moving mount's kernels, so the first
+    scan of a real sensor on a moving mount (the OS-2-128 frame, read-only views of a
+    message) compiles nothing."""
+    from test_startup import _numba, _run
+
+    _numba()
+    got = _run("""
+        import json, numpy as np, lidarscan
+        from converters import TransformTrack
+        from converters._kernels import warm
+        from converters.laserscan import SliceConverter
+        from converters.ouster import info_from_metadata, scan_from_frame
+
+        warm.warm(("slices",))
+        warmed = warm.specialisations()
+        D = "tests/data/ouster/"
+        info = info_from_metadata(D + "OS-2-128-U1_v2.3.0_1024x10.json", stamp_ns=1,
+                                  as_dataclass=True)
+        frame = dict(np.load(D + "OS-2-128-U1_v2.3.0_1024x10_frame1259.npz"))
+        scan = lidarscan.decode_scan(lidarscan.encode(scan_from_frame(frame, info)))
+        stamp = int(scan.header.stamp.sec) * 10**9 + int(scan.header.stamp.nanosec)
+        track = TransformTrack()
+        for k in range(-2, 25):
+            c, s = np.cos(0.05 * k), np.sin(0.05 * k)
+            track.add(stamp + k * 5_000_000, np.array([[c, -s, 0, 0], [s, c, 0, 0],
+                                                       [0, 0, 1, 0.5], [0, 0, 0, 1.0]]))
+        conv = SliceConverter(info, {"a": {"min_height": 0.0, "max_height": 1.0}},
+                              extrinsics=track, frame_id="base_link")
+        conv.convert(scan)
+        print(json.dumps([warmed, warm.specialisations()]))
+    """)
+    warmed, after = got
+    assert warmed["transform_rays"] == 1 and after == warmed, got

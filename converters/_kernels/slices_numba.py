@@ -257,8 +257,8 @@ class Compiled:
         rows = np.ascontiguousarray(np.asarray(poses, np.float64)[:, :3, :].reshape(-1, 12))
         n = d.shape[0]
         out = np.empty((6, n), np.float32)
-        self._transform(np.ascontiguousarray(d, np.float32), np.ascontiguousarray(o, np.float32),
-                        rows, np.ascontiguousarray(index, np.int64), out)
+        self._transform(frozen_f32(d), frozen_f32(o), rows, np.ascontiguousarray(index, np.int64),
+                        out)
         return tuple(out)
 
     def decode_slices(self, best: Any, offset: Any, size: Any, inf_value: Any, fill_value: Any,
