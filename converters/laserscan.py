@@ -240,8 +240,13 @@ class _MovingRays:
     +inf (every in-band point takes atan2, which gives the bin the far-field tables would:
     they are exact), and the far-field bins and +Inf/NaN/-Inf qualifiers are computed only
     for this scan's pixels without a finite positive range (the only ones that read them,
-    :func:`converters._kernels.slices_numba._pass_others`), by the numpy functions of
-    :class:`_Tables`. Same slices, bit for bit, as the full tables (tests/test_moving_slices.py).
+    :func:`converters._kernels.slices_numba._pass_others`), compiled
+    (:func:`converters._kernels.slices_numba._special_tables`: the float64 operations of
+    :func:`converters._grid.far_field` and :func:`converters._grid.qualify`; libm's atan2 may
+    differ from numpy's in the last bit, which moves a far-field bin only for a ray within an
+    ulp of a bin edge). Hole edges (slices with holes) are computed per scan by numpy.
+    Same slices, bit for bit, as the full tables on the tests' scenes
+    (tests/test_moving_slices.py).
     """
 
     sorted = None                      # no bin-ordered / row-ordered layout
@@ -260,28 +265,16 @@ class _MovingRays:
         n_grids, n_slices = len(conv._grids), len(conv.slices)
         bin_far = np.full((n_grids, n), -1, np.int32)
         qual = np.zeros((n_slices, n), np.uint8)
-        if special.size or conv._holes:
-            pick = slice(None) if conv._holes else special
-            # (m, 3) float64 with contiguous columns (the numpy functions read them by column)
-            d64 = np.array([dx[pick], dy[pick], dz[pick]], np.float64).T
-            o64 = np.array([ox[pick], oy[pick], oz[pick]], np.float64).T
-            #: (slice index, edges) of the slices with holes (as :attr:`_Tables.holes`)
-            self.holes = [(i, _holes.hole_edges(d64, o64, s.holes, s.grid,
-                                                s.options.range_min, s.options.range_max))
+        if special.size:
+            conv._kernel.special_tables(special, rays, conv._bands, conv._near, bin_far, qual)
+        #: (slice index, edges) of the slices with holes (as :attr:`_Tables.holes`)
+        self.holes: list[tuple[int, Any]] = []
+        if conv._holes:
+            d64 = np.array([dx, dy, dz], np.float64).T
+            o64 = np.array([ox, oy, oz], np.float64).T
+            self.holes = [(i, _holes.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
+                                                s.options.range_max))
                           for i, s in enumerate(conv.slices) if s.holes is not None]
-            if conv._holes:
-                d64, o64 = d64[special], o64[special]
-            far = [_grid.far_field(d64, o64, g)[0] for g in conv._grids]
-            for g, bins in enumerate(far):
-                bin_far[g, special] = bins
-            for i, (s, g) in enumerate(zip(conv.slices, conv._slice_grid)):
-                q_far, q_near = _grid.qualify(d64, o64, s.min_z, s.max_z, s.options.range_min,
-                                              s.options.range_max, conv._near)
-                ok = far[g] >= 0
-                qual[i, special] = (q_far & ok).astype(np.uint8) | \
-                    ((q_near & ok).astype(np.uint8) << 1)
-        else:
-            self.holes = []
         self.kernel_rays = Rays(
             dx, dy, dz, ox, oy, oz,
             keys=np.zeros(0, np.int32) if keys is None else keys.astype(np.int32),

@@ -392,3 +392,47 @@ def test_slice_warm_up_leaves_nothing_to_compile_for_a_moving_mount() -> None:
     """)
     warmed, after = got
     assert warmed["transform_rays"] == 1 and after == warmed, got
+
+
+@NUMBA
+def test_compiled_special_tables_equal_far_field_and_qualify() -> None:
+    """The moving path's far-field bins and qualifiers of the special pixels equal the numpy
+    functions of the fixed-mount tables (converters._grid.far_field, qualify) on random rays
+    with horizontal, vertical and axis-aligned ones, open bands, sectors and range limits."""
+    from converters import _grid
+    from converters._grid import AngleGrid, OutputOptions
+    from converters._kernels.slices_numba import Bands, kernels
+
+    rng = np.random.default_rng(5)
+    n = 20000
+    d = rng.normal(size=(n, 3))
+    d[::7, 2] = 0.0                                   # horizontal
+    d[3::11, :2] = 0.0                                # vertical
+    d[5::13, 1] = 0.0                                 # along x
+    o = rng.normal(size=(n, 3)) * [0.3, 0.3, 1.0]
+    o[::5, :2] = 0.0                                  # on the z axis
+    d32, o32 = d.astype(np.float32), o.astype(np.float32)
+    d64, o64 = d32.astype(np.float64), o32.astype(np.float64)
+    grids = [AngleGrid.create(-math.pi, math.pi, 2 * math.pi / 360),
+             AngleGrid.create(-1.0, 1.5, 0.01)]
+    slices = [(0.0, 1.0, OutputOptions.create(0.1, 30.0, True, 1.0, None), 0),
+              (-math.inf, 0.2, OutputOptions.create(0.0, math.inf, True, 1.0, None), 1),
+              (0.5, math.inf, OutputOptions.create(1.0, 2.0, False, 1.0, None), 0),
+              (-0.3, -0.3, OutputOptions.create(0.0, 5.0, True, 1.0, None), 1)]
+    bands = Bands.create(slices, grids)
+    near = 0.4
+    bin_far = np.full((2, n), -1, np.int32)
+    qual = np.zeros((4, n), np.uint8)
+    special = np.arange(0, n, 2)
+    rays = tuple(np.ascontiguousarray(a[:, k]) for a in (d32, o32) for k in range(3))
+    kernels().special_tables(special, rays, bands, near, bin_far, qual)
+    far = [_grid.far_field(d64, o64, g)[0] for g in grids]
+    for g in range(2):
+        np.testing.assert_array_equal(bin_far[g, special], far[g][special])
+        assert np.all(bin_far[g, 1::2] == -1)
+    for s, (lo, hi, opts, g) in enumerate(slices):
+        q_far, q_near = _grid.qualify(d64, o64, lo, hi, opts.range_min, opts.range_max, near)
+        ok = far[g] >= 0
+        want = (q_far & ok).astype(np.uint8) | ((q_near & ok).astype(np.uint8) << 1)
+        np.testing.assert_array_equal(qual[s, special], want[special])
+        assert want[special].any() and np.all(qual[s, 1::2] == 0)
