@@ -56,9 +56,10 @@ fused by the general kernel with atan2 for every in-band point; far-field bins a
 +Inf/NaN/-Inf qualifiers are computed for the pixels without a finite range only
 (:class:`_MovingRays`); the numpy backend builds the full per-scan tables (the reference; the
 same slices bit for bit, tests/test_moving_slices.py). A mount that holds still over a whole
-scan gets the fixed-mount tables at that pose (every kernel), kept for the next scan. A pose that cannot be found -- a time outside the
-track's span (:class:`converters.transforms.OutOfSpanError`, the track never extrapolates) or
-any :class:`~converters.transforms.TransformLookupError` the callable raises -- is raised by
+scan gets the fixed-mount tables at that pose (every kernel), kept for the next scan. A pose
+that cannot be found -- a time outside the track's span
+(:class:`converters.transforms.OutOfSpanError`, the track never extrapolates) or any
+:class:`~converters.transforms.TransformLookupError` the callable raises -- is raised by
 :meth:`SliceConverter.convert`; nothing falls back to another pose. The fixed-mount path is
 unchanged (same tables, same kernels).
 
