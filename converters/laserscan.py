@@ -45,13 +45,21 @@ ray is then moved by the mount's pose at *that pixel's* time: ``header.stamp +
 column_time_offsets[c] + beam_time_offsets[u]`` (+ the per-pixel ``t`` channel when the scan has
 one; :meth:`lidarscan.geometry.Projector.pixel_times`), so the sweep is de-skewed pixel by pixel
 (with per-column times only, as most lidars, the pose is per column). The slicing that follows
-is the same in every respect (grid, band, classes, ties, holes, backends); only the tables are
-built per scan (:meth:`SliceConverter._moving_tables`: correct, not fast; a mount that holds
-still over a whole scan reuses them). A track computes the poses in one batch; a callable is
-called once per distinct pixel time and its result checked (a finite rigid 4x4, else
-:class:`lidarscan.errors.ValidationError`). A pose that cannot be found -- a time outside the
-track's span (:class:`converters.transforms.OutOfSpanError`, the track never extrapolates) or
-any :class:`~converters.transforms.TransformLookupError` the callable raises -- is raised by
+is the same in every respect (grid, band, classes, ties, holes, backends); only the rays are
+moved per scan (:meth:`SliceConverter._moving_tables`). What does not depend on the pose is kept:
+the sensor-frame rays per geometry, the distinct pixel times and each pixel's one per column
+timing (a scan with a ``t`` channel computes its own). A track computes the poses of the distinct
+times in one batch; a callable is called once per distinct pixel time and its result checked (a
+finite rigid 4x4, else :class:`lidarscan.errors.ValidationError`). With the compiled kernels
+the rays are moved by a compiled loop (the bits of :func:`converters.frames.transform_rays`) and
+fused by the general kernel with atan2 for every in-band point; far-field bins and
++Inf/NaN/-Inf qualifiers are computed for the pixels without a finite range only
+(:class:`_MovingRays`); the numpy backend builds the full per-scan tables (the reference; the
+same slices bit for bit, tests/test_moving_slices.py). A mount that holds still over a whole
+scan gets the fixed-mount tables at that pose (every kernel), kept for the next scan. A pose
+that cannot be found -- a time outside the track's span
+(:class:`converters.transforms.OutOfSpanError`, the track never extrapolates) or any
+:class:`~converters.transforms.TransformLookupError` the callable raises -- is raised by
 :meth:`SliceConverter.convert`; nothing falls back to another pose. The fixed-mount path is
 unchanged (same tables, same kernels).
 
@@ -99,7 +107,7 @@ from converters.frames import check_extrinsics, check_poses, transform_rays
 from converters.options import IfPresent, resolve_channel
 from converters.transforms import TransformTrack
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
-from lidarscan.geometry import azimuth_channel, info_key, make_projector
+from lidarscan.geometry import azimuth_channel, info_key, make_projector, pixel_delays
 from lidarscan.scan import as_array, channel, channel_names, range_m
 from lidarscan.stamps import to_ns
 
@@ -222,6 +230,64 @@ class _Tables:
         """Fraction of finite pixels that need atan2 on grid ``index`` (diagnostics)."""
         ok = np.isfinite(r) & (r > 0)
         return float(np.mean(r[ok] < self.r_thr[index][ok])) if ok.any() else 0.0
+
+
+class _MovingRays:
+    """One scan's rays seen by a moving mount, as the general compiled kernel takes them
+    (:meth:`converters._kernels.slices_numba.Compiled.fuse`), built per scan from the cached
+    sensor-frame rays and the per-pixel poses (:meth:`SliceConverter._moving_tables`).
+
+    Unlike :class:`_Tables` nothing is precomputed for reuse: the far-field thresholds are
+    +inf (every in-band point takes atan2, which gives the bin the far-field tables would:
+    they are exact), and the far-field bins and +Inf/NaN/-Inf qualifiers are computed only
+    for this scan's pixels without a finite positive range (the only ones that read them,
+    :func:`converters._kernels.slices_numba._pass_others`), compiled
+    (:func:`converters._kernels.slices_numba._special_tables`: the float64 operations of
+    :func:`converters._grid.far_field` and :func:`converters._grid.qualify`; libm's atan2 may
+    differ from numpy's in the last bit, which moves a far-field bin only for a ray within an
+    ulp of a bin edge). Hole edges (slices with holes) are computed per scan by numpy.
+    Same slices, bit for bit, as the full tables on the tests' scenes
+    (tests/test_moving_slices.py).
+    """
+
+    sorted = None                      # no bin-ordered / row-ordered layout
+
+    def __init__(self, rays: tuple[np.ndarray[Any, Any], ...], keys: np.ndarray[Any, Any] | None,
+                 r: np.ndarray[Any, Any], conv: SliceConverter) -> None:
+        dx, dy, dz, ox, oy, oz = rays
+        self.n = n = dx.shape[0]
+        self.keys = keys
+        self.key_to_pos: np.ndarray[Any, Any] | None = None
+        if keys is not None:
+            self.key_to_pos = np.empty(n, np.int64)
+            self.key_to_pos[keys] = np.arange(n)
+        with np.errstate(invalid="ignore"):
+            special = np.flatnonzero(~((r > 0) & (r < np.inf)))
+        n_grids, n_slices = len(conv._grids), len(conv.slices)
+        bin_far = np.full((n_grids, n), -1, np.int32)
+        qual = np.zeros((n_slices, n), np.uint8)
+        if special.size:
+            conv._kernel.special_tables(special, rays, conv._bands, conv._near, bin_far, qual)
+        #: (slice index, edges) of the slices with holes (as :attr:`_Tables.holes`)
+        self.holes: list[tuple[int, Any]] = []
+        if conv._holes:
+            d64 = np.array([dx, dy, dz], np.float64).T
+            o64 = np.array([ox, oy, oz], np.float64).T
+            self.holes = [(i, _holes.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
+                                                s.options.range_max))
+                          for i, s in enumerate(conv.slices) if s.holes is not None]
+        self.kernel_rays = Rays(
+            dx, dy, dz, ox, oy, oz,
+            keys=np.zeros(0, np.int32) if keys is None else keys.astype(np.int32),
+            qual=qual, bin_far=bin_far, r_thr=conv._no_thresholds(n))
+
+    def key(self, index: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """Tie keys of pixel indices."""
+        return index.astype(np.int64) if self.keys is None else self.keys[index]
+
+    def position(self, key: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """Pixel indices of tie keys."""
+        return key if self.key_to_pos is None else self.key_to_pos[key]
 
 
 class _Sorted:
@@ -421,6 +487,11 @@ class SliceConverter:
         self.range_channel = range_channel
         self._tables: dict[Any, _Tables] = {}
         self._moving_cache: tuple[Any, _Tables] | None = None
+        self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] | None
+        self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] | None
+        #: moving mount: build the full per-scan tables even with the compiled kernels (the
+        #: path before :class:`_MovingRays`; tests compare both)
+        self._reference_tables = False
         self._set_info(info)
 
     # ------------------------------------------------------------------------- configuration
@@ -432,6 +503,9 @@ class SliceConverter:
         self.frame_id = self._frame_id or info.header.frame_id
         self._tables.clear()
         self._moving_cache = None
+        self._time_cache = None
+        self._rays_cache = None
+        self._inf_thr: np.ndarray[Any, Any] | None = None
         width = int(info.width)
         self.slices = [self._build_slice(name, spec, info, width)
                        for name, spec in self._specs.items()]
@@ -524,6 +598,26 @@ class SliceConverter:
             self._tables[key] = tables
         return tables
 
+    def _pose_times(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """The distinct pixel times of a scan relative to its stamp and each pixel's one.
+
+        Returns:
+            (times, index): (P,) int64 ns sorted, and (H*W,) int64 the time of each pixel
+            (scan column order, row-major). Kept for the next scan when it has no ``t`` channel
+            (then they depend only on the column times and the column order).
+        """
+        delays = pixel_delays(scan)
+        key = None
+        if delays is None:
+            key = (self.projector.column_times(scan).tobytes(), bool(scan.is_destaggered))
+            if self._time_cache is not None and self._time_cache[0] == key:
+                return self._time_cache[1]
+        unique, index = np.unique(self.projector.pixel_times(scan).reshape(-1),
+                                  return_inverse=True)
+        found = (unique, index.reshape(-1).astype(np.int64))
+        self._time_cache = None if key is None else (key, found)
+        return found
+
     def mount_poses(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
         """The moving mount's poses for a scan's pixels.
 
@@ -537,31 +631,55 @@ class SliceConverter:
             ValidationError: the callable returned something other than a finite rigid 4x4.
         """
         stamp = to_ns(scan.header.stamp, field="LidarScan.header.stamp")
-        times = np.int64(stamp) + self.projector.pixel_times(scan).reshape(-1)
-        unique, index = np.unique(times, return_inverse=True)
+        relative, index = self._pose_times(scan)
+        unique = np.int64(stamp) + relative
         if isinstance(self.moving, TransformTrack):
             poses = self.moving.lookup_many(unique)
         else:
             poses = check_poses([self.moving(int(t)) for t in unique], "extrinsics(stamp_ns)")
-        return poses, index.reshape(-1)
+        return poses, index
 
-    def _moving_tables(self, scan: Any) -> _Tables:
+    def _moving_tables(self, scan: Any, r: np.ndarray[Any, Any]) -> _Tables | _MovingRays:
         """Tables of one scan seen by a moving mount: every pixel's ray moved by the mount's
-        pose at its time (:meth:`mount_poses`). Built per scan; kept for the next scan only
-        while the mount holds one pose over the whole scan (then they equal fixed-mount
-        tables at that pose)."""
+        pose at its time (:meth:`mount_poses`). A mount that holds one pose over the whole
+        scan gets fixed-mount tables at that pose (every kernel; kept for the next scan at the
+        same pose); else, with the compiled kernels, :class:`_MovingRays` (the rays only, for
+        the general kernel), without them the full :class:`_Tables` of the scan (numpy: the
+        reference)."""
         poses, index = self.mount_poses(scan)
         geometry = self._geometry_key(scan)
         still = bool(np.all(poses == poses[0]))
         key = (geometry, poses[0].tobytes()) if still else None
         if key is not None and self._moving_cache is not None and self._moving_cache[0] == key:
             return self._moving_cache[1]
-        d32, o32 = self.projector.tables_for(scan, self.range_channel)
-        d, o = transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), poses, index)
+        d32, o32 = self._sensor_rays(scan, geometry)
+        if key is None and self._kernel is not None and not self._reference_tables:
+            return _MovingRays(self._kernel.transform_rays(d32, o32, poses, index),
+                               self._tie_keys(geometry[1]), r, self)
+        d, o = transform_rays(d32, o32, poses, index)
         tables = _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
                          self._slice_grid, self._near, self.projector.width)
         self._moving_cache = None if key is None else (key, tables)
         return tables
+
+    def _no_thresholds(self, n: int) -> np.ndarray[Any, Any]:
+        """(G, n) float32 +inf far-field thresholds (atan2 for every point; read only by the
+        kernels, kept)."""
+        if self._inf_thr is None or self._inf_thr.shape != (len(self._grids), n):
+            self._inf_thr = np.full((len(self._grids), n), np.inf, np.float32)
+        return self._inf_thr
+
+    def _sensor_rays(self, scan: Any, geometry: tuple[Any, ...]
+                     ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan (kept
+        for the next scan of the same geometry)."""
+        if self._rays_cache is not None and self._rays_cache[0] == geometry:
+            return self._rays_cache[1]
+        d32, o32 = self.projector.tables_for(scan, self.range_channel)
+        rays = (np.ascontiguousarray(d32.reshape(-1, 3), np.float32),
+                np.ascontiguousarray(o32.reshape(-1, 3), np.float32))
+        self._rays_cache = (geometry, rays)
+        return rays
 
     # ----------------------------------------------------------------------------- convert
     def convert(self, scan: Any, info: Any = None) -> dict[str, Any]:
@@ -584,8 +702,8 @@ class SliceConverter:
         if info is not None and info_key(info) != self._info_key:
             self._set_info(info)
         self._check(scan)
-        tables = self._tables_for(scan) if self.moving is None else self._moving_tables(scan)
         r = np.ascontiguousarray(range_m(scan, self.info, self.range_channel)).reshape(-1)
+        tables = self._tables_for(scan) if self.moving is None else self._moving_tables(scan, r)
         intensity = None
         wanted = resolve_channel(self.intensity_channel, channel_names(scan))
         if wanted is not None:

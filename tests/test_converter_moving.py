@@ -188,10 +188,54 @@ def test_node_parameters_document_moving_and_tf_wait() -> None:
     from converters.nodes import converter_node
 
     text = converter_node.usage()
-    assert "moving" in text and "tf_wait" in text
+    assert "moving" in text and "tf_wait" in text and "tf_tolerance" in text
     node, _ = converter_node._specs()
     by_name = {s.name: s for s in node}
     assert by_name["moving"].default is False and by_name["tf_wait"].default == 0.1
+    assert by_name["tf_tolerance"].default == 0.0 and by_name["tf_tolerance"].read_only
+    with pytest.raises(ConfigError):
+        by_name["tf_tolerance"].check(-0.1)
+    with pytest.raises(ConfigError, match="tf_tolerance"):
+        make_core(TransformBuffer(), tf_tolerance_ns=-1)
+
+
+def test_tf_tolerance_holds_the_newest_pose_and_drops_beyond_it() -> None:
+    """A sweep that ends at most ``tf_tolerance`` after the newest pose is released at once
+    and sliced with the newest pose held (a track with the same tolerance: bit-identical
+    slices); without the tolerance it waits; a sweep that ends later than the tolerance waits
+    ``tf_wait`` and is then dropped and counted."""
+    info = make_sensor(16, 128)
+    last = STAMP + 90 * MS                           # the sweep's last pixel: ~99.2 ms
+    strict, lenient = TransformBuffer(), TransformBuffer()
+    for buf in (strict, lenient):
+        feed(buf, STAMP - 20 * MS, last)
+    events: list[str] = []
+    cores = {"strict": make_core(strict, tf_wait_ns=50 * MS),
+             "lenient": make_core(lenient, events, tf_wait_ns=50 * MS,
+                                  tf_tolerance_ns=20 * MS)}
+    scan = scan_at(info, STAMP)
+    released = {}
+    for name, core in cores.items():
+        core.add_info(info)
+        released[name] = core.hold(core.add_scan(scan))
+    assert released["strict"] == [] and len(cores["strict"].held) == 1
+    assert len(released["lenient"]) == 1 and not cores["lenient"].held
+    core = cores["lenient"]
+    assert core.track("os_sensor").tolerance_ns == 20 * MS
+    ref = TransformTrack(tolerance_ns=20 * MS)
+    for t in range(STAMP - 20 * MS, last + 1, STEP):
+        ref.add(t, lenient.lookup("base_link", "os_sensor", t))
+    _, got = core.convert(scan, info, cloud=False, extrinsics=core.track("os_sensor"))
+    want = SliceConverter(info, {s.name: s.spec() for s in SLICES}, extrinsics=ref,
+                          frame_id="base_link", intensity_channel="intensity").convert(scan)
+    same_slices(got, dict(want))
+    # the next sweep ends 100 ms after the newest pose: beyond the tolerance, held, then
+    # dropped once data time is tf_wait past it
+    assert core.hold(core.add_scan(scan_at(info, STAMP + SCAN_NS))) == []
+    assert len(core.held) == 1 and core.stats.dropped_no_pose == 0
+    assert core.hold(core.add_scan(scan_at(info, STAMP + 3 * SCAN_NS))) == []
+    assert core.stats.dropped_no_pose == 1 and core.stats.reasons["no pose"] == 1
+    assert "slices of scan" in events[0] and "held too long" in events[0]
 
 
 # --------------------------------------------------------------------- real DDS graph
@@ -201,7 +245,7 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
     """The real node: /tf_static (arm) + /tf (pan joint, 200 Hz) published after each sweep;
     every slice equals SliceConverter's with the track of the same /tf messages."""
     from lidarscan_msgs.msg import LidarInfo, LidarScan
-    from sensor_msgs.msg import LaserScan
+    from sensor_msgs.msg import LaserScan, PointCloud2
 
     from converters.nodes.converter_node import ConverterNode
     from test_nodes import overrides, same_floats, small_info, small_scan
@@ -216,6 +260,7 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
     tf_pub = graph.publisher(tf2_msgs.TFMessage, "/tf", "reliable")
     scan_pub = graph.publisher(LidarScan, "lidar_scan", "reliable")
     out = graph.collect(LaserScan, "slices/band")
+    clouds = graph.collect(PointCloud2, "points")
     node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
         target_frame="base_link", slice_names=["band"], slices__band__min_height=0.7,
         slices__band__max_height=1.5, scan_qos="reliable", moving=True, tf_wait=1.0,
@@ -224,7 +269,8 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
                       node.core.resolver.latest_stamp_ns is not None and
                       tf_pub.get_subscription_count() > 0 and
                       scan_pub.get_subscription_count() > 0 and
-                      node.slice_pubs["band"].get_subscription_count() > 0)
+                      node.slice_pubs["band"].get_subscription_count() > 0 and
+                      node.cloud_pub.get_subscription_count() > 0)
     scans = {}
     for k in range(3):
         stamp = STAMP + k * SCAN_NS
@@ -259,3 +305,8 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
     status = {s.name: s for s in node._diagnose()}["moving mount"]
     assert status.values["dropped_last_period"] == 1 and "did not cover" in status.message
     assert node.stats.reasons["no pose"] == 1 and len(out) == 3
+    # the clouds never wait for /tf: one per scan at its arrival, the dropped one's included
+    assert graph.wait(lambda: len(clouds) == 5)
+    stamps = sorted(c.header.stamp.sec * 10**9 + c.header.stamp.nanosec for c in clouds)
+    assert stamps == [*sorted(scans), late, late + 12 * SCAN_NS]
+    assert node.stats.clouds_published == 5 and node.stats.scans_converted == 3

@@ -11,6 +11,7 @@ not when the motion is ignored).
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from typing import Any
 
@@ -63,14 +64,14 @@ def pixel_times(info: Any, scan: Any) -> np.ndarray:
 
 def moving_room_scan(info: Any, mount: Any, *, destagger: bool = False,
                      delays: np.ndarray | None = None, specials: bool = True,
-                     rng: np.random.Generator | None = None) -> Any:
+                     rng: np.random.Generator | None = None, stamp: int = STAMP) -> Any:
     """The static room (tests/test_laserscan.py) seen pixel by pixel from ``mount(t)`` at each
-    pixel's time (measurement order, then destaggered if asked)."""
+    pixel's time (measurement order, then destaggered if asked), stamped ``stamp``."""
     proj = lidarscan.make_projector(info)
     height, width = proj.height, proj.width
     d = proj.directions.reshape(-1, 3).astype(np.float64)
     o = proj.offsets.reshape(-1, 3).astype(np.float64)
-    times = (STAMP + np.arange(width)[None, :] * int(info.column_time_increment)
+    times = (stamp + np.arange(width)[None, :] * int(info.column_time_increment)
              + np.asarray(proj.beam_time_offsets, np.int64)[:, None])
     if delays is not None:                      # given in measurement order
         times = times + delays
@@ -91,7 +92,7 @@ def moving_room_scan(info: Any, mount: Any, *, destagger: bool = False,
         channels["t"] = delays.astype(np.uint32)
     if destagger:
         channels = {k: proj.destagger(v) for k, v in channels.items()}
-    return lidarscan.make_scan(info, channels, STAMP, is_destaggered=destagger,
+    return lidarscan.make_scan(info, channels, stamp, is_destaggered=destagger,
                                as_dataclass=True)
 
 
@@ -269,3 +270,169 @@ def test_a_moving_mount_needs_the_target_frame() -> None:
     with pytest.raises(ConfigError, match="frame_id"):
         to_laserscan(moving_room_scan(info, lambda t: np.eye(4)), info, min_height=0.0,
                      max_height=1.0, extrinsics=TransformTrack())
+
+
+# ------------------------------------------------------- the per-scan path vs the full tables
+
+NUMBA = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
+                           reason="numba not installed")
+
+MOVING_SPECS = {
+    "one": {"s": SliceSpec(*BAND)},
+    "grids": {"a": SliceSpec(*BAND), "b": SliceSpec(0.2, 0.8, angle_increment=0.02),
+              "sector": SliceSpec(0.0, 2.0, angle_min=-1.0, angle_max=1.5, range_max=3.0)},
+    "nine": {f"s{i}": SliceSpec(0.1 * i, 0.1 * i + 0.6) for i in range(9)},
+    "holes": {"s": SliceSpec(*BAND), "h": SliceSpec(0.2, 0.8, holes=True, floor_height=0.0)},
+}
+
+
+@NUMBA
+@pytest.mark.parametrize("specs", list(MOVING_SPECS))
+@pytest.mark.parametrize("variant", ["plain", "destaggered", "beam_times", "t_channel"])
+def test_per_scan_rays_equal_the_full_tables(specs: str, variant: str) -> None:
+    """The moving mount's per-scan path (:class:`converters.laserscan._MovingRays`: rays moved
+    by the compiled transform, atan2 for every in-band point, qualifiers of the specials only)
+    gives the slices of the full per-scan tables (the path before it, kept as the oracle) and
+    of the numpy reference, bit for bit, over several scans of one converter."""
+    from converters.laserscan import _MovingRays
+
+    fields: dict[str, Any] = {}
+    if variant == "beam_times":
+        fields["beam_time_offsets"] = (np.arange(16) * 23_000).astype(np.int64)
+    info = make_sensor(16, 256, shifts=variant == "destaggered", **fields)
+    track = sweep_track(info, margin=60 * MS, yaw_rate=5.0, nod=0.3, speed=0.5)
+    spec = MOVING_SPECS[specs]
+    fast = SliceConverter(info, spec, extrinsics=track, frame_id="base_link", backend="numba")
+    full = SliceConverter(info, spec, extrinsics=track, frame_id="base_link", backend="numba")
+    full._reference_tables = True
+    ref = SliceConverter(info, spec, extrinsics=track, frame_id="base_link", backend="numpy")
+    rng = np.random.default_rng(7)
+    for k in range(3):
+        delays = rng.integers(0, 700_000, (16, 256)) if variant == "t_channel" else None
+        scan = moving_room_scan(info, track, destagger=variant == "destaggered", delays=delays,
+                                rng=rng, stamp=STAMP + k * 10 * MS)   # the track: +-60 ms
+        r = np.ascontiguousarray(lidarscan.range_m(scan, info)).reshape(-1)
+        assert isinstance(fast._moving_tables(scan, r), _MovingRays)
+        got, want, oracle = fast.convert(scan), full.convert(scan), ref.convert(scan)
+        for name in spec:
+            assert_same(got[name], arrays(want[name]))
+            assert_same(got[name], arrays(oracle[name]))
+
+
+@NUMBA
+def test_compiled_transform_gives_the_bits_of_transform_rays() -> None:
+    from converters._kernels.slices_numba import kernels
+    from converters.frames import transform_rays
+
+    rng = np.random.default_rng(11)
+    n, p = 5000, 37
+    d = rng.normal(size=(n, 3)).astype(np.float32)
+    o = (rng.normal(size=(n, 3)) * rng.choice([1e-3, 1.0, 1e3], (n, 1))).astype(np.float32)
+    poses = np.stack([pose(*rng.normal(size=3) * 10, roll=a, pitch=b, yaw=c)
+                      for a, b, c in rng.uniform(-3, 3, (p, 3))])
+    index = rng.integers(0, p, n)
+    want = transform_rays(d, o, poses, index)
+    got = kernels().transform_rays(d, o, poses, index)
+    for k in range(3):
+        np.testing.assert_array_equal(got[k].view(np.int32), want[0][:, k].view(np.int32))
+        np.testing.assert_array_equal(got[3 + k].view(np.int32), want[1][:, k].view(np.int32))
+
+
+def test_pixel_times_are_kept_per_column_times() -> None:
+    """The distinct pixel times (and each pixel's) are computed once per column timing, not per
+    scan; a scan with a ``t`` channel computes its own."""
+    info = make_sensor(8, 64, beam_time_offsets=(np.arange(8) * 1000).astype(np.int64))
+    track = sweep_track(info, margin=60 * MS)
+    conv = SliceConverter(info, {"s": SliceSpec(*BAND)}, extrinsics=track, frame_id="base_link")
+    scan = moving_room_scan(info, track)
+    conv.convert(scan)
+    kept = conv._time_cache
+    assert kept is not None and len(kept[1][0]) == 8 * 64
+    poses, index = conv.mount_poses(moving_room_scan(info, track, stamp=STAMP + 20 * MS))
+    assert conv._time_cache is kept
+    times = pixel_times(info, scan) + 20 * MS
+    np.testing.assert_array_equal(poses[index], track.lookup_many(times.reshape(-1)))
+    delayed = moving_room_scan(info, track, delays=np.full((8, 64), 5000))
+    conv.convert(delayed)
+    assert conv._time_cache is None
+
+
+@NUMBA
+def test_slice_warm_up_leaves_nothing_to_compile_for_a_moving_mount() -> None:
+    """The slice warm-up (as a node runs it) reaches the moving mount's kernels, so the first
+    scan of a real sensor on a moving mount (the OS-2-128 frame, read-only views of a
+    message) compiles nothing."""
+    from test_startup import _numba, _run
+
+    _numba()
+    got = _run("""
+        import json, numpy as np, lidarscan
+        from converters import TransformTrack
+        from converters._kernels import warm
+        from converters.laserscan import SliceConverter
+        from converters.ouster import info_from_metadata, scan_from_frame
+
+        warm.warm(("slices",))
+        warmed = warm.specialisations()
+        D = "tests/data/ouster/"
+        info = info_from_metadata(D + "OS-2-128-U1_v2.3.0_1024x10.json", stamp_ns=1,
+                                  as_dataclass=True)
+        frame = dict(np.load(D + "OS-2-128-U1_v2.3.0_1024x10_frame1259.npz"))
+        scan = lidarscan.decode_scan(lidarscan.encode(scan_from_frame(frame, info)))
+        stamp = int(scan.header.stamp.sec) * 10**9 + int(scan.header.stamp.nanosec)
+        track = TransformTrack()
+        for k in range(-2, 25):
+            c, s = np.cos(0.05 * k), np.sin(0.05 * k)
+            track.add(stamp + k * 5_000_000, np.array([[c, -s, 0, 0], [s, c, 0, 0],
+                                                       [0, 0, 1, 0.5], [0, 0, 0, 1.0]]))
+        conv = SliceConverter(info, {"a": {"min_height": 0.0, "max_height": 1.0}},
+                              extrinsics=track, frame_id="base_link")
+        conv.convert(scan)
+        print(json.dumps([warmed, warm.specialisations()]))
+    """)
+    warmed, after = got
+    assert warmed["transform_rays"] == 1 and after == warmed, got
+
+
+@NUMBA
+def test_compiled_special_tables_equal_far_field_and_qualify() -> None:
+    """The moving path's far-field bins and qualifiers of the special pixels equal the numpy
+    functions of the fixed-mount tables (converters._grid.far_field, qualify) on random rays
+    with horizontal, vertical and axis-aligned ones, open bands, sectors and range limits."""
+    from converters import _grid
+    from converters._grid import AngleGrid, OutputOptions
+    from converters._kernels.slices_numba import Bands, kernels
+
+    rng = np.random.default_rng(5)
+    n = 20000
+    d = rng.normal(size=(n, 3))
+    d[::7, 2] = 0.0                                   # horizontal
+    d[3::11, :2] = 0.0                                # vertical
+    d[5::13, 1] = 0.0                                 # along x
+    o = rng.normal(size=(n, 3)) * [0.3, 0.3, 1.0]
+    o[::5, :2] = 0.0                                  # on the z axis
+    d32, o32 = d.astype(np.float32), o.astype(np.float32)
+    d64, o64 = d32.astype(np.float64), o32.astype(np.float64)
+    grids = [AngleGrid.create(-math.pi, math.pi, 2 * math.pi / 360),
+             AngleGrid.create(-1.0, 1.5, 0.01)]
+    slices = [(0.0, 1.0, OutputOptions.create(0.1, 30.0, True, 1.0, None), 0),
+              (-math.inf, 0.2, OutputOptions.create(0.0, math.inf, True, 1.0, None), 1),
+              (0.5, math.inf, OutputOptions.create(1.0, 2.0, False, 1.0, None), 0),
+              (-0.3, -0.3, OutputOptions.create(0.0, 5.0, True, 1.0, None), 1)]
+    bands = Bands.create(slices, grids)
+    near = 0.4
+    bin_far = np.full((2, n), -1, np.int32)
+    qual = np.zeros((4, n), np.uint8)
+    special = np.arange(0, n, 2)
+    rays = tuple(np.ascontiguousarray(a[:, k]) for a in (d32, o32) for k in range(3))
+    kernels().special_tables(special, rays, bands, near, bin_far, qual)
+    far = [_grid.far_field(d64, o64, g)[0] for g in grids]
+    for g in range(2):
+        np.testing.assert_array_equal(bin_far[g, special], far[g][special])
+        assert np.all(bin_far[g, 1::2] == -1)
+    for s, (lo, hi, opts, g) in enumerate(slices):
+        q_far, q_near = _grid.qualify(d64, o64, lo, hi, opts.range_min, opts.range_max, near)
+        ok = far[g] >= 0
+        want = (q_far & ok).astype(np.uint8) | ((q_near & ok).astype(np.uint8) << 1)
+        np.testing.assert_array_equal(qual[s, special], want[special])
+        assert want[special].any() and np.all(qual[s, 1::2] == 0)

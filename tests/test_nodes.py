@@ -292,6 +292,48 @@ def test_log_limiter_bounds_lines_and_summarises() -> None:
     assert lines[-2].startswith("(8 more like 'bad'") and lines[-1] == "bad scan"
 
 
+def test_guard_counts_logs_and_swallows_errors_of_a_callback() -> None:
+    """The one guard of the nodes' callbacks: a project error is counted as bad and logged in
+    one line; any other exception is counted as internal and logged with its traceback; the
+    rest of the callback is skipped (``failed``); KeyboardInterrupt is not swallowed."""
+    from converters.nodes.common import Guard
+    from lidarscan.errors import ValidationError
+
+    lines: list[tuple[str, str]] = []
+    bad: list[Exception] = []
+    internal: list[Exception] = []
+
+    def log(line: str, key: str) -> None:
+        lines.append((line, key))
+
+    with Guard(log, "scan not converted", bad=bad.append, internal=internal.append,
+               key="conversion") as guard:
+        pass
+    assert not guard.failed and not lines
+    with Guard(log, "scan not converted", bad=bad.append, internal=internal.append,
+               key="conversion") as guard:
+        raise ValidationError("LidarScan.height", 0, "> 0")
+    assert guard.failed and len(bad) == 1 and not internal
+    assert lines[-1][1] == "conversion" and lines[-1][0].startswith("scan not converted: ")
+    assert "\n" not in lines[-1][0] and "LidarScan.height" in lines[-1][0]
+
+    def broken() -> None:
+        {}["missing"]
+
+    with Guard(log, "scan not converted", bad=bad.append, internal=internal.append) as guard:
+        broken()
+    assert guard.failed and len(internal) == 1 and isinstance(guard.error, KeyError)
+    line, key = lines[-1]
+    assert key == "internal" and line.startswith("scan not converted (internal error KeyError: ")
+    assert "Traceback" in line and "in broken" in line
+    with Guard(log, "odometry dropped", bad=bad.append) as guard:      # internal -> bad
+        broken()
+    assert len(bad) == 2 and guard.failed
+    with pytest.raises(KeyboardInterrupt), Guard(log, "x", bad=bad.append):
+        raise KeyboardInterrupt
+    assert len(bad) == 2
+
+
 # ---------------------------------------------------------------------------------- cores
 
 def test_converter_core_matches_direct_converters_and_counts_bad_input() -> None:

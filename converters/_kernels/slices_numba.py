@@ -14,7 +14,11 @@ Kernels (drivers in :class:`Compiled`):
   mount, the merger's inputs;
 * bin-ordered (:func:`_sorted_fuse`): one grid and shared range limits;
 * row-ordered (:func:`_row_convert`): the bin-ordered layout of an upright sensor, with exact
-  per-row float32 band intervals, fusion, hole edges and decoding in one call.
+  per-row float32 band intervals, fusion, hole edges and decoding in one call;
+* moving mounts: :func:`_transform_rays` (each ray moved by its pixel's pose, the arithmetic of
+  :func:`converters.frames.transform_rays`), :func:`_special_tables` (far-field bins and
+  qualifiers of the pixels without a finite range: :func:`converters._grid.far_field`'s bin and
+  :func:`converters._grid.qualify`), then the general kernel.
 
 The kernels call each other through module globals (``_J_*``), compiled by :func:`kernels`
 before the kernels that use them (numba resolves a global dispatcher at compile time).
@@ -61,13 +65,14 @@ def kernels() -> Compiled | None:
     except ImportError:
         return None
     global _J_BANDS, _J_POINTS, _J_OTHERS, _J_ROW, _J_DECODE_SLICES, _J_NEAR, _J_VALUE
-    global _J_CODE_VALUE
+    global _J_CODE_VALUE, _J_RHO
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     # called by the kernels below, so compiled first; inlined into them (a call per point
     # measured ~15 % slower where most points are near, e.g. an offset mount)
     _J_NEAR = numba.njit(nogil=True, error_model="numpy", inline="always")(_near_point)
     _J_VALUE = numba.njit(nogil=True, error_model="numpy", inline="always")(_value)
     _J_CODE_VALUE = numba.njit(nogil=True, error_model="numpy", inline="always")(_code_value)
+    _J_RHO = numba.njit(nogil=True, error_model="numpy", inline="always")(_rho_at)
     _J_BANDS, _J_POINTS, _J_OTHERS = jit(_pass_bands), jit(_pass_points), jit(_pass_others)
     _J_ROW, _J_DECODE_SLICES = jit(_row_fuse), jit(_decode_slices)
     _KERNELS = Compiled(jit)
@@ -82,6 +87,7 @@ _J_VALUE: Any = None
 _J_CODE_VALUE: Any = None
 _J_POINTS: Any = None
 _J_OTHERS: Any = None
+_J_RHO: Any = None
 
 
 def _fuse_small(r: Any, keep: Any, limits: Any, dx: Any, dy: Any, dz: Any, ox: Any, oy: Any,
@@ -232,13 +238,43 @@ class Compiled:
         self._row_convert = jit(_row_convert)
         self.decode = jit(_decode_kernel)
         self._decode_slices = _J_DECODE_SLICES
+        self._transform = jit(_transform_rays)
+        self._special = jit(_special_tables)
 
     def dispatchers(self) -> dict[str, Any]:
         """Every numba dispatcher behind this object, by name (for the warm-up and its
         tests: ``len(d.signatures)`` is how many specialisations each has compiled)."""
         return {"bands": self._bands, "points": self._points, "others": self._others,
                 "small": self._small, "sorted": self._sorted, "row_convert": self._row_convert,
-                "row_fuse": _J_ROW, "decode": self.decode, "decode_slices": self._decode_slices}
+                "row_fuse": _J_ROW, "decode": self.decode, "decode_slices": self._decode_slices,
+                "transform_rays": self._transform, "special_tables": self._special}
+
+    def special_tables(self, special: Any, rays: Any, bands: Bands, near: float, bin_far: Any,
+                       qual: Any) -> None:
+        """Far-field bins (``bin_far[g, i]``, left as they are elsewhere) and qualifiers
+        (``qual[s, i]`` bit 0 +Inf/NaN, bit 1 -Inf) of the rays ``special`` ((m,) int64) of
+        ``rays`` ((dx, dy, dz, ox, oy, oz) float32 (n,) each), as :class:`Rays` holds them."""
+        b = bands
+        self._special(np.ascontiguousarray(special, np.int64), *rays, b.zmin, b.zmax, b.rmin,
+                      b.rmax, b.grid, b.g_min, b.g_inc, b.g_size, b.g_full, float(near),
+                      bin_far, qual)
+
+    def transform_rays(self, d: Any, o: Any, poses: Any, index: Any) -> tuple[Any, ...]:
+        """:func:`converters.frames.transform_rays` with one pose per ray, compiled (same bits).
+
+        Args:
+            d, o: (n, 3) float32 C-contiguous sensor-frame directions and origins.
+            poses: (P, 4, 4) float64 poses; index: (n,) int64 the pose of each ray.
+
+        Returns:
+            (dx, dy, dz, ox, oy, oz): (n,) float32 each, in the target frame.
+        """
+        rows = np.ascontiguousarray(np.asarray(poses, np.float64)[:, :3, :].reshape(-1, 12))
+        n = d.shape[0]
+        out = np.empty((6, n), np.float32)
+        self._transform(frozen_f32(d), frozen_f32(o), rows, np.ascontiguousarray(index, np.int64),
+                        out)
+        return tuple(out)
 
     def decode_slices(self, best: Any, offset: Any, size: Any, inf_value: Any, fill_value: Any,
                       intensity: Any, key_to_pos: Any, ranges: Any, ints: Any) -> None:
@@ -309,6 +345,92 @@ class Compiled:
             key_to_pos, intensity.shape[0] > 0, holes.start, holes.below, holes.no_return,
             holes.slice_start, holes.slice, holes.pixel, holes.bin, holes.value, holes.dz,
             holes.oz)
+
+
+def _transform_rays(d: Any, o: Any, rows: Any, index: Any,
+                    out: Any) -> None:  # pragma: no cover - compiled
+    """``out[0:3]`` = directions, ``out[3:6]`` = origins (float32) of the rays moved by
+    ``rows[index[i]]`` (the top 3x4 of each pose, row-major), in float64 left to right as
+    :func:`converters.frames.transform_rays` writes it (no fused multiply-add)."""
+    for i in range(d.shape[0]):
+        m = rows[index[i]]
+        x = np.float64(d[i, 0])
+        y = np.float64(d[i, 1])
+        z = np.float64(d[i, 2])
+        a = np.float64(o[i, 0])
+        b = np.float64(o[i, 1])
+        c = np.float64(o[i, 2])
+        for k in range(3):
+            out[k, i] = np.float32(m[4 * k] * x + m[4 * k + 1] * y + m[4 * k + 2] * z)
+            out[3 + k, i] = np.float32(m[4 * k] * a + m[4 * k + 1] * b + m[4 * k + 2] * c
+                                       + m[4 * k + 3])
+
+
+def _rho_at(dx: Any, dy: Any, ox: Any, oy: Any, r: Any) -> Any:  # pragma: no cover - compiled
+    """:func:`converters._grid._rho` of one ray (float64)."""
+    if math.isinf(r):
+        if dx != 0.0 or dy != 0.0:
+            return np.inf
+        return math.sqrt(ox * ox + oy * oy)
+    x = r * dx + ox
+    y = r * dy + oy
+    return math.sqrt(x * x + y * y)
+
+
+def _special_tables(special: Any, fdx: Any, fdy: Any, fdz: Any, fox: Any, foy: Any, foz: Any,
+                    zmin: Any, zmax: Any, rmin: Any, rmax: Any, slice_grid: Any, g_min: Any,
+                    g_inc: Any, g_size: Any, g_full: Any, near: Any, bin_far: Any,
+                    qual: Any) -> None:  # pragma: no cover - compiled
+    """Per ray of ``special``: the far-field bin of every grid (:func:`converters._grid.
+    far_field`'s ``bin_far``; libm's atan2, which may differ from numpy's in the last bit) and
+    the qualifiers of every slice (:func:`converters._grid.qualify`, the same float64
+    operations; bits only where the slice's far-field bin exists, as :class:`Rays` holds
+    them)."""
+    two_pi = 2.0 * math.pi
+    n_grids = g_min.shape[0]
+    for h in range(special.shape[0]):
+        i = special[h]
+        dx, dy, dz = np.float64(fdx[i]), np.float64(fdy[i]), np.float64(fdz[i])
+        ox, oy, oz = np.float64(fox[i]), np.float64(foy[i]), np.float64(foz[i])
+        a2 = dx * dx + dy * dy
+        theta = math.atan2(dy, dx)
+        for g in range(n_grids):
+            b = -1
+            if a2 > 0:
+                d = theta - g_min[g]
+                inc = g_inc[g]
+                if g_full[g]:
+                    b = np.int64(math.ceil(d / inc - 0.5)) % g_size[g]
+                else:
+                    d = d - two_pi * math.floor((d + 0.5 * inc) / two_pi)
+                    k = np.int64(math.ceil(d / inc - 0.5))
+                    b = k if 0 <= k < g_size[g] else -1
+            bin_far[g, i] = b
+        r_star = -(dx * ox + dy * oy) / a2 if a2 > 0 else 0.0
+        for s in range(zmin.shape[0]):
+            if bin_far[slice_grid[s], i] < 0:
+                continue
+            if dz == 0.0:
+                inside = oz >= zmin[s] and oz <= zmax[s]
+                lo = 0.0 if inside else np.inf
+                hi = np.inf if inside else -np.inf
+            else:
+                a = (zmin[s] - oz) / dz
+                c = (zmax[s] - oz) / dz
+                lo = a if dz > 0 else c
+                hi = c if dz > 0 else a
+            lo = max(lo, 0.0)
+            if not lo <= hi:
+                continue
+            rs = min(max(r_star, lo), max(hi, lo))
+            rho_min = _J_RHO(dx, dy, ox, oy, rs)
+            rho_max = max(_J_RHO(dx, dy, ox, oy, lo), _J_RHO(dx, dy, ox, oy, hi))
+            q = np.uint8(0)
+            if rho_min <= rmax[s] and rho_max >= rmin[s]:
+                q |= np.uint8(1)
+            if lo <= near:
+                q |= np.uint8(2)
+            qual[s, i] = q
 
 
 def _decode_kernel(best: Any, inf_value: Any, fill_value: Any, ranges: Any,

@@ -12,6 +12,7 @@ depends on the configuration and the geometry:
 =====================  ==============================================================
 kernel                 runs when
 =====================  ==============================================================
+transform rays         a moving mount (then the general kernel)
 row-ordered            one grid, full circle at the sensor's column resolution, upright
                        mount (the C kernel instead where its AVX-512 path runs)
 bin-ordered            one grid and shared range limits, any other mount
@@ -118,6 +119,15 @@ def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any]) -
         converter = SliceConverter(info, specs, extrinsics=_tilt(tilt), frame_id="warm_target",
                                    **opts)
         converter.convert(probe_scan(info))
+    # a moving mount (per-scan rays: the transform kernel, then the general kernel's passes)
+    from converters.transforms import TransformTrack
+
+    info = probe_info(*_GEOMETRIES[0][:2])
+    track = TransformTrack()
+    track.add(0, _tilt(0.0))
+    track.add(1_000_000_000, _tilt(0.3))
+    SliceConverter(info, specs, extrinsics=track, frame_id="warm_target", **opts).convert(
+        probe_scan(info))
 
 
 def _warm_cloud(options: Mapping[str, Any]) -> None:

@@ -70,7 +70,7 @@ from typing import Any
 
 import numpy as np
 
-from converters.nodes.common import entry_points
+from converters.nodes.common import Guard, entry_points
 from converters.options import IfPresent
 from lidarscan.errors import LidarScanError
 
@@ -462,7 +462,8 @@ def _node_class() -> type:
             if not want_scan and not want_slices:
                 self.stats["idle"] += 1
                 return
-            try:
+            with Guard(self._log, f"PointCloud2 #{self.stats['clouds']} not converted",
+                       bad=self._count_bad):
                 cloud = decode(raw, "sensor_msgs/msg/PointCloud2")
                 if want_scan:
                     self._scan(cloud)
@@ -471,13 +472,9 @@ def _node_class() -> type:
                     for name in want_slices:
                         self.slice_pubs[name].publish(out[name])
                         self.stats["slices"] += 1
-            except LidarScanError as err:
-                self.stats["bad"] += 1
-                self._log(f"PointCloud2 #{self.stats['clouds']} not converted: {err}", "bad")
-            except Exception as err:  # noqa: BLE001 - a node must survive any input
-                self.stats["bad"] += 1
-                self._log(f"PointCloud2 #{self.stats['clouds']} not converted (internal error "
-                          f"{type(err).__name__}: {err})", "internal")
+
+        def _count_bad(self, err: Exception) -> None:
+            self.stats["bad"] += 1
 
         def _scan(self, cloud: Any) -> None:
             """LidarScan (+ a new LidarInfo version) of one cloud; a cloud without a grid is

@@ -20,11 +20,12 @@ import contextlib
 import os
 import sys
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
-__all__ = ["OK", "WARN", "ERROR", "Diagnostics", "ExactSync", "LatencyWindow", "LogLimiter",
-           "RateMeter", "Startup", "Status", "entry_points", "run_node", "warm_up"]
+__all__ = ["OK", "WARN", "ERROR", "Diagnostics", "ExactSync", "Guard", "LatencyWindow",
+           "LogLimiter", "RateMeter", "Startup", "Status", "entry_points", "run_node", "warm_up"]
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -310,6 +311,57 @@ class LogLimiter:
             self._emit(line)
         else:
             window[2] += 1
+
+
+class Guard:
+    """The one error guard of the nodes' callbacks: nothing a message contains stops a node.
+
+    ``with Guard(log, "scan not converted", bad=..., internal=...) as guard: ...`` then ``if
+    guard.failed: return``. A :class:`lidarscan.errors.LidarScanError` (bad input, no
+    transform, ...) calls ``bad(err)`` (the caller's counters) and logs ``"{what}: {err}"``
+    under ``key``; any other ``Exception`` (a bug) calls ``internal(err)`` (default: ``bad``)
+    and logs ``"{what} (internal error {type}: {err})"`` with its traceback under
+    ``internal_key``; both are swallowed. ``KeyboardInterrupt`` and ``SystemExit`` pass.
+
+    Args:
+        log: ``(line, key) -> None``, e.g. a :class:`LogLimiter` (rate-limited per key).
+        what: what failed, the start of the log line.
+        bad, internal: counters to update (None: count nothing).
+        key, internal_key: the log keys of the two kinds.
+    """
+
+    def __init__(self, log: Callable[[str, str], None], what: str, *,
+                 bad: Callable[[Exception], Any] | None = None,
+                 internal: Callable[[Exception], Any] | None = None, key: str = "bad",
+                 internal_key: str = "internal") -> None:
+        self._log, self.what, self.key, self.internal_key = log, what, key, internal_key
+        self._bad = bad
+        self._internal = internal if internal is not None else bad
+        #: the body raised (and the error was counted and logged)
+        self.failed = False
+        #: the error the body raised, if any
+        self.error: Exception | None = None
+
+    def __enter__(self) -> Guard:
+        return self
+
+    def __exit__(self, kind: Any, err: Any, tb: Any) -> bool:
+        if err is None or not isinstance(err, Exception):
+            return False
+        from lidarscan.errors import LidarScanError
+
+        self.failed, self.error = True, err
+        if isinstance(err, LidarScanError):
+            if self._bad is not None:
+                self._bad(err)
+            self._log(f"{self.what}: {err}", self.key)
+        else:
+            if self._internal is not None:
+                self._internal(err)
+            trace = "".join(traceback.format_exception(kind, err, tb)).rstrip()
+            self._log(f"{self.what} (internal error {type(err).__name__}: {err})\n{trace}",
+                      self.internal_key)
+        return True
 
 
 def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) -> int:

@@ -64,6 +64,10 @@ class ConverterCore:
             None: fill :attr:`tracks` yourself.
         tf_wait_ns: how long (data time: the newest scan or pose stamp seen) a pair waits for
             the poses of its whole sweep.
+        tf_tolerance_ns: how long after the newest pose its pose is held (the tracks'
+            ``tolerance_ns``: a pixel time up to that far past the newest pose gets the newest
+            pose, never an extrapolated one; 0 = strict, as tf2). A sweep that ends later than
+            that waits ``tf_wait_ns`` for more poses, then is dropped and counted.
 
     Raises:
         ConfigError: ``moving`` without a ``target_frame``.
@@ -75,7 +79,7 @@ class ConverterCore:
                  max_wait_ns: int | None = 2_000_000_000, max_infos: int = 8,
                  on_event: Any = None, moving: bool = False,
                  tf_samples: Callable[[str, str, int | None], Any] | None = None,
-                 tf_wait_ns: int = 100_000_000) -> None:
+                 tf_wait_ns: int = 100_000_000, tf_tolerance_ns: int = 0) -> None:
         from lidarscan.linkage import InfoResolver
 
         if moving and not target_frame:
@@ -95,6 +99,10 @@ class ConverterCore:
         self.moving = bool(moving)
         self.tf_samples = tf_samples
         self.tf_wait_ns = int(tf_wait_ns)
+        if isinstance(tf_tolerance_ns, bool) or not isinstance(tf_tolerance_ns, (int, np.integer)) \
+                or tf_tolerance_ns < 0:
+            raise ConfigError("tf_tolerance_ns", tf_tolerance_ns, "an int >= 0 (ns)")
+        self.tf_tolerance_ns = int(tf_tolerance_ns)
         #: moving mount: sensor frame -> TransformTrack ``target_frame <- sensor frame``
         self.tracks: dict[str, Any] = {}
         #: moving mount: (scan, info, first pixel time, last pixel time) waiting for poses
@@ -253,7 +261,8 @@ class ConverterCore:
         if found is None:
             if len(self.tracks) >= 8:                   # bounded: frames seen lately
                 self.tracks.pop(next(iter(self.tracks)))
-            found = self.tracks[frame] = TransformTrack(name=f"{self.target_frame} <- {frame}")
+            found = self.tracks[frame] = TransformTrack(name=f"{self.target_frame} <- {frame}",
+                                                        tolerance_ns=self.tf_tolerance_ns)
             self._fill(frame)
         return found
 
@@ -274,9 +283,12 @@ class ConverterCore:
 
     def hold(self, pairs: Iterable[tuple[Any, Any]]) -> list[tuple[Any, Any]]:
         """Moving mount: queue linked pairs until the track covers each scan's sweep (every
-        pixel's time, :meth:`lidarscan.geometry.Projector.pixel_times`); returns the pairs
-        now ready, oldest first (see :meth:`update_tracks`). Without ``moving`` or without
-        slices (the cloud needs no pose): ``pairs``."""
+        pixel's time, :meth:`lidarscan.geometry.Projector.pixel_times`, up to
+        ``tf_tolerance_ns`` past the newest pose); returns the pairs now ready for their
+        slices, oldest first (see :meth:`update_tracks`). Without ``moving`` or without
+        slices: ``pairs``. Only the slices need the poses: convert the clouds at once
+        (``convert(..., slices=[], count=False)``, as the node does), so that a dropped pair
+        loses its slices only."""
         if not self.moving or not self.slices:
             return list(pairs)
         from lidarscan.geometry import make_projector
@@ -325,8 +337,8 @@ class ConverterCore:
                 "held too long" if waited else "too many scans held"
             self.stats.dropped_no_pose += 1
             self.stats.count("no pose: /tf does not cover the sweep")
-            self._on_event(f"moving mount: scan {lo} dropped: /tf does not cover its sweep "
-                           f"[{lo}, {hi}] ns ({track.name}: poses "
+            self._on_event(f"moving mount: slices of scan {lo} dropped: /tf does not cover "
+                           f"its sweep [{lo}, {hi}] ns ({track.name}: poses "
                            f"{'none' if span is None else list(span)}; {why}; tf_wait "
                            f"{self.tf_wait_ns / 1e9:g} s)")
         return out
@@ -334,7 +346,8 @@ class ConverterCore:
     # -------------------------------------------------------------------------- convert
     def convert(self, scan: Any, info: Any, *, cloud: bool = True,
                 slices: Iterable[str] | None = None,
-                extrinsics: np.ndarray[Any, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+                extrinsics: np.ndarray[Any, Any] | None = None,
+                count: bool = True) -> tuple[Any, dict[str, Any]]:
         """Convert one linked pair.
 
         Args:
@@ -345,6 +358,8 @@ class ConverterCore:
                 :class:`converters.TransformTrack` / callable ``stamp_ns -> 4x4`` (looked up
                 at every pixel's time, e.g. :meth:`track`); None: the slices are in the info's
                 frame (only allowed when ``target_frame`` is "" or that frame).
+            count: count the pair in ``stats.scans_converted`` (False: a moving mount's
+                cloud converted at arrival, its slices later count it).
 
         Returns:
             (PointCloud2 or None, {slice name: LaserScan}).
@@ -376,7 +391,7 @@ class ConverterCore:
             slicer = self._cached(self._slicers, (key, names, mount, intensity),
                                   lambda: self._make_slicer(info, wanted, matrix, intensity))
             out_slices = dict(slicer.convert(scan))
-        self.stats.scans_converted += 1
+        self.stats.scans_converted += count
         return out_cloud, out_slices
 
     @staticmethod

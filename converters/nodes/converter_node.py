@@ -54,7 +54,8 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
 * ``extrinsics`` [[]]: ``target_frame <- sensor`` as 6 (x y z roll pitch yaw), 7
   (x y z qx qy qz qw) or 16 (row-major 4x4) numbers; [] = identity;
 * ``moving`` [false]: the sensor's mount moves during a sweep (below); ``tf_wait`` [0.1] s:
-  how long (data time) a scan waits for ``/tf`` to cover its sweep;
+  how long (data time) a scan waits for ``/tf`` to cover its sweep; ``tf_tolerance`` [0.0] s:
+  how long the newest ``/tf`` pose is held past its stamp (0 = never beyond the newest);
 * ``max_pending`` [16] scans held while their LidarInfo is missing, for at most
   ``max_wait`` [2.0] seconds; ``max_infos`` [8] LidarInfo versions kept pairable (see
   :mod:`lidarscan.linkage` for what happens to older ones: dropped, never mispaired);
@@ -74,8 +75,14 @@ pixel time), for at most ``tf_wait`` seconds of data time past its last pixel (t
 or pose stamp seen) and at most ``max_pending`` scans; one that is still not covered then, or
 whose sweep starts before the oldest pose kept, is dropped: one log line, counted
 (``dropped_no_pose``, reason ``no pose``) and reported by the ``moving mount`` diagnostics
-status (also the number held). The PointCloud2 of a held scan waits with it (without slices
-nothing is held: the cloud needs no pose). The ``extrinsics`` parameter is not used. The chain
+status (also the number held). A drop loses the scan's slices only: its PointCloud2 (in the
+sensor frame, it needs no pose) is published when the scan arrives, and nothing is held while
+no slice has a subscriber. ``tf_tolerance`` [0.0] s holds the newest pose that long past its
+stamp (as the merger's: a pixel time up to that far after the newest pose gets the newest pose,
+never an extrapolated one; 0 = strict, as tf2), so a sweep that ends a little after the newest
+/tf is released at once instead of waiting for the next /tf; a sweep that starts before the
+oldest pose kept gets no tolerance (dropped at once, as above). The ``extrinsics`` parameter is
+not used. The chain
 must contain a ``/tf`` (dynamic) edge: a mount known only from ``/tf_static`` gives no poses
 (every scan dropped); leave ``moving`` false for it. ``moving`` false (the default) is the
 fixed-mount path above, unchanged.
@@ -101,8 +108,8 @@ the first scan after ready costs about what the next ones cost (bench/bench_star
 
 ``lidarscan-converter --help`` prints every parameter with its default, rule and description
 (from the one table in :func:`_specs`) without starting ROS. Topics, QoS, ``slice_names``,
-``slices.NAME.topic``, ``slices_file``, ``target_frame``, ``moving``, ``tf_wait`` and
-``pointcloud2.enabled`` are read-only (a restart is needed); the others may be changed while
+``slices.NAME.topic``, ``slices_file``, ``target_frame``, ``moving``, ``tf_wait``,
+``tf_tolerance`` and ``pointcloud2.enabled`` are read-only (a restart is needed); the others may be changed while
 running (``ros2 param set``): each change is checked by the parameter's rule and then by
 building the converters with it (:meth:`ConverterCore.check`), and refused with the reason
 otherwise; an accepted change applies from the next scan.
@@ -126,7 +133,7 @@ from converters.nodes.converter_core import ConverterCore, ConverterStats
 from converters.nodes.depth_input import depth_options  # noqa: F401 - its old home
 from converters.nodes.params import SliceConfig, parse_extrinsics
 from converters.options import HOLE_KEYS
-from lidarscan.errors import ConfigError, LidarScanError
+from lidarscan.errors import ConfigError
 
 __all__ = ["ConverterCore", "ConverterStats", "main"]  # + ConverterNode (lazy, imports rclpy);
 # ConverterCore and ConverterStats live in converters.nodes.converter_core (re-exported here)
@@ -166,6 +173,9 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
           "its sweep, else it is dropped and counted", read_only=True),
         S("tf_wait", 0.1, "seconds (data time) a scan of a moving mount waits for /tf to cover "
           "its sweep", low=0.0, high=60.0, read_only=True),
+        S("tf_tolerance", 0.0, "seconds a moving mount's newest /tf pose is held past its stamp "
+          "(0 = never beyond the newest; never extrapolated)", low=0.0, high=60.0,
+          read_only=True),
         S("max_pending", 16, "scans held while their LidarInfo is missing", low=0,
           high=100_000),
         S("max_wait", 2.0, "seconds a scan may wait for its LidarInfo", low=0.0, high=3600.0),
@@ -329,6 +339,7 @@ def _node_class() -> type:
         ERROR,
         WARN,
         Diagnostics,
+        Guard,
         LatencyWindow,
         LogLimiter,
         RateMeter,
@@ -360,7 +371,8 @@ def _node_class() -> type:
             self.tf_buffer = TransformBuffer()
             self.core = ConverterCore(**config, on_event=lambda line: self._log(line, "linkage"),
                                       moving=self.moving, tf_samples=self.tf_buffer.samples,
-                                      tf_wait_ns=round(values["tf_wait"] * 1e9))
+                                      tf_wait_ns=round(values["tf_wait"] * 1e9),
+                                      tf_tolerance_ns=round(values["tf_tolerance"] * 1e9))
             self.core.check(probe_info(), np.eye(4) if self.target_frame else None)
             self.stats = self.core.stats
             self._no_pose_seen = 0
@@ -492,10 +504,9 @@ def _node_class() -> type:
 
         # ------------------------------------------------------------------- callbacks
         def _on_info(self, raw: bytes) -> None:
-            try:
+            with self._guard("bad LidarInfo ignored", "bad info") as guard:
                 ready = self.core.add_info(raw)
-            except LidarScanError as err:
-                self._log(f"bad LidarInfo ignored: {err}", "bad info")
+            if guard.failed:
                 return
             self._prepare(self.core.last_info)
             self._publish(ready)
@@ -540,59 +551,62 @@ def _node_class() -> type:
             if not want_cloud and not want_slices:
                 self.stats.scans_idle += 1
                 return
-            try:
+            with self._guard(f"bad LidarScan #{self.stats.scans_received + 1} ignored",
+                             "bad scan") as guard:
                 ready = self.core.add_scan(raw)
-            except LidarScanError as err:
-                self._log(f"bad LidarScan #{self.stats.scans_received} ignored: {err}",
-                          "bad scan")
+            if guard.failed:
                 return
             self._publish(ready, want_cloud, want_slices)
 
         def _on_tf(self, cleared: bool) -> None:
             """New /tf (moving mount): extend the tracks, convert the pairs they release."""
-            try:
+            with self._guard("moving mount: poses not updated", "moving",
+                             bad=self._count_internal) as guard:
                 ready = self.core.update_tracks(cleared)
-            except Exception as err:  # noqa: BLE001 - a node must survive any input
-                self.stats.count(f"internal: {type(err).__name__}")
-                self._log(f"moving mount: poses not updated ({type(err).__name__}: {err})",
-                          "moving")
+            if guard.failed:
                 return
             self._publish(ready, held=True)
 
         def _publish(self, pairs: list[tuple[Any, Any]], want_cloud: bool | None = None,
                      want_slices: list[str] | None = None, held: bool = False) -> None:
-            """Convert and publish linked pairs (a moving mount's go through
-            :meth:`ConverterCore.hold` first unless ``held``: released by it)."""
-            if self.moving and not held and pairs:
-                pairs = self.core.hold(pairs)
+            """Convert and publish linked pairs. A moving mount's (with slices): the
+            PointCloud2 at once (it is in the sensor frame: no pose needed), the slices when
+            :meth:`ConverterCore.hold` releases the pair (``held``: pairs it released)."""
             if not pairs:
                 return
-            from lidarscan.stamps import to_ns
-
             if want_cloud is None:
                 want_cloud = self.cloud_pub is not None and \
                     self.cloud_pub.get_subscription_count() > 0
             if want_slices is None:
                 want_slices = [n for n, p in self.slice_pubs.items()
                                if p.get_subscription_count()]
+            if self.moving and self.core.slices:
+                if not held:
+                    if want_cloud:            # counted as converted when its slices are
+                        self._convert(pairs, True, [], count=not want_slices)
+                    pairs = self.core.hold(pairs) if want_slices else []
+                want_cloud = False            # published at arrival
+                if not pairs:
+                    return
             if not want_cloud and not want_slices:
                 self.stats.scans_idle += len(pairs)
                 return
+            self._convert(pairs, want_cloud, want_slices)
+
+        def _convert(self, pairs: list[tuple[Any, Any]], want_cloud: bool,
+                     want_slices: list[str], count: bool = True) -> None:
+            """Convert pairs and publish the outputs (``count``: in ``scans_converted``)."""
+            from lidarscan.stamps import to_ns
+
             for scan, info in pairs:
-                try:
+                with self._guard("scan not converted", "conversion",
+                                 bad=self._count_conversion,
+                                 internal=self._count_conversion_internal) as guard:
                     extrinsics = self._extrinsics(scan, info) if want_slices else None
                     cloud, slices = self.core.convert(scan, info, cloud=want_cloud,
-                                                      slices=want_slices, extrinsics=extrinsics)
-                except LidarScanError as err:
-                    self.stats.conversion_errors += 1
-                    self.stats.count(f"conversion: {err}")
-                    self._log(f"scan not converted: {err}", "conversion")
-                    continue
-                except Exception as err:  # noqa: BLE001 - a node must survive any input
-                    self.stats.conversion_errors += 1
-                    self.stats.count(f"internal: {type(err).__name__}")
-                    self._log(f"scan not converted (internal error {type(err).__name__}: "
-                              f"{err})", "internal")
+                                                      slices=want_slices, extrinsics=extrinsics,
+                                                      count=count)
+                if guard.failed:
                     continue
                 if cloud is not None and self.cloud_pub is not None:
                     self.cloud_pub.publish(cloud)
@@ -602,6 +616,23 @@ def _node_class() -> type:
                         self.slice_pubs[name].publish(msg)
                         self.stats.slices_published += 1
                 self._latency.add(self.get_clock().now().nanoseconds - to_ns(scan.header.stamp))
+
+        def _guard(self, what: str, key: str, **counters: Any) -> Any:
+            """:class:`converters.nodes.common.Guard` logging through this node's limiter
+            (internal errors counted in ``stats.reasons`` unless told otherwise)."""
+            counters.setdefault("internal", self._count_internal)
+            return Guard(self._log, what, key=key, **counters)
+
+        def _count_internal(self, err: Exception) -> None:
+            self.stats.count(f"internal: {type(err).__name__}")
+
+        def _count_conversion(self, err: Exception) -> None:
+            self.stats.conversion_errors += 1
+            self.stats.count(f"conversion: {err}")
+
+        def _count_conversion_internal(self, err: Exception) -> None:
+            self.stats.conversion_errors += 1
+            self._count_internal(err)
 
         def _extrinsics(self, scan: Any, info: Any) -> Any:
             """target_from_sensor: TF at the scan stamp, else the parameter, else identity; a

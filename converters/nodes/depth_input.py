@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from converters.nodes.common import ExactSync, LatencyWindow
+from converters.nodes.common import ExactSync, Guard, LatencyWindow
 from converters.nodes.params import parse_extrinsics
 from lidarscan.errors import ConfigError, LidarScanError
 
@@ -106,15 +106,18 @@ class DepthInput:
             st.scans_received += 1
         else:
             st.infos_received += 1
-        try:
+        def bad(err: Exception) -> None:
+            st.bad_messages += 1
+            st.count(f"bad {msgtype}: {err}")
+
+        with Guard(self._log, f"bad {msgtype} ignored", bad=bad, key=f"bad depth {name}",
+                   internal=lambda err: st.count(f"internal: {type(err).__name__}"),
+                   internal_key="depth internal") as guard:
             msg = decode(raw, msgtype)
             stamp = to_ns(msg.header.stamp, field=f"{msgtype}.header.stamp")
             if name == "camera_info":
                 self._depth_camera(msg)
-        except LidarScanError as err:
-            st.bad_messages += 1
-            st.count(f"bad {msgtype}: {err}")
-            self._log(f"bad {msgtype} ignored: {err}", f"bad depth {name}")
+        if guard.failed:
             return
         pair = self.depth_sync.add(name, stamp, msg)
         if pair is not None:
@@ -149,24 +152,21 @@ class DepthInput:
             return
         from lidarscan.stamps import to_ns
 
-        try:
+        def failed(err: Exception) -> None:
+            st.conversion_errors += 1
+            st.count(f"depth: {err}" if isinstance(err, LidarScanError)
+                     else f"internal: {type(err).__name__}")
+
+        slices: dict[str, Any] = {}
+        with Guard(self._log, "depth image not converted", bad=failed, key="depth",
+                   internal_key="depth internal") as guard:
             self._depth_camera(camera_info)
             scan, info = self.depth_converter.convert(image)
-            slices: dict[str, Any] = {}
             if want:
                 extrinsics = self._depth_extrinsics(info, to_ns(scan.header.stamp))
                 _, slices = self.depth_core.convert(scan, info, cloud=False, slices=want,
                                                     extrinsics=extrinsics)
-        except LidarScanError as err:
-            st.conversion_errors += 1
-            st.count(f"depth: {err}")
-            self._log(f"depth image not converted: {err}", "depth")
-            return
-        except Exception as err:  # noqa: BLE001 - a node must survive any input
-            st.conversion_errors += 1
-            st.count(f"internal: {type(err).__name__}")
-            self._log(f"depth image not converted (internal error {type(err).__name__}: "
-                      f"{err})", "depth internal")
+        if guard.failed:
             return
         if want_scan:
             self.depth_scan_pub.publish(scan)

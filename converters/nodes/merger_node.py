@@ -86,7 +86,7 @@ from typing import Any
 
 import numpy as np
 
-from converters.nodes.common import entry_points
+from converters.nodes.common import Guard, entry_points
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
 
 __all__ = ["MergerCore", "main"]
@@ -661,19 +661,15 @@ def _node_class() -> type:
             if self.pub.get_subscription_count() == 0:
                 self.stats["idle"] += 1
                 return
-            try:
+            def bad(err: Exception) -> None:
+                self.stats["bad"] += 1
+                self.input_stats[name]["bad"] += 1
+
+            with Guard(self._log, f"input {name}: scan dropped", bad=bad,
+                       key=f"bad {name}") as guard:
                 scan = decode(raw, "sensor_msgs/msg/LaserScan")
                 ready = self.core.push(name, scan)
-            except LidarScanError as err:
-                self.stats["bad"] += 1
-                self.input_stats[name]["bad"] += 1
-                self._log(f"input {name}: scan dropped: {err}", f"bad {name}")
-                return
-            except Exception as err:  # noqa: BLE001 - a node must survive any input
-                self.stats["bad"] += 1
-                self.input_stats[name]["bad"] += 1
-                self._log(f"input {name}: scan dropped (internal error {type(err).__name__}: "
-                          f"{err})", "internal")
+            if guard.failed:
                 return
             self._publish(ready)
 
@@ -690,25 +686,23 @@ def _node_class() -> type:
             """New /tf: extend the moving inputs' tracks, publish what they release."""
             if not self.core.tracks:
                 return
-            try:
+            with Guard(self._log, "moving input: scan dropped", bad=self._count_bad,
+                       key="moving"):
                 self._publish(self.core.update_tracks(cleared))
-            except LidarScanError as err:
-                self.stats["bad"] += 1
-                self._log(f"moving input: scan dropped: {err}", "moving")
-            except Exception as err:  # noqa: BLE001 - a node must survive any input
-                self.stats["bad"] += 1
-                self._log(f"moving input: scan dropped (internal error {type(err).__name__}: "
-                          f"{err})", "internal")
 
         def _on_odom(self, raw: bytes) -> None:
             from lidarscan import decode
 
-            try:
+            with Guard(self._log, "odometry dropped", bad=self._count_bad_odometry,
+                       key="bad odometry"):
                 self.core.push_odometry(decode(raw, "nav_msgs/msg/Odometry"))
                 self.stats["odometry"] += 1
-            except LidarScanError as err:
-                self.stats["bad_odometry"] += 1
-                self._log(f"odometry dropped: {err}", "bad odometry")
+
+        def _count_bad(self, err: Exception) -> None:
+            self.stats["bad"] += 1
+
+        def _count_bad_odometry(self, err: Exception) -> None:
+            self.stats["bad_odometry"] += 1
 
     return MergerNode
 
