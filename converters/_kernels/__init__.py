@@ -136,7 +136,7 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
             raise ConfigError("backend", backend, "'auto' (the compiled C kernel when it is "
                               "built) or 'numpy': the cloud slices have no numba kernel")
         from converters._kernels import cloud_slices
-        return Backends(c=cloud_slices.kernel() if backend == "auto" else None)
+        return Backends(c=cloud_slices.library() if backend == "auto" else None)
     numba = None
     if backend != "numpy":
         from converters._kernels import slices_numba

@@ -36,6 +36,22 @@ def load_library(module: str, abi_symbol: str, abi: int) -> ctypes.CDLL | None:
     return lib
 
 
+def load_planned(module: str, prefix: str, abi: int, plan: type[ctypes.Structure]
+                 ) -> tuple[ctypes.CDLL, bool] | None:
+    """:func:`load_library` of a kernel that takes a plan structure: also None when its C
+    ``{prefix}_plan_size()`` differs from ``ctypes.sizeof(plan)`` (a stale layout); else the
+    library and its ``{prefix}_vectorised()`` (whether a vector build runs on this CPU)."""
+    lib = load_library(module, f"{prefix}_abi", abi)
+    if lib is None:
+        return None
+    size, vectorised = getattr(lib, f"{prefix}_plan_size"), getattr(lib, f"{prefix}_vectorised")
+    size.restype, size.argtypes = ctypes.c_int64, []
+    vectorised.restype, vectorised.argtypes = ctypes.c_int32, []
+    if size() != ctypes.sizeof(plan):
+        return None
+    return lib, bool(vectorised())
+
+
 class LoadOnce:
     """The result of ``loader()``, computed at the first :meth:`get` (thread-safe) and kept."""
 

@@ -87,17 +87,11 @@ def library() -> Any:
 
 
 def _load() -> Any:
-    lib = _loader.load_library("converters._kernels._cloudslicekernel", "lcs_abi", ABI)
-    if lib is None:
+    loaded = _loader.load_planned("converters._kernels._cloudslicekernel", "lcs", ABI, _Plan)
+    if loaded is None:
         return None
-    lib.lcs_plan_size.restype = _i64
-    lib.lcs_plan_size.argtypes = []
-    if lib.lcs_plan_size() != ctypes.sizeof(_Plan):
-        return None
-    lib.lcs_vectorised.restype = _i32
-    lib.lcs_vectorised.argtypes = []
-    fn = lib.lcs_slices
-    fn.vectorised = bool(lib.lcs_vectorised())
+    fn = loaded[0].lcs_slices
+    fn.vectorised = loaded[1]
     fn.restype = _i64
     fn.argtypes = [ctypes.POINTER(_Plan), _i64, _i64,          # plan, height, width
                    _ptr, _ptr, _ptr, _i64, _i64, _i32,          # x, y, z, steps, type
@@ -186,9 +180,3 @@ class CloudSlicePlan:
             raise MemoryError("the cloud slices kernel could not allocate its buffers")
         if status != 0:
             raise RuntimeError(f"the cloud slices kernel failed with status {status}")
-
-
-def kernel() -> Any:
-    """``lcs_slices`` when the kernel is built and enabled, else None. Callers go through
-    :func:`converters._kernels.select`."""
-    return library()

@@ -48,17 +48,11 @@ def library() -> Any:
 
 
 def _load() -> Any:
-    lib = _loader.load_library("converters._kernels._slicekernel", "lss_abi", ABI)
-    if lib is None:
+    loaded = _loader.load_planned("converters._kernels._slicekernel", "lss", ABI, _Plan)
+    if loaded is None:
         return None
-    lib.lss_plan_size.restype = _i64
-    lib.lss_plan_size.argtypes = []
-    if lib.lss_plan_size() != ctypes.sizeof(_Plan):
-        return None
-    lib.lss_vectorised.restype = ctypes.c_int32
-    lib.lss_vectorised.argtypes = []
-    fn = lib.lss_slices
-    fn.vectorised = bool(lib.lss_vectorised())
+    fn = loaded[0].lss_slices
+    fn.vectorised = loaded[1]
     fn.restype = _i64
     fn.argtypes = [ctypes.POINTER(_Plan), _ptr, _ptr, ctypes.c_int32,   # plan, r, intensity, type
                    _ptr, _ptr, _ptr, ctypes.c_int32]          # ranges, ints, winners, simd
