@@ -676,6 +676,33 @@ def test_push_many_equals_push_and_keeps_no_view(name: str) -> None:
     _same_scans(expected, got + batch.flush())
 
 
+def test_push_many_keeps_bytes_backed_rows_by_reference() -> None:
+    from converters.velodyne.decoder import _immutable
+    product = PRODUCTS[sorted(PRODUCTS)[0]]
+    calib = _random_calibration(MODELS[product].lasers, 13)
+    packets = synthetic_stream(product, 0x39, 150, deg_per_sequence=1.3)
+    blob = b"".join(d for _, d in packets)
+    frozen = np.frombuffer(blob, np.uint8).reshape(-1, 1206)
+    stamps = np.array([s for s, _ in packets], np.int64)
+    assert _immutable(frozen) and _immutable(frozen[3:7])
+    assert _immutable(np.frombuffer(memoryview(blob), np.uint8))
+    assert not _immutable(frozen.copy())
+    view = frozen.copy()
+    view.flags.writeable = False                         # read-only view of a mutable array
+    assert not _immutable(view[2:])
+    assert not _immutable(np.frombuffer(bytearray(blob), np.uint8))
+    one = PacketDecoder(calib, as_dataclass=True)
+    expected = [r for s, d in packets for r in one.push(s, d)] + one.flush()
+    batch = PacketDecoder(calib, as_dataclass=True)
+    got, kept = [], 0
+    for i in range(0, len(frozen), 41):                  # odd batches across rotations
+        got += batch.push_many(stamps[i:i + 41], frozen[i:i + 41])
+        kept += len(batch._packets)
+        assert all(np.shares_memory(p, frozen) for p in batch._packets)   # no copy
+    assert kept
+    _same_scans(expected, got + batch.flush())
+
+
 def test_push_many_errors_and_the_numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
     calib = _random_calibration(32, 12)
     packets = synthetic_stream(0x28, 0x37, 90, deg_per_sequence=2.0)

@@ -159,7 +159,8 @@ class PacketDecoder:
             stamps_ns: (N,) integer recorded stamps, ns.
             payloads: (N, 1206) uint8 array, one payload per row, e.g. a zero-copy view of a
                 VelodyneScan message's packet array. Read during the call, never modified; the
-                packets of the unfinished rotation are copied (the caller may reuse the buffer).
+                packets of the unfinished rotation are copied (the caller may reuse the buffer),
+                unless the array is a read-only view of ``bytes`` (then kept by reference).
             errors: None (default): if any packet is malformed, raise the DecodeError of the
                 first one (the message :meth:`push` gives, with its row index) before anything
                 is consumed. A list: malformed packets are skipped and ``(row, error)`` appended.
@@ -181,7 +182,7 @@ class PacketDecoder:
             raise DecodeError("stamps_ns", f"{stamps.dtype} {stamps.shape}",
                               f"({rows.shape[0]},) integer ns, one per payload")
         return self._push_array(stamps.astype(np.int64, copy=False), rows, errors=errors,
-                                owned=False)
+                                owned=_immutable(rows))
 
     def _push_array(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], *,
                     errors: list[tuple[int, LidarScanError]] | None, owned: bool
@@ -217,7 +218,7 @@ class PacketDecoder:
                 out.extend(self.flush())
                 self._key, self._layout = key, self._check_key(key)
             out.extend(self._push_rows(stamps[i:j], rows[i:j]))
-        if not owned:                                 # keep no view of the caller's buffer
+        if not owned:                                 # keep no view of a mutable buffer
             self._packets = [p.copy() if isinstance(p, np.ndarray)
                              and np.may_share_memory(p, rows) else p for p in self._packets]
             self._stamps = [s.copy() if isinstance(s, np.ndarray)
@@ -547,6 +548,20 @@ def _rates(times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any]) -> tuple[
     period = float(dt[regular].mean())
     omega = float(np.radians(da[regular].sum() / 100.0) / (dt[regular].sum() * 1e-9))
     return period, omega
+
+
+def _immutable(rows: np.ndarray[Any, Any]) -> bool:
+    """True if ``rows`` views memory nobody can change: its base chain ends at a ``bytes``
+    object (directly or through a read-only memoryview of one), as ``np.frombuffer`` of message
+    bytes gives. Such rows may be kept by reference; anything else is copied."""
+    base: Any = rows
+    while isinstance(base, np.ndarray):
+        if base.flags.writeable:
+            return False
+        base = base.base
+    if isinstance(base, memoryview):
+        return base.readonly and type(base.obj) is bytes
+    return type(base) is bytes
 
 
 def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
