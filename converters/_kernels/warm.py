@@ -93,8 +93,9 @@ def probe_scan(info: Any, *, stamp_ns: int = 2, range_dtype: Any = np.float32,
 def probe_cloud(frame_id: str = "warm") -> Any:
     """A synthetic unorganized PointCloud2 (x, y, z float32 + intensity, as drivers publish
     them) of :func:`probe_scan`'s 32 x 1024 sensor: what warms the kernels of
-    :class:`converters.cloud_slices.CloudSliceConverter` (it compiles per x/y/z dtype and
-    layout: a cloud of another layout still pays its own first call)."""
+    :class:`converters.cloud_slices.CloudSliceConverter` (its C kernel loads at the first
+    call; the per-layout validation is kept per field layout, so a cloud of another layout
+    pays only that check)."""
     from converters.pointcloud2 import to_pointcloud2
 
     info = probe_info(32, 1024, frame_id=frame_id)
