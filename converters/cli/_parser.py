@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 from converters.cli.convert import cmd_convert
 from converters.cli.demo import cmd_demo
@@ -167,24 +168,26 @@ def _fields(text: str) -> tuple[str, ...]:
     return names
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= 1")
-    return value
+def _int_at_least(minimum: int, name: str) -> Callable[[str], int]:
+    """An argparse type: an integer >= ``minimum`` (the error names the text and the bound);
+    ``name`` is what argparse calls it in "invalid NAME value" when the text is no integer."""
+    def parse(text: str) -> int:
+        value = int(text)
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= {minimum}")
+        return value
+    parse.__name__ = name
+    return parse
+
+
+_positive_int = _int_at_least(1, "_positive_int")
+_non_negative_int = _int_at_least(0, "_non_negative_int")
 
 
 def _zstd_level(text: str) -> int:
     value = int(text)
     if not -131072 <= value <= 22:
         raise argparse.ArgumentTypeError(f"{text!r}: expected a zstd level from -131072 to 22")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= 0")
     return value
 
 
