@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from converters.nodes.params import SliceConfig
+from converters.nodes.tf import extend_track
 from lidarscan.errors import ConfigError, LidarScanError
 
 __all__ = ["ConverterCore", "ConverterStats"]
@@ -270,12 +271,7 @@ class ConverterCore:
         """Extend a track with the chained /tf samples newer than it holds."""
         if self.tf_samples is None:
             return
-        track = self.tracks[frame]
-        span = track.span
-        for stamp, matrix in self.tf_samples(self.target_frame, frame,
-                                             None if span is None else span[1]):
-            track.add(stamp, matrix)
-            self._tick(stamp)
+        extend_track(self.tracks[frame], self.tf_samples, self.target_frame, frame, self._tick)
 
     def _tick(self, stamp: int) -> None:
         if self._data_clock is None or stamp > self._data_clock:

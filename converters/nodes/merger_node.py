@@ -87,6 +87,7 @@ from typing import Any
 import numpy as np
 
 from converters.nodes.common import Guard, entry_points
+from converters.nodes.tf import extend_track
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
 
 __all__ = ["MergerCore", "main"]
@@ -276,12 +277,7 @@ class MergerCore:
         frame = self.frames.get(name)
         if frame is None or self.tf_samples is None:
             return
-        track = self.tracks[name]
-        span = track.span
-        for stamp, matrix in self.tf_samples(self.frame_id, frame,
-                                             None if span is None else span[1]):
-            track.add(stamp, matrix)
-            self._tick(stamp)
+        extend_track(self.tracks[name], self.tf_samples, self.frame_id, frame, self._tick)
 
     def update_tracks(self, cleared: bool = False) -> list[Any]:
         """New /tf arrived (``cleared``: its time jumped back and the buffer was cleared):

@@ -121,6 +121,17 @@ class _Edge:
         self.values: list[tuple[np.ndarray[Any, Any], tuple[float, float, float, float]]] = []
 
 
+def extend_track(track: Any, tf_samples: Callable[[str, str, int | None], Any],
+                 target_frame: str, frame: str, tick: Callable[[int], None]) -> None:
+    """Add to ``track`` (a :class:`converters.TransformTrack` of ``frame`` in
+    ``target_frame``) the chained /tf samples newer than it holds (``tf_samples``, e.g.
+    :meth:`TransformBuffer.samples`), calling ``tick(stamp_ns)`` after each one added."""
+    span = track.span
+    for stamp, matrix in tf_samples(target_frame, frame, None if span is None else span[1]):
+        track.add(stamp, matrix)
+        tick(stamp)
+
+
 class TransformBuffer:
     """Transform tree with time-interpolated lookups (thread-safe).
 
