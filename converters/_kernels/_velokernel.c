@@ -273,6 +273,9 @@ static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, 
 #ifndef VDK_T
 #define VDK_T 16 /* packets (columns) per tile of the one-sequence path: 16 or 32 */
 #endif
+#ifndef VDK_PF
+#define VDK_PF (4 * VDK_T) /* columns ahead whose output lines are prefetched (for writing) */
+#endif
 #define VDK_AVX2 __attribute__((target("avx2")))
 #define VDK_AVX2_INLINE static inline __attribute__((target("avx2"), always_inline))
 
@@ -304,8 +307,8 @@ VDK_AVX2_INLINE void vdk_t16(__m128i v[8])
  */
 VDK_AVX2 static void vdk_tile(const uint8_t *tile, int64_t nb, int angles, int64_t family,
                               int64_t dual, int64_t n_blocks, const float *factor,
-                              const double *rotation, uint16_t (*D)[VDK_T],
-                              uint8_t (*I)[VDK_T], uint16_t (*A)[VDK_T])
+                              const double *rotation, const int64_t *twin,
+                              uint16_t (*D)[VDK_T], uint8_t (*I)[VDK_T], uint16_t (*A)[VDK_T])
 {
     /* 16 bytes at point 4i: distance lo/hi of points 0..3, then their reflectivities */
     const __m128i split = _mm_setr_epi8(0, 1, 3, 4, 6, 7, 9, 10, 2, 5, 8, 11, -1, -1, -1, -1);
@@ -347,11 +350,24 @@ VDK_AVX2 static void vdk_tile(const uint8_t *tile, int64_t nb, int angles, int64
         const __m256 half = _mm256_set1_ps(0.5f), scale = _mm256_set1_ps((float)110.592);
         const __m256i mask = _mm256_set1_epi32(0xFFFF), turn = _mm256_set1_epi32(36000);
         const __m256i top = _mm256_set1_epi32(35999);
+        __m256 Bs[VDK_BLOCKS], Gs[VDK_BLOCKS];
         for (int64_t b = 0; b < n_blocks; ++b) {
             const __m256 B = _mm256_setr_ps(base[0][b], base[1][b], base[2][b], base[3][b],
                                             base[4][b], base[5][b], base[6][b], base[7][b]);
             const __m256 G = _mm256_setr_ps(gap[0][b], gap[1][b], gap[2][b], gap[3][b],
                                             gap[4][b], gap[5][b], gap[6][b], gap[7][b]);
+            Bs[b] = B, Gs[b] = G;
+            if (twin[b] >= 0) {              /* same lasers, same base and gap: same angles */
+                const __m256i same = _mm256_and_si256(
+                    _mm256_cmpeq_epi32(_mm256_castps_si256(B), _mm256_castps_si256(Bs[twin[b]])),
+                    _mm256_cmpeq_epi32(_mm256_castps_si256(G), _mm256_castps_si256(Gs[twin[b]])));
+                if (_mm256_movemask_epi8(same) == -1) {
+                    for (int k = 0; k < 32; ++k)
+                        _mm_store_si128((__m128i *)&A[32 * b + k][g],
+                                        _mm_load_si128((const __m128i *)&A[32 * twin[b] + k][g]));
+                    continue;
+                }
+            }
             for (int k = 0; k < 32; ++k) {
                 const int64_t slot = 32 * b + k;
                 __m256 term = _mm256_mul_ps(G, _mm256_set1_ps(factor[slot]));
@@ -403,14 +419,34 @@ VDK_AVX2 static int64_t vdk_fill_one(const uint8_t *buf, int64_t begin, int64_t 
     const int64_t nb = most / 32 + 1;
     if (a0 && nb > n_blocks) return 0;
     const int16_t *s0 = slots, *s1 = slots + rows;      /* (R, 1, H) */
+    int64_t twin[VDK_BLOCKS];        /* an earlier block with the same lasers (factor, rotation) */
+    for (int64_t b = 0; b < n_blocks; ++b) {
+        twin[b] = -1;
+        for (int64_t e = 0; e < b && twin[b] < 0; ++e)
+            if (!memcmp(factor + 32 * b, factor + 32 * e, 32 * sizeof *factor) &&
+                !memcmp(rotation + 32 * b, rotation + 32 * e, 32 * sizeof *rotation))
+                twin[b] = e;
+    }
     int64_t c0 = 0;
     for (; c0 + VDK_T <= count; c0 += VDK_T) {
         vdk_tile(buf + (begin + c0) * VDK_PACKET, nb, a0 != NULL, family, dual, n_blocks,
-                 factor, rotation, D, I, A);
+                 factor, rotation, twin, D, I, A);
         const int64_t col = column + c0;
         for (int64_t h = 0; h < rows; ++h) {
             const int64_t at = h * width + col;
             const int64_t x = s0[h], y = returns == 2 ? s1[h] : 0;
+            if (col + VDK_T + VDK_PF <= width) {          /* the lines of the tiles ahead */
+                __builtin_prefetch(r0 + at + VDK_PF, 1);
+                __builtin_prefetch(i0 + at + VDK_PF, 1);
+                if (returns == 2) {
+                    __builtin_prefetch(r1 + at + VDK_PF, 1);
+                    __builtin_prefetch(i1 + at + VDK_PF, 1);
+                }
+                if (a0) {
+                    __builtin_prefetch(a0 + at + VDK_PF, 1);
+                    if (returns == 2) __builtin_prefetch(a1 + at + VDK_PF, 1);
+                }
+            }
             for (int c = 0; c < VDK_T; c += 16) {
                 const __m256i d0 = _mm256_load_si256((const __m256i *)&D[x][c]);
                 _mm256_storeu_si256((__m256i *)(r0 + at + c), d0);
