@@ -1,16 +1,19 @@
 """Harness: the Velodyne C fill kernel alone (``vdk_fill`` of converters/_kernels/_velokernel.c).
 
-Run: ``.venv/bin/python bench/velokernel_harness.py [--so other.so ...] [--rounds N]``.
+Run: ``.venv/bin/python bench/velokernel_harness.py [--so other.so ...] [--rounds N] [--push-many]``.
 
 Captures the kernel calls that ``PacketDecoder.push_many`` makes for one rotation of the bench's
-VLS-128 dual-return packets (bench/bench_velodyne.py: 1 s of data, default
-``azimuth_model="nebula"``), then replays that rotation's calls on warm (already written) views
-and, separately, on fresh ``np.zeros`` views (first-touch page faults included, as a decoder
-that allocates a ScanBuffer per rotation pays), for the installed kernel and for every extra
-shared object given with ``--so`` (built from a variant of the source; the same exported
-functions). Prints CPU-time (``time.process_time``) medians of interleaved rounds, per rotation
-and per second of data, the ratio to the installed kernel and the load average; checks that
-every shared object writes the same bytes (no assertions on speed).
+VLS-128 dual-return packets (bench/bench_velodyne.py, default ``azimuth_model="nebula"``), then
+replays that rotation's calls on warm (already written) views and, separately, on fresh
+``np.zeros`` views (first-touch page faults included, as a decoder that allocates a ScanBuffer
+per rotation pays). Candidates: the installed kernel on its portable path
+(``LIDARSCAN_VELODYNE_SIMD=0``: the tiled kernel as it was before the AVX2 path) and on its
+default path, and every extra shared object given with ``--so`` (built from a variant of the
+source; the same exported functions). With ``--push-many``, also ``PacketDecoder.push_many`` on
+1 s of the same packets (one rotation per call, as bench_velodyne.py) with either path, in the
+same interleaved rounds. Prints CPU-time (``time.process_time``) medians, per rotation and per
+second of data, ratios to the portable path and the load average; checks that every candidate
+writes the same bytes (no assertions on speed).
 """
 
 from __future__ import annotations
@@ -102,9 +105,11 @@ def _fresh(views: dict[str, np.ndarray[Any, Any]]) -> dict[str, np.ndarray[Any, 
     return out
 
 
-def replay(lib: Any, calls: list[tuple[Any, ...]], views: dict[str, np.ndarray[Any, Any]]
-           ) -> None:
+def replay(candidate: tuple[Any, str], calls: list[tuple[Any, ...]],
+           views: dict[str, np.ndarray[Any, Any]]) -> None:
     import converters._kernels.velodyne as kv
+    lib, simd = candidate
+    os.environ["LIDARSCAN_VELODYNE_SIMD"] = simd
     for plan, run, begin, count, column, _ in calls:
         kv.fill(lib, plan, run, begin, count, column, views)
 
@@ -114,9 +119,12 @@ def main() -> None:
     parser.add_argument("--so", action="append", default=[], help="a variant's shared object")
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--inner", type=int, default=10, help="rotations per timed sample")
+    parser.add_argument("--push-many", action="store_true", help="also time push_many")
     args = parser.parse_args()
     calls, seconds = capture()
-    libs = {"installed": _bind(None)} | {Path(p).name: _bind(p) for p in args.so}
+    installed = _bind(None)
+    libs = {"portable (SIMD=0)": (installed, "0"), "default (AVX2)": (installed, "1")}
+    libs |= {Path(p).name: (_bind(p), "1") for p in args.so}
     template = {k: v for k, v in calls[0][5].items()}
     warm = {name: _fresh(template) for name in libs}
     reference = None
@@ -125,6 +133,22 @@ def main() -> None:
         got = b"".join(v.tobytes() for v in warm[name].values())
         reference = reference or got
         print(f"{name}: {'same bytes' if got == reference else 'DIFFERENT BYTES'}")
+    batch = None
+    if args.push_many:
+        from converters.velodyne import PacketDecoder
+        bench = _bench_module()
+        packets = bench.make_packets(1.0)
+        rows = np.frombuffer(b"".join(p for _, p in packets), np.uint8).reshape(-1, 1206)
+        stamps = np.array([s for s, _ in packets], np.int64)
+        per, calib = int(round(0.1 / bench.SEQUENCE_S)), bench.calibration()
+
+        def batch(simd: str) -> None:
+            os.environ["LIDARSCAN_VELODYNE_SIMD"] = simd
+            dec = PacketDecoder(calib, as_dataclass=True)
+            for i in range(0, len(rows), per):
+                dec.push_many(stamps[i:i + per], rows[i:i + per])
+            dec.flush()
+        batch("0"), batch("1")
     load0 = os.getloadavg()[0]
     times: dict[tuple[str, str], list[float]] = {}
     for _ in range(args.rounds):
@@ -141,14 +165,26 @@ def main() -> None:
             times.setdefault((name, "fresh"), []).append(
                 (time.process_time() - start) / args.inner)
             del fresh
+        if batch is not None:
+            for name, simd in (("portable (SIMD=0)", "0"), ("default (AVX2)", "1")):
+                start = time.process_time()
+                batch(simd)
+                times.setdefault((name, "push_many"), []).append(
+                    (time.process_time() - start) * seconds)   # 1 s of data, as per rotation
+    os.environ.pop("LIDARSCAN_VELODYNE_SIMD", None)
     print(f"one rotation = {seconds:.4f} s of data, {sum(c[3] for c in calls)} columns; load "
           f"average {load0:.2f} -> {os.getloadavg()[0]:.2f}; CPU medians of {args.rounds} rounds")
-    for mode in ("warm", "fresh"):
-        base = statistics.median(times[("installed", mode)])
+    for mode in ("warm", "fresh", "push_many"):
+        if ("portable (SIMD=0)", mode) not in times:
+            continue
+        base = statistics.median(times[("portable (SIMD=0)", mode)])
         for name in libs:
+            if (name, mode) not in times:
+                continue
             med = statistics.median(times[(name, mode)])
-            print(f"  {mode:5s} {name:28s} {med * 1e3:7.3f} ms/rotation = {med / seconds * 1e3:6.2f}"
-                  f" ms per second of data, {med / base:5.2f}x installed")
+            what = "push_many, 1 s of data" if mode == "push_many" else f"kernel, {mode} views"
+            print(f"  {what:22s} {name:20s} {med / seconds * 1e3:7.2f} ms per second of data "
+                  f"= {seconds / med:5.1f}x real time, {med / base:5.2f}x the portable path")
 
 
 if __name__ == "__main__":

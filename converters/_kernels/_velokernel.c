@@ -11,7 +11,17 @@
  * contiguous loop over the slots (the compiler vectorises it where the CPU has SSE4.1 / AVX:
  * target clones), then for each firing sequence of the packet and each row the distance and
  * reflectivity of each return slot, written at (row, column) with the slot's angle (through
- * small column tiles: see vdk_fill).
+ * small column tiles: see vdk_fill_tiles, the portable path).
+ *
+ * One firing sequence per packet (a dual-return VLS-128: one column per packet) has a second
+ * path on x86-64 CPUs with AVX2 (vdk_fill_one, chosen at run time; LIDARSCAN_VELODYNE_SIMD=0
+ * forces the portable one): tiles of VDK_T packets are gathered slot-major (each block's 3-byte
+ * points split with byte shuffles, then 8 x 8 transposes across the packets), the angles are
+ * computed eight packets per vector (the same float32 / float64 operations on the same values),
+ * and the row permutation happens in the row copies (32-byte stores, the identical-pair rule as
+ * a vector blend; the output lines of the tiles ahead prefetched for writing: 768 row streams
+ * are more than the hardware prefetchers follow). Both paths write the same bytes
+ * (tests/test_velokernel.py).
  *
  * Arithmetic, exactly as the reference (build with -ffp-contract=off, never -ffast-math):
  *   term  = gap * f                      (VLP-16: (gap * f) / 110.592f)    float32
@@ -160,23 +170,11 @@ VDK_CLONES static void vdk_angles(float base, float gap, int64_t vlp16, const fl
 }
 
 /*
- * Decode `count` firing sequences, from sequence `begin` of the packets `buf` ((n, 1206) uint8,
- * sequence q = sequence q % S of packet q / S), into columns column .. column + count - 1 of
- * the (H, width) channel views r0 / i0 (uint16 range, uint8 intensity of return slot 0, the
- * strongest or only), r1 / i1 (slot 1, the last return; unused when returns == 1) and, unless
- * a0 is NULL, the uint16 angle views a0 / a1 (a1 unused when returns == 1).
- *
- * offsets: (R, S, H) byte offset in a packet of the distance (reflectivity at + 2) of return
- * slot r, sequence s, row h; slots: (R, S, H) its point slot 32 * block + k; factor (384) float32
- * firing factor and rotation (384) float64 rot_correction (0.01 deg) of each slot's laser;
- * family 0 VLP-16, 1 VLP-32C / HDL-32E, 2 VLS-128; n_blocks: the blocks Nebula walks.
- *
- * Layout: the columns are taken in tiles of VDK_TILE; a tile is first gathered column by column
- * into small row-major buffers (L1/L2; the distance and reflectivity of a point as one
- * unaligned 32-bit load, the identical-pair rule applied there), then each of their rows is
- * copied into the views with contiguous stores; the packets a few ahead are prefetched.
- * Returns 0, -1 for an unsupported shape (more than VDK_ROWS rows, returns not 1 or 2), -2
- * when the tile buffers cannot be allocated.
+ * The portable path of vdk_fill (same arguments, same result; see there): the columns are taken
+ * in tiles of VDK_TILE; a tile is first gathered column by column into small row-major buffers
+ * (L1/L2; the distance and reflectivity of a point as one unaligned 32-bit load, the
+ * identical-pair rule applied there), then each of their rows is copied into the views with
+ * contiguous stores; the packets a few ahead are prefetched. Returns 0, -1 or -2 as vdk_fill.
  */
 static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
                               int64_t returns, int64_t seqs, int64_t rows, int64_t width,

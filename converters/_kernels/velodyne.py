@@ -8,6 +8,10 @@ channel views of a :class:`lidarscan.scan.ScanBuffer`; :func:`first_bad` is the 
 header check of ``PacketDecoder`` (flags, azimuths, factory bytes) in one pass. The tests
 compare both paths byte for byte (``tests/test_velodyne_golden.py``). Chosen by
 :func:`converters._kernels.select` (``"velodyne"``), which reads ``LIDARSCAN_NO_KERNEL``.
+Inside the kernel, layouts with one firing sequence per packet (dual-return VLS-128) take an
+AVX2 path on CPUs that have it, the others a portable one; ``LIDARSCAN_VELODYNE_SIMD=0`` (read
+by the kernel at each call) forces the portable path. Both write the same bytes
+(``tests/test_velokernel.py``).
 """
 
 from __future__ import annotations
