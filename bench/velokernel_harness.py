@@ -90,7 +90,7 @@ def _bind(path: str | None) -> Any:
     lib.vdk_fill.restype = i64
     lib.vdk_fill.argtypes = [ptr, i64, i64, i64, i64, i64, i64, i64,
                              ptr, ptr, ptr, ptr, i64, i64, i64,
-                             ptr, ptr, ptr, ptr, ptr, ptr]
+                             ptr, ptr, ptr, ptr, ptr, ptr, i64]
     return lib
 
 

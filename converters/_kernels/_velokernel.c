@@ -14,14 +14,14 @@
  * small column tiles: see vdk_fill_tiles, the portable path).
  *
  * One firing sequence per packet (a dual-return VLS-128: one column per packet) has a second
- * path on x86-64 CPUs with AVX2 (vdk_fill_one, chosen at run time; LIDARSCAN_VELODYNE_SIMD=0
- * forces the portable one): tiles of VDK_T packets are gathered slot-major (each block's 3-byte
- * points split with byte shuffles, then 8 x 8 transposes across the packets), the angles are
- * computed eight packets per vector (the same float32 / float64 operations on the same values),
- * and the row permutation happens in the row copies (32-byte stores, the identical-pair rule as
- * a vector blend; the output lines of the tiles ahead prefetched for writing: 768 row streams
- * are more than the hardware prefetchers follow). Both paths write the same bytes
- * (tests/test_velokernel.py).
+ * path on x86-64 CPUs with AVX2 (vdk_fill_one, chosen at run time unless the caller passes
+ * simd = 0, as converters/_kernels/velodyne.py does for LIDARSCAN_VELODYNE_SIMD=0): tiles of
+ * VDK_T packets are gathered slot-major (each block's 3-byte points split with byte shuffles,
+ * then 8 x 8 transposes across the packets), the angles are computed eight packets per vector
+ * (the same float32 / float64 operations on the same values), and the row permutation happens
+ * in the row copies (32-byte stores, the identical-pair rule as a vector blend; the output
+ * lines of the tiles ahead prefetched: 768 row streams are more than the hardware prefetchers
+ * follow). Both paths write the same bytes (tests/test_velokernel.py).
  *
  * Arithmetic, exactly as the reference (build with -ffp-contract=off, never -ffast-math):
  *   term  = gap * f                      (VLP-16: (gap * f) / 110.592f)    float32
@@ -45,7 +45,7 @@
 #include <string.h>
 
 /* Bump with any change of a function's signature or semantics. */
-#define VDK_ABI 1
+#define VDK_ABI 2
 
 #define VDK_PACKET 1206
 #define VDK_BLOCKS 12
@@ -473,12 +473,9 @@ VDK_AVX2 static int64_t vdk_fill_one(const uint8_t *buf, int64_t begin, int64_t 
     return c0;
 }
 
-/* Whether vdk_fill may take vdk_fill_one: an AVX2 CPU, and LIDARSCAN_VELODYNE_SIMD is not "0"
- * (read at each call: the tests compare both paths). */
-static int vdk_simd(void)
+/* Whether this CPU runs vdk_fill_one (AVX2). */
+static int vdk_avx2(void)
 {
-    const char *env = getenv("LIDARSCAN_VELODYNE_SIMD");
-    if (env && env[0] == '0' && env[1] == '\0') return 0;
     __builtin_cpu_init();
     return __builtin_cpu_supports("avx2");
 }
@@ -494,11 +491,12 @@ static int vdk_simd(void)
  * offsets: (R, S, H) byte offset in a packet of the distance (reflectivity at + 2) of return
  * slot r, sequence s, row h; slots: (R, S, H) its point slot 32 * block + k; factor (384) float32
  * firing factor and rotation (384) float64 rot_correction (0.01 deg) of each slot's laser;
- * family 0 VLP-16, 1 VLP-32C / HDL-32E, 2 VLS-128; n_blocks: the blocks Nebula walks.
+ * family 0 VLP-16, 1 VLP-32C / HDL-32E, 2 VLS-128; n_blocks: the blocks Nebula walks; simd: 0
+ * forces the portable path.
  *
- * One sequence per packet (a dual-return VLS-128) on an AVX2 CPU: whole tiles of VDK_T columns
- * by vdk_fill_one, the rest by vdk_fill_tiles; every other layout by vdk_fill_tiles. Both give
- * the same bytes. Returns 0, -1 for an unsupported shape (more than VDK_ROWS rows, returns not
+ * One sequence per packet (a dual-return VLS-128) on an AVX2 CPU, unless simd is 0: whole tiles
+ * of VDK_T columns by vdk_fill_one, the rest by vdk_fill_tiles; every other layout by
+ * vdk_fill_tiles. Both give the same bytes. Returns 0, -1 for an unsupported shape (more than VDK_ROWS rows, returns not
  * 1 or 2), -2 when the tile buffers cannot be allocated.
  */
 VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
@@ -506,13 +504,13 @@ VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, in
                             const int32_t *offsets, const int16_t *slots, const float *factor,
                             const double *rotation, int64_t family, int64_t dual,
                             int64_t n_blocks, uint16_t *r0, uint8_t *i0, uint16_t *r1,
-                            uint8_t *i1, uint16_t *a0, uint16_t *a1)
+                            uint8_t *i1, uint16_t *a0, uint16_t *a1, int64_t simd)
 {
     if (rows > VDK_ROWS || returns < 1 || returns > 2) return -1;
     if (count <= 0) return 0;
     int64_t done = 0;
 #ifdef VDK_SIMD
-    if (seqs == 1 && count >= VDK_T && vdk_simd())
+    if (simd && seqs == 1 && count >= VDK_T && vdk_avx2())
         done = vdk_fill_one(buf, begin, count, column, returns, rows, width, slots, factor,
                             rotation, family, dual, n_blocks, r0, i0, r1, i1, a0, a1);
 #endif
