@@ -9,7 +9,7 @@ replays that rotation's calls on warm (already written) views and, separately, o
 per rotation pays). Candidates: the installed kernel on its portable path
 (``LIDARSCAN_VELODYNE_SIMD=0``: the tiled kernel as it was before the AVX2 path) and on its
 default path, and every extra shared object given with ``--so`` (built from a variant of the
-source; the same exported functions). With ``--push-many``, also ``PacketDecoder.push_many`` on
+source; the same exported functions; ``PATH:0`` runs its portable path). With ``--push-many``, also ``PacketDecoder.push_many`` on
 1 s of the same packets (one rotation per call, as bench_velodyne.py) with either path, in the
 same interleaved rounds. Prints CPU-time (``time.process_time``) medians, per rotation and per
 second of data, ratios to the portable path and the load average; checks that every candidate
@@ -116,7 +116,8 @@ def replay(candidate: tuple[Any, str], calls: list[tuple[Any, ...]],
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--so", action="append", default=[], help="a variant's shared object")
+    parser.add_argument("--so", action="append", default=[],
+                        help="a variant's shared object, PATH or PATH:0 (its portable path)")
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--inner", type=int, default=10, help="rotations per timed sample")
     parser.add_argument("--push-many", action="store_true", help="also time push_many")
@@ -124,7 +125,9 @@ def main() -> None:
     calls, seconds = capture()
     installed = _bind(None)
     libs = {"portable (SIMD=0)": (installed, "0"), "default (AVX2)": (installed, "1")}
-    libs |= {Path(p).name: (_bind(p), "1") for p in args.so}
+    for spec in args.so:                       # path[:0] (":0": its portable path)
+        path, _, simd = spec.partition(":")
+        libs[Path(path).name + (" (SIMD=0)" if simd == "0" else "")] = (_bind(path), simd or "1")
     template = {k: v for k, v in calls[0][5].items()}
     warm = {name: _fresh(template) for name in libs}
     reference = None

@@ -54,6 +54,9 @@
 #define VDK_TILE 32 /* columns per tile */
 #endif
 #define VDK_ROWS 128 /* most rows (lasers) */
+#ifndef VDK_TILE_PF
+#define VDK_TILE_PF (2 * VDK_TILE) /* columns ahead whose output lines are prefetched */
+#endif
 #define VDK_AHEAD 4 /* packets prefetched ahead */
 /* bytes of n elements: a constant for a whole tile (an inlined copy) */
 #define VDK_BYTES(n, type) ((n) == VDK_TILE ? VDK_TILE * sizeof(type) : (size_t)(n) * sizeof(type))
@@ -67,9 +70,11 @@
 #if defined(__GNUC__) || defined(__clang__)
 #define VDK_INLINE static inline __attribute__((always_inline))
 #define VDK_PREFETCH(p) __builtin_prefetch(p)
+#define VDK_PREFETCH_W(p) __builtin_prefetch(p, 1)
 #else
 #define VDK_INLINE static inline
 #define VDK_PREFETCH(p) ((void)(p))
+#define VDK_PREFETCH_W(p) ((void)(p))
 #endif
 
 #if defined(__x86_64__) && defined(__ELF__) && defined(__has_attribute)
@@ -243,15 +248,22 @@ static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, 
             }
         }
         const int64_t col = column + c0;
+        const int ahead = col + n + VDK_TILE_PF <= width;     /* the lines of the tiles ahead */
         for (int64_t r = 0; r < returns; ++r)                  /* copy the rows out */
             for (int64_t h = 0; h < rows; ++h) {
                 memcpy(rv[r] + h * width + col, tr[r][h], VDK_BYTES(n, uint16_t));
                 memcpy(iv[r] + h * width + col, ti[r][h], VDK_BYTES(n, uint8_t));
+                if (ahead) {
+                    VDK_PREFETCH_W(rv[r] + h * width + col + VDK_TILE_PF);
+                    VDK_PREFETCH_W(iv[r] + h * width + col + VDK_TILE_PF);
+                }
             }
         if (a0)
             for (int64_t r = 0; r < returns; ++r)
-                for (int64_t h = 0; h < rows; ++h)
+                for (int64_t h = 0; h < rows; ++h) {
                     memcpy(av[r] + h * width + col, ta[r][h], VDK_BYTES(n, uint16_t));
+                    if (ahead) VDK_PREFETCH_W(av[r] + h * width + col + VDK_TILE_PF);
+                }
     }
     free(tr);
     return 0;
