@@ -10,8 +10,8 @@ per rotation pays). Candidates: the installed kernel on its portable path
 (``LIDARSCAN_VELODYNE_SIMD=0``: the tiled kernel as it was before the AVX2 path) and on its
 default path, and every extra shared object given with ``--so`` (built from a variant of the
 source; the same exported functions; ``PATH:0`` runs its portable path). With ``--push-many``, also ``PacketDecoder.push_many`` on
-1 s of the same packets (one rotation per call, as bench_velodyne.py) with either path, in the
-same interleaved rounds. Prints CPU-time (``time.process_time``) medians, per rotation and per
+1 s of the same packets (one rotation per call, as bench_velodyne.py) with each candidate as
+the decoder's kernel, in the same interleaved rounds. Prints CPU-time (``time.process_time``) medians, per rotation and per
 second of data, ratios to the portable path and the load average; checks that every candidate
 writes the same bytes (no assertions on speed).
 """
@@ -85,8 +85,9 @@ def _bind(path: str | None) -> Any:
             raise SystemExit("the installed kernel is not built or is disabled")
         return lib
     lib = ctypes.CDLL(path)
-    from converters._kernels.velodyne import _load  # noqa: F401  (argtypes as the module sets)
-    i64, ptr = ctypes.c_int64, ctypes.c_void_p
+    i64, ptr = ctypes.c_int64, ctypes.c_void_p      # the argument types the module sets
+    lib.vdk_check.restype = i64
+    lib.vdk_check.argtypes = [ptr, i64, i64, ctypes.c_int32, ptr, i64]
     lib.vdk_fill.restype = i64
     lib.vdk_fill.argtypes = [ptr, i64, i64, i64, i64, i64, i64, i64,
                              ptr, ptr, ptr, ptr, i64, i64, i64,
@@ -145,13 +146,21 @@ def main() -> None:
         stamps = np.array([s for s, _ in packets], np.int64)
         per, calib = int(round(0.1 / bench.SEQUENCE_S)), bench.calibration()
 
-        def batch(simd: str) -> None:
+        import converters._kernels.velodyne as kv
+        from converters._kernels import _loader
+        installed_loader = kv._library
+
+        def batch(candidate: tuple[Any, str]) -> None:
+            lib, simd = candidate
             os.environ["LIDARSCAN_VELODYNE_SIMD"] = simd
+            kv._library = _loader.LoadOnce(lambda: lib)     # the decoder's kernel
             dec = PacketDecoder(calib, as_dataclass=True)
             for i in range(0, len(rows), per):
                 dec.push_many(stamps[i:i + per], rows[i:i + per])
             dec.flush()
-        batch("0"), batch("1")
+            kv._library = installed_loader
+        for candidate in libs.values():
+            batch(candidate)
     load0 = os.getloadavg()[0]
     times: dict[tuple[str, str], list[float]] = {}
     for _ in range(args.rounds):
@@ -169,9 +178,9 @@ def main() -> None:
                 (time.process_time() - start) / args.inner)
             del fresh
         if batch is not None:
-            for name, simd in (("portable (SIMD=0)", "0"), ("default (AVX2)", "1")):
+            for name, candidate in libs.items():
                 start = time.process_time()
-                batch(simd)
+                batch(candidate)
                 times.setdefault((name, "push_many"), []).append(
                     (time.process_time() - start) * seconds)   # 1 s of data, as per rotation
     os.environ.pop("LIDARSCAN_VELODYNE_SIMD", None)
