@@ -1,19 +1,21 @@
 """Harness: the Velodyne C fill kernel alone (``vdk_fill`` of converters/_kernels/_velokernel.c).
 
-Run: ``.venv/bin/python bench/velokernel_harness.py [--so other.so ...] [--rounds N] [--push-many]``.
+Run: ``.venv/bin/python bench/velokernel_harness.py [--so X.so[:0] ...] [--rounds N]
+[--push-many]``.
 
 Captures the kernel calls that ``PacketDecoder.push_many`` makes for one rotation of the bench's
 VLS-128 dual-return packets (bench/bench_velodyne.py, default ``azimuth_model="nebula"``), then
 replays that rotation's calls on warm (already written) views and, separately, on fresh
 ``np.zeros`` views (first-touch page faults included, as a decoder that allocates a ScanBuffer
 per rotation pays). Candidates: the installed kernel on its portable path
-(``LIDARSCAN_VELODYNE_SIMD=0``: the tiled kernel as it was before the AVX2 path) and on its
-default path, and every extra shared object given with ``--so`` (built from a variant of the
-source; the same exported functions; ``PATH:0`` runs its portable path). With ``--push-many``, also ``PacketDecoder.push_many`` on
-1 s of the same packets (one rotation per call, as bench_velodyne.py) with each candidate as
-the decoder's kernel, in the same interleaved rounds. Prints CPU-time (``time.process_time``) medians, per rotation and per
-second of data, ratios to the portable path and the load average; checks that every candidate
-writes the same bytes (no assertions on speed).
+(``LIDARSCAN_VELODYNE_SIMD=0``) and on its default path, and every extra shared object given
+with ``--so`` (built from a variant of the source, e.g. main's, with the same exported
+functions; ``PATH:0`` runs its portable path). With ``--push-many``, also
+``PacketDecoder.push_many`` on 1 s of the same packets (one rotation per call, as
+bench_velodyne.py) with each candidate as the decoder's kernel, in the same interleaved rounds.
+Prints CPU-time (``time.process_time``) medians per second of data, ratios to the portable path
+and the load average; checks that every candidate writes the same bytes (no assertions on
+speed).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import importlib.util
 import os
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -62,17 +65,17 @@ def capture() -> tuple[list[tuple[Any, ...]], float]:
     try:
         dec = PacketDecoder(bench.calibration(), as_dataclass=True)
         per = int(round(0.1 / bench.SEQUENCE_S))
-        views_seen: list[int] = []
         for i in range(0, len(rows), per):
             dec.push_many(stamps[i:i + per], rows[i:i + per])
-            views_seen.append(len(calls))
     finally:
         kv.fill = original
-    # the calls of the second rotation (the first may start mid-rotation)
-    groups: dict[int, list[tuple[Any, ...]]] = {}
+    rotations: list[list[tuple[Any, ...]]] = []      # a rotation's calls start at column 0
     for call in calls:
-        groups.setdefault(id(call[5]["range"]), []).append(call)
-    rotation = max(groups.values(), key=lambda g: sum(c[3] for c in g))
+        if call[4] == 0:
+            rotations.append([])
+        if rotations:
+            rotations[-1].append(call)
+    rotation = max(rotations, key=lambda g: sum(c[3] for c in g))   # a whole one
     width = rotation[0][5]["range"].shape[1]
     return rotation, width * bench.SEQUENCE_S
 
@@ -115,6 +118,35 @@ def replay(candidate: tuple[Any, str], calls: list[tuple[Any, ...]],
         kv.fill(lib, plan, run, begin, count, column, views)
 
 
+def push_many_runner() -> Callable[[tuple[Any, str]], None]:
+    """A function that decodes 1 s of the bench's packets with ``push_many`` (one rotation per
+    call, a new decoder each time) with a candidate (library, simd flag) as the kernel."""
+    import converters._kernels.velodyne as kv
+    from converters._kernels import _loader
+    from converters.velodyne import PacketDecoder
+
+    bench = _bench_module()
+    packets = bench.make_packets(1.0)
+    rows = np.frombuffer(b"".join(p for _, p in packets), np.uint8).reshape(-1, 1206)
+    stamps = np.array([s for s, _ in packets], np.int64)
+    per, calib = int(round(0.1 / bench.SEQUENCE_S)), bench.calibration()
+    installed = kv._library
+
+    def run(candidate: tuple[Any, str]) -> None:
+        lib, simd = candidate
+        os.environ["LIDARSCAN_VELODYNE_SIMD"] = simd
+        kv._library = _loader.LoadOnce(lambda: lib)        # the decoder's kernel
+        try:
+            dec = PacketDecoder(calib, as_dataclass=True)
+            for i in range(0, len(rows), per):
+                dec.push_many(stamps[i:i + per], rows[i:i + per])
+            dec.flush()
+        finally:
+            kv._library = installed
+
+    return run
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--so", action="append", default=[],
@@ -126,10 +158,10 @@ def main() -> None:
     calls, seconds = capture()
     installed = _bind(None)
     libs = {"portable (SIMD=0)": (installed, "0"), "default (AVX2)": (installed, "1")}
-    for spec in args.so:                       # path[:0] (":0": its portable path)
+    for spec in args.so:
         path, _, simd = spec.partition(":")
         libs[Path(path).name + (" (SIMD=0)" if simd == "0" else "")] = (_bind(path), simd or "1")
-    template = {k: v for k, v in calls[0][5].items()}
+    template = dict(calls[0][5])
     warm = {name: _fresh(template) for name in libs}
     reference = None
     for name, lib in libs.items():
@@ -137,66 +169,43 @@ def main() -> None:
         got = b"".join(v.tobytes() for v in warm[name].values())
         reference = reference or got
         print(f"{name}: {'same bytes' if got == reference else 'DIFFERENT BYTES'}")
-    batch = None
-    if args.push_many:
-        from converters.velodyne import PacketDecoder
-        bench = _bench_module()
-        packets = bench.make_packets(1.0)
-        rows = np.frombuffer(b"".join(p for _, p in packets), np.uint8).reshape(-1, 1206)
-        stamps = np.array([s for s, _ in packets], np.int64)
-        per, calib = int(round(0.1 / bench.SEQUENCE_S)), bench.calibration()
-
-        import converters._kernels.velodyne as kv
-        from converters._kernels import _loader
-        installed_loader = kv._library
-
-        def batch(candidate: tuple[Any, str]) -> None:
-            lib, simd = candidate
-            os.environ["LIDARSCAN_VELODYNE_SIMD"] = simd
-            kv._library = _loader.LoadOnce(lambda: lib)     # the decoder's kernel
-            dec = PacketDecoder(calib, as_dataclass=True)
-            for i in range(0, len(rows), per):
-                dec.push_many(stamps[i:i + per], rows[i:i + per])
-            dec.flush()
-            kv._library = installed_loader
+    push_many = push_many_runner() if args.push_many else None
+    if push_many is not None:
         for candidate in libs.values():
-            batch(candidate)
+            push_many(candidate)                            # warm-up
     load0 = os.getloadavg()[0]
-    times: dict[tuple[str, str], list[float]] = {}
+    per_second: dict[tuple[str, str], list[float]] = {}     # CPU s per second of data
     for _ in range(args.rounds):
         for name, lib in libs.items():
             start = time.process_time()
             for _ in range(args.inner):
                 replay(lib, calls, warm[name])
-            times.setdefault((name, "warm"), []).append(
-                (time.process_time() - start) / args.inner)
+            per_second.setdefault((name, "warm"), []).append(
+                (time.process_time() - start) / args.inner / seconds)
             fresh = [_fresh(template) for _ in range(args.inner)]
             start = time.process_time()
             for v in fresh:
                 replay(lib, calls, v)
-            times.setdefault((name, "fresh"), []).append(
-                (time.process_time() - start) / args.inner)
+            per_second.setdefault((name, "fresh"), []).append(
+                (time.process_time() - start) / args.inner / seconds)
             del fresh
-        if batch is not None:
-            for name, candidate in libs.items():
+            if push_many is not None:
                 start = time.process_time()
-                batch(candidate)
-                times.setdefault((name, "push_many"), []).append(
-                    (time.process_time() - start) * seconds)   # 1 s of data, as per rotation
+                push_many(lib)                              # 1 s of data
+                per_second.setdefault((name, "push_many"), []).append(
+                    time.process_time() - start)
     os.environ.pop("LIDARSCAN_VELODYNE_SIMD", None)
     print(f"one rotation = {seconds:.4f} s of data, {sum(c[3] for c in calls)} columns; load "
           f"average {load0:.2f} -> {os.getloadavg()[0]:.2f}; CPU medians of {args.rounds} rounds")
     for mode in ("warm", "fresh", "push_many"):
-        if ("portable (SIMD=0)", mode) not in times:
+        if ("portable (SIMD=0)", mode) not in per_second:
             continue
-        base = statistics.median(times[("portable (SIMD=0)", mode)])
+        base = statistics.median(per_second[("portable (SIMD=0)", mode)])
+        what = "push_many, 1 s of data" if mode == "push_many" else f"kernel, {mode} views"
         for name in libs:
-            if (name, mode) not in times:
-                continue
-            med = statistics.median(times[(name, mode)])
-            what = "push_many, 1 s of data" if mode == "push_many" else f"kernel, {mode} views"
-            print(f"  {what:22s} {name:20s} {med / seconds * 1e3:7.2f} ms per second of data "
-                  f"= {seconds / med:5.1f}x real time, {med / base:5.2f}x the portable path")
+            med = statistics.median(per_second[(name, mode)])
+            print(f"  {what:22s} {name:20s} {med * 1e3:7.2f} ms per second of data "
+                  f"= {1 / med:5.1f}x real time, {med / base:5.2f}x the portable path")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""The two paths of the Velodyne C kernel (``converters/_kernels/_velokernel.c``) give the same bytes.
+"""The two paths of the Velodyne C kernel (``converters/_kernels/_velokernel.c``): same bytes.
 
 ``vdk_fill`` takes its AVX2 path (slot-major tiles of 16 packets) for layouts with one firing
 sequence per packet (a dual-return VLS-128) on a CPU with AVX2, and its portable path otherwise
