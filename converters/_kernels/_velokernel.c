@@ -271,7 +271,8 @@ static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, 
 
 /* ------------------------------------------------ one firing sequence per packet (VLS-128 dual) */
 
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__)) && defined(__has_attribute)
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__)) && \
+    defined(__has_attribute) && !defined(VDK_NO_SIMD)      /* -DVDK_NO_SIMD: portable only */
 #if __has_attribute(target)
 #define VDK_SIMD 1
 #endif
@@ -281,7 +282,7 @@ static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, 
 #include <immintrin.h>
 
 #ifndef VDK_T
-#define VDK_T 16 /* packets (columns) per tile of the one-sequence path: 16 or 32 */
+#define VDK_T 16 /* packets (columns) per tile of the one-sequence path: a multiple of 16 */
 #endif
 #ifndef VDK_PF
 #define VDK_PF (4 * VDK_T) /* columns ahead whose output lines are prefetched (for writing) */
@@ -345,8 +346,9 @@ VDK_AVX2 static void vdk_tile(const uint8_t *tile, int64_t nb, int angles, int64
                 e[1] = _mm_unpackhi_epi16(c[0], c[1]);          /* points 4..7, packets 0..3 */
                 e[2] = _mm_unpacklo_epi16(c[2], c[3]);
                 e[3] = _mm_unpackhi_epi16(c[2], c[3]);
-                const __m128i pts[4] = {_mm_unpacklo_epi32(e[0], e[2]), _mm_unpackhi_epi32(e[0], e[2]),
-                                        _mm_unpacklo_epi32(e[1], e[3]), _mm_unpackhi_epi32(e[1], e[3])};
+                const __m128i pts[4] = {    /* points 0, 1 | 2, 3 | 4, 5 | 6, 7 of packets 0..7 */
+                    _mm_unpacklo_epi32(e[0], e[2]), _mm_unpackhi_epi32(e[0], e[2]),
+                    _mm_unpacklo_epi32(e[1], e[3]), _mm_unpackhi_epi32(e[1], e[3])};
                 for (int i = 0; i < 4; ++i) {
                     _mm_storel_epi64((__m128i *)&I[slot + 2 * i][g], pts[i]);
                     _mm_storeh_pd((double *)&I[slot + 2 * i + 1][g], _mm_castsi128_pd(pts[i]));
@@ -460,7 +462,8 @@ VDK_AVX2 static int64_t vdk_fill_one(const uint8_t *buf, int64_t begin, int64_t 
             for (int c = 0; c < VDK_T; c += 16) {
                 const __m256i d0 = _mm256_load_si256((const __m256i *)&D[x][c]);
                 _mm256_storeu_si256((__m256i *)(r0 + at + c), d0);
-                _mm_storeu_si128((__m128i *)(i0 + at + c), _mm_load_si128((const __m128i *)&I[x][c]));
+                _mm_storeu_si128((__m128i *)(i0 + at + c),
+                                 _mm_load_si128((const __m128i *)&I[x][c]));
                 __m256i eq = _mm256_setzero_si256();
                 if (returns == 2) {
                     const __m256i d1 = _mm256_load_si256((const __m256i *)&D[y][c]);
@@ -508,8 +511,8 @@ static int vdk_avx2(void)
  *
  * One sequence per packet (a dual-return VLS-128) on an AVX2 CPU, unless simd is 0: whole tiles
  * of VDK_T columns by vdk_fill_one, the rest by vdk_fill_tiles; every other layout by
- * vdk_fill_tiles. Both give the same bytes. Returns 0, -1 for an unsupported shape (more than VDK_ROWS rows, returns not
- * 1 or 2), -2 when the tile buffers cannot be allocated.
+ * vdk_fill_tiles. Both give the same bytes. Returns 0, -1 for an unsupported shape (more than
+ * VDK_ROWS rows, returns not 1 or 2), -2 when the tile buffers cannot be allocated.
  */
 VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
                             int64_t returns, int64_t seqs, int64_t rows, int64_t width,
@@ -525,6 +528,8 @@ VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, in
     if (simd && seqs == 1 && count >= VDK_T && vdk_avx2())
         done = vdk_fill_one(buf, begin, count, column, returns, rows, width, slots, factor,
                             rotation, family, dual, n_blocks, r0, i0, r1, i1, a0, a1);
+#else
+    (void)simd;
 #endif
     if (done == count) return 0;
     return vdk_fill_tiles(buf, begin + done, count - done, column + done, returns, seqs, rows,
