@@ -11,7 +11,17 @@
  * contiguous loop over the slots (the compiler vectorises it where the CPU has SSE4.1 / AVX:
  * target clones), then for each firing sequence of the packet and each row the distance and
  * reflectivity of each return slot, written at (row, column) with the slot's angle (through
- * small column tiles: see vdk_fill).
+ * small column tiles: see vdk_fill_tiles, the portable path).
+ *
+ * One firing sequence per packet (a dual-return VLS-128: one column per packet) has a second
+ * path on x86-64 CPUs with AVX2 (vdk_fill_one, chosen at run time unless the caller passes
+ * simd = 0, as converters/_kernels/velodyne.py does for LIDARSCAN_VELODYNE_SIMD=0): tiles of
+ * VDK_T packets are gathered slot-major (each block's 3-byte points split with byte shuffles,
+ * then 8 x 8 transposes across the packets), the angles are computed eight packets per vector
+ * (the same float32 / float64 operations on the same values), and the row permutation happens
+ * in the row copies (32-byte stores, the identical-pair rule as a vector blend; the output
+ * lines of the tiles ahead prefetched: 768 row streams are more than the hardware prefetchers
+ * follow). Both paths write the same bytes (tests/test_velokernel.py).
  *
  * Arithmetic, exactly as the reference (build with -ffp-contract=off, never -ffast-math):
  *   term  = gap * f                      (VLP-16: (gap * f) / 110.592f)    float32
@@ -35,7 +45,7 @@
 #include <string.h>
 
 /* Bump with any change of a function's signature or semantics. */
-#define VDK_ABI 1
+#define VDK_ABI 2
 
 #define VDK_PACKET 1206
 #define VDK_BLOCKS 12
@@ -44,6 +54,9 @@
 #define VDK_TILE 32 /* columns per tile */
 #endif
 #define VDK_ROWS 128 /* most rows (lasers) */
+#ifndef VDK_TILE_PF
+#define VDK_TILE_PF (2 * VDK_TILE) /* columns ahead whose output lines are prefetched */
+#endif
 #define VDK_AHEAD 4 /* packets prefetched ahead */
 /* bytes of n elements: a constant for a whole tile (an inlined copy) */
 #define VDK_BYTES(n, type) ((n) == VDK_TILE ? VDK_TILE * sizeof(type) : (size_t)(n) * sizeof(type))
@@ -57,9 +70,11 @@
 #if defined(__GNUC__) || defined(__clang__)
 #define VDK_INLINE static inline __attribute__((always_inline))
 #define VDK_PREFETCH(p) __builtin_prefetch(p)
+#define VDK_PREFETCH_W(p) __builtin_prefetch(p, 1)
 #else
 #define VDK_INLINE static inline
 #define VDK_PREFETCH(p) ((void)(p))
+#define VDK_PREFETCH_W(p) ((void)(p))
 #endif
 
 #if defined(__x86_64__) && defined(__ELF__) && defined(__has_attribute)
@@ -160,30 +175,18 @@ VDK_CLONES static void vdk_angles(float base, float gap, int64_t vlp16, const fl
 }
 
 /*
- * Decode `count` firing sequences, from sequence `begin` of the packets `buf` ((n, 1206) uint8,
- * sequence q = sequence q % S of packet q / S), into columns column .. column + count - 1 of
- * the (H, width) channel views r0 / i0 (uint16 range, uint8 intensity of return slot 0, the
- * strongest or only), r1 / i1 (slot 1, the last return; unused when returns == 1) and, unless
- * a0 is NULL, the uint16 angle views a0 / a1 (a1 unused when returns == 1).
- *
- * offsets: (R, S, H) byte offset in a packet of the distance (reflectivity at + 2) of return
- * slot r, sequence s, row h; slots: (R, S, H) its point slot 32 * block + k; factor (384) float32
- * firing factor and rotation (384) float64 rot_correction (0.01 deg) of each slot's laser;
- * family 0 VLP-16, 1 VLP-32C / HDL-32E, 2 VLS-128; n_blocks: the blocks Nebula walks.
- *
- * Layout: the columns are taken in tiles of VDK_TILE; a tile is first gathered column by column
- * into small row-major buffers (L1/L2; the distance and reflectivity of a point as one
- * unaligned 32-bit load, the identical-pair rule applied there), then each of their rows is
- * copied into the views with contiguous stores; the packets a few ahead are prefetched.
- * Returns 0, -1 for an unsupported shape (more than VDK_ROWS rows, returns not 1 or 2), -2
- * when the tile buffers cannot be allocated.
+ * The portable path of vdk_fill (same arguments, same result; see there): the columns are taken
+ * in tiles of VDK_TILE; a tile is first gathered column by column into small row-major buffers
+ * (L1/L2; the distance and reflectivity of a point as one unaligned 32-bit load, the
+ * identical-pair rule applied there), then each of their rows is copied into the views with
+ * contiguous stores; the packets a few ahead are prefetched. Returns 0, -1 or -2 as vdk_fill.
  */
-VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
-                            int64_t returns, int64_t seqs, int64_t rows, int64_t width,
-                            const int32_t *offsets, const int16_t *slots, const float *factor,
-                            const double *rotation, int64_t family, int64_t dual,
-                            int64_t n_blocks, uint16_t *r0, uint8_t *i0, uint16_t *r1,
-                            uint8_t *i1, uint16_t *a0, uint16_t *a1)
+static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
+                              int64_t returns, int64_t seqs, int64_t rows, int64_t width,
+                              const int32_t *offsets, const int16_t *slots, const float *factor,
+                              const double *rotation, int64_t family, int64_t dual,
+                              int64_t n_blocks, uint16_t *r0, uint8_t *i0, uint16_t *r1,
+                              uint8_t *i1, uint16_t *a0, uint16_t *a1)
 {
     uint16_t angle[VDK_SLOTS] = {0};
     float base[VDK_BLOCKS], gap[VDK_BLOCKS];
@@ -245,18 +248,293 @@ VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, in
             }
         }
         const int64_t col = column + c0;
+        const int ahead = col + n + VDK_TILE_PF <= width;     /* the lines of the tiles ahead */
         for (int64_t r = 0; r < returns; ++r)                  /* copy the rows out */
             for (int64_t h = 0; h < rows; ++h) {
                 memcpy(rv[r] + h * width + col, tr[r][h], VDK_BYTES(n, uint16_t));
                 memcpy(iv[r] + h * width + col, ti[r][h], VDK_BYTES(n, uint8_t));
+                if (ahead) {
+                    VDK_PREFETCH_W(rv[r] + h * width + col + VDK_TILE_PF);
+                    VDK_PREFETCH_W(iv[r] + h * width + col + VDK_TILE_PF);
+                }
             }
         if (a0)
             for (int64_t r = 0; r < returns; ++r)
-                for (int64_t h = 0; h < rows; ++h)
+                for (int64_t h = 0; h < rows; ++h) {
                     memcpy(av[r] + h * width + col, ta[r][h], VDK_BYTES(n, uint16_t));
+                    if (ahead) VDK_PREFETCH_W(av[r] + h * width + col + VDK_TILE_PF);
+                }
     }
     free(tr);
     return 0;
+}
+
+/* ------------------------------------------------ one firing sequence per packet (VLS-128 dual) */
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__)) && \
+    defined(__has_attribute) && !defined(VDK_NO_SIMD)      /* -DVDK_NO_SIMD: portable only */
+#if __has_attribute(target)
+#define VDK_SIMD 1
+#endif
+#endif
+
+#ifdef VDK_SIMD
+#include <immintrin.h>
+
+#ifndef VDK_T
+#define VDK_T 16 /* packets (columns) per tile of the one-sequence path: a multiple of 16 */
+#endif
+#ifndef VDK_PF
+#define VDK_PF (4 * VDK_T) /* columns ahead whose output lines are prefetched (for writing) */
+#endif
+#define VDK_AVX2 __attribute__((target("avx2")))
+#define VDK_AVX2_INLINE static inline __attribute__((target("avx2"), always_inline))
+
+/* v[j] = 8 u16 of packet j (points 0..7) -> v[k] = point k of packets 0..7. */
+VDK_AVX2_INLINE void vdk_t16(__m128i v[8])
+{
+    __m128i a[8], b[8];
+    for (int i = 0; i < 4; ++i) {
+        a[2 * i] = _mm_unpacklo_epi16(v[2 * i], v[2 * i + 1]);
+        a[2 * i + 1] = _mm_unpackhi_epi16(v[2 * i], v[2 * i + 1]);
+    }
+    for (int i = 0; i < 2; ++i) {
+        b[4 * i] = _mm_unpacklo_epi32(a[4 * i], a[4 * i + 2]);       /* points 0, 1 */
+        b[4 * i + 1] = _mm_unpackhi_epi32(a[4 * i], a[4 * i + 2]);   /* 2, 3 */
+        b[4 * i + 2] = _mm_unpacklo_epi32(a[4 * i + 1], a[4 * i + 3]); /* 4, 5 */
+        b[4 * i + 3] = _mm_unpackhi_epi32(a[4 * i + 1], a[4 * i + 3]); /* 6, 7 */
+    }
+    for (int i = 0; i < 4; ++i) {
+        v[2 * i] = _mm_unpacklo_epi64(b[i], b[4 + i]);
+        v[2 * i + 1] = _mm_unpackhi_epi64(b[i], b[4 + i]);
+    }
+}
+
+/*
+ * Gather one tile of VDK_T packets (one column each) into slot-major rows: D[slot][j] distance,
+ * I[slot][j] reflectivity of point slot `slot` (32 * block + k, blocks 0..nb-1) of packet j,
+ * and, when `angles`, A[slot][j] its counter-clockwise angle (the arithmetic of vdk_angles,
+ * eight packets per vector: the same operations on the same values, so the same integers).
+ */
+VDK_AVX2 static void vdk_tile(const uint8_t *tile, int64_t nb, int angles, int64_t family,
+                              int64_t dual, int64_t n_blocks, const float *factor,
+                              const double *rotation, const int64_t *twin,
+                              uint16_t (*D)[VDK_T], uint8_t (*I)[VDK_T], uint16_t (*A)[VDK_T])
+{
+    /* 16 bytes at point 4i: distance lo/hi of points 0..3, then their reflectivities */
+    const __m128i split = _mm_setr_epi8(0, 1, 3, 4, 6, 7, 9, 10, 2, 5, 8, 11, -1, -1, -1, -1);
+    for (int g = 0; g < VDK_T; g += 8) {
+        const uint8_t *pkt = tile + (int64_t)g * VDK_PACKET;
+        for (int64_t b = 0; b < nb; ++b)
+            for (int k8 = 0; k8 < 32; k8 += 8) {
+                __m128i d[8], r[8];
+                const uint8_t *q = pkt + 100 * b + 4 + 3 * k8;
+                for (int j = 0; j < 8; ++j, q += VDK_PACKET) {
+                    const __m128i lo = _mm_shuffle_epi8(_mm_loadu_si128((const __m128i *)q), split);
+                    const __m128i hi =
+                        _mm_shuffle_epi8(_mm_loadu_si128((const __m128i *)(q + 12)), split);
+                    d[j] = _mm_unpacklo_epi64(lo, hi);          /* distances of points 0..7 */
+                    r[j] = _mm_unpackhi_epi32(lo, hi);          /* reflectivities, low 8 bytes */
+                }
+                vdk_t16(d);
+                const int64_t slot = 32 * b + k8;
+                for (int k = 0; k < 8; ++k)
+                    _mm_store_si128((__m128i *)&D[slot + k][g], d[k]);
+                __m128i c[4], e[4];
+                for (int i = 0; i < 4; ++i) c[i] = _mm_unpacklo_epi8(r[2 * i], r[2 * i + 1]);
+                e[0] = _mm_unpacklo_epi16(c[0], c[1]);          /* points 0..3, packets 0..3 */
+                e[1] = _mm_unpackhi_epi16(c[0], c[1]);          /* points 4..7, packets 0..3 */
+                e[2] = _mm_unpacklo_epi16(c[2], c[3]);
+                e[3] = _mm_unpackhi_epi16(c[2], c[3]);
+                const __m128i pts[4] = {    /* points 0, 1 | 2, 3 | 4, 5 | 6, 7 of packets 0..7 */
+                    _mm_unpacklo_epi32(e[0], e[2]), _mm_unpackhi_epi32(e[0], e[2]),
+                    _mm_unpacklo_epi32(e[1], e[3]), _mm_unpackhi_epi32(e[1], e[3])};
+                for (int i = 0; i < 4; ++i) {
+                    _mm_storel_epi64((__m128i *)&I[slot + 2 * i][g], pts[i]);
+                    _mm_storeh_pd((double *)&I[slot + 2 * i + 1][g], _mm_castsi128_pd(pts[i]));
+                }
+            }
+        if (!angles) continue;
+        float base[8][VDK_BLOCKS], gap[8][VDK_BLOCKS];
+        for (int j = 0; j < 8; ++j)
+            vdk_blocks(pkt + (int64_t)j * VDK_PACKET, family, dual, n_blocks, base[j], gap[j]);
+        const __m256 zero = _mm256_setzero_ps(), full = _mm256_set1_ps(36000.0f);
+        const __m256 half = _mm256_set1_ps(0.5f), scale = _mm256_set1_ps((float)110.592);
+        const __m256i mask = _mm256_set1_epi32(0xFFFF), turn = _mm256_set1_epi32(36000);
+        const __m256i top = _mm256_set1_epi32(35999);
+        __m256 Bs[VDK_BLOCKS], Gs[VDK_BLOCKS];
+        for (int64_t b = 0; b < n_blocks; ++b) {
+            const __m256 B = _mm256_setr_ps(base[0][b], base[1][b], base[2][b], base[3][b],
+                                            base[4][b], base[5][b], base[6][b], base[7][b]);
+            const __m256 G = _mm256_setr_ps(gap[0][b], gap[1][b], gap[2][b], gap[3][b],
+                                            gap[4][b], gap[5][b], gap[6][b], gap[7][b]);
+            Bs[b] = B, Gs[b] = G;
+            if (twin[b] >= 0) {              /* same lasers, same base and gap: same angles */
+                const __m256i same = _mm256_and_si256(
+                    _mm256_cmpeq_epi32(_mm256_castps_si256(B), _mm256_castps_si256(Bs[twin[b]])),
+                    _mm256_cmpeq_epi32(_mm256_castps_si256(G), _mm256_castps_si256(Gs[twin[b]])));
+                if (_mm256_movemask_epi8(same) == -1) {
+                    for (int k = 0; k < 32; ++k)
+                        _mm_store_si128((__m128i *)&A[32 * b + k][g],
+                                        _mm_load_si128((const __m128i *)&A[32 * twin[b] + k][g]));
+                    continue;
+                }
+            }
+            for (int k = 0; k < 32; ++k) {
+                const int64_t slot = 32 * b + k;
+                __m256 term = _mm256_mul_ps(G, _mm256_set1_ps(factor[slot]));
+                if (family == 0) term = _mm256_div_ps(term, scale);
+                const __m256 sum = _mm256_add_ps(B, term);
+                const __m256d rot = _mm256_set1_pd(rotation[slot]);
+                const __m128 lo = _mm256_cvtpd_ps(
+                    _mm256_sub_pd(_mm256_cvtps_pd(_mm256_castps256_ps128(sum)), rot));
+                const __m128 hi = _mm256_cvtpd_ps(
+                    _mm256_sub_pd(_mm256_cvtps_pd(_mm256_extractf128_ps(sum, 1)), rot));
+                __m256 value = _mm256_set_m128(hi, lo);
+                value = _mm256_blendv_ps(value, _mm256_add_ps(value, full),
+                                         _mm256_cmp_ps(value, zero, _CMP_LT_OQ));
+                __m256i cw = _mm256_cvttps_epi32(_mm256_floor_ps(_mm256_add_ps(value, half)));
+                cw = _mm256_and_si256(cw, mask);
+                cw = _mm256_sub_epi32(cw, _mm256_and_si256(_mm256_cmpgt_epi32(cw, top), turn));
+                const __m256i ccw = _mm256_andnot_si256(
+                    _mm256_cmpeq_epi32(cw, _mm256_setzero_si256()), _mm256_sub_epi32(turn, cw));
+                _mm_store_si128((__m128i *)&A[slot][g],
+                                _mm_packus_epi32(_mm256_castsi256_si128(ccw),
+                                                 _mm256_extracti128_si256(ccw, 1)));
+            }
+        }
+    }
+}
+
+/*
+ * vdk_fill for one firing sequence per packet (seqs == 1: column c = packet begin + c), whole
+ * tiles of VDK_T columns: each tile gathered slot-major (vdk_tile), then each row h written
+ * from its slot's rows (the row permutation in the copies) with 32-byte stores, the
+ * identical-pair rule as a vector compare and blend. Returns the columns done (a multiple of
+ * VDK_T), or 0 when a used slot has no angle (a block beyond n_blocks with angles wanted).
+ */
+VDK_AVX2 static int64_t vdk_fill_one(const uint8_t *buf, int64_t begin, int64_t count,
+                                     int64_t column, int64_t returns, int64_t rows,
+                                     int64_t width, const int16_t *slots, const float *factor,
+                                     const double *rotation, int64_t family, int64_t dual,
+                                     int64_t n_blocks, uint16_t *r0, uint8_t *i0, uint16_t *r1,
+                                     uint8_t *i1, uint16_t *a0, uint16_t *a1)
+{
+    _Alignas(64) uint16_t D[VDK_SLOTS][VDK_T];
+    _Alignas(64) uint16_t A[VDK_SLOTS][VDK_T];
+    _Alignas(64) uint8_t I[VDK_SLOTS][VDK_T];
+    int64_t most = 0;
+    for (int64_t i = 0; i < returns * rows; ++i) {
+        if (slots[i] < 0 || slots[i] >= VDK_SLOTS) return 0;
+        most = slots[i] > most ? slots[i] : most;
+    }
+    const int64_t nb = most / 32 + 1;
+    if (a0 && nb > n_blocks) return 0;
+    const int16_t *s0 = slots, *s1 = slots + rows;      /* (R, 1, H) */
+    int64_t twin[VDK_BLOCKS];        /* an earlier block with the same lasers (factor, rotation) */
+    for (int64_t b = 0; b < n_blocks; ++b) {
+        twin[b] = -1;
+        for (int64_t e = 0; e < b && twin[b] < 0; ++e)
+            if (!memcmp(factor + 32 * b, factor + 32 * e, 32 * sizeof *factor) &&
+                !memcmp(rotation + 32 * b, rotation + 32 * e, 32 * sizeof *rotation))
+                twin[b] = e;
+    }
+    int64_t c0 = 0;
+    for (; c0 + VDK_T <= count; c0 += VDK_T) {
+        vdk_tile(buf + (begin + c0) * VDK_PACKET, nb, a0 != NULL, family, dual, n_blocks,
+                 factor, rotation, twin, D, I, A);
+        const int64_t col = column + c0;
+        for (int64_t h = 0; h < rows; ++h) {
+            const int64_t at = h * width + col;
+            const int64_t x = s0[h], y = returns == 2 ? s1[h] : 0;
+            if (col + VDK_T + VDK_PF <= width) {          /* the lines of the tiles ahead */
+                __builtin_prefetch(r0 + at + VDK_PF, 1);
+                __builtin_prefetch(i0 + at + VDK_PF, 1);
+                if (returns == 2) {
+                    __builtin_prefetch(r1 + at + VDK_PF, 1);
+                    __builtin_prefetch(i1 + at + VDK_PF, 1);
+                }
+                if (a0) {
+                    __builtin_prefetch(a0 + at + VDK_PF, 1);
+                    if (returns == 2) __builtin_prefetch(a1 + at + VDK_PF, 1);
+                }
+            }
+            for (int c = 0; c < VDK_T; c += 16) {
+                const __m256i d0 = _mm256_load_si256((const __m256i *)&D[x][c]);
+                _mm256_storeu_si256((__m256i *)(r0 + at + c), d0);
+                _mm_storeu_si128((__m128i *)(i0 + at + c),
+                                 _mm_load_si128((const __m128i *)&I[x][c]));
+                __m256i eq = _mm256_setzero_si256();
+                if (returns == 2) {
+                    const __m256i d1 = _mm256_load_si256((const __m256i *)&D[y][c]);
+                    _mm256_storeu_si256((__m256i *)(r1 + at + c), d1);
+                    _mm_storeu_si128((__m128i *)(i1 + at + c),
+                                     _mm_load_si128((const __m128i *)&I[y][c]));
+                    eq = _mm256_cmpeq_epi16(d0, d1);
+                }
+                if (a0) {
+                    __m256i first = _mm256_load_si256((const __m256i *)&A[x][c]);
+                    if (returns == 2) {
+                        const __m256i last = _mm256_load_si256((const __m256i *)&A[y][c]);
+                        _mm256_storeu_si256((__m256i *)(a1 + at + c), last);
+                        /* an identical pair: the last return's angle */
+                        first = _mm256_blendv_epi8(first, last, eq);
+                    }
+                    _mm256_storeu_si256((__m256i *)(a0 + at + c), first);
+                }
+            }
+        }
+    }
+    return c0;
+}
+
+/* Whether this CPU runs vdk_fill_one (AVX2). */
+static int vdk_avx2(void)
+{
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx2");
+}
+#endif /* VDK_SIMD */
+
+/*
+ * Decode `count` firing sequences, from sequence `begin` of the packets `buf` ((n, 1206) uint8,
+ * sequence q = sequence q % S of packet q / S), into columns column .. column + count - 1 of
+ * the (H, width) channel views r0 / i0 (uint16 range, uint8 intensity of return slot 0, the
+ * strongest or only), r1 / i1 (slot 1, the last return; unused when returns == 1) and, unless
+ * a0 is NULL, the uint16 angle views a0 / a1 (a1 unused when returns == 1).
+ *
+ * offsets: (R, S, H) byte offset in a packet of the distance (reflectivity at + 2) of return
+ * slot r, sequence s, row h; slots: (R, S, H) its point slot 32 * block + k; factor (384) float32
+ * firing factor and rotation (384) float64 rot_correction (0.01 deg) of each slot's laser;
+ * family 0 VLP-16, 1 VLP-32C / HDL-32E, 2 VLS-128; n_blocks: the blocks Nebula walks; simd: 0
+ * forces the portable path.
+ *
+ * One sequence per packet (a dual-return VLS-128) on an AVX2 CPU, unless simd is 0: whole tiles
+ * of VDK_T columns by vdk_fill_one, the rest by vdk_fill_tiles; every other layout by
+ * vdk_fill_tiles. Both give the same bytes. Returns 0, -1 for an unsupported shape (more than
+ * VDK_ROWS rows, returns not 1 or 2), -2 when the tile buffers cannot be allocated.
+ */
+VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
+                            int64_t returns, int64_t seqs, int64_t rows, int64_t width,
+                            const int32_t *offsets, const int16_t *slots, const float *factor,
+                            const double *rotation, int64_t family, int64_t dual,
+                            int64_t n_blocks, uint16_t *r0, uint8_t *i0, uint16_t *r1,
+                            uint8_t *i1, uint16_t *a0, uint16_t *a1, int64_t simd)
+{
+    if (rows > VDK_ROWS || returns < 1 || returns > 2) return -1;
+    if (count <= 0) return 0;
+    int64_t done = 0;
+#ifdef VDK_SIMD
+    if (simd && seqs == 1 && count >= VDK_T && vdk_avx2())
+        done = vdk_fill_one(buf, begin, count, column, returns, rows, width, slots, factor,
+                            rotation, family, dual, n_blocks, r0, i0, r1, i1, a0, a1);
+#else
+    (void)simd;
+#endif
+    if (done == count) return 0;
+    return vdk_fill_tiles(buf, begin + done, count - done, column + done, returns, seqs, rows,
+                          width, offsets, slots, factor, rotation, family, dual, n_blocks, r0,
+                          i0, r1, i1, a0, a1);
 }
 
 /* ------------------------------------------------------------- (empty) Python module */

@@ -8,11 +8,16 @@ channel views of a :class:`lidarscan.scan.ScanBuffer`; :func:`first_bad` is the 
 header check of ``PacketDecoder`` (flags, azimuths, factory bytes) in one pass. The tests
 compare both paths byte for byte (``tests/test_velodyne_golden.py``). Chosen by
 :func:`converters._kernels.select` (``"velodyne"``), which reads ``LIDARSCAN_NO_KERNEL``.
+Inside the kernel, layouts with one firing sequence per packet (dual-return VLS-128) take an
+AVX2 path on CPUs that have it, the others a portable one; ``LIDARSCAN_VELODYNE_SIMD=0`` (read
+by :func:`fill` at each call) forces the portable path. Both write the same bytes
+(``tests/test_velokernel.py``).
 """
 
 from __future__ import annotations
 
 import ctypes
+import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -21,7 +26,7 @@ import numpy as np
 from converters._kernels import _loader
 
 #: ABI of converters/_kernels/_velokernel.c (its VDK_ABI).
-ABI = 1
+ABI = 2
 #: The kernel rounds Nebula's angle in float32, exact while rotations stay below this (0.01 deg,
 #: i.e. 10 000 degrees; a larger rot_correction takes the numpy path).
 MAX_ROTATION = 1e6
@@ -38,7 +43,7 @@ def _load() -> Any:
     lib.vdk_fill.restype = _i64
     lib.vdk_fill.argtypes = [_ptr, _i64, _i64, _i64, _i64, _i64, _i64, _i64,   # .. width
                              _ptr, _ptr, _ptr, _ptr, _i64, _i64, _i64,          # .. n_blocks
-                             _ptr, _ptr, _ptr, _ptr, _ptr, _ptr]                # the views
+                             _ptr, _ptr, _ptr, _ptr, _ptr, _ptr, _i64]          # views, simd
     return lib
 
 
@@ -91,15 +96,17 @@ def fill(lib: Any, plan: Plan, run: np.ndarray[Any, Any], begin: int, count: int
          views: Mapping[str, np.ndarray[Any, Any]]) -> None:
     """Sequences begin..begin+count-1 of ``run`` ((n, 1206) C-contiguous uint8 packets) into
     columns column..column+count-1 of a ScanBuffer's (H, W) views ``range``, ``intensity``
-    [, ``range2``, ``intensity2``] [, ``azimuth`` [, ``azimuth2``]] (C-contiguous, native order).
+    [, ``range2``, ``intensity2``] [, ``azimuth`` [, ``azimuth2``]] (C-contiguous, native order);
+    the kernel's AVX2 path unless ``LIDARSCAN_VELODYNE_SIMD`` is "0" (same bytes either way).
     """
     r0, i0 = views["range"], views["intensity"]
     width = r0.shape[1]
     a0 = views.get("azimuth")
+    simd = os.environ.get("LIDARSCAN_VELODYNE_SIMD", "") != "0"
     status = lib.vdk_fill(_address(run), begin, count, column, *plan._args, width,
                           *plan._tables, _address(r0), _address(i0),
                           _address(views.get("range2")), _address(views.get("intensity2")),
-                          _address(a0), _address(views.get("azimuth2")))
+                          _address(a0), _address(views.get("azimuth2")), int(simd))
     if status == -2:
         raise MemoryError("converters._kernels._velokernel: no memory for a column tile")
     if status != 0:
