@@ -49,9 +49,11 @@ Conventions
 * Rows: sorted by elevation, row 0 the highest beam (ties by laser id); ``beam_ids`` = the
   vendor's 1-based laser id (channel number) of each row.
 * Columns: one per firing (one block, or the two blocks of a dual-return firing), in firing
-  order. A rotation ends where the block azimuth wraps (decreases by more than 180 deg), so
-  column 0 is the first firing at or after azimuth 0 (the first scan of a stream starts where
-  the stream starts). The width W is derived from the sensor's own timing and rotation rate:
+  order. A rotation ends where the block azimuth decreases by more than 10 deg: where it wraps
+  past 360 deg, so column 0 is the first firing at or after azimuth 0 (the first scan of a
+  stream starts where the stream starts), or, with a limited azimuth FOV (the sensor sends no
+  packets outside it), where it jumps back to the FOV's start, which is then column 0. Smaller
+  decreases (a packet arriving late) do not end a rotation. The width W is derived from the sensor's own timing and rotation rate:
   ``ceil(1.02 * 60 s / (rpm * firing period))``, rpm = the tail's motor speed of the stream's
   first packet rounded to a multiple of 60 (2 % headroom for speed drift). Shorter rotations
   are padded with no-return columns (raw range 0; their azimuths and times continue at the
@@ -142,6 +144,10 @@ __all__ = [
 
 # ----------------------------------------------------------------------------------- decoder
 
+#: a decrease of the block azimuth (0.01 deg) larger than this ends a rotation: the wrap past
+#: 360 deg, or the jump back to the start of a limited azimuth FOV (of any width above 10 deg)
+_WRAP = 1000
+
 class PacketDecoder:
     """Raw Hesai packets -> (LidarScan, LidarInfo) per rotation (see the module docstring).
 
@@ -212,7 +218,7 @@ class PacketDecoder:
                 and data[fast[2]] == fast[3] and data[fast[7]] == fast[8]):
             first, last = fast[4].unpack_from(data, fast[5])
             if first < 36000 and last < 36000 and data.startswith(self._date, fast[6]):
-                wrapped = first < self._last_az - 18000 or last < first - 18000
+                wrapped = first < self._last_az - _WRAP or last < first - _WRAP
                 self._packets.append(data)
                 self._stamps.append(stamp_ns)
                 self._last_az = last
@@ -251,7 +257,7 @@ class PacketDecoder:
             self._fast = (new.packet_size, self._key, fmt.return_mode_at, new.mode,
                           _first_last(new.last_firing_at), at, fmt.datetime_at, state_at,
                           state)
-        wrapped = first < self._last_az - 18000 or last < first - 18000
+        wrapped = first < self._last_az - _WRAP or last < first - _WRAP
         self._packets.append(data)
         self._stamps.append(stamp_ns)
         self._last_az = last
@@ -403,7 +409,7 @@ class PacketDecoder:
         prev = np.empty_like(last)
         prev[0] = self._last_az
         prev[1:] = last[:-1]
-        wraps = np.flatnonzero((first < prev - 18000) | (last < first - 18000))
+        wraps = np.flatnonzero((first < prev - _WRAP) | (last < first - _WRAP))
         self._segs.append((stamps, rows, owned))
         self._last_az = int(last[-1])
         if not wraps.size:
@@ -469,7 +475,7 @@ class PacketDecoder:
         total = cols["azimuth"].size
         end = total if limit is None else limit * firings
         start = self._skip
-        wraps = np.flatnonzero(np.diff(cols["azimuth"][start:end]) < -18000) + 1 + start
+        wraps = np.flatnonzero(np.diff(cols["azimuth"][start:end]) < -_WRAP) + 1 + start
         bounds = [start, *wraps.tolist()] + ([total] if final else [])
         out = [self._scan(cols, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
         if not final:

@@ -297,3 +297,30 @@ def test_calibration_with_the_wrong_channel_count_names_both() -> None:
                 "Laser id,Elevation,Azimuth\n", b"\xff\xfe1,2,3\n"):     # empty, UTF-16
         with pytest.raises(DecodeError):
             hesai.load_calibration(bad)
+
+
+@pytest.mark.parametrize("fov", [(0, 18000), (9000, 27000), (3000, 12000), (30000, 6000)])
+@pytest.mark.parametrize("model", ["Pandar64", "PandarXT32", "Pandar128E3X/E4X"])
+def test_a_limited_azimuth_fov_gives_one_scan_per_turn(model: str, fov: tuple[int, int]
+                                                       ) -> None:
+    """The sensor sends only the packets inside its azimuth FOV [lo, hi) (0.01 deg): each
+    turn's packets are one scan of the full-turn width (the rest padded), whether the FOV
+    contains azimuth 0 or not; nothing is lost."""
+    mode = _modes(model)[1]
+    returns = _returns(model, mode)
+    csv = old._calibration_csv(LASERS[model], seed=6)
+    start = 100
+    stamps, rows, sent = _stream(model, mode, rpm=1200, rotations=3.0, start=start)
+    firings = BLOCKS[model] // returns
+    step = 36000.0 * 1200 * PERIOD_NS[model] / 60e9
+    k = np.arange(len(rows))[:, None] * firings + np.arange(firings)[None, :]
+    unwrapped = np.rint(start + k * step).astype(np.int64)      # as _stream wrote them
+    az = unwrapped % 36000
+    lo, hi = fov
+    inside = (az >= lo) & (az < hi) if lo < hi else (az >= lo) | (az < hi)
+    keep = inside.all(1)
+    turns = np.unique((unwrapped[keep] - (lo if lo < hi else 0)) // 36000)
+    results = _decode(stamps[keep], rows[keep], csv)
+    assert len(results) == len(turns)
+    _check(model, mode, 1200, results,
+           {"dist": sent["dist"][keep], "refl": sent["refl"][keep]})
