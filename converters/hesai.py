@@ -53,13 +53,13 @@ Conventions
   past 360 deg, so column 0 is the first firing at or after azimuth 0 (the first scan of a
   stream starts where the stream starts), or, with a limited azimuth FOV (the sensor sends no
   packets outside it), where it jumps back to the FOV's start, which is then column 0. Smaller
-  decreases (a packet arriving late) do not end a rotation. The width W is derived from the sensor's own timing and rotation rate:
-  ``ceil(1.02 * 60 s / (rpm * firing period))``, rpm = the tail's motor speed of the stream's
-  first packet rounded to a multiple of 60 (2 % headroom for speed drift). Shorter rotations
-  are padded with no-return columns (raw range 0; their azimuths and times continue at the
-  nominal step). A rotation with more than W firings is never cut: it is emitted under a new
-  LidarInfo version of width ``ceil(1.02 * firings)`` (nothing is dropped); the next normal
-  rotation returns to W under yet another version.
+  decreases (a packet arriving late) do not end a rotation. The width W is derived from the
+  sensor's own timing and rotation rate: ``ceil(1.02 * 60 s / (rpm * firing period))``, rpm =
+  the tail's motor speed of the stream's first packet rounded to a multiple of 60 (2 % headroom
+  for speed drift). Shorter rotations are padded with no-return columns (raw range 0; their
+  azimuths and times continue at the nominal step). A rotation with more than W firings is never
+  cut: it is emitted under a new LidarInfo version of width ``ceil(1.02 * firings)`` (nothing is
+  dropped); the next normal rotation returns to W under yet another version.
 * Returns: channels ``range`` (UINT16 in the packet's distance unit, ``range_multiplier`` =
   dis unit in metres, raw 0 = no return) and ``intensity`` (UINT8 reflectivity). Dual return
   adds ``range2``/``intensity2``: ``range`` holds the strongest return where the mode reports
@@ -147,6 +147,7 @@ __all__ = [
 #: a decrease of the block azimuth (0.01 deg) larger than this ends a rotation: the wrap past
 #: 360 deg, or the jump back to the start of a limited azimuth FOV (of any width above 10 deg)
 _WRAP = 1000
+
 
 class PacketDecoder:
     """Raw Hesai packets -> (LidarScan, LidarInfo) per rotation (see the module docstring).

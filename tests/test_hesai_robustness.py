@@ -36,7 +36,8 @@ import test_hesai_models as new
 #: firing period (ns) from the manuals' "Absolute Time and Laser Firing Time" appendices
 PERIOD_NS = {"Pandar40P": 55560.0, "Pandar64": 55560.0, "PandarXT32": 50000.0,
              "PandarQT64": 500000.0 / 3, "PandarXT16": 50000.0, "PandarXT32M": 50000.0,
-             "PandarQT128": 111110.0, "Pandar128E3X/E4X": 55556.0, "Pandar128E3X/E4X/hires": 27778.0}
+             "PandarQT128": 111110.0, "Pandar128E3X/E4X": 55556.0,
+             "Pandar128E3X/E4X/hires": 27778.0}
 LASERS = {"Pandar40P": 40, "Pandar64": 64, "PandarXT32": 32, "PandarQT64": 64, "PandarXT16": 16,
           "PandarXT32M": 32, "PandarQT128": 128, "Pandar128E3X/E4X": 128,
           "Pandar128E3X/E4X/hires": 128}
