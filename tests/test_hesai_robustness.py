@@ -246,6 +246,30 @@ def test_a_packet_of_another_model_mid_stream_raises_and_is_dropped(model: str) 
                 got.append(r)
         assert err.value.index == mid            # type: ignore[attr-defined]
         assert str(err.value).startswith(f"packets[{mid}]")
+    # push_many: a batch of the foreign payload raises with index 0; the next batches go on
+    dec = hesai.PacketDecoder(csv, as_dataclass=True)
+    out = dec.push_many(stamps[:mid], rows[:mid])
+    for name, payload in others.items():
+        with pytest.raises(DecodeError) as err:
+            dec.push_many(stamps[mid:mid + 1], np.frombuffer(payload, np.uint8)[None])
+        assert err.value.index == 0 and err.value.results == []   # type: ignore[attr-defined]
+    old._same(out + dec.push_many(stamps[mid:], rows[mid:]) + dec.flush(), ref)
+
+
+def test_motor_speed_jitter_keeps_one_width_and_version() -> None:
+    """The tail's motor speed of a real sensor wanders (598, 601, ...): the width follows the
+    stream's first packet rounded to a multiple of 60 rpm; no new version per packet."""
+    csv = old._calibration_csv(64, seed=7)
+    stamps, rows, sent = _stream("Pandar64", 0x39, rpm=600, rotations=2.2)
+    at = _offset(old._packet("Pandar64", 0x39, [0] * 6, np.zeros((6, 64)), np.zeros((6, 64)),
+                             0, rpm=600),
+                 old._packet("Pandar64", 0x39, [0] * 6, np.zeros((6, 64)), np.zeros((6, 64)),
+                             0, rpm=0x0101))
+    jitter = 600 + np.random.default_rng(8).integers(-5, 6, len(rows))
+    rows[:, at:at + 2] = jitter.astype("<u2").view(np.uint8).reshape(-1, 2)
+    results = _decode(stamps, rows, csv)
+    assert len({info.header.stamp for _, info in results}) == 1
+    _check("Pandar64", 0x39, 600, results, sent)
 
 
 # ------------------------------------------------------------------- angle-correction CSV
