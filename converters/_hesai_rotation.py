@@ -100,12 +100,16 @@ def _first_last(last_firing_at: int) -> Any:
 
 @functools.lru_cache(maxsize=64)
 def _date_seconds(date: bytes) -> int:
-    """POSIX seconds of a tail date-time (year - 1900, month, day, hour, minute, second; UTC)."""
+    """POSIX seconds of a tail date-time (year - 1900, month, day, hour, minute, second; UTC).
+
+    A year byte below 70 (before 1970 if counted from 1900) is counted from 2000, as the
+    Pandar64 manual's tail table states it ("current year minus 2000"; its recording, like
+    every other model's manual, counts from 1900)."""
     y, mo, d, h, mi, s = date
     if not (1 <= mo <= 12 and 1 <= d <= 31 and h < 24 and mi < 60 and s < 61):
         raise DecodeError("hesai tail date-time", list(date),
                           "year-1900, month 1..12, day 1..31, hour < 24, minute < 60, second")
-    return calendar.timegm((1900 + y, mo, d, h, mi, s, 0, 0, 0))
+    return calendar.timegm(((2000 if y < 70 else 1900) + y, mo, d, h, mi, s, 0, 0, 0))
 
 
 @functools.lru_cache(maxsize=None)

@@ -68,15 +68,16 @@ Conventions
   strongest, ``range2`` = first, ``range3`` = last (the other returns in block order). All
   exactly as sent (no de-duplication). The confidence byte of QT128/128-series units is not
   carried.
-* Time: int64 ns. The packet's absolute time ``t0`` is the tail's UTC date-time (year - 1900,
-  month, day, hour, minute, second) plus its microsecond timestamp. Per the firing-time
-  appendices, firing ``k`` of a packet starts at ``t0 + block_offset(k)`` and channel ``l``
-  fires ``channel_offset(l)`` later. ``LidarInfo.beam_time_offsets`` = ``channel_offset`` minus
-  its minimum (so they are >= 0) and ``column_time_offsets`` the firing times (plus that
-  minimum) relative to the scan stamp, the time of column 0. The sensor's clock is the
-  default (it is absolute when the sensor is synchronised by GPS/PTP; Hesai packets carry no
-  flag saying so). With ``time_source="receive"`` each rotation's times are shifted so that
-  its first packet has its recorded (host) stamp; relative timing stays the sensor's.
+* Time: int64 ns. The packet's absolute time ``t0`` is the tail's UTC date-time (year - 1900, a
+  year byte below 70 counted from 2000; month, day, hour, minute, second) plus its microsecond
+  timestamp. Per the firing-time appendices, firing ``k`` of a packet starts at ``t0 +
+  block_offset(k)`` and channel ``l`` fires ``channel_offset(l)`` later.
+  ``LidarInfo.beam_time_offsets`` = ``channel_offset`` minus its minimum (so they are >= 0) and
+  ``column_time_offsets`` the firing times (plus that minimum) relative to the scan stamp, the
+  time of column 0. The sensor's clock is the default (it is absolute when the sensor is
+  synchronised by GPS/PTP; Hesai packets carry no flag saying so). With
+  ``time_source="receive"`` each rotation's times are shifted so that its first packet has its
+  recorded (host) stamp; relative timing stays the sensor's.
 * Azimuth and firing time: the manuals compute a point's azimuth as the block azimuth plus the
   calibration's azimuth correction, with no term for the rotation between the block azimuth and
   the channel's own firing (the calibration is measured at the nominal speed). That is the

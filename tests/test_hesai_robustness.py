@@ -349,3 +349,21 @@ def test_a_limited_azimuth_fov_gives_one_scan_per_turn(model: str, fov: tuple[in
     assert len(results) == len(turns)
     _check(model, mode, 1200, results,
            {"dist": sent["dist"][keep], "refl": sent["refl"][keep]})
+
+
+@pytest.mark.parametrize("model", ["Pandar64", "PandarXT32", "Pandar128E3X/E4X"])
+def test_a_year_byte_counted_from_2000_gives_the_same_times(model: str) -> None:
+    """The Pandar64 manual's tail counts the year from 2000, the others (and its recording)
+    from 1900: a year byte below 70 is read from 2000, so 24 and 124 both mean 2024."""
+    csv = old._calibration_csv(LASERS[model], seed=9)
+    stamps, rows, _ = _stream(model, _modes(model)[0], rpm=1200, rotations=1.2)
+    dec = hesai.PacketDecoder(csv, as_dataclass=True)
+    first = dec.push(int(stamps[0]), rows[0].tobytes())
+    at = hesai.detect_format(rows[0].tobytes()).datetime_at
+    assert first == [] and rows[0, at] in (123, 124)
+    short = rows.copy()
+    short[:, at] -= 100
+    results = _decode(stamps, short, csv)
+    old._same(results, _decode(stamps, rows, csv))
+    year = lidarscan.stamps.to_ns(results[0][0].header.stamp) // 10**9 // 31_556_952 + 1970
+    assert year == 1900 + int(rows[0, at])
