@@ -443,16 +443,22 @@ def load_calibration(calib: Any) -> _Calibration:
                               ) from err
         text = ""
     else:
-        if isinstance(calib, (bytes, bytearray, memoryview)) and b"\n" in bytes(calib):
-            try:
-                text = bytes(calib).decode("utf-8-sig")
-            except UnicodeDecodeError as err:
-                raise DecodeError("calibration", bytes(calib[:16]), "UTF-8 text of a Hesai "
-                                  "angle-correction CSV (Laser id,Elevation,Azimuth)") from err
-        elif isinstance(calib, str) and "\n" in calib:
+        if isinstance(calib, (bytes, bytearray, memoryview)):
+            calib = bytes(calib)
+            if b"\n" in calib:
+                try:
+                    calib = calib.decode("utf-8-sig")
+                except UnicodeDecodeError as err:
+                    raise DecodeError("calibration", calib[:16], "UTF-8 text of a Hesai "
+                                      "angle-correction CSV (Laser id,Elevation,Azimuth)") from err
+        if isinstance(calib, str) and "\n" in calib:
             text = calib.removeprefix("\ufeff")
         else:
-            path = Path(os.fsdecode(calib) if isinstance(calib, bytes) else os.fspath(calib))
+            try:
+                path = Path(os.fsdecode(calib))
+            except TypeError as err:
+                raise DecodeError("calibration", type(calib).__name__, "a path, the CSV text "
+                                  "(str or bytes), a mapping or a parsed calibration") from err
             try:
                 text = path.read_text(encoding="utf-8-sig")
             except (OSError, UnicodeDecodeError) as err:

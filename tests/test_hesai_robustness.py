@@ -319,7 +319,8 @@ def test_calibration_with_the_wrong_channel_count_names_both() -> None:
     for bad in ("Laser id,Elevation,Azimuth\n1,2,3\n3,4,5\n",          # id 2 missing
                 "Laser id,Elevation,Azimuth\n1,2,3\n1,4,5\n",          # id 1 twice
                 "Laser id,Elevation,Azimuth\n1,2,x\n2,4,5\n",          # not a number
-                "Laser id,Elevation,Azimuth\n", b"\xff\xfe1,2,3\n"):     # empty, UTF-16
+                "Laser id,Elevation,Azimuth\n", b"\xff\xfe1,2,3\n",      # empty, UTF-16
+                bytearray(b"/nonexistent.csv"), 5, None, 1.5):           # no file, no CSV
         with pytest.raises(DecodeError):
             hesai.load_calibration(bad)
 
