@@ -11,9 +11,10 @@ manuals' firing-time appendices, written here again), no unit is lost (the sums 
 distance and reflectivity of the packets are those of the scans), column times increase
 within a scan and scan stamps across scans, and a packet of another model (or not a Hesai
 packet) in the middle of the stream raises a DecodeError that names it, after which the
-decoder goes on as if it had never seen it. Also the angle-correction CSV as vendors ship it
-(header line variants, extra columns, CRLF, byte-order mark, quoted cells, bytes) and its
-mismatch with the packets' laser count.
+decoder goes on as if it had never seen it. Also: a limited azimuth FOV (one scan per turn),
+the tail's motor speed wandering, a year byte counted from 2000, and the angle-correction CSV
+as vendors ship it (header line variants, extra columns, CRLF, byte-order mark, quoted cells,
+bytes) and its mismatch with the packets' laser count.
 """
 
 from __future__ import annotations
