@@ -40,25 +40,33 @@ the PointCloud2 time fields add it).
 
 128 series (protocol 1.4), from the Pandar128E3X user manual (doc version 128-en-240310),
 appendix "Absolute Time and Laser Firing Time": the tail's Operational State byte sets the
-horizontal resolution (its values, from the Pandar128 manual's Tail table: 0 high performance
-= high resolution, 1 shutdown, 2 standard, 3 energy saving). "Start Time of Each Block": single return, block 2 starts at t0 + 3.148 us and
-block 1 at t0 + 3.148 - 27.778 us (high resolution) or t0 + 3.148 - 2 * 27.778 us (standard);
-dual return, both blocks at t0 + 3.148 us. So the firing period, ``column_time_increment``
-and the width are 27.778 us and twice the columns in high resolution mode, 55.556 us
-otherwise. Where the manual is silent, this module states its choice: energy saving and
-shutdown are timed as standard (the manual's block table has only the two resolutions, and
-energy saving has standard's azimuth-flag range 0..1); dual-return packets in high resolution
-mode are counted at the high-resolution period (a rotation with more firings than the width
-is still never cut: it gets a wider info version); another state byte raises a DecodeError.
-A state change starts a new LidarInfo version. "Firing Time Offset of Each Channel": a
-channel fires ``dt(n)`` after its block's start, looked up by operational state, the block's
-azimuth flag (tail, bits 15:14 block 1, 13:12 block 2) and near/far-field firing (distance
-<= 2.85 m); the tables themselves could not be obtained for this module, and the packet does
-not say whether it is a 128E3X or a 128E4X/OT128, whose tables differ: these delays are not
-applied (``beam_time_offsets`` 0; a pixel's time is its block's start, early by up to the
-firing period). The OT128 (128E4X) manual was not available either: its block times are taken
-to be the 128E3X's (same protocol 1.4 packet). ``vendor_metadata``'s ``channel_timing`` and
-``operational_state`` say which case a scan is.
+horizontal resolution (its values, from the Pandar128 manual's Tail table: 0 high performance =
+high resolution, 1 shutdown, 2 standard, 3 energy saving). "Start Time of Each Block": single
+return, block 2 starts at t0 + 3.148 us and block 1 at t0 + 3.148 - 27.778 us (high resolution)
+or t0 + 3.148 - 2 * 27.778 us (standard); dual return, both blocks at t0 + 3.148 us. So the
+firing period, ``column_time_increment`` and the width are 27.778 us and twice the columns in
+high resolution mode, 55.556 us otherwise. Where the manual is silent, this module states its
+choice: energy saving and shutdown are timed as standard (the manual's block table has only the
+two resolutions, and energy saving has standard's azimuth-flag range 0..1); dual-return packets
+in high resolution mode are counted at the high-resolution period (a rotation with more firings
+than the width is still never cut: it gets a wider info version); another state byte raises a
+DecodeError. A state change starts a new LidarInfo version. "Firing Time Offset of Each Channel"
+(same appendix, from printed page 100 on; the Pandar128 manual's "Laser Firing Time of Each
+Channel", from page 76 on, has the same values where both could be read): a channel fires
+``dt(n)`` ns after its block's start, looked up per channel in a table by operational state
+(high performance; standard or energy saving), the block's azimuth flag (tail, bits 15:14 block
+1, 13:12 block 2; 0-3 in high performance, 0-1 otherwise) and far/near-field firing (distance >
+2.85 m or not). So a pixel's delay depends on its firing (flag) and its own distance, which
+neither ``beam_time_offsets`` nor a per-firing table can express; only a per-pixel ``t`` channel
+could. Only the rows of channels 41-51 of that table could be read for this module (the stored
+copies of the manual's pages are cut after ~12 rows); they show delays of 7.7-27.4 us in high
+performance mode and 12.7-55.2 us in standard mode, the flags shifting them by 0.35-0.7 us and
+near-field firing by up to 16.7 us. Without the other 117 rows, and since the packet does not
+say whether it is a 128E3X or a 128E4X/OT128 (whose tables are not the same), these delays are
+not applied: ``beam_time_offsets`` are 0 and a pixel's time is its block's start, early by up to
+the firing period (55.6 us). The OT128 (128E4X) manual was not available either: its block times
+are taken to be the 128E3X's (same protocol 1.4 packet). ``vendor_metadata``'s
+``channel_timing`` and ``operational_state`` say which case a scan is.
 
 Dual-return block order (what blocks 1 and 2 of a firing hold): Pandar40P and Pandar64 0x39: last,
 strongest (manuals; confirmed on the Pandar64 recording: block 1 is never nearer than block 2);
@@ -412,8 +420,11 @@ def load_calibration(calib: Any) -> _Calibration:
     """Parse a Hesai angle-correction CSV (``Laser id,Elevation,Azimuth``, degrees).
 
     Args:
-        calib: a path, the CSV text (str containing a newline), a mapping ``{laser_id:
-            (elevation_deg, azimuth_deg)}`` or an already parsed calibration.
+        calib: a path, the CSV text (str or UTF-8 bytes containing a newline), a mapping
+            ``{laser_id: (elevation_deg, azimuth_deg)}`` or an already parsed calibration.
+            Lines whose first cell is not a number (headers such as ``Laser id,...`` or
+            ``Channel,...``, comments) are skipped; cells may be quoted, lines may end in
+            CRLF, a UTF-8 byte-order mark is ignored, columns after the third are ignored.
 
     Returns:
         the parsed calibration, lasers in ascending id order (ids must be 1..L).
@@ -432,17 +443,29 @@ def load_calibration(calib: Any) -> _Calibration:
                               ) from err
         text = ""
     else:
+        if isinstance(calib, (bytes, bytearray, memoryview)):
+            calib = bytes(calib)
+            if b"\n" in calib:
+                try:
+                    calib = calib.decode("utf-8-sig")
+                except UnicodeDecodeError as err:
+                    raise DecodeError("calibration", calib[:16], "UTF-8 text of a Hesai "
+                                      "angle-correction CSV (Laser id,Elevation,Azimuth)") from err
         if isinstance(calib, str) and "\n" in calib:
-            text = calib
+            text = calib.removeprefix("\ufeff")
         else:
-            path = Path(os.fspath(calib))
+            try:
+                path = Path(os.fsdecode(calib))
+            except TypeError as err:
+                raise DecodeError("calibration", type(calib).__name__, "a path, the CSV text "
+                                  "(str or bytes), a mapping or a parsed calibration") from err
             try:
                 text = path.read_text(encoding="utf-8-sig")
             except (OSError, UnicodeDecodeError) as err:
                 raise DecodeError("calibration", str(path), "a readable Hesai angle-correction "
                                   "CSV (Laser id,Elevation,Azimuth)") from err
         for i, line in enumerate(io.StringIO(text)):
-            cells = [c.strip() for c in line.strip().split(",")]
+            cells = [c.strip().strip('"').strip() for c in line.strip().split(",")]
             if not cells or not cells[0] or not (cells[0][0].isdigit() or cells[0][0] == "-"):
                 continue                      # header or blank line
             try:

@@ -49,15 +49,17 @@ Conventions
 * Rows: sorted by elevation, row 0 the highest beam (ties by laser id); ``beam_ids`` = the
   vendor's 1-based laser id (channel number) of each row.
 * Columns: one per firing (one block, or the two blocks of a dual-return firing), in firing
-  order. A rotation ends where the block azimuth wraps (decreases by more than 180 deg), so
-  column 0 is the first firing at or after azimuth 0 (the first scan of a stream starts where
-  the stream starts). The width W is derived from the sensor's own timing and rotation rate:
-  ``ceil(1.02 * 60 s / (rpm * firing period))``, rpm = the tail's motor speed of the stream's
-  first packet rounded to a multiple of 60 (2 % headroom for speed drift). Shorter rotations
-  are padded with no-return columns (raw range 0; their azimuths and times continue at the
-  nominal step). A rotation with more than W firings is never cut: it is emitted under a new
-  LidarInfo version of width ``ceil(1.02 * firings)`` (nothing is dropped); the next normal
-  rotation returns to W under yet another version.
+  order. A rotation ends where the block azimuth decreases by more than 10 deg: where it wraps
+  past 360 deg, so column 0 is the first firing at or after azimuth 0 (the first scan of a
+  stream starts where the stream starts), or, with a limited azimuth FOV (the sensor sends no
+  packets outside it), where it jumps back to the FOV's start, which is then column 0. Smaller
+  decreases (a packet arriving late) do not end a rotation. The width W is derived from the
+  sensor's own timing and rotation rate: ``ceil(1.02 * 60 s / (rpm * firing period))``, rpm =
+  the tail's motor speed of the stream's first packet rounded to a multiple of 60 (2 % headroom
+  for speed drift). Shorter rotations are padded with no-return columns (raw range 0; their
+  azimuths and times continue at the nominal step). A rotation with more than W firings is never
+  cut: it is emitted under a new LidarInfo version of width ``ceil(1.02 * firings)`` (nothing is
+  dropped); the next normal rotation returns to W under yet another version.
 * Returns: channels ``range`` (UINT16 in the packet's distance unit, ``range_multiplier`` =
   dis unit in metres, raw 0 = no return) and ``intensity`` (UINT8 reflectivity). Dual return
   adds ``range2``/``intensity2``: ``range`` holds the strongest return where the mode reports
@@ -66,15 +68,16 @@ Conventions
   strongest, ``range2`` = first, ``range3`` = last (the other returns in block order). All
   exactly as sent (no de-duplication). The confidence byte of QT128/128-series units is not
   carried.
-* Time: int64 ns. The packet's absolute time ``t0`` is the tail's UTC date-time (year - 1900,
-  month, day, hour, minute, second) plus its microsecond timestamp. Per the firing-time
-  appendices, firing ``k`` of a packet starts at ``t0 + block_offset(k)`` and channel ``l``
-  fires ``channel_offset(l)`` later. ``LidarInfo.beam_time_offsets`` = ``channel_offset`` minus
-  its minimum (so they are >= 0) and ``column_time_offsets`` the firing times (plus that
-  minimum) relative to the scan stamp, the time of column 0. The sensor's clock is the
-  default (it is absolute when the sensor is synchronised by GPS/PTP; Hesai packets carry no
-  flag saying so). With ``time_source="receive"`` each rotation's times are shifted so that
-  its first packet has its recorded (host) stamp; relative timing stays the sensor's.
+* Time: int64 ns. The packet's absolute time ``t0`` is the tail's UTC date-time (year - 1900, a
+  year byte below 70 counted from 2000; month, day, hour, minute, second) plus its microsecond
+  timestamp. Per the firing-time appendices, firing ``k`` of a packet starts at ``t0 +
+  block_offset(k)`` and channel ``l`` fires ``channel_offset(l)`` later.
+  ``LidarInfo.beam_time_offsets`` = ``channel_offset`` minus its minimum (so they are >= 0) and
+  ``column_time_offsets`` the firing times (plus that minimum) relative to the scan stamp, the
+  time of column 0. The sensor's clock is the default (it is absolute when the sensor is
+  synchronised by GPS/PTP; Hesai packets carry no flag saying so). With
+  ``time_source="receive"`` each rotation's times are shifted so that its first packet has its
+  recorded (host) stamp; relative timing stays the sensor's.
 * Azimuth and firing time: the manuals compute a point's azimuth as the block azimuth plus the
   calibration's azimuth correction, with no term for the rotation between the block azimuth and
   the channel's own firing (the calibration is measured at the nominal speed). That is the
@@ -90,14 +93,17 @@ Conventions
   recordings, checked outside the test suite, which does not ship them) 11 um at most, every
   ground-truth point matched. Not expressible in LidarInfo: the QT128/128-series per-firing
   channel delays (QT128: the ``t`` channel; 128 series: not applied, stated in
-  vendor_metadata; its block times and high-resolution mode: :mod:`converters._hesai_formats`).
+  vendor_metadata, because the manual's per-pixel table could not be obtained whole; its block
+  times and high-resolution mode: :mod:`converters._hesai_formats`).
 
 * Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
   (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
   one by one; a bad packet inside a batch raises a DecodeError naming its index, after the
-  packets before it (see push_many). The per-rotation copy of the units into the grids has a
-  compiled path (:mod:`converters._kernels.hesai`, numba) with this module's numpy code as the
-  reference; both copy integers, so their scans are bit-identical.
+  packets before it (see push_many). The per-rotation assembly (stream geometry and time
+  model, record views, the copy of the units into the grids) lives in
+  :mod:`converters._hesai_rotation`; the copy has a compiled path
+  (:mod:`converters._kernels.hesai`, numba) with numpy code as the reference; both copy
+  integers, so their scans are bit-identical.
 
 What each LidarInfo field carries: vertical_angles, beam_azimuth_offsets (calibration CSV),
 beam_time_offsets (firing table), column_time_increment (firing period), beam_ids (laser ids),
@@ -109,14 +115,9 @@ series also its operational state).
 
 from __future__ import annotations
 
-import calendar
-import dataclasses
-import functools
 import json
 import math
-import struct
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -125,8 +126,11 @@ from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from lidarscan.scan import ScanBuffer, make_info
 from converters._hesai_formats import (  # noqa: F401 (the tables are re-exported for tests)
     _P40P_BEFORE_END_US, _P64_BEFORE_END_NS, _QT64_AFTER_START_NS, _QT128_LOOPS, FORMATS,
-    OPERATIONAL_STATES, RETURN_MODES, HesaiFormat, _block_kinds, _channel_names,
-    _channel_rank, detect_format, hires_format, load_calibration)
+    OPERATIONAL_STATES, RETURN_MODES, HesaiFormat, _block_kinds, detect_format, hires_format,
+    load_calibration)
+from converters._hesai_rotation import (  # noqa: F401 (_kernel, _units_numpy: tests, bench)
+    _INFO_TEMPLATES, _U16, _date_seconds, _first_last, _firing_states, _kernel, _pixel_times,
+    _records, _restamped, _Stream, _units, _units_numpy)
 from converters._packets import payload_bytes
 
 __all__ = [
@@ -141,44 +145,9 @@ __all__ = [
 
 # ----------------------------------------------------------------------------------- decoder
 
-@dataclass
-class _Stream:
-    """What identifies the geometry of the packets being decoded (a change -> new version)."""
-
-    fmt: HesaiFormat
-    mode: int
-    returns: int
-    dis_unit_m: float
-    rpm: int
-    packet_size: int
-    last_firing_at: int       # byte offset of the last firing's first block from block 0
-    state: int = -1           # 128 series: the tail's operational state; -1: none
-
-    @functools.cached_property
-    def first_channel_ns(self) -> int:
-        """Firing time of the earliest channel relative to its firing's start (ns)."""
-        return int(round(min(self.fmt.channel_ns)))
-
-    @functools.cached_property
-    def firings(self) -> int:
-        """Firings per packet."""
-        return self.fmt.blocks // self.returns
-
-    @functools.cached_property
-    def block_start_ns(self) -> np.ndarray[Any, Any]:
-        """(firings,) int64 start of each firing of a packet relative to its t0 (ns)."""
-        return self.fmt.block_start_ns(np.arange(self.firings), self.firings)
-
-    @functools.cached_property
-    def channels(self) -> tuple[list[tuple[str, str]], dict[str, Any]]:
-        """(range, intensity) names of each block of a firing; the scan's channel dtypes in
-        channel order."""
-        names = _channel_names(_block_kinds(self.fmt, self.mode))
-        specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
-                 for k, name in enumerate(pair)}
-        if self.fmt.pixel_tables:
-            specs["t"] = np.int32
-        return names, {k: specs[k] for k in sorted(specs, key=_channel_rank)}
+#: a decrease of the block azimuth (0.01 deg) larger than this ends a rotation: the wrap past
+#: 360 deg, or the jump back to the start of a limited azimuth FOV (of any width above 10 deg)
+_WRAP = 1000
 
 
 class PacketDecoder:
@@ -251,7 +220,7 @@ class PacketDecoder:
                 and data[fast[2]] == fast[3] and data[fast[7]] == fast[8]):
             first, last = fast[4].unpack_from(data, fast[5])
             if first < 36000 and last < 36000 and data.startswith(self._date, fast[6]):
-                wrapped = first < self._last_az - 18000 or last < first - 18000
+                wrapped = first < self._last_az - _WRAP or last < first - _WRAP
                 self._packets.append(data)
                 self._stamps.append(stamp_ns)
                 self._last_az = last
@@ -290,7 +259,7 @@ class PacketDecoder:
             self._fast = (new.packet_size, self._key, fmt.return_mode_at, new.mode,
                           _first_last(new.last_firing_at), at, fmt.datetime_at, state_at,
                           state)
-        wrapped = first < self._last_az - 18000 or last < first - 18000
+        wrapped = first < self._last_az - _WRAP or last < first - _WRAP
         self._packets.append(data)
         self._stamps.append(stamp_ns)
         self._last_az = last
@@ -306,6 +275,10 @@ class PacketDecoder:
 
     def _stream_of(self, data: bytes) -> _Stream:
         fmt = detect_format(data)
+        if self._stream is not None and fmt.model != self._stream.fmt.model:
+            raise DecodeError("hesai model", fmt.model, f"{self._stream.fmt.model}, the model "
+                              "of this decoder's stream (one decoder per sensor: its "
+                              "calibration is that sensor's)")
         mode = data[fmt.return_mode_at]
         kinds = _block_kinds(fmt, mode)
         returns = len(kinds)
@@ -438,7 +411,7 @@ class PacketDecoder:
         prev = np.empty_like(last)
         prev[0] = self._last_az
         prev[1:] = last[:-1]
-        wraps = np.flatnonzero((first < prev - 18000) | (last < first - 18000))
+        wraps = np.flatnonzero((first < prev - _WRAP) | (last < first - _WRAP))
         self._segs.append((stamps, rows, owned))
         self._last_az = int(last[-1])
         if not wraps.size:
@@ -504,7 +477,7 @@ class PacketDecoder:
         total = cols["azimuth"].size
         end = total if limit is None else limit * firings
         start = self._skip
-        wraps = np.flatnonzero(np.diff(cols["azimuth"][start:end]) < -18000) + 1 + start
+        wraps = np.flatnonzero(np.diff(cols["azimuth"][start:end]) < -_WRAP) + 1 + start
         bounds = [start, *wraps.tolist()] + ([total] if final else [])
         out = [self._scan(cols, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
         if not final:
@@ -616,163 +589,6 @@ class PacketDecoder:
             as_dataclass=self.as_dataclass)
         return info
 
-
-#: validated LidarInfo dataclasses by geometry (calibration, format, mode, dis unit, rpm,
-#: width, frame, options), reused under a new header stamp (they are frozen and read-only)
-_INFO_TEMPLATES: dict[tuple[Any, ...], Any] = {}
-
-
-def _restamped(info: Any, stamp: int) -> Any:
-    """The LidarInfo dataclass ``info`` with header.stamp ``stamp`` (int ns)."""
-    from lidarscan import types
-    from lidarscan.stamps import split_ns
-    sec, nanosec = split_ns(stamp)
-    return dataclasses.replace(info, header=types.Header(types.Time(sec, nanosec),
-                                                         info.header.frame_id))
-
-
-_U16 = struct.Struct("<H")
-
-
-class _OneFiring:
-    """unpack_from() -> (azimuth, azimuth) for packets of one firing (e.g. 2 blocks, dual)."""
-
-    @staticmethod
-    def unpack_from(data: bytes, at: int) -> tuple[int, int]:
-        az = _U16.unpack_from(data, at)[0]
-        return az, az
-
-
-def _first_last(last_firing_at: int) -> Any:
-    """A struct reading the azimuths of a packet's first and last firing (``unpack_from``)."""
-    if last_firing_at == 0:
-        return _OneFiring
-    return struct.Struct(f"<H{last_firing_at - 2}xH")
-
-
-@functools.lru_cache(maxsize=64)
-def _date_seconds(date: bytes) -> int:
-    """POSIX seconds of a tail date-time (year - 1900, month, day, hour, minute, second; UTC)."""
-    y, mo, d, h, mi, s = date
-    if not (1 <= mo <= 12 and 1 <= d <= 31 and h < 24 and mi < 60 and s < 61):
-        raise DecodeError("hesai tail date-time", list(date),
-                          "year-1900, month 1..12, day 1..31, hour < 24, minute < 60, second")
-    return calendar.timegm((1900 + y, mo, d, h, mi, s, 0, 0, 0))
-
-
-@functools.lru_cache(maxsize=None)
-def _packet_dtype(fmt: HesaiFormat, size: int) -> np.dtype[Any]:
-    """Structured dtype of one payload row of ``size`` bytes: blocks (azimuth, units), tail."""
-    unit = np.dtype({"names": ["d", "r"], "formats": ["<u2", "u1"], "offsets": [0, 2],
-                     "itemsize": fmt.unit_size})
-    block = np.dtype({"names": ["az", "u"], "formats": ["<u2", (unit, (fmt.lasers,))],
-                      "offsets": [fmt.azimuth_at, fmt.azimuth_at + 2],
-                      "itemsize": fmt.block_size})
-    names, formats = ["b", "us", "date"], [(block, (fmt.blocks,)), "<u4", ("u1", (6,))]
-    offsets = [fmt.body, fmt.timestamp_at, fmt.datetime_at]
-    if fmt.mode_flag_at is not None:
-        names, formats, offsets = names + ["flag"], formats + ["u1"], offsets + [fmt.mode_flag_at]
-    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": size})
-
-
-def _firing_states(fmt: HesaiFormat, returns: int, recs: list[np.ndarray[Any, Any]]
-                   ) -> np.ndarray[Any, Any]:
-    """(F,) index into ``fmt.pixel_tables`` of every buffered firing (PandarQT128: loop 1 = 0,
-    loop 2 = 1; single return: block 1 loop 1, block 2 loop 2; dual: the tail's mode flag,
-    bit 0 set = loop 1)."""
-    flags = np.concatenate([rec["flag"] for rec in recs]).astype(np.int64)
-    if returns == 1:
-        return np.tile(np.arange(fmt.blocks) % 2, flags.size)
-    return np.where(flags & 1, 0, 1)
-
-
-def _pixel_times(fmt: HesaiFormat, states: np.ndarray[Any, Any], order: np.ndarray[Any, Any],
-                 out: np.ndarray[Any, Any]) -> None:
-    """Write the per-pixel delays (ns after the column's time) of firings ``states`` (C,) into
-    the first C columns of ``out`` (H, W) int32, rows in ``order`` (laser index of each row);
-    channels that do not fire in a firing get 0."""
-    table = np.asarray(fmt.pixel_tables, np.int32)[:, order]        # (states, H)
-    out[:, :states.size] = np.maximum(table[states].T, 0)
-
-
-def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, Any]:
-    """(P,) structured zero-copy view of payload rows (P, size) uint8 (contiguous rows)."""
-    return rows.view(_packet_dtype(fmt, rows.shape[1]))[:, 0]
-
-
-def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
-           rows: np.ndarray[Any, Any],
-           grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
-    """Distances and reflectivities of one rotation, read from blocks of payload rows.
-
-    ``pieces``: (payload rows (P, size) uint8, first firing in them, firing count, first
-    column). ``grids[r]``: the (L, W) uint16 distance and uint8 reflectivity grids of block r of
-    a firing, zero-filled; laser index l goes to row ``rows[l]``, the columns of the pieces are
-    written. The compiled kernel of :mod:`converters._kernels.hesai` when available, else
-    :func:`_units_numpy` (the reference).
-    """
-    fill = _kernel()
-    if fill is None:
-        _units_numpy(pieces, stream, rows, grids)
-        return
-    fmt = stream.fmt
-    returns = stream.returns
-    firings = fmt.blocks // returns
-    width = grids[0][0].shape[1]
-    rowbase = rows.astype(np.uint64) * np.uint64(width)
-    flat = [(dist.reshape(-1), refl.reshape(-1)) for dist, refl in grids]
-    base = fmt.body + fmt.azimuth_at + 2
-    for payloads, first, count, col in pieces:
-        src, stride = _flat_rows(payloads)
-        for r, (dist, refl) in enumerate(flat):
-            fill(src, stride, first, count, col, base, fmt.block_size, fmt.unit_size, returns,
-                 r, firings, rowbase, dist, refl)
-
-
-def _flat_rows(rows: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], int]:
-    """(1-D uint8 view from the first byte of row 0 to the last byte of the last row, row
-    stride) of payload rows (P, size) whose rows are contiguous (no copy)."""
-    n, size = rows.shape
-    stride = rows.strides[0]
-    if n > 1 and stride < size:
-        rows = np.ascontiguousarray(rows)
-        stride = size
-    span = (n - 1) * stride + size if n else 0
-    return np.lib.stride_tricks.as_strided(rows, shape=(span,), strides=(1,),
-                                           writeable=False), int(stride)
-
-
-def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _Stream,
-                 rows: np.ndarray[Any, Any],
-                 grids: list[tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]) -> None:
-    """The numpy reference of :func:`_units`: strided structured views of the rows, copied
-    firing-major, transposed and put in row order."""
-    fmt = stream.fmt
-    returns = stream.returns
-    firings = fmt.blocks // returns
-    order = np.argsort(rows)                  # laser index of each row
-    for payloads, first, count, col in pieces:
-        k0, k1 = first // firings, -(-(first + count) // firings)
-        skip = first - k0 * firings
-        units = _records(payloads[k0:k1], fmt)["b"]["u"]            # (k, blocks, L)
-        for k, name in enumerate(("d", "r")):
-            values = units[name].reshape(k1 - k0, firings, returns, fmt.lasers)
-            for r in range(returns):
-                part = np.ascontiguousarray(values[:, :, r].transpose(2, 0, 1))
-                part = part.reshape(fmt.lasers, -1)[order, skip:skip + count]
-                grids[r][k][:, col:col + count] = part
-
-
-_KERNEL: Any = False
-
-
-def _kernel() -> Any:
-    """The compiled units kernel, or None (no numba, or LIDARSCAN_NUMBA=0)."""
-    global _KERNEL
-    if _KERNEL is False:
-        from converters._kernels import select
-        _KERNEL = select("hesai").numba
-    return _KERNEL
 
 
 def _batch_error(err: DecodeError, index: int, results: list[tuple[Any, Any]]) -> DecodeError:

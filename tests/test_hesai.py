@@ -24,7 +24,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan
-from converters import hesai
+from converters import _hesai_rotation, hesai
 from lidarscan.errors import ConfigError, DecodeError
 from pcd import read_pcd
 
@@ -616,7 +616,7 @@ def _rows(packets: list[tuple[int, bytes]], stride: int | None = None
 def units_path(request: Any, monkeypatch: Any) -> str:
     """Run a test with the compiled units kernel (skipped without numba) and with numpy."""
     if request.param == "numpy":
-        monkeypatch.setattr(hesai, "_KERNEL", None)
+        monkeypatch.setattr(_hesai_rotation, "_KERNEL", None)   # where _units looks it up
     elif hesai._kernel() is None:
         pytest.skip("numba not installed (or LIDARSCAN_NUMBA=0)")
     return request.param
