@@ -10,6 +10,9 @@ the points kept as valid pixels, nearest decoded point median <= 2 mm, p99 <= 20
   absolute s at 18, point_step 26), and its ``dense_points: false`` form: every pixel a point,
   no return a NaN point, height = the number of lasers but the points in firing order (so a
   "row" of the message is not a ring).
+- ``velodyne_organized``: velodyne_pointcloud's ``organize_cloud: true`` output: one message
+  row a firing, one column a ring (width = the number of lasers), NaN points for no return,
+  fields x, y, z, intensity, ring, time as in its unorganized cloud.
 - big-endian and padded copies of the velodyne_pointcloud layout (extra unknown fields).
 """
 
@@ -112,3 +115,37 @@ def test_velodyne_cloud_byte_order_padding_and_extra_fields(variant: str) -> Non
     back, est = pc.from_pointcloud2(again, as_dataclass=True)
     lidarscan.validate(back, est)
     check_reimport(again, truth[: pts.size], back, est)
+
+
+def velodyne_organized_cloud(scan: Any, info: Any) -> tuple[Any, np.ndarray[Any, Any]]:
+    """The first return of a decoded scan as velodyne_pointcloud's organized cloud."""
+    proj = lidarscan.make_projector(info)
+    stamp = lidarscan.to_ns(scan.header.stamp)
+    times = proj.pixel_times(scan) + np.int64(stamp)
+    rng_m, inten = dc._returns(scan, info)[0]
+    xyz = proj.xyz(rng_m, tables=proj.tables_for(scan)).astype(np.float64)
+    height, width = rng_m.shape
+    by_ring = np.argsort(np.asarray(info.vertical_angles), kind="stable")   # ring 0 lowest
+    pts = np.zeros((width, height), dc.DTYPES["velodyne"])       # (firings, rings)
+    cell = xyz[by_ring].transpose(1, 0, 2)                        # (W, H, 3)
+    good = np.isfinite(rng_m[by_ring].T) & np.all(np.isfinite(cell), -1)
+    cell = np.where(good[..., None], cell, np.nan)
+    for j, axis in enumerate("xyz"):
+        pts[axis] = cell[..., j]
+    pts["intensity"] = inten[by_ring].T
+    pts["ring"] = np.arange(height)[None, :]
+    start = int(times.min())
+    pts["time"] = (times[by_ring].T - start) * 1e-9
+    cloud = make_cloud(pts.reshape(-1), height=width, width=height, stamp_ns=start,
+                       frame_id=scan.header.frame_id)
+    return cloud, cell[good]
+
+
+@pytest.mark.parametrize("name", ["velodyne_vlp32", "velodyne_vls128"])
+def test_velodyne_organized_cloud(name: str) -> None:
+    scan, info = middle_scan(name)
+    cloud, truth = velodyne_organized_cloud(scan, info)
+    back, est = pc.from_pointcloud2(cloud, as_dataclass=True)
+    lidarscan.validate(back, est)
+    check_reimport(cloud, truth, back, est)
+    assert back.height >= 0.95 * info.height
