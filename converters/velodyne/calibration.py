@@ -36,6 +36,28 @@ VLP16_CALIBRATION: dict[str, Any] = {
     ],
 }
 
+#: VLP-32C laser table of the user manual (the same for every unit): elevation and azimuth
+#: offset (clockwise, as the manual lists it) of laser k, degrees. ``rot_correction`` is the
+#: negated offset (the ros-drivers convention), e.g. laser 0: -25 deg, +1.4 deg.
+_VLP32C_ELEVATION_DEG = (
+    -25.0, -1.0, -1.667, -15.639, -11.31, 0.0, -0.667, -8.843, -7.254, 0.333, -0.333, -6.148,
+    -5.333, 1.333, 0.667, -4.0, -4.667, 1.667, 1.0, -3.667, -3.333, 3.333, 2.333, -2.667, -3.0,
+    7.0, 4.667, -2.333, -2.0, 15.0, 10.333, -1.333)
+_VLP32C_AZIMUTH_OFFSET_DEG = (
+    1.4, -4.2, 1.4, -1.4, 1.4, -1.4, 4.2, -1.4, 1.4, -4.2, 1.4, -1.4, 4.2, -1.4, 4.2, -1.4, 1.4,
+    -4.2, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4, 1.4, -1.4, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4)
+
+#: Nominal VLP-32C calibration (the manual's table above; no distance or offset corrections).
+VLP32C_CALIBRATION: dict[str, Any] = {
+    "num_lasers": 32,
+    "distance_resolution": 0.004,
+    "lasers": [
+        {"laser_id": k, "vert_correction": math.radians(e), "rot_correction": -math.radians(a),
+         "dist_correction": 0.0, "vert_offset_correction": 0.0, "horiz_offset_correction": 0.0}
+        for k, (e, a) in enumerate(zip(_VLP32C_ELEVATION_DEG, _VLP32C_AZIMUTH_OFFSET_DEG))
+    ],
+}
+
 _DEFAULT_RANGE = (0.9, 130.0)  # velodyne_pointcloud's default min_range / max_range (m)
 
 
