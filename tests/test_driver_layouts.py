@@ -149,3 +149,26 @@ def test_velodyne_organized_cloud(name: str) -> None:
     lidarscan.validate(back, est)
     check_reimport(cloud, truth, back, est)
     assert back.height >= 0.95 * info.height
+
+
+@pytest.mark.parametrize("bad", ["half", "nan"])
+def test_float_ring_field_without_whole_beam_numbers_is_refused(bad: str) -> None:
+    """A float ``ring`` holding something else (halves: two beams would share a row; NaN) is
+    refused naming the field, never truncated into rows."""
+    firings, lasers = 900, 16
+    k, c = np.arange(firings * lasers) % lasers, np.arange(firings * lasers) // lasers
+    elev, az = np.radians(-15.0 + 2.0 * k), np.radians(-0.4 * c)
+    pts = np.zeros(k.size, np.dtype({"names": ["x", "y", "z", "ring"],
+                                     "formats": ["<f4", "<f4", "<f4", "<f4"]}))
+    pts["x"], pts["y"] = 10 * np.cos(elev) * np.cos(az), 10 * np.cos(elev) * np.sin(az)
+    pts["z"] = 10 * np.sin(elev)
+    pts["ring"] = k * 0.5 if bad == "half" else k
+    if bad == "nan":
+        pts["ring"][7] = np.nan
+    cloud = make_cloud(pts, height=1, width=pts.size, stamp_ns=10**18)
+    with pytest.raises(lidarscan.errors.ConversionError, match="ring.*whole beam numbers"):
+        pc.from_pointcloud2(cloud)
+    pts["ring"] = k                                               # whole numbers: fine
+    scan, _ = pc.from_pointcloud2(make_cloud(pts, height=1, width=pts.size, stamp_ns=10**18),
+                                  as_dataclass=True)
+    assert scan.height == lasers
