@@ -38,8 +38,8 @@ class VelodyneModel:
         laser_ns: (lasers,) firing time of each laser after its sequence's first firing, ns.
         first_firing_ns: time of the packet's first firing relative to its timestamp, ns
             (single return); ``last_firing_stamp``: the timestamp marks the packet's last firing.
-        nominal: public nominal calibration (elevations only), or None when the model needs
-            its calibration file.
+        nominal: public nominal calibration (the manual's elevations, and its azimuth offsets
+            where it lists them), or None when the model needs its calibration file.
         nebula: which of Nebula's decoders handles the model ("vlp16", "vlp32", "vls128"):
             the per-pixel azimuth of the default ``azimuth_model`` (:func:`_nebula_azimuths`).
     """
