@@ -253,7 +253,13 @@ def _ring_name(names: Sequence[str]) -> str | None:
 
 def _ring_values(ring: np.ndarray[Any, Any], name: str) -> np.ndarray[Any, Any]:
     """A beam number field's values as int64, refused unless all lie in 0..65535 (the
-    ``LidarInfo.beam_ids`` they become are uint16; NaN in a float field is refused too)."""
+    ``LidarInfo.beam_ids`` they become are uint16; NaN or a fraction in a float field is
+    refused too: such a field holds no beam numbers)."""
+    if ring.size and ring.dtype.kind == "f":
+        bad = ~np.isfinite(ring) | (ring != np.round(ring))
+        if bad.any():
+            raise ConversionError(name, f"{np.count_nonzero(bad)} values such as "
+                                  f"{ring[bad].flat[0]}", "whole beam numbers from 0 to 65535")
     if ring.size and not (ring.min() >= 0 and ring.max() <= 65535):
         raise ConversionError(name, f"values from {ring.min()} to {ring.max()}",
                               "beam numbers from 0 to 65535")

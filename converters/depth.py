@@ -28,7 +28,8 @@ image). The image size must be ``(roi or full) size // binning``. Two models, ch
   count of fixed-point steps. The depth is z in the camera frame.
 * ``rectified=None`` (default): the data decide when they can. If D is empty or all zero and both
   models give the same rays (R = I and P's intrinsics equal K's, within 1e-9 rad), the raw model is
-  used (it is then the rectified one too). Otherwise :class:`ConfigError`: the CameraInfo of an
+  used (it is then the rectified one too); so is it when P has no focal lengths (all zero: there
+  is no rectified model, only K and D). Otherwise :class:`ConfigError`: the CameraInfo of an
   ``image_rect`` topic is the raw camera's (image_proc does not change it), so only the topic tells.
 
 A pixel whose ray cannot be found (outside the domain where the distortion model is invertible:
@@ -168,6 +169,12 @@ def _camera(camera_info: Any) -> _Camera:
 def _stamp_ns(msg: Any) -> int:
     header = _field(msg, "header")
     stamp = None if header is None else _field(header, "stamp")
+    if isinstance(stamp, Mapping):                    # a plain mapping: {"sec", "nanosec"}
+        try:
+            stamp = int(stamp["sec"]) * 1_000_000_000 + int(stamp.get("nanosec", 0))
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValidationError("CameraInfo.header.stamp", dict(stamp),
+                                  "{sec, nanosec} integers or a Time message") from err
     return 0 if stamp is None else to_ns(stamp)
 
 
@@ -402,15 +409,16 @@ def pixel_rays(camera_info: Any, rectified: bool | None = None
 
 
 def _choose_model(cam: _Camera) -> bool:
-    """The ``rectified=None`` default: False when raw and rectified rays coincide, else error."""
-    if _is_zero(cam.d) and not _is_zero(cam.p):
+    """The ``rectified=None`` default: False when raw and rectified rays coincide or when there
+    is no rectified model (P without focal lengths: K and D are all there is), else error."""
+    if not (cam.p[0] != 0 and cam.p[5] != 0):
+        return False
+    if _is_zero(cam.d):
         raw = pixel_rays(cam, False)[0]
         rect, _, rotation, _ = pixel_rays(cam, True)
         chord = np.abs(raw - rect @ rotation.T)           # |difference| ~ angle (rad)
         if float(np.max(chord, initial=0.0)) <= _SAME_RAYS:
             return False
-    if _is_zero(cam.d) and _is_zero(cam.p):
-        return False
     raise ConfigError("rectified", None,
                       "True for an image_rect topic (model P, R) or False for image_raw (K, D): "
                       "this CameraInfo's raw and rectified models give different rays")

@@ -29,6 +29,8 @@ from converters import bags, cli
 from lidarscan.errors import DecodeError, LidarScanError
 from lidarscan.mcap import BadMessage, McapMessage, McapWriter, read_messages
 
+from helpers import messages_by_topic
+
 DATA = Path(__file__).parent / "data" / "nebula"
 VLP32 = DATA / "velodyne_vlp32" / "bag"
 QT64 = DATA / "hesai_qt64" / "bag"
@@ -98,14 +100,6 @@ def _scan(info: Any, stamp_ns: int) -> Any:
 def _string(text: str) -> bytes:
     raw = text.encode() + b"\x00"
     return b"\x00\x01\x00\x00" + struct.pack("<I", len(raw)) + raw
-
-
-def _mcap_items(path: Path) -> dict[str, list[McapMessage]]:
-    out: dict[str, list[McapMessage]] = {}
-    for item in read_messages(path):
-        assert not isinstance(item, BadMessage), item
-        out.setdefault(item.topic, []).append(item)
-    return out
 
 
 def _copy_bag(src: Path, dst: Path) -> Path:
@@ -314,7 +308,7 @@ def test_convert_lidarscan_bag_like_mcap(tmp_path: Path) -> None:
                     + argv) == 0
     assert cli.main(["convert", str(tmp_path / "scans.mcap"), str(tmp_path / "b.mcap")]
                     + argv) == 0
-    a, b = _mcap_items(tmp_path / "a.mcap"), _mcap_items(tmp_path / "b.mcap")
+    a, b = messages_by_topic(tmp_path / "a.mcap"), messages_by_topic(tmp_path / "b.mcap")
     assert a.keys() == b.keys() >= {"/lidar/points", "/lidar/slices/mid", "/lidar/scan"}
     for topic in a:
         assert [m.payload for m in a[topic]] == [m.payload for m in b[topic]]
@@ -340,7 +334,7 @@ def test_convert_pointcloud2_bag_like_mcap(tmp_path: Path) -> None:
                      "-q", "--keep-clouds"]) == 0
     assert cli.main(["convert", str(tmp_path / "clouds.mcap"), str(tmp_path / "b.mcap"),
                      "-q", "--keep-clouds"]) == 0
-    a, b = _mcap_items(tmp_path / "a.mcap"), _mcap_items(tmp_path / "b.mcap")
+    a, b = messages_by_topic(tmp_path / "a.mcap"), messages_by_topic(tmp_path / "b.mcap")
     assert len(a["/velo/lidar_scan"]) == 3 and len(a["/velo/lidar_info"]) == 1
     for topic in a:
         assert [m.payload for m in a[topic]] == [m.payload for m in b[topic]]
@@ -435,7 +429,7 @@ def test_convert_packets_through_the_decoder_contract(
     assert "packet 0 of 300" in err and "data block flag" in err
     (decoder,) = _StandInDecoder.created
     assert decoder.calibration == str(calib) and decoder.frame_id == "hesai"
-    got = _mcap_items(out)
+    got = messages_by_topic(out)
     scans = [m.decode() for m in got["/pandar_packets/lidar_scan"]]
     infos = [m.decode() for m in got["/pandar_packets/lidar_info"]]
     assert len(scans) == 12 and len(infos) == 2  # 1199 packets; each version written once
@@ -446,7 +440,7 @@ def test_convert_packets_through_the_decoder_contract(
     assert len(got["/pandar_packets"]) == 4  # --keep-packets copies them, with a schema
     # without --keep-packets the packets are not copied
     assert cli.main(["convert", str(src), str(tmp_path / "o2.mcap"), "-q"]) == 1
-    assert "/pandar_packets" not in _mcap_items(tmp_path / "o2.mcap")
+    assert "/pandar_packets" not in messages_by_topic(tmp_path / "o2.mcap")
 
 
 def test_damaged_db3_time_index_and_truncated_db3(tmp_path: Path,

@@ -13,7 +13,9 @@ import pytest
 
 import lidarscan
 from converters import cli
-from lidarscan.mcap import BadMessage, McapWriter, read_messages, read_scans
+from lidarscan.mcap import McapWriter, read_messages, read_scans
+
+from helpers import messages_by_topic
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -40,14 +42,6 @@ def copy_topics(src: Path, dst: Path, topics: set[str],
                          log_time_ns=item.log_time_ns)
             written.append(item)
     return written
-
-
-def messages(path: Path) -> dict[str, list[Any]]:
-    out: dict[str, list[Any]] = {}
-    for item in read_messages(path):
-        assert not isinstance(item, BadMessage), item
-        out.setdefault(item.topic, []).append(item)
-    return out
 
 
 SCAN_TOPICS = {"/tf_static", "/tf", "/lidar/info", "/lidar/scan", "/laser/scan"}
@@ -88,7 +82,7 @@ def test_convert_adds_cloud_slices_and_merged_scan(tmp_path: Path, demo_mcap: Pa
                        "low:0.05:0.5", "--slice", "mid:0.5:1.0", "--frame", "base_link",
                        "--merge", "--merge-topic", "/laser/scan", "-q"])
     assert status == 0
-    out = messages(dst)
+    out = messages_by_topic(dst)
     # every input message is there, byte for byte
     for topic in SCAN_TOPICS:
         assert [m.payload for m in out[topic]] == [m.payload for m in copied if m.topic == topic]
@@ -125,7 +119,7 @@ def test_convert_reports_bad_messages_and_keeps_the_good_ones(
     err = capsys.readouterr().err
     assert f"bad message #{bad_index} topic '/lidar/scan' stamp 1700000000.1" in err
     assert "1 BAD message(s)" in err
-    out = messages(dst)
+    out = messages_by_topic(dst)
     assert len(out["/lidar/scan"]) == 2 and len(out["/lidar/slices/low"]) == 2
     assert len(out["/laser/scan"]) == 3
 
@@ -146,7 +140,7 @@ def test_convert_interrupted_leaves_a_readable_file(tmp_path: Path, demo_mcap: P
     monkeypatch.setattr(McapWriter, "write", write)
     assert cli.main(["convert", str(src), str(dst), "--pointcloud2", "-q"]) == 130
     monkeypatch.undo()
-    out = messages(dst)  # no BadMessage: the file was finished properly
+    out = messages_by_topic(dst)  # no BadMessage: the file was finished properly
     assert sum(len(v) for v in out.values()) == 8
 
 
@@ -154,7 +148,7 @@ def test_convert_driver_clouds_to_lidarscan(tmp_path: Path, demo_mcap: Path) -> 
     src, dst = tmp_path / "clouds.mcap", tmp_path / "scans.mcap"
     copy_topics(demo_mcap, src, {"/lidar/points", "/tf_static"})
     assert cli.main(["convert", str(src), str(dst), "-q"]) == 0
-    out = messages(dst)
+    out = messages_by_topic(dst)
     assert len(out["/lidar/lidar_info"]) == 1 and len(out["/lidar/lidar_scan"]) == 3
     assert "/lidar/points" not in out and len(out["/tf_static"]) == 1
     pairs = list(read_scans(dst))
@@ -292,7 +286,7 @@ def test_truncated_recording_reports_the_cut_everywhere(
     assert cli.main(["convert", str(cut), str(out), "-q"]) == 1  # readable output: kept
     err = capsys.readouterr().err
     assert "damaged input" in err and "truncated" in err
-    assert messages(out)["/lidar/scan"]
+    assert messages_by_topic(out)["/lidar/scan"]
 
 
 @pytest.mark.parametrize("options,words", [
@@ -339,7 +333,7 @@ def test_readme_example_on_the_demo_refuses_the_clash_then_replaces(
         assert topic in err
     assert not out.exists()
     assert cli.main(argv + ["--replace"]) == 0
-    got = messages(out)
+    got = messages_by_topic(out)
     frames = {m.decode().header.frame_id for m in got["/lidar/slices/table"]}
     rays = {len(m.decode().ranges) for m in got["/lidar/slices/table"]}
     assert frames == {"os_sensor"} and len(rays) == 1
@@ -350,7 +344,7 @@ def test_readme_example_on_the_demo_refuses_the_clash_then_replaces(
 def test_info_flags_a_topic_whose_frame_or_shape_changes(
         tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
     mixed = tmp_path / "mixed.mcap"
-    src = messages(demo_mcap)
+    src = messages_by_topic(demo_mcap)
     with McapWriter(mixed) as writer:
         for a, b in zip(src["/lidar/slices/table"], src["/laser/scan"]):
             writer.write("/mixed", a.payload, msgtype=a.msgtype, log_time_ns=a.log_time_ns)
@@ -364,7 +358,7 @@ def test_info_flags_a_topic_whose_frame_or_shape_changes(
 def test_scan_topics_sharing_a_namespace_get_distinct_outputs(
         tmp_path: Path, demo_mcap: Path) -> None:
     src, out = tmp_path / "two.mcap", tmp_path / "out.mcap"
-    items = messages(demo_mcap)
+    items = messages_by_topic(demo_mcap)
     with McapWriter(src) as writer:
         for topic in ("/tf_static", "/lidar/info"):
             for m in items[topic]:
@@ -374,7 +368,7 @@ def test_scan_topics_sharing_a_namespace_get_distinct_outputs(
                 writer.write(topic, m.payload, msgtype=m.msgtype, log_time_ns=m.log_time_ns)
     assert cli.main(["convert", str(src), str(out), "--pointcloud2", "--slice", "s:0:1",
                      "--merge", "-q"]) == 0
-    got = messages(out)
+    got = messages_by_topic(out)
     for topic in ("/lidar/scan", "/lidar/scan_copy"):
         assert len(got[f"{topic}/points"]) == len(got[f"{topic}/slices/s"]) == 3
     assert len(got["/scan_merged"]) == 3
@@ -382,7 +376,7 @@ def test_scan_topics_sharing_a_namespace_get_distinct_outputs(
 
 def test_a_frame_known_only_later_reports_the_early_scans_not_a_usage_error(
         tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    items = messages(demo_mcap)
+    items = messages_by_topic(demo_mcap)
     src, out = tmp_path / "late_tf.mcap", tmp_path / "out.mcap"
     with McapWriter(src) as writer:  # the first scan is recorded before /tf_static
         order = [items["/lidar/info"][0], items["/lidar/scan"][0], items["/tf_static"][0],
@@ -394,14 +388,14 @@ def test_a_frame_known_only_later_reports_the_early_scans_not_a_usage_error(
     err = capsys.readouterr().err
     assert status == 1, err
     assert err.count("bad message #1 topic '/lidar/scan'") == 1 and "base_link" in err
-    assert len(messages(out)["/lidar/slices/s"]) == 2
+    assert len(messages_by_topic(out)["/lidar/slices/s"]) == 2
 
 
 def test_convert_keeps_channel_metadata_and_reports_progress(
         tmp_path: Path, demo_mcap: Path, capsys: pytest.CaptureFixture[str]) -> None:
     qos = "- history: 1\n  depth: 1\n  reliability: 1\n  durability: 1\n"
     src, out = tmp_path / "in.mcap", tmp_path / "out.mcap"
-    items = messages(demo_mcap)
+    items = messages_by_topic(demo_mcap)
     with McapWriter(src) as writer:
         for topic in ("/tf_static", "/lidar/info", "/lidar/scan", "/laser/scan"):
             for m in items[topic]:
@@ -411,7 +405,7 @@ def test_convert_keeps_channel_metadata_and_reports_progress(
     assert cli.main(["convert", str(src), str(out), "--progress"]) == 0
     err = capsys.readouterr().err
     assert "converting in.mcap: 100%" in err  # stderr is not a terminal: lines
-    got = messages(out)
+    got = messages_by_topic(out)
     for topic in ("/tf_static", "/lidar/info", "/lidar/scan"):
         assert dict(got[topic][0].metadata).get("offered_qos_profiles") == qos, topic
     assert "offered_qos_profiles" not in dict(got["/laser/scan"][0].metadata) or \

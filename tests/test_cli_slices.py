@@ -16,7 +16,7 @@ from lidarscan.errors import ConfigError
 from lidarscan.mcap import McapWriter, read_messages, read_scans
 from lidarscan.stamps import to_ns
 from test_cli import copy_topics as _copy_topics
-from test_cli import messages as _topics
+from helpers import messages_by_topic as _topics
 
 SPEC = "floor:-0.3:0.3:holes:floor_height=0:hole_depth=0.05"
 HOLES = {"min_height": -0.3, "max_height": 0.3, "holes": True, "floor_height": 0.0,

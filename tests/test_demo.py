@@ -18,7 +18,8 @@ import pytest
 
 import lidarscan
 from converters import demo
-from lidarscan.mcap import BadMessage, read_messages
+
+from helpers import messages_by_topic
 
 ROOT = Path(__file__).resolve().parent.parent
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -38,17 +39,9 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     return out, done.stdout
 
 
-def by_topic(path: Path) -> dict[str, list[Any]]:
-    out: dict[str, list[Any]] = {}
-    for item in read_messages(path):
-        assert not isinstance(item, BadMessage), item
-        out.setdefault(item.topic, []).append(item)
-    return out
-
-
 def test_demo_writes_recording_views_and_summary(demo_run: tuple[Path, str]) -> None:
     out, stdout = demo_run
-    topics = by_topic(out / "demo.mcap")
+    topics = messages_by_topic(out / "demo.mcap")
     for topic in ("/lidar/scan", "/lidar/points", "/lidar/slices/floor_to_knee",
                   "/lidar/slices/table", "/lidar/slices/full", "/laser/scan", "/scan_merged",
                   "/tf", "/odom", "/camera/depth/image_rect_raw", "/camera/depth/camera_info",
@@ -71,7 +64,7 @@ def recording(demo_run: tuple[Path, str]) -> tuple[dict[str, list[Any]], Any]:
     from converters.nodes.tf import TransformBuffer
 
     out, _ = demo_run
-    topics = by_topic(out / "demo.mcap")
+    topics = messages_by_topic(out / "demo.mcap")
     tf = TransformBuffer()
     tf.add_message(topics["/tf_static"][0].decode(), static=True)
     for item in topics["/tf"]:

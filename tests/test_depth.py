@@ -371,6 +371,23 @@ def test_default_model_comes_from_the_data() -> None:
     assert rect.rectified is True and json.loads(rect.info.vendor_metadata)["rectified"]
 
 
+@pytest.mark.parametrize(("model", "d"), [("plumb_bob", PLUMB_BOB),
+                                          ("rational_polynomial", RATIONAL),
+                                          ("equidistant", EQUIDISTANT)])
+def test_no_projection_matrix_means_the_raw_model(model: str, d: list[float]) -> None:
+    """A CameraInfo with distortion and P all zero (a driver that fills K and D only) has one
+    model, the raw one: the default uses it instead of asking for ``rectified``; and asking for
+    the rectified one names P."""
+    ci = camera_info(model=model, d=d, p=[0.0] * 12)
+    conv = DepthImageConverter(ci)
+    assert conv.rectified is False
+    assert np.array_equal(conv.rays, DepthImageConverter(ci, rectified=False).rays)
+    with pytest.raises(ConversionError, match="CameraInfo.p"):
+        DepthImageConverter(ci, rectified=True)
+    with pytest.raises(ConversionError, match="CameraInfo.k"):      # and K all zero: K named
+        DepthImageConverter(camera_info(model=model, d=d, k=[0.0] * 9, p=[0.0] * 12))
+
+
 def test_info_is_built_once_per_camera_info_content() -> None:
     ci = camera_info(d=PLUMB_BOB, stamp=100)
     conv = DepthImageConverter(ci, rectified=False, as_dataclass=True)
@@ -416,6 +433,14 @@ def test_plain_python_inputs_without_ros_types() -> None:
     with pytest.raises(LidarScanError):          # no K
         from_depth_image(values, {"height": 48, "width": 64}, encoding="16UC1", stamp_ns=0,
                          rectified=False)
+    # all plain: the header's stamp a mapping too (e.g. a message converted to a dict)
+    mapping["header"] = {"frame_id": "cam_optical", "stamp": {"sec": 10, "nanosec": 0}}
+    again, again_info = from_depth_image(values, mapping, encoding="16UC1", stamp_ns=20 * 10**9,
+                                         rectified=False, as_dataclass=True)
+    assert again.data.tobytes() == scan.data.tobytes() and again_info.header == info.header
+    mapping["header"]["stamp"] = {"seconds": 10}
+    with pytest.raises(LidarScanError, match="CameraInfo.header.stamp"):
+        from_depth_image(values, mapping, encoding="16UC1", stamp_ns=0, rectified=False)
 
 
 def test_lazy_registration() -> None:

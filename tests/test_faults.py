@@ -28,6 +28,8 @@ from lidarscan.geometry import exact_xyz
 from lidarscan.linkage import InfoResolver
 from lidarscan.mcap import BadMessage, McapWriter, read_scans
 
+from helpers import Clock
+
 H, W = 4, 16
 STAMP_A, STAMP_B, STAMP_C = 1_000_000_000, 2_000_000_000, 3_000_000_000
 
@@ -268,14 +270,6 @@ def test_random_streams_never_pair_a_scan_with_wrong_geometry(events: list[Any],
 
 
 # ----------------------------------------------------------------- linkage, live (resolver)
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0
-
-    def __call__(self) -> int:
-        return self.now
-
 
 def test_live_resolver_is_bounded_when_info_never_comes() -> None:
     clock = Clock()

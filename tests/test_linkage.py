@@ -9,6 +9,8 @@ import lidarscan as ls
 from lidarscan.errors import ConfigError, InfoMismatchError
 from lidarscan.linkage import InfoResolver
 
+from helpers import Clock
+
 H, W = 4, 16
 
 
@@ -22,14 +24,6 @@ def _info(stamp_ns: int, tilt: float = 0.0, width: int = W) -> object:
 def _scan(info: object, stamp_ns: int, value: float = 1.0) -> object:
     return ls.make_scan(info, {"range": np.full((H, int(info.width)), value, np.float32)},
                         stamp_ns, as_dataclass=True)
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0
-
-    def __call__(self) -> int:
-        return self.now
 
 
 def test_scan_after_its_info_is_released_at_once() -> None:

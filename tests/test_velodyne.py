@@ -181,12 +181,42 @@ def test_rclpy_message_output() -> None:
     (lambda c: c.update(num_lasers=17), ValidationError),
     (lambda c: c["lasers"][1].update(rot_correction=float("nan")), ValidationError),
     (lambda c: c.update(distance_resolution=0.0), ValidationError),
+    # vendor / hand-made files: non-numbers are project errors naming the key, never a bare
+    # ValueError / TypeError, and whole numbers are not truncated
+    (lambda c: c["lasers"][0].update(laser_id="a"), DecodeError),
+    (lambda c: c["lasers"][0].update(laser_id=None), DecodeError),
+    (lambda c: c["lasers"][0].update(laser_id=1.5), DecodeError),
+    (lambda c: c["lasers"][0].update(laser_id=True), DecodeError),
+    (lambda c: c.update(num_lasers="sixteen"), DecodeError),
+    (lambda c: c.update(distance_resolution="2mm"), ValidationError),
+    (lambda c: c.update(distance_resolution=None), ValidationError),
+    # an elevation table in degrees: no beam points past a pole
+    (lambda c: [las.update(vert_correction=math.degrees(las["vert_correction"]))
+                for las in c["lasers"]], ValidationError),
 ])
 def test_bad_calibration(mutate: Any, error: type) -> None:
     calib = copy.deepcopy(velodyne.VLP16_CALIBRATION)
     mutate(calib)
-    with pytest.raises(error):
+    with pytest.raises(error, match="calibration"):
         velodyne.info_from_calibration(calib, columns=4)
+
+
+def test_minimal_and_shuffled_calibration_files(tmp_path: Path) -> None:
+    """What vendors and ros-drivers ship: only laser_id and vert_correction (no offsets, focal
+    or two-point keys, no num_lasers), lasers listed out of order, ids written as 3.0: the same
+    info as the complete file (missing optional keys are 0)."""
+    full = velodyne.info_from_calibration(velodyne.VLP16_CALIBRATION, columns=8,
+                                          as_dataclass=True)
+    lasers = [{"laser_id": float(las["laser_id"]), "vert_correction": las["vert_correction"]}
+              for las in velodyne.VLP16_CALIBRATION["lasers"]]
+    text = "lasers:\n" + "".join(
+        f"- {{laser_id: {las['laser_id']}, vert_correction: {las['vert_correction']!r}}}\n"
+        for las in lasers[::-1])
+    (tmp_path / "min.yaml").write_text(text)
+    info = velodyne.info_from_calibration(tmp_path / "min.yaml", columns=8, as_dataclass=True)
+    for name in ("vertical_angles", "beam_azimuth_offsets", "beam_origins", "beam_ids",
+                 "beam_range_offsets", "beam_time_offsets"):
+        np.testing.assert_array_equal(getattr(info, name), getattr(full, name), err_msg=name)
 
 
 def test_bad_arguments(tmp_path: Path) -> None:

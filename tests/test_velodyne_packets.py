@@ -473,14 +473,33 @@ def test_property_random_firings_match_the_oracle(seed: int, name: str, mode: st
 # --------------------------------------------------------------------------------- contract
 
 def test_nominal_calibrations_and_the_missing_file_error() -> None:
-    for product in (0x22, 0x24, 0x21):
+    for product in (0x22, 0x24, 0x21, 0x28):
         packets = synthetic_stream(product, 0x37, 4, start_deg=10.0)
         [(scan, info)] = list(decode_packets(packets, as_dataclass=True))
         assert info.model == MODELS[product].name
         assert info.vertical_angles[0] > info.vertical_angles[-1]
-    for product in (0x28, 0xA1):
-        with pytest.raises(ConfigError, match="calibration YAML"):
+    for product in (0xA1,):
+        with pytest.raises(ConfigError, match="VLS-128 calibration YAML"):
             list(decode_packets(synthetic_stream(product, 0x37, 2)))
+
+
+def test_vlp32c_nominal_calibration_is_the_shipped_file() -> None:
+    """The VLP-32C needs no file: its manual's table is the calibration every unit ships with
+    (Nebula's / ros-drivers' VLP32.yaml, tests/data): same values, and packets decoded
+    without a file give the same scans and infos as with it."""
+    shipped = velodyne.load_calibration(DATA / "velodyne_vlp32" / "VLP32.yaml")
+    by_id = sorted(shipped["lasers"], key=lambda las: las["laser_id"])
+    nominal = MODELS[0x28].nominal
+    assert nominal is not None and len(nominal["lasers"]) == len(by_id) == 32
+    for key in ("vert_correction", "rot_correction", "dist_correction",
+                "vert_offset_correction", "horiz_offset_correction"):
+        assert [las[key] for las in nominal["lasers"]] == [las[key] for las in by_id], key
+    packets = synthetic_stream(0x28, 0x39, 60, start_deg=10.0)
+    plain = list(decode_packets(packets, as_dataclass=True))
+    with_file = list(decode_packets(packets, shipped, as_dataclass=True))
+    _same_scans(plain, with_file)
+    for (_, ia), (_, ib) in zip(plain, with_file):
+        np.testing.assert_array_equal(ia.vertical_angles, ib.vertical_angles)
 
 
 def test_info_fields_timing_and_time_sources() -> None:

@@ -36,6 +36,28 @@ VLP16_CALIBRATION: dict[str, Any] = {
     ],
 }
 
+#: VLP-32C laser table of the user manual (the same for every unit): elevation and azimuth
+#: offset (clockwise, as the manual lists it) of laser k, degrees. ``rot_correction`` is the
+#: negated offset (the ros-drivers convention), e.g. laser 0: -25 deg, +1.4 deg.
+_VLP32C_ELEVATION_DEG = (
+    -25.0, -1.0, -1.667, -15.639, -11.31, 0.0, -0.667, -8.843, -7.254, 0.333, -0.333, -6.148,
+    -5.333, 1.333, 0.667, -4.0, -4.667, 1.667, 1.0, -3.667, -3.333, 3.333, 2.333, -2.667, -3.0,
+    7.0, 4.667, -2.333, -2.0, 15.0, 10.333, -1.333)
+_VLP32C_AZIMUTH_OFFSET_DEG = (
+    1.4, -4.2, 1.4, -1.4, 1.4, -1.4, 4.2, -1.4, 1.4, -4.2, 1.4, -1.4, 4.2, -1.4, 4.2, -1.4, 1.4,
+    -4.2, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4, 1.4, -1.4, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4)
+
+#: Nominal VLP-32C calibration (the manual's table above; no distance or offset corrections).
+VLP32C_CALIBRATION: dict[str, Any] = {
+    "num_lasers": 32,
+    "distance_resolution": 0.004,
+    "lasers": [
+        {"laser_id": k, "vert_correction": math.radians(e), "rot_correction": -math.radians(a),
+         "dist_correction": 0.0, "vert_offset_correction": 0.0, "horiz_offset_correction": 0.0}
+        for k, (e, a) in enumerate(zip(_VLP32C_ELEVATION_DEG, _VLP32C_AZIMUTH_OFFSET_DEG))
+    ],
+}
+
 _DEFAULT_RANGE = (0.9, 130.0)  # velodyne_pointcloud's default min_range / max_range (m)
 
 
@@ -66,19 +88,30 @@ def load_calibration(calib: Mapping[str, Any] | str | os.PathLike[str]) -> dict[
     return data
 
 
+def _whole(value: Any, field: str, expected: str) -> int:
+    """``value`` as an int when it is a whole number (YAML may give 3 or 3.0), else a
+    DecodeError naming ``field`` (no silent truncation of 1.5, no bool, no string)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)) \
+            or not math.isfinite(float(value)) or float(value) != int(value):
+        raise DecodeError(field, value, expected)
+    return int(value)
+
+
 def _laser_values(data: Mapping[str, Any]) -> dict[str, np.ndarray[Any, Any]]:
     """Per-laser arrays in laser_id order (laser_id must be a permutation of 0..L-1)."""
     lasers = data["lasers"]
     count = len(lasers)
     declared = data.get("num_lasers")
-    if declared is not None and int(declared) != count:
+    if declared is not None and _whole(declared, "calibration.num_lasers",
+                                       "a whole number of lasers") != count:
         raise ValidationError("calibration.num_lasers", declared,
                               f"{count} (the length of calibration.lasers)")
     ids = []
     for i, laser in enumerate(lasers):
         if not isinstance(laser, Mapping) or "laser_id" not in laser:
             raise DecodeError(f"calibration.lasers[{i}].laser_id", None, "a laser_id")
-        ids.append(int(laser["laser_id"]))
+        ids.append(_whole(laser["laser_id"], f"calibration.lasers[{i}].laser_id",
+                          f"a whole number in 0..{count - 1}"))
     if sorted(ids) != list(range(count)):
         raise ValidationError("calibration.lasers[*].laser_id", sorted(ids),
                               f"each of 0..{count - 1} exactly once")
@@ -101,6 +134,13 @@ def _laser_values(data: Mapping[str, Any]) -> dict[str, np.ndarray[Any, Any]]:
             raise ValidationError(f"calibration.lasers[*].{key}", arr.tolist()[:4],
                                   "finite numbers")
         out[key] = arr
+    steep = np.flatnonzero(np.abs(out["vert_correction"]) > math.pi / 2)
+    if steep.size:                       # e.g. a table in degrees: no beam points past a pole
+        k = int(steep[0])
+        raise ValidationError(f"calibration.lasers[laser_id={k}].vert_correction",
+                              float(out["vert_correction"][k]),
+                              "an elevation in radians within [-pi/2, pi/2] (the ros-drivers "
+                              "format is in radians; degrees?)")
     return out
 
 
@@ -190,10 +230,13 @@ def info_from_calibration(calib: Mapping[str, Any] | str | os.PathLike[str], *, 
         if alpha.size != width:
             raise ValidationError("horizontal_angles", f"length {alpha.size}",
                                   f"length {width} (columns)")
-    resolution = float(data.get("distance_resolution", 0.002) if distance_resolution is None
-                       else distance_resolution)
-    if not resolution > 0 or not math.isfinite(resolution):
+    resolution = (data.get("distance_resolution", 0.002) if distance_resolution is None
+                  else distance_resolution)
+    if isinstance(resolution, (bool, np.bool_)) \
+            or not isinstance(resolution, (int, float, np.number)) \
+            or not resolution > 0 or not math.isfinite(resolution):
         raise ValidationError("calibration.distance_resolution", resolution, "> 0 metres")
+    resolution = float(resolution)
     if beam_ids == "ring":
         ids = (height - 1 - np.arange(height)).astype(np.uint16)
     elif beam_ids == "laser_id":

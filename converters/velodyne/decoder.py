@@ -47,7 +47,7 @@ class PacketDecoder:
 
     Args:
         calibration: ros-drivers style calibration YAML path or mapping; None -> the model's
-            nominal public calibration (VLP-16, Puck LITE, Puck Hi-Res, HDL-32E) or a
+            nominal public calibration (VLP-16, Puck LITE, Puck Hi-Res, HDL-32E, VLP-32C) or a
             :class:`~lidarscan.errors.ConfigError` naming the file the model needs.
         frame_id: header.frame_id of scans and infos.
         cut_angle_deg: packet azimuth (degrees, clockwise, the packets' own convention) where a

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from converters.velodyne.calibration import VLP16_CALIBRATION, _laser_values
+from converters.velodyne.calibration import VLP16_CALIBRATION, VLP32C_CALIBRATION, _laser_values
 
 PACKET_SIZE = 1206
 _BLOCKS = 12
@@ -38,8 +38,8 @@ class VelodyneModel:
         laser_ns: (lasers,) firing time of each laser after its sequence's first firing, ns.
         first_firing_ns: time of the packet's first firing relative to its timestamp, ns
             (single return); ``last_firing_stamp``: the timestamp marks the packet's last firing.
-        nominal: public nominal calibration (elevations only), or None when the model needs
-            its calibration file.
+        nominal: public nominal calibration (the manual's elevations, and its azimuth offsets
+            where it lists them), or None when the model needs its calibration file.
         nebula: which of Nebula's decoders handles the model ("vlp16", "vlp32", "vls128"):
             the per-pixel azimuth of the default ``azimuth_model`` (:func:`_nebula_azimuths`).
     """
@@ -76,7 +76,8 @@ MODELS: dict[int, VelodyneModel] = {
                         nominal=VLP16_CALIBRATION, nebula="vlp16"),
     0x24: VelodyneModel("Puck Hi-Res", 16, 0.002, 55296.0, _VLP16_TIMES,
                         nominal=_nominal(_fans(-10.0, 2.0 / 3.0, 16), 0.002), nebula="vlp16"),
-    0x28: VelodyneModel("VLP-32C", 32, 0.004, 55296.0, tuple(2304 * (k // 2) for k in range(32))),
+    0x28: VelodyneModel("VLP-32C", 32, 0.004, 55296.0, tuple(2304 * (k // 2) for k in range(32)),
+                        nominal=VLP32C_CALIBRATION),
     0x21: VelodyneModel("HDL-32E", 32, 0.002, 46080.0, tuple(1152 * k for k in range(32)),
                         last_firing_stamp=True,
                         nominal=_nominal(_fans(-92.0 / 3.0, -28.0 / 3.0, 32), 0.002)),
