@@ -16,7 +16,7 @@ Byte format of XPREDICT (every integer little-endian)::
                u32 W, u32 count = 1, u8 predictor, u8 rolled = 0, u8 extra, u8 masked
                [, u32 reference offset when predictor = 4])
                u32 signal_offset  u8 signal_datatype  u32 range_offset  u8 range_datatype
-               i32 bin0  u16 n_gain  n_gain x u32 gain
+               i32 bin0  u16 n_gain  n_gain x u32 gain  u16 n_row  n_row x u16 row_gain
                u32 knee  i32 ubin0  u16 n_comp  n_comp x u16 comp
     payload := the PREDICT2 payload of d
 
@@ -29,14 +29,17 @@ and range value r:
 * no prediction (P = 0) when r is not finite or r <= 0;
 * range bin ``rb = (bits(float32(r)) >> 18) - bin0`` (bits: the IEEE-754 word of the positive
   float32; 32 bins per octave), clamped to 0 .. n_gain - 1;
-* linear value ``u = (s * gain[rb]) >> 16`` (exact, 64-bit; gain: 16 fractional bits);
+* linear value ``u = (s * gain[rb] * row_gain[y] + 2**30) >> 31`` for a pixel of row y
+  (64-bit integers, wrapping; gain: 16 fractional bits, row_gain: 15; n_row = H);
 * P = u when u < knee, else ``comp[clamp((bits(float32(u)) >> 20) - ubin0, 0, n_comp - 1)]``
   (8 bins per octave of u); P is finally clamped to the block type's unsigned range.
 
 Every step is integer or exact IEEE float32 conversion, so encoder and decoder agree bit for bit
 on any machine. The tables are the encoder's choice (any tables decode losslessly); the encoder
-fits gain[b] as the median of f / s over the pixels of bin b with f below the knee, and comp[k]
-as the median f over the pixels of u bin k, and keeps XPREDICT only when it is smaller than the
+fits gain[b] as the median of f / s over the pixels of bin b with f below the knee, then
+row_gain[y] as the median ratio of f to that prediction in row y (the beams differ by a few
+per cent), then gain again with the row gains, and comp[k] as the median f over the pixels of
+u bin k; it keeps the gains below 2**24 (no wrapping), and keeps XPREDICT only when it is smaller than the
 block's version 2 coding. Version 3 buffers start with version byte 3; a version 3 decoder reads
 versions 1 and 2 unchanged.
 """
@@ -67,12 +70,14 @@ class XParams:
     """The prediction tables of one XPREDICT block (see the module docstring)."""
 
     def __init__(self, signal_offset: int, signal_datatype: int, range_offset: int,
-                 range_datatype: int, bin0: int, gain: np.ndarray[Any, Any], knee: int,
-                 ubin0: int, comp: np.ndarray[Any, Any]) -> None:
+                 range_datatype: int, bin0: int, gain: np.ndarray[Any, Any],
+                 row_gain: np.ndarray[Any, Any], knee: int, ubin0: int,
+                 comp: np.ndarray[Any, Any]) -> None:
         self.signal_offset, self.signal_datatype = int(signal_offset), int(signal_datatype)
         self.range_offset, self.range_datatype = int(range_offset), int(range_datatype)
         self.bin0, self.knee, self.ubin0 = int(bin0), int(knee), int(ubin0)
         self.gain = np.asarray(gain, np.uint32)
+        self.row_gain = np.asarray(row_gain, np.uint16)
         self.comp = np.asarray(comp, np.uint16)
 
 
@@ -80,6 +85,7 @@ def pack_params(p: XParams) -> bytes:
     """The XPREDICT part of the params (after the PREDICT2 params)."""
     return (_SRC.pack(p.signal_offset, p.signal_datatype, p.range_offset, p.range_datatype,
                       p.bin0, p.gain.size) + p.gain.astype("<u4").tobytes()
+            + struct.pack("<H", p.row_gain.size) + p.row_gain.astype("<u2").tobytes()
             + _COMP.pack(p.knee, p.ubin0, p.comp.size) + p.comp.astype("<u2").tobytes())
 
 
@@ -89,9 +95,14 @@ def unpack_params(buf: bytes, what: str) -> XParams:
         raise DecodeError(f"{what} params", len(buf), f"at least {_SRC.size} XPREDICT bytes")
     so, sd, ro, rd, bin0, ng = _SRC.unpack_from(buf)
     pos = _SRC.size + 4 * ng
+    if len(buf) < pos + 2:
+        raise DecodeError(f"{what} params", len(buf), f"at least {pos + 2} bytes")
+    gain = np.frombuffer(buf, "<u4", ng, _SRC.size).astype(np.uint32)
+    (nr,) = struct.unpack_from("<H", buf, pos)
+    pos += 2 + 2 * nr
     if len(buf) < pos + _COMP.size:
         raise DecodeError(f"{what} params", len(buf), f"at least {pos + _COMP.size} bytes")
-    gain = np.frombuffer(buf, "<u4", ng, _SRC.size).astype(np.uint32)
+    row_gain = np.frombuffer(buf, "<u2", nr, pos - 2 * nr).astype(np.uint16)
     knee, ubin0, nc = _COMP.unpack_from(buf, pos)
     end = pos + _COMP.size + 2 * nc
     if len(buf) != end:
@@ -100,7 +111,7 @@ def unpack_params(buf: bytes, what: str) -> XParams:
     if sd not in _INT_TYPES or (rd not in _INT_TYPES and rd != _FLOAT32) or ng < 1 or nc < 1:
         raise DecodeError(f"{what} params", (sd, rd, ng, nc),
                           "integer signal, float32 or integer range, non-empty tables")
-    return XParams(so, sd, ro, rd, bin0, gain, knee, ubin0, comp)
+    return XParams(so, sd, ro, rd, bin0, gain, row_gain, knee, ubin0, comp)
 
 
 def _range_bins(r: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
@@ -123,8 +134,10 @@ def _linear(s: np.ndarray[Any, Any], r: np.ndarray[Any, Any], p: XParams
     bins, valid = _range_bins(r)
     rb = np.clip(bins - p.bin0, 0, p.gain.size - 1)
     sig = np.maximum(s.astype(np.int64), 0)
-    u = (sig * p.gain.astype(np.int64)[rb]) >> 16
-    return np.where(valid, u, 0), valid
+    rows = p.row_gain.astype(np.int64)[:, None]
+    with np.errstate(over="ignore"):
+        u = (sig * p.gain.astype(np.int64)[rb] * rows + (1 << 30)) >> 31
+    return np.where(valid, np.maximum(u, 0), 0), valid
 
 
 def predict(s: np.ndarray[Any, Any], r: np.ndarray[Any, Any], p: XParams,
@@ -138,11 +151,31 @@ def predict(s: np.ndarray[Any, Any], r: np.ndarray[Any, Any], p: XParams,
     return np.where(valid, np.clip(out, 0, top), 0).astype(dtype)
 
 
+def _medians(keys: np.ndarray[Any, Any], values: np.ndarray[Any, Any], n: int
+             ) -> np.ndarray[Any, Any]:
+    """Median of ``values`` per key 0..n-1; a key without values takes the nearest key's
+    median (the lower one on a tie); all 1.0 when there are no values."""
+    out = np.ones(n, np.float64)
+    if not keys.size:
+        return out
+    order = np.argsort(keys, kind="stable")
+    keys, values = keys[order], values[order]
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    stops = np.r_[starts[1:], keys.size]
+    have = keys[starts]
+    out[have] = [np.median(values[a:b]) for a, b in zip(starts, stops, strict=True)]
+    at = np.clip(np.searchsorted(have, np.arange(n)), 0, have.size - 1)
+    below = have[np.maximum(at - 1, 0)]
+    above = have[at]
+    pick = np.where(np.abs(below - np.arange(n)) <= np.abs(above - np.arange(n)), below, above)
+    return out[pick]
+
+
 def fit(f: np.ndarray[Any, Any], s: np.ndarray[Any, Any], r: np.ndarray[Any, Any],
         signal: tuple[int, int], rng: tuple[int, int], knee: int) -> XParams | None:
-    """Tables of :func:`predict` fitted to a target grid f (native unsigned) from its signal s
-    and range r (native grids); ``signal`` / ``rng``: (offset, datatype) of the sources.
-    None when no pixel has a range and a positive signal."""
+    """Tables of :func:`predict` fitted to a target grid f (native unsigned, (H, W)) from its
+    signal s and range r (native (H, W) grids); ``signal`` / ``rng``: (offset, datatype) of
+    the sources. None when no pixel has a range and a positive signal."""
     bins, valid = _range_bins(r)
     sig = s.astype(np.int64)
     use = valid & (sig > 0)
@@ -152,50 +185,23 @@ def fit(f: np.ndarray[Any, Any], s: np.ndarray[Any, Any], r: np.ndarray[Any, Any
     n = int(bins[use].max()) - bin0 + 1
     rb = bins - bin0
     lin = use & (f.astype(np.int64) < knee)
-    gain = np.zeros(n, np.float64)
-    have = np.zeros(n, bool)
-    if lin.any():
-        ratio = f[lin].astype(np.float64) / sig[lin]
-        order = np.argsort(rb[lin], kind="stable")
-        keys, ratio = rb[lin][order], ratio[order]
-        starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-        stops = np.r_[starts[1:], keys.size]
-        for a, b in zip(starts, stops, strict=True):
-            gain[keys[a]] = np.median(ratio[a:b])
-            have[keys[a]] = True
-    if have.any():  # empty bins take the nearest fitted bin's gain
-        idx = np.flatnonzero(have)
-        near = idx[np.clip(np.searchsorted(idx, np.arange(n)), 0, idx.size - 1)]
-        left = idx[np.clip(np.searchsorted(idx, np.arange(n)) - 1, 0, idx.size - 1)]
-        pick = np.where(np.abs(left - np.arange(n)) <= np.abs(near - np.arange(n)), left, near)
-        gain = gain[pick]
-    gain_q = np.clip(np.rint(gain * 65536), 0, 2**32 - 1).astype(np.uint32)
-    p = XParams(signal[0], signal[1], rng[0], rng[1], bin0, gain_q, knee, 0,
-                np.zeros(1, np.uint16))
+    ratio = f[lin].astype(np.float64) / sig[lin]
+    rows = np.broadcast_to(np.arange(f.shape[0])[:, None], f.shape)[lin]
+    gain = _medians(rb[lin], ratio, n)
+    row_gain = _medians(rows, ratio / np.maximum(gain[rb[lin]], 1e-9), f.shape[0])
+    row_gain = np.clip(row_gain, 0.5, 1.99)
+    gain = _medians(rb[lin], ratio / row_gain[rows], n)
+    p = XParams(signal[0], signal[1], rng[0], rng[1], bin0,
+                np.clip(np.rint(gain * 65536), 0, 2**24 - 1).astype(np.uint32),
+                np.rint(row_gain * 32768).astype(np.uint16), knee, 0, np.zeros(1, np.uint16))
     u, _ = _linear(s, r, p)
     hi = use & (u >= knee)
     if hi.any():
         ub = _u_bins(u)
-        ubin0 = int(ub[hi].min())
-        m = int(ub[hi].max()) - ubin0 + 1
-        comp = np.zeros(m, np.float64)
-        keys = ub[hi] - ubin0
-        vals = f[hi].astype(np.float64)
-        order = np.argsort(keys, kind="stable")
-        keys, vals = keys[order], vals[order]
-        starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-        stops = np.r_[starts[1:], keys.size]
-        last = 0.0
-        filled = np.zeros(m, bool)
-        for a, b in zip(starts, stops, strict=True):
-            comp[keys[a]] = np.median(vals[a:b])
-            filled[keys[a]] = True
-        for k in range(m):  # empty bins: the previous bin's value (monotone-ish mapping)
-            if filled[k]:
-                last = comp[k]
-            else:
-                comp[k] = last
-        p.ubin0, p.comp = ubin0, np.clip(np.rint(comp), 0, 65535).astype(np.uint16)
+        p.ubin0 = int(ub[hi].min())
+        comp = _medians(ub[hi] - p.ubin0, f[hi].astype(np.float64),
+                        int(ub[hi].max()) - p.ubin0 + 1)
+        p.comp = np.clip(np.rint(comp), 0, 65535).astype(np.uint16)
     return p
 
 
@@ -295,6 +301,8 @@ def decode_block(what: str, offset: int, length: int, params: bytes, payload: by
         raise DecodeError(f"{what} params", len(params), f"at least {base} bytes")
     shifts = np.frombuffer(params, "<i4", h, c._GRID2.size).astype(np.int64) if rolled else None
     p = unpack_params(params[base:], what)
+    if p.row_gain.size != h:
+        raise DecodeError(f"{what} params", p.row_gain.size, f"{h} row gains (one per row)")
     s = _source(data, p.signal_offset, p.signal_datatype, (h, w), bool(big), offset, what)
     r = _source(data, p.range_offset, p.range_datatype, (h, w), bool(big), offset, what)
     d = c._decode_int2(payload, (h, w, 1), size, predictor, extra, bool(masked), what, None,
