@@ -39,7 +39,8 @@ on any machine. The tables are the encoder's choice (any tables decode losslessl
 fits gain[b] as the median of f / s over the pixels of bin b with f below the knee, then
 row_gain[y] as the median ratio of f to that prediction in row y (the beams differ by a few
 per cent), then gain again with the row gains, and comp[k] as the median f over the pixels of
-u bin k; it keeps the gains below 2**24 (no wrapping), and keeps XPREDICT only when it is smaller than the
+u bin k (all on every n-th column, about 65 536 pixels); it keeps the gains below 2**24 (no
+wrapping), and keeps XPREDICT only when it is smaller than the
 block's version 2 coding. Version 3 buffers start with version byte 3; a version 3 decoder reads
 versions 1 and 2 unchanged.
 """
@@ -61,6 +62,7 @@ _SRC = struct.Struct("<IBIBiH")   # signal offset, signal datatype, range offset
 _COMP = struct.Struct("<IiH")     # knee, ubin0, n_comp
 _INT_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
 _FLOAT32 = 7
+_FIT_PIXELS = 1 << 16  # the encoder fits its tables on about this many pixels
 #: (target channel prefix, signal channel names, range channel prefix): the encoder's search;
 #: a suffix (e.g. "2" of a second return) is carried over to the sources.
 TARGETS = (("reflectivity", ("signal", "intensity"), "range"),)
@@ -153,17 +155,18 @@ def predict(s: np.ndarray[Any, Any], r: np.ndarray[Any, Any], p: XParams,
 
 def _medians(keys: np.ndarray[Any, Any], values: np.ndarray[Any, Any], n: int
              ) -> np.ndarray[Any, Any]:
-    """Median of ``values`` per key 0..n-1; a key without values takes the nearest key's
-    median (the lower one on a tie); all 1.0 when there are no values."""
+    """Median of ``values`` per key 0..n-1 (the mean of the two middle values of an even
+    count); a key without values takes the nearest key's median (the lower key on a tie); all
+    1.0 when there are no values."""
     out = np.ones(n, np.float64)
     if not keys.size:
         return out
-    order = np.argsort(keys, kind="stable")
+    order = np.lexsort((values, keys))
     keys, values = keys[order], values[order]
     starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    stops = np.r_[starts[1:], keys.size]
+    counts = np.diff(np.r_[starts, keys.size])
     have = keys[starts]
-    out[have] = [np.median(values[a:b]) for a, b in zip(starts, stops, strict=True)]
+    out[have] = 0.5 * (values[starts + (counts - 1) // 2] + values[starts + counts // 2])
     at = np.clip(np.searchsorted(have, np.arange(n)), 0, have.size - 1)
     below = have[np.maximum(at - 1, 0)]
     above = have[at]
@@ -176,6 +179,8 @@ def fit(f: np.ndarray[Any, Any], s: np.ndarray[Any, Any], r: np.ndarray[Any, Any
     """Tables of :func:`predict` fitted to a target grid f (native unsigned, (H, W)) from its
     signal s and range r (native (H, W) grids); ``signal`` / ``rng``: (offset, datatype) of
     the sources. None when no pixel has a range and a positive signal."""
+    step = max(1, f.size // _FIT_PIXELS)  # fit on every step-th column: the tables travel
+    f, s, r = f[:, ::step], s[:, ::step], r[:, ::step]
     bins, valid = _range_bins(r)
     sig = s.astype(np.int64)
     use = valid & (sig > 0)
