@@ -17,9 +17,19 @@ Hesai integer range units, every return of a dual sensor in its own channel) are
 * LidarScan: raw, lz4 / zstd-3 / zstd-19 of the whole ``data`` buffer (what an MCAP chunk
   compressor does), byte shuffle + zstd-3 per block, the project's codec
   (:mod:`lidarscan.codec`, its defaults, with the compiled residual coder when numba is
-  there), and the image codecs of ``imagecodecs``: 16-bit PNG
+  there; and its format version 3, an option: :mod:`lidarscan._codec_v3`), and the image
+  codecs of ``imagecodecs``: 16-bit PNG
   and lossless JPEG-XL of every 8/16-bit channel and of the range in integer millimetres (split
   into its low and high 16-bit words when it exceeds 65.535 m, so the images stay lossless).
+
+Dual-return frames are compared like with like: the size goal divides all channels (both
+returns) by the best lossless coding of every cloud the driver publishes for the frame
+(``cloud_all``): ouster-ros publishes the second return as a second message, ``points2`` (the
+second-return channels in the first-return fields, near_ir shared; each message coded on its
+own, as a per-message transport would), velodyne_pointcloud and HesaiLidar_ROS_2.0 one cloud of
+every return (here the first-return points then the second-return ones), Nebula likewise. The
+first-return channels alone (``scan_first``, a scan rebuilt without the second-return channels)
+are compared with the first-return cloud (``cloud``) as well: both pairs are in the table.
 
 Every lossless coding is decoded and compared byte for byte before its size is reported. The
 codec's size is the whole message but its header (channel descriptors and per-column arrays
@@ -39,7 +49,8 @@ import numpy as np
 
 from converters.evidence._common import Block, fmt_int, table, time_call
 
-__all__ = ["GOALS", "SOURCES", "blocks", "measure", "sources"]
+__all__ = ["GOALS", "SOURCES", "V3", "best_cloud", "blocks", "first_return_scan", "measure",
+           "second_return_pairs", "second_return_view", "sources"]
 
 #: Goals of the issue, per real sensor: all channels lossless <= 0.2 x the best lossless coding
 #: of the driver's cloud; the range channel lossless <= 0.4 x Draco's lossy 1 mm x,y,z; encode
@@ -88,6 +99,8 @@ SOURCES: list[Callable[[], list[tuple[str, str, Callable[[], tuple[Any, Any]]]]]
 DRIVERS = {"ouster": "ouster-ros", "velodyne": "velodyne_pointcloud XYZIRT",
            "hesai": "HesaiLidar_ROS_2.0"}
 NEBULA_CLOUD = "Nebula PointXYZIRCAEDT"
+#: the coding key of the codec's format version 3 (an option: ``compress_scan(version=3)``)
+V3 = "lidarscan.codec v3"
 
 
 def nebula_cloud(scan: Any, info: Any) -> bytes:
@@ -364,14 +377,19 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
         if data_view(back).tobytes() != data:
             raise AssertionError(f"{label}: lidarscan.codec is not lossless")
         rec["scan"]["lidarscan.codec"] = len(packed)
+        packed3 = codec.compress_scan(scan, info, coder=coder, version=3)
+        if data_view(codec.decompress_scan(packed3, coder=coder)).tobytes() != data:
+            raise AssertionError(f"{label}: lidarscan.codec v3 is not lossless")
+        rec["scan"][V3] = len(packed3)
         if dual:  # the first-return channels alone, against the first-return cloud
             first = first_return_scan(scan, info)
-            packed1 = codec.compress_scan(first, info, coder=coder)
-            if (data_view(codec.decompress_scan(packed1, coder=coder)).tobytes()
-                    != data_view(first).tobytes()):
-                raise AssertionError(f"{label}: lidarscan.codec is not lossless (first return)")
-            rec["scan_first"] = {"raw": int(data_view(first).size),
-                                 "lidarscan.codec": len(packed1)}
+            rec["scan_first"] = {"raw": int(data_view(first).size)}
+            for name, version in (("lidarscan.codec", 2), (V3, 3)):
+                packed1 = codec.compress_scan(first, info, coder=coder, version=version)
+                if (data_view(codec.decompress_scan(packed1, coder=coder)).tobytes()
+                        != data_view(first).tobytes()):
+                    raise AssertionError(f"{label}: {name} is not lossless (first return)")
+                rec["scan_first"][name] = len(packed1)
         segs = codec.segments(packed)
         offsets = {c.name: int(c.offset) for c in scan.channels}
         rec["range"]["lidarscan.codec"] = next(s["payload_bytes"] for s in segs
@@ -380,6 +398,10 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
             rec["times"]["scan lidarscan.codec"] = (
                 time_call(lambda: codec.compress_scan(scan, info, coder=coder), repeat=5),
                 time_call(lambda: codec.decompress_scan(packed, coder=coder), repeat=5))
+            rec["times"][f"scan {V3}"] = (
+                time_call(lambda: codec.compress_scan(scan, info, coder=coder, version=3),
+                          repeat=5),
+                time_call(lambda: codec.decompress_scan(packed3, coder=coder), repeat=5))
         if _have("imagecodecs"):
             planes = _image_planes(scan)
             for kind in ("PNG", "JPEG-XL"):
@@ -425,7 +447,7 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
     return out
 
 
-def _best_cloud(rec: dict[str, Any], which: str = "all") -> tuple[str, int]:
+def best_cloud(rec: dict[str, Any], which: str = "all") -> tuple[str, int]:
     """(coding, bytes) of the best lossless coding of the driver's output: ``which`` "all" =
     every return the driver publishes for the frame (``cloud_all`` on a dual frame: both
     ouster-ros clouds, or the one cloud of every return of velodyne_pointcloud / Hesai /
@@ -441,8 +463,8 @@ def _what_all(rec: dict[str, Any]) -> str:
     if not rec.get("cloud_all"):
         return "the driver's cloud"
     if rec["driver"] == "ouster-ros":
-        return ("the driver's clouds of both returns (ouster-ros `points` + `points2`, each "
-                "message coded on its own)")
+        return ("the driver's two clouds of both returns, ouster-ros `points` + `points2` "
+                "coded message by message")
     return "the driver's cloud of every return"
 
 
@@ -454,7 +476,7 @@ def goal_lines(records: list[dict[str, Any]] | None = None) -> list[str]:
     first-return channels against the first-return cloud."""
     lines = []
     for rec in records if records is not None else measure(False):
-        best_name, best = _best_cloud(rec)
+        best_name, best = best_cloud(rec)
         ours = rec["scan"]["lidarscan.codec"]
         rng = rec["range"]["lidarscan.codec"]
         draco = rec["cloud"].get("Draco 1 mm x,y,z (lossy)")
@@ -464,11 +486,17 @@ def goal_lines(records: list[dict[str, Any]] | None = None) -> list[str]:
                 f"{_what_all(rec)} ({best_name}, {fmt_int(best)} B): goal ≤ {GOALS['all']}× "
                 f"{'met' if ours / best <= GOALS['all'] else '**not met**'}; "
                 f"{ours / rec['scan']['zstd-3']:.2f}× zstd-3 of the LidarScan buffer.")
+        ours3 = rec["scan"].get(V3)
+        if ours3 is not None:
+            line += (f" Format version 3 (`compress_scan(version=3)`, an option): "
+                     f"{fmt_int(ours3)} B = {ours3 / best:.3f}× "
+                     f"({'met' if ours3 / best <= GOALS['all'] else '**not met**'}).")
         if rec.get("scan_first"):
-            first_name, first = _best_cloud(rec, "first")
+            first_name, first = best_cloud(rec, "first")
             ours1 = rec["scan_first"]["lidarscan.codec"]
             line += (f" First-return channels alone: {fmt_int(ours1)} B = {ours1 / first:.3f}× "
-                     f"the first-return cloud ({first_name}, {fmt_int(first)} B).")
+                     f"the first-return cloud ({first_name}, {fmt_int(first)} B; version 3: "
+                     f"{rec['scan_first'][V3] / first:.3f}×).")
         if draco:
             line += (f" Range channel, lossless: {fmt_int(rng)} B = {rng / draco:.3f}× Draco's "
                      f"lossy 1 mm x,y,z ({fmt_int(draco)} B, grid step "
@@ -485,8 +513,8 @@ def _size_table(records: list[dict[str, Any]]) -> str:
     frame, every return otherwise."""
     rows = []
     for rec in records:
-        _, best = _best_cloud(rec)
-        _, best1 = _best_cloud(rec, "first")
+        _, best = best_cloud(rec)
+        _, best1 = best_cloud(rec, "first")
         dual = bool(rec.get("cloud_all"))
         cloud_what = (f"PointCloud2, {rec['driver']} "
                       f"({'organized' if rec['organized'] else 'returns only'}"
