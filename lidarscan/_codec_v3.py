@@ -233,7 +233,7 @@ def _desc_of(scan: Any, name: str) -> Any:
 
 def encode_block(block: Any, desc: Any, scan: Any, level: int,
                  shifts: np.ndarray[Any, Any] | None, coder: Any,
-                 knees: tuple[int, ...] = (100,)) -> tuple[bytes, bytes] | None:
+                 knees: tuple[int, ...] = (80,)) -> tuple[bytes, bytes] | None:
     """(params, payload) of the XPREDICT coding of an integer channel block, or None when the
     block has no sources (:func:`source_names`, earlier blocks of the same grid, count 1).
     ``knees``: the knee values tried (the smallest coding wins)."""
