@@ -303,8 +303,8 @@ def test_codec_study_has_every_real_sensor_and_every_driver_layout() -> None:
     assert set(NEBULA_SENSORS) <= set(records)
     for label in NEBULA_SENSORS:
         rec = records[label]
-        nebula = {k: v for k, v in rec["cloud"].items()
-                  if k.startswith(codec_study.NEBULA_CLOUD)}
+        nebula = {k: v for k, v in (rec.get("cloud_all") or rec["cloud"]).items()
+                  if k.startswith(codec_study.NEBULA_CLOUD)}  # every return: cloud_all if dual
         assert set(nebula) == {f"{codec_study.NEBULA_CLOUD} {c}"
                                for c in ("raw", "lz4", "zstd-3", "zstd-19")}
         assert not rec["organized"]

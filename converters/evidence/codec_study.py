@@ -172,9 +172,10 @@ def first_return_scan(scan: Any, info: Any) -> Any:
     import lidarscan as ls
     second = {b for _, b in second_return_pairs(scan)}
     keep = {n: ls.channel(scan, n) for n in ls.scan.channel_names(scan) if n not in second}
+    azimuths = np.asarray(scan.column_azimuth_angles)
     made = ls.make_scan(info, keep, 0, is_destaggered=bool(scan.is_destaggered),
                         column_time_offsets=np.asarray(scan.column_time_offsets),
-                        column_azimuth_angles=np.asarray(scan.column_azimuth_angles),
+                        column_azimuth_angles=azimuths if azimuths.size else None,
                         is_bigendian=bool(scan.is_bigendian), as_dataclass=True)
     return dataclasses.replace(made, header=scan.header)
 
