@@ -269,6 +269,8 @@ def encode_block(block: Any, desc: Any, scan: Any, level: int,
         params = (c._GRID2.pack(int(desc.datatype), big, height, width, 1, predictor,
                                 shifts is not None, extra, masked)
                   + c._shift_params(shifts) + pack_params(p))
+        if len(params) >= 2**16:  # the container's u16 params length
+            continue
         if best is None or len(params) + len(payload) < len(best[0]) + len(best[1]):
             best = (params, payload)
     return best

@@ -9,10 +9,10 @@ integer blocks by prediction, float32 blocks in metres through the integer grid 
 
 Byte format, version 2 (every integer little-endian; version 1 is the same container with
 methods 0..4 only: this module still decodes it, and writes version 2 by default). Version 3
-(``compress_scan(..., version=3)``, an option: see bench/README.md for its cost) is the same
-container with version byte 3 and one more method, 7 XPREDICT: an integer block predicted
-from two earlier blocks (Ouster reflectivity from signal and range), its byte format in
-:mod:`lidarscan._codec_v3`::
+(``compress_scan(..., version=3)``, an option; bench/bench_compression.py measures its cost)
+is the same container with version byte 3 and one more method, 7 XPREDICT: an integer block
+predicted from two earlier blocks (Ouster reflectivity from signal and range), its byte
+format in :mod:`lidarscan._codec_v3`::
 
     "LSCZ"  u8 version=2  u8 flags=0  u16 n_segments
     u32 skeleton_len  skeleton          zstd frame of the CDR (lidarscan.encode) of the scan with
