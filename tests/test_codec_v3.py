@@ -287,16 +287,9 @@ def test_roundtrip_of_arbitrary_bytes_written_as_version_3(h: int, w: int, raw: 
     assert back.data.tobytes() == data.tobytes()
 
 
-def _compiled() -> Any:
-    pytest.importorskip("numba")
-    from converters._kernels import select
-    coder = select("codec").numba
-    if coder is None:
-        pytest.skip("numba disabled (LIDARSCAN_NUMBA=0)")
-    return coder
-
-
 def test_real_ouster_frames_are_smaller_in_version_3_and_roundtrip() -> None:
+    from test_codec import _compiled
+
     from converters.evidence.compression import real_scans
     coder = _compiled()
     for label, info, scan, _ in real_scans():
