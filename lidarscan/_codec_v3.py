@@ -119,10 +119,12 @@ def unpack_params(buf: bytes, what: str) -> XParams:
 def _range_bins(r: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
     """(bin of every pixel: the float32 word >> 18, valid: finite and > 0) of a range grid
     (float32 metres or integer units, native byte order)."""
-    rf = r.astype(np.float32)
-    valid = np.isfinite(rf) & (rf > 0)
-    bins = (np.where(valid, rf, np.float32(1)).view(np.uint32) >> np.uint32(18)).astype(np.int64)
-    return bins, valid
+    rf = r.astype(np.float32, copy=False)
+    with np.errstate(invalid="ignore"):
+        valid = rf > 0
+    valid &= np.isfinite(rf)
+    bins = np.where(valid, rf, np.float32(1)).view(np.uint32) >> np.uint32(18)
+    return bins.astype(np.int64), valid
 
 
 def _u_bins(u: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
@@ -134,12 +136,17 @@ def _linear(s: np.ndarray[Any, Any], r: np.ndarray[Any, Any], p: XParams
             ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
     """(u int64, valid) of native signal and range grids."""
     bins, valid = _range_bins(r)
-    rb = np.clip(bins - p.bin0, 0, p.gain.size - 1)
-    sig = np.maximum(s.astype(np.int64), 0)
-    rows = p.row_gain.astype(np.int64)[:, None]
+    bins -= p.bin0
+    np.clip(bins, 0, p.gain.size - 1, out=bins)
+    u = p.gain.astype(np.int64)[bins]
     with np.errstate(over="ignore"):
-        u = (sig * p.gain.astype(np.int64)[rb] * rows + (1 << 30)) >> 31
-    return np.where(valid, np.maximum(u, 0), 0), valid
+        u *= p.row_gain.astype(np.int64)[:, None]
+        u *= np.maximum(s, 0)  # int64 arithmetic, wrapping
+    u += 1 << 30
+    u >>= 31
+    np.maximum(u, 0, out=u)
+    u[~valid] = 0
+    return u, valid
 
 
 def predict(s: np.ndarray[Any, Any], r: np.ndarray[Any, Any], p: XParams,
@@ -147,10 +154,13 @@ def predict(s: np.ndarray[Any, Any], r: np.ndarray[Any, Any], p: XParams,
     """The prediction P (module docstring) of every pixel, in the unsigned ``dtype`` of the
     target block. s, r: native (H, W) grids of the signal and the range."""
     u, valid = _linear(s, r, p)
-    kb = np.clip(_u_bins(u) - p.ubin0, 0, p.comp.size - 1)
-    out = np.where(u < p.knee, u, p.comp.astype(np.int64)[kb])
-    top = np.iinfo(dtype).max
-    return np.where(valid, np.clip(out, 0, top), 0).astype(dtype)
+    hi = u >= p.knee
+    hi &= valid
+    if hi.any():
+        kb = np.clip(_u_bins(u[hi]) - p.ubin0, 0, p.comp.size - 1)
+        u[hi] = p.comp.astype(np.int64)[kb]
+    np.minimum(u, np.iinfo(dtype).max, out=u)
+    return u.astype(dtype)
 
 
 def _medians(keys: np.ndarray[Any, Any], values: np.ndarray[Any, Any], n: int
@@ -161,7 +171,9 @@ def _medians(keys: np.ndarray[Any, Any], values: np.ndarray[Any, Any], n: int
     out = np.ones(n, np.float64)
     if not keys.size:
         return out
-    order = np.lexsort((values, keys))
+    # one sort by key, then value: values scaled into [0, 0.5) added to the integer keys
+    top = float(np.abs(values).max()) or 1.0
+    order = np.argsort(keys + 0.25 * (values / top + 1.0))
     keys, values = keys[order], values[order]
     starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
     counts = np.diff(np.r_[starts, keys.size])
