@@ -13,8 +13,8 @@ values, symbols and low bits).
 Byte format of XPREDICT (every integer little-endian)::
 
     params  := PREDICT2 params of the residual grid d (u8 datatype, u8 bigendian, u32 H,
-               u32 W, u32 count = 1, u8 predictor, u8 rolled = 0, u8 extra, u8 masked
-               [, u32 reference offset when predictor = 4])
+               u32 W, u32 count = 1, u8 predictor 0..3 (no REF), u8 rolled, u8 extra,
+               u8 masked [, H x i32 row shifts when rolled])
                u32 signal_offset  u8 signal_datatype  u32 range_offset  u8 range_datatype
                i32 bin0  u16 n_gain  n_gain x u32 gain  u16 n_row  n_row x u16 row_gain
                u32 knee  i32 ubin0  u16 n_comp  n_comp x u16 comp
@@ -30,9 +30,13 @@ and range value r:
 * range bin ``rb = (bits(float32(r)) >> 18) - bin0`` (bits: the IEEE-754 word of the positive
   float32; 32 bins per octave), clamped to 0 .. n_gain - 1;
 * linear value ``u = (s * gain[rb] * row_gain[y] + 2**30) >> 31`` for a pixel of row y
-  (64-bit integers, wrapping; gain: 16 fractional bits, row_gain: 15; n_row = H);
+  (64-bit integers, wrapping, a negative result counts as 0; gain: 16 fractional bits,
+  row_gain: 15; n_row = H);
 * P = u when u < knee, else ``comp[clamp((bits(float32(u)) >> 20) - ubin0, 0, n_comp - 1)]``
   (8 bins per octave of u); P is finally clamped to the block type's unsigned range.
+
+P and d are computed in the scan's (measurement) order; d is then rolled (row shifts, as
+PREDICT2) before its neighbour prediction, and the decoder rolls it back before adding P.
 
 Every step is integer or exact IEEE float32 conversion, so encoder and decoder agree bit for bit
 on any machine. The tables are the encoder's choice (any tables decode losslessly); the encoder
