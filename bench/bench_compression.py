@@ -90,6 +90,11 @@ def main(argv: list[str] | None = None) -> int:
         enc[name] = lambda c=coder: codec.compress_scan(scan, info, coder=c)
         dec[name] = lambda n=name, c=coder: codec.decompress_scan(packed[n], coder=c)
     assert len({packed[name] for name in coders}) == 1, "the coders wrote different bytes"
+    if compiled is not None:  # format version 3 (an option: lidarscan._codec_v3), compiled coder
+        packed["codec v3"] = codec.compress_scan(scan, info, coder=compiled, version=3)
+        assert ls.encode(codec.decompress_scan(packed["codec v3"])) == ls.encode(scan)
+        enc["codec v3"] = lambda: codec.compress_scan(scan, info, coder=compiled, version=3)
+        dec["codec v3"] = lambda: codec.decompress_scan(packed["codec v3"], coder=compiled)
     load = os.getloadavg()[0]
     cpu = time.process_time
     te = {k: statistics.median(v) for k, v in interleaved_times(enc, args.rounds, 0, cpu).items()}

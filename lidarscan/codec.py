@@ -8,7 +8,11 @@ compression does) because it knows the channel layout: every channel block is co
 integer blocks by prediction, float32 blocks in metres through the integer grid they come from.
 
 Byte format, version 2 (every integer little-endian; version 1 is the same container with
-methods 0..4 only: this module still decodes it, and writes version 2)::
+methods 0..4 only: this module still decodes it, and writes version 2 by default). Version 3
+(``compress_scan(..., version=3)``, an option; bench/bench_compression.py measures its cost)
+is the same container with version byte 3 and one more method, 7 XPREDICT: an integer block
+predicted from two earlier blocks (Ouster reflectivity from signal and range), its byte
+format in :mod:`lidarscan._codec_v3`::
 
     "LSCZ"  u8 version=2  u8 flags=0  u16 n_segments
     u32 skeleton_len  skeleton          zstd frame of the CDR (lidarscan.encode) of the scan with
@@ -23,7 +27,7 @@ methods 0..4 only: this module still decodes it, and writes version 2)::
 
 Every zstd frame carries its content checksum (a damaged payload raises, never decodes to
 other values). Methods (a segment is a channel block, or the bytes between/after blocks);
-the encoder writes 1, 2, 5 and 6:
+the encoder writes 1, 2, 5 and 6 (and 7 in version 3):
 
 ====  =========  ==========================================================================
 id    name       params / payload
@@ -57,6 +61,7 @@ id    name       params / payload
                  (the decode rule of :func:`lidarscan.range_m`); every other value (NaN,
                  +-Inf, -0, off-grid) is an exception: masked = 1, mask bit 0, its original 4
                  bytes in the zstd frame of exception words (row-major order).
+7     XPREDICT   (version 3) see :mod:`lidarscan._codec_v3`
 ====  =========  ==========================================================================
 
 Predictors (on the (H, W, C) array, per count index): 0 none, 1 left (x[r, c-1]), 2 up
@@ -131,6 +136,7 @@ __all__ = [
     "QUANT",
     "PREDICT2",
     "QUANT2",
+    "XPREDICT",
     "REF",
     "ResidualCoder",
     "compress_scan",
@@ -140,9 +146,9 @@ __all__ = [
 
 MAGIC = b"LSCZ"
 VERSION = 2
-RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2 = 0, 1, 2, 3, 4, 5, 6
+RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2, XPREDICT = 0, 1, 2, 3, 4, 5, 6, 7
 _METHOD_NAMES = {RAW: "raw", ZSTD: "zstd", SHUFFLE: "shuffle", PREDICT: "predict",
-                 QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2"}
+                 QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2", XPREDICT: "xpredict"}
 
 _INT_CODES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
 _FLOAT32, _FLOAT64 = 7, 8
@@ -446,9 +452,10 @@ def _layout(scan: Any, data_len: int) -> list[tuple[int, int, Any]] | None:
 
 def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_step: float | None,
                   shifts: np.ndarray[Any, Any] | None,
-                  refs: dict[int, np.ndarray[Any, Any]], coder: ResidualCoder = NUMPY
-                  ) -> tuple[int, bytes, bytes]:
-    """(method, params, payload) of one channel block (the version 2 methods). ``refs``:
+                  refs: dict[int, np.ndarray[Any, Any]], coder: ResidualCoder = NUMPY,
+                  version: int = VERSION) -> tuple[int, bytes, bytes]:
+    """(method, params, payload) of one channel block (the version 2 methods; version 3 also
+    tries XPREDICT on integer blocks, :mod:`lidarscan._codec_v3`). ``refs``:
     offset -> rolled unsigned grid of the earlier integer blocks; this block's grid is added
     when it is an integer block."""
     datatype, big = int(desc.datatype), bool(scan.is_bigendian)
@@ -467,8 +474,14 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
         predictor, extra, masked, payload = _encode_int2(
             u, level, None if ref_offset is None else same[ref_offset], coder)
         ref_param = struct.pack("<I", ref_offset) if predictor == REF else b""
-        return (PREDICT2, _GRID2.pack(datatype, big, *shape, predictor, rolled, extra, masked)
-                + ref_param + _shift_params(shifts), payload)
+        params = (_GRID2.pack(datatype, big, *shape, predictor, rolled, extra, masked)
+                  + ref_param + _shift_params(shifts))
+        if version >= 3:
+            from lidarscan import _codec_v3
+            cross = _codec_v3.encode_block(block, desc, scan, level, shifts, coder)
+            if cross is not None and len(cross[0]) + len(cross[1]) < len(params) + len(payload):
+                return (XPREDICT, *cross)
+        return PREDICT2, params, payload
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
         native = coder.roll(raw.astype(np.float32, copy=False), shifts, 1)
@@ -489,7 +502,8 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
 
 
 def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
-                  float_step: float | None = 0.001, coder: ResidualCoder | None = None) -> bytes:
+                  float_step: float | None = 0.001, coder: ResidualCoder | None = None,
+                  version: int = VERSION) -> bytes:
     """Compress a LidarScan losslessly (format above).
 
     Args:
@@ -506,6 +520,9 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
         coder: the residual coding's implementation (:class:`ResidualCoder`): None = the numpy
             reference; converters pass the compiled one (``converters._kernels.select("codec")``).
             Every coder writes the same bytes.
+        version: the format version written: 2 (the default) or 3 (version 2 plus the
+            cross-channel prediction of :mod:`lidarscan._codec_v3`: smaller on Ouster scans,
+            whose reflectivity it predicts from signal and range; slower to encode).
 
     Returns:
         The compressed bytes; :func:`decompress_scan` restores the scan bit for bit.
@@ -517,6 +534,8 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
     from lidarscan.scan import data_view
     from lidarscan.types import LidarScan as ScanDC
     coder = coder or NUMPY
+    if version not in (2, 3) or isinstance(version, bool):
+        raise EncodeError("version", version, "2 or 3 (the format versions this library writes)")
 
     data = data_view(scan)
     data_len = int(data.size)
@@ -554,13 +573,14 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
         for offset, length, desc in layout:
             gap(pos, offset)
             method, params, payload = _encode_block(raw[offset:offset + length], desc, scan,
-                                                    level, float_step, shifts, refs, coder)
+                                                    level, float_step, shifts, refs, coder,
+                                                    version)
             segs.append((offset, length, method, params, payload))
             pos = offset + length
         gap(pos, data_len)
     if len(segs) >= 2**16:
         raise EncodeError("scan.channels", len(scan.channels), "fewer than 32768 channels")
-    out = [_HEAD.pack(MAGIC, VERSION, 0, len(segs)), struct.pack("<I", len(skeleton)), skeleton,
+    out = [_HEAD.pack(MAGIC, version, 0, len(segs)), struct.pack("<I", len(skeleton)), skeleton,
            struct.pack("<I", len(columns)), columns, struct.pack("<I", data_len)]
     for offset, length, method, params, payload in segs:
         out += [_SEG.pack(offset, length, method, len(params)), params,
@@ -586,8 +606,8 @@ def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, byt
     magic, version, _flags, nseg = _HEAD.unpack_from(mv, 0)
     if magic != MAGIC:
         raise DecodeError("compressed scan magic", bytes(magic), f"{MAGIC!r}")
-    if version not in (1, VERSION):
-        raise DecodeError("compressed scan version", version, f"1 or {VERSION} (this library)")
+    if version not in (1, 2, 3):
+        raise DecodeError("compressed scan version", version, "1, 2 or 3 (this library)")
     pos = _HEAD.size
 
     def take(n: int, what: str) -> bytes:
@@ -624,6 +644,9 @@ def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, byt
     if version == 1 and any(seg[2] > QUANT for seg in segs):
         raise DecodeError("compressed scan method", max(seg[2] for seg in segs),
                           "0..4 in a version 1 buffer")
+    if version == 2 and any(seg[2] > QUANT2 for seg in segs):
+        raise DecodeError("compressed scan method", max(seg[2] for seg in segs),
+                          "0..6 in a version 2 buffer")
     return skeleton, columns, data_len, segs
 
 
@@ -670,9 +693,12 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
         out = decode_v1(what, length, method, params, payload)
     elif method in (PREDICT2, QUANT2):
         out = _decode_v2(what, offset, length, method, params, payload, data, coder)
+    elif method == XPREDICT:
+        from lidarscan._codec_v3 import decode_block
+        out = decode_block(what, offset, length, params, payload, data, coder)
     else:
         raise DecodeError(f"{what} method", method,
-                          "0..6 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2)")
+                          "0..7 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2, XPREDICT)")
     if memoryview(out).nbytes != length:
         raise DecodeError(f"{what} length", memoryview(out).nbytes, f"{length} bytes")
     return out

@@ -496,7 +496,7 @@ def test_real_frames_roundtrip_and_beat_zstd_of_the_buffer(range_encoding: str,
 
 @pytest.mark.parametrize("mutate, match", [
     (lambda b: b"XXXX" + b[4:], "magic"),
-    (lambda b: b[:4] + bytes([3]) + b[5:], "version"),
+    (lambda b: b[:4] + bytes([4]) + b[5:], "version"),
     (lambda b: b[:20], "bytes"),
     (lambda b: b + b"\x00", "trailing"),
     (lambda b: b[:6] + struct.pack("<H", 4) + b[8:], "bytes"),

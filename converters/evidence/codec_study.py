@@ -17,9 +17,19 @@ Hesai integer range units, every return of a dual sensor in its own channel) are
 * LidarScan: raw, lz4 / zstd-3 / zstd-19 of the whole ``data`` buffer (what an MCAP chunk
   compressor does), byte shuffle + zstd-3 per block, the project's codec
   (:mod:`lidarscan.codec`, its defaults, with the compiled residual coder when numba is
-  there), and the image codecs of ``imagecodecs``: 16-bit PNG
+  there; and its format version 3, an option: :mod:`lidarscan._codec_v3`), and the image
+  codecs of ``imagecodecs``: 16-bit PNG
   and lossless JPEG-XL of every 8/16-bit channel and of the range in integer millimetres (split
   into its low and high 16-bit words when it exceeds 65.535 m, so the images stay lossless).
+
+Dual-return frames are compared like with like: the size goal divides all channels (both
+returns) by the best lossless coding of every cloud the driver publishes for the frame
+(``cloud_all``): ouster-ros publishes the second return as a second message, ``points2`` (the
+second-return channels in the first-return fields, near_ir shared; each message coded on its
+own, as a per-message transport would), velodyne_pointcloud and HesaiLidar_ROS_2.0 one cloud of
+every return (here the first-return points then the second-return ones), Nebula likewise. The
+first-return channels alone (``scan_first``, a scan rebuilt without the second-return channels)
+are compared with the first-return cloud (``cloud``) as well: both pairs are in the table.
 
 Every lossless coding is decoded and compared byte for byte before its size is reported. The
 codec's size is the whole message but its header (channel descriptors and per-column arrays
@@ -39,7 +49,8 @@ import numpy as np
 
 from converters.evidence._common import Block, fmt_int, table, time_call
 
-__all__ = ["GOALS", "SOURCES", "blocks", "measure", "sources"]
+__all__ = ["GOALS", "SOURCES", "V3", "best_cloud", "blocks", "first_return_scan", "measure",
+           "second_return_pairs", "second_return_view", "sources"]
 
 #: Goals of the issue, per real sensor: all channels lossless <= 0.2 x the best lossless coding
 #: of the driver's cloud; the range channel lossless <= 0.4 x Draco's lossy 1 mm x,y,z; encode
@@ -88,6 +99,8 @@ SOURCES: list[Callable[[], list[tuple[str, str, Callable[[], tuple[Any, Any]]]]]
 DRIVERS = {"ouster": "ouster-ros", "velodyne": "velodyne_pointcloud XYZIRT",
            "hesai": "HesaiLidar_ROS_2.0"}
 NEBULA_CLOUD = "Nebula PointXYZIRCAEDT"
+#: the coding key of the codec's format version 3 (an option: ``compress_scan(version=3)``)
+V3 = "lidarscan.codec v3"
 
 
 def nebula_cloud(scan: Any, info: Any) -> bytes:
@@ -129,6 +142,42 @@ def nebula_cloud(scan: Any, info: Any) -> bytes:
     ret = np.concatenate([np.full(len(c), k) for k, (c, _, _) in enumerate(parts)])
     order = np.lexsort((ret, rows, cols))
     return np.concatenate([pt for _, _, pt in parts])[order].tobytes()
+
+
+def second_return_pairs(scan: Any) -> list[tuple[str, str]]:
+    """(first, second) channel name pairs of a dual-return scan (``range``/``range2``,
+    ``signal``/``signal2``, ...: a name ending in 2 whose name without the 2 exists); [] for
+    a single-return scan."""
+    import lidarscan as ls
+    names = ls.scan.channel_names(scan)
+    return [(n[:-1], n) for n in names if n.endswith("2") and n[:-1] in names]
+
+
+def second_return_view(scan: Any) -> Any:
+    """The scan with each second-return channel named as its first-return one and vice versa
+    (same ``data``): a driver preset of this view reads the second return, its shared
+    channels (e.g. near_ir) as they are, like ouster-ros's ``points2``."""
+    import dataclasses
+    swap = {a: b for pair in second_return_pairs(scan) for a, b in (pair, pair[::-1])}
+    return dataclasses.replace(scan, channels=tuple(
+        dataclasses.replace(c, name=swap.get(c.name, c.name)) for c in scan.channels))
+
+
+def first_return_scan(scan: Any, info: Any) -> Any:
+    """A new scan with the first-return channels of ``scan`` only (every channel but the
+    second-return ones of :func:`second_return_pairs`; header, stamps and per-column arrays
+    kept): what the first-return cloud carries."""
+    import dataclasses
+
+    import lidarscan as ls
+    second = {b for _, b in second_return_pairs(scan)}
+    keep = {n: ls.channel(scan, n) for n in ls.scan.channel_names(scan) if n not in second}
+    azimuths = np.asarray(scan.column_azimuth_angles)
+    made = ls.make_scan(info, keep, 0, is_destaggered=bool(scan.is_destaggered),
+                        column_time_offsets=np.asarray(scan.column_time_offsets),
+                        column_azimuth_angles=azimuths if azimuths.size else None,
+                        is_bigendian=bool(scan.is_bigendian), as_dataclass=True)
+    return dataclasses.replace(made, header=scan.header)
 
 
 def _versions() -> str:
@@ -292,18 +341,31 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
         rec["organized"] = int(cloud.height) > 1
         rec["cloud"]["raw"] = len(cloud_raw)
         rec["scan"]["raw"] = len(data)
-        inputs = [("cloud", "", cloud_raw), ("scan", "", data)]
+        inputs: list[tuple[str, str, list[bytes]]] = [("cloud", "", [cloud_raw]),
+                                                       ("scan", "", [data])]
+        dual = bool(second_return_pairs(scan))
+        if dual:  # like for like: the driver's output of every return (module docstring)
+            cloud2 = to_pointcloud2(second_return_view(scan), info, preset=preset)
+            raw2 = bytes(np.frombuffer(cloud2.data, np.uint8))
+            # ouster-ros: two messages (points, points2); the others: one cloud of both
+            both = [cloud_raw, raw2] if preset == "ouster" else [cloud_raw + raw2]
+            rec["cloud_all"] = {"raw": len(cloud_raw) + len(raw2)}
+            inputs.append(("cloud_all", "", both))
         if preset != "ouster":  # Nebula's layout: a second driver cloud, its keys prefixed
-            nebula = nebula_cloud(scan, info)
-            rec["cloud"][f"{NEBULA_CLOUD} raw"] = len(nebula)
-            inputs.append(("cloud", f"{NEBULA_CLOUD} ", nebula))
+            nebula = nebula_cloud(scan, info)  # every return of every firing
+            key = "cloud_all" if dual else "cloud"
+            rec[key][f"{NEBULA_CLOUD} raw"] = len(nebula)
+            inputs.append((key, f"{NEBULA_CLOUD} ", [nebula]))
         for name, (enc, dec) in codings.items():
-            for key, prefix, buf in inputs:
-                packed = enc(buf)
-                if dec(packed) != buf:
-                    raise AssertionError(f"{label}: {name} of the {key} is not lossless")
-                rec[key][prefix + name] = len(packed)
-                if timing and name != "zstd-19" and not prefix:
+            for key, prefix, bufs in inputs:
+                size = 0
+                for buf in bufs:  # every message coded on its own
+                    packed = enc(buf)
+                    if dec(packed) != buf:
+                        raise AssertionError(f"{label}: {name} of the {key} is not lossless")
+                    size += len(packed)
+                rec[key][prefix + name] = size
+                if timing and name != "zstd-19" and not prefix and key != "cloud_all":
                     rec["times"][f"{key} {name}"] = (time_call(lambda: enc(buf), repeat=3),
                                                      time_call(lambda: dec(packed), repeat=3))
         # per-block byte shuffle, and the project's codec
@@ -316,6 +378,19 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
         if data_view(back).tobytes() != data:
             raise AssertionError(f"{label}: lidarscan.codec is not lossless")
         rec["scan"]["lidarscan.codec"] = len(packed)
+        packed3 = codec.compress_scan(scan, info, coder=coder, version=3)
+        if data_view(codec.decompress_scan(packed3, coder=coder)).tobytes() != data:
+            raise AssertionError(f"{label}: lidarscan.codec v3 is not lossless")
+        rec["scan"][V3] = len(packed3)
+        if dual:  # the first-return channels alone, against the first-return cloud
+            first = first_return_scan(scan, info)
+            rec["scan_first"] = {"raw": int(data_view(first).size)}
+            for name, version in (("lidarscan.codec", 2), (V3, 3)):
+                packed1 = codec.compress_scan(first, info, coder=coder, version=version)
+                if (data_view(codec.decompress_scan(packed1, coder=coder)).tobytes()
+                        != data_view(first).tobytes()):
+                    raise AssertionError(f"{label}: {name} is not lossless (first return)")
+                rec["scan_first"][name] = len(packed1)
         segs = codec.segments(packed)
         offsets = {c.name: int(c.offset) for c in scan.channels}
         rec["range"]["lidarscan.codec"] = next(s["payload_bytes"] for s in segs
@@ -324,6 +399,10 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
             rec["times"]["scan lidarscan.codec"] = (
                 time_call(lambda: codec.compress_scan(scan, info, coder=coder), repeat=5),
                 time_call(lambda: codec.decompress_scan(packed, coder=coder), repeat=5))
+            rec["times"][f"scan {V3}"] = (
+                time_call(lambda: codec.compress_scan(scan, info, coder=coder, version=3),
+                          repeat=5),
+                time_call(lambda: codec.decompress_scan(packed3, coder=coder), repeat=5))
         if _have("imagecodecs"):
             planes = _image_planes(scan)
             for kind in ("PNG", "JPEG-XL"):
@@ -361,31 +440,64 @@ def measure(timing: bool = False) -> list[dict[str, Any]]:
                                                               min_time=0))
         rec["range"]["raw"] = int(np.asarray(ls_channel(scan, "range")).nbytes)
         # the driver's layout first, Nebula's after it (stable)
-        rec["cloud"] = dict(sorted(rec["cloud"].items(),
-                                   key=lambda kv: kv[0].startswith(NEBULA_CLOUD)))
+        for key in ("cloud", "cloud_all"):
+            if key in rec:
+                rec[key] = dict(sorted(rec[key].items(),
+                                       key=lambda kv: kv[0].startswith(NEBULA_CLOUD)))
         out.append(rec)
     return out
 
 
-def _best_cloud(rec: dict[str, Any]) -> tuple[str, int]:
-    lossless = {k: v for k, v in rec["cloud"].items() if "lossy" not in k}
+def best_cloud(rec: dict[str, Any], which: str = "all") -> tuple[str, int]:
+    """(coding, bytes) of the best lossless coding of the driver's output: ``which`` "all" =
+    every return the driver publishes for the frame (``cloud_all`` on a dual frame: both
+    ouster-ros clouds, or the one cloud of every return of velodyne_pointcloud / Hesai /
+    Nebula), "first" = the first-return cloud (``cloud``)."""
+    clouds = rec["cloud_all"] if which == "all" and rec.get("cloud_all") else rec["cloud"]
+    lossless = {k: v for k, v in clouds.items() if "lossy" not in k}
     name = min(lossless, key=lambda k: lossless[k])
     return name, lossless[name]
 
 
+def _what_all(rec: dict[str, Any]) -> str:
+    """What the driver publishes for the frame, in words."""
+    if not rec.get("cloud_all"):
+        return "the driver's cloud"
+    if rec["driver"] == "ouster-ros":
+        return ("the driver's two clouds of both returns, ouster-ros `points` + `points2` "
+                "coded message by message")
+    return "the driver's cloud of every return"
+
+
 def goal_lines(records: list[dict[str, Any]] | None = None) -> list[str]:
-    """One sentence per frame: the goals, met or not, with their numbers (deterministic)."""
+    """One sentence per frame: the goals, met or not, with their numbers (deterministic).
+
+    The size goal compares like with like: every channel of the scan against every cloud the
+    driver publishes for the frame (both returns of a dual frame); a dual frame also gets its
+    first-return channels against the first-return cloud."""
     lines = []
     for rec in records if records is not None else measure(False):
-        best_name, best = _best_cloud(rec)
+        best_name, best = best_cloud(rec)
         ours = rec["scan"]["lidarscan.codec"]
         rng = rec["range"]["lidarscan.codec"]
         draco = rec["cloud"].get("Draco 1 mm x,y,z (lossy)")
-        line = (f"**{rec['label']}.** All channels with `lidarscan.codec`: {fmt_int(ours)} B = "
-                f"{ours / best:.3f}× the best lossless coding of the driver's cloud "
-                f"({best_name}, {fmt_int(best)} B): goal ≤ {GOALS['all']}× "
+        every = " (both returns)" if rec.get("cloud_all") else ""
+        line = (f"**{rec['label']}.** All channels{every} with `lidarscan.codec`: "
+                f"{fmt_int(ours)} B = {ours / best:.3f}× the best lossless coding of "
+                f"{_what_all(rec)} ({best_name}, {fmt_int(best)} B): goal ≤ {GOALS['all']}× "
                 f"{'met' if ours / best <= GOALS['all'] else '**not met**'}; "
                 f"{ours / rec['scan']['zstd-3']:.2f}× zstd-3 of the LidarScan buffer.")
+        ours3 = rec["scan"].get(V3)
+        if ours3 is not None:
+            line += (f" Format version 3 (`compress_scan(version=3)`, an option): "
+                     f"{fmt_int(ours3)} B = {ours3 / best:.3f}× "
+                     f"({'met' if ours3 / best <= GOALS['all'] else '**not met**'}).")
+        if rec.get("scan_first"):
+            first_name, first = best_cloud(rec, "first")
+            ours1 = rec["scan_first"]["lidarscan.codec"]
+            line += (f" First-return channels alone: {fmt_int(ours1)} B = {ours1 / first:.3f}× "
+                     f"the first-return cloud ({first_name}, {fmt_int(first)} B; version 3: "
+                     f"{rec['scan_first'][V3] / first:.3f}×).")
         if draco:
             line += (f" Range channel, lossless: {fmt_int(rng)} B = {rng / draco:.3f}× Draco's "
                      f"lossy 1 mm x,y,z ({fmt_int(draco)} B, grid step "
@@ -397,13 +509,25 @@ def goal_lines(records: list[dict[str, Any]] | None = None) -> list[str]:
 
 
 def _size_table(records: list[dict[str, Any]]) -> str:
+    """Rows per frame; the ratio column divides by the best lossless coding of the driver's
+    output of the same returns: the first-return cloud for the first-return rows of a dual
+    frame, every return otherwise."""
     rows = []
     for rec in records:
-        best_name, best = _best_cloud(rec)
+        _, best = best_cloud(rec)
+        _, best1 = best_cloud(rec, "first")
+        dual = bool(rec.get("cloud_all"))
         cloud_what = (f"PointCloud2, {rec['driver']} "
-                      f"({'organized' if rec['organized'] else 'returns only'})")
-        for key, what in (("cloud", cloud_what), ("scan", "LidarScan (all channels)")):
-            for coding, size in rec[key].items():
+                      f"({'organized' if rec['organized'] else 'returns only'}"
+                      f"{', first return' if dual else ''})")
+        all_what = (f"PointCloud2, {rec['driver']} (points + points2: two messages)"
+                    if rec["driver"] == "ouster-ros" else
+                    f"PointCloud2, {rec['driver']} (every return, one cloud)")
+        groups = [("cloud", cloud_what, best1), ("cloud_all", all_what, best),
+                  ("scan", "LidarScan (all channels)", best),
+                  ("scan_first", "LidarScan (first-return channels)", best1)]
+        for key, what, base in groups:
+            for coding, size in rec.get(key, {}).items():
                 shown, raw = coding, rec[key]["raw"]
                 if coding.startswith(NEBULA_CLOUD):
                     what_row, shown = f"PointCloud2, {NEBULA_CLOUD} (every return)", \
@@ -413,9 +537,9 @@ def _size_table(records: list[dict[str, Any]]) -> str:
                     what_row = what
                 rng = rec["range"].get(coding) if key == "scan" else None
                 rows.append([rec["label"], what_row, shown, fmt_int(size), f"{raw / size:.2f}",
-                             f"{size / best:.3f}", "—" if rng is None else fmt_int(rng)])
+                             f"{size / base:.3f}", "—" if rng is None else fmt_int(rng)])
     return table(["frame", "message", "coding", "bytes", "ratio to raw",
-                  "÷ best lossless cloud", "range channel bytes"], rows,
+                  "÷ best lossless driver output (same returns)", "range channel bytes"], rows,
                  ["l", "l", "l", "r", "r", "r", "r"])
 
 
