@@ -25,7 +25,6 @@ x for an absent reference grid (only predictor 4 reads it).
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import numpy as np
@@ -33,10 +32,50 @@ import numpy as np
 from converters._kernels._loader import LoadOnce, numba_jit
 
 
-def _symbols(z: Any, table: Any, small: Any) -> Any:  # pragma: no cover - compiled
+#: bit length of an integer below 2**32 (0 for 0): set by :func:`_load` (an LLVM intrinsic
+#: made when numba is imported) before any kernel compiles
+_bitlen: Any = None
+
+
+def _make_bitlen() -> Any:
+    """The numba intrinsic ``bitlen(x) -> int64`` of an integer 0 <= x < 2**32, branch-free and
+    vectorisable (no count-leading-zeros instruction in AVX2): the float64 2**52 + x (its bit
+    pattern: 2**52's exponent ORed with x) minus 2**52 is x exactly; its biased exponent minus
+    1022 is the bit length of x >= 1 (0 for x = 0, clamped)."""
+    from llvmlite import ir
+    from numba.core import types
+    from numba.extending import intrinsic
+
+    @intrinsic  # type: ignore[misc]
+    def bitlen(typingctx: Any, x: Any) -> Any:
+        if not isinstance(x, types.Integer):
+            return None
+
+        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+            i64, f64 = ir.IntType(64), ir.DoubleType()
+            v = context.cast(builder, args[0], signature.args[0], types.int64)
+            f = builder.bitcast(builder.or_(v, ir.Constant(i64, 0x4330000000000000)), f64)
+            f = builder.fsub(f, ir.Constant(f64, 4503599627370496.0))
+            e = builder.sub(builder.lshr(builder.bitcast(f, i64), ir.Constant(i64, 52)),
+                            ir.Constant(i64, 1022))
+            zero = ir.Constant(i64, 0)
+            return builder.select(builder.icmp_signed("<", e, zero), zero, e)
+        return types.int64(x), codegen
+    return bitlen
+
+
+def _zbits(d: Any, mask: Any, half: Any) -> Any:  # pragma: no cover - compiled
+    """Bit length of zigzag(d) for a difference d of values of a grid of ``mask``'s width
+    (wrapping: d is reduced to that width's signed range first)."""
+    d = ((d & mask) ^ half) - half
+    return _bitlen(((d << 1) ^ (d >> 63)) & mask)
+
+
+def _symbols(z: Any) -> Any:  # pragma: no cover - compiled
     """z (n,) uint32 -> (sym1, k1, sym2, k2) (n,) uint8 each and the low-bit totals (bits1,
-    bits2) (see the reference); ``small``: those four bytes of every value below 2**16
-    packed in a uint32 (sym1 | k1 << 8 | sym2 << 16 | k2 << 24, :func:`_small_symbols`)."""
+    bits2) (see the reference), branch-free (vectorised): bit length b, bm = b - 1 bits below
+    the leading one (0 for z = 0), k2 = bm - min(bm, 2) low bits and the e2 = min(bm, 2) top
+    bits of extra 2; extra 1 keeps one top bit less when bm >= 2 ("wide")."""
     n = z.shape[0]
     sym1 = np.empty(n, np.uint8)
     k1 = np.empty(n, np.uint8)
@@ -45,32 +84,19 @@ def _symbols(z: Any, table: Any, small: Any) -> Any:  # pragma: no cover - compi
     bits1 = bits2 = np.int64(0)
     for i in range(n):
         v = np.int64(z[i])
-        if v < 65536:
-            p = np.int64(small[v])
-            s1, kk1, s2, kk2 = p & 0xFF, (p >> 8) & 0xFF, (p >> 16) & 0xFF, p >> 24
-        else:  # bit length b > 16: e = 2 (extra 2) and 1 (extra 1)
-            b = np.int64(table[v >> 16]) + 16
-            kk2 = b - 3
-            top2 = (v >> kk2) & 3
-            s1, kk1, s2 = ((b << 1) | (top2 >> 1)) & 0xFF, kk2 + 1, ((b << 2) | top2) & 0xFF
-        sym1[i] = np.uint8(s1)
-        k1[i] = np.uint8(kk1)
-        sym2[i] = np.uint8(s2)
+        b = _bitlen(v)
+        bm = max(b - 1, 0)
+        kk2 = max(bm - 2, 0)
+        top2 = (v >> kk2) & ((np.int64(1) << (bm - kk2)) - 1)
+        wide = np.int64(bm >= 2)
+        sym1[i] = np.uint8(((b << 1) | (top2 >> wide)) & 0xFF)
+        k1[i] = np.uint8(kk2 + wide)
+        sym2[i] = np.uint8(((b << 2) | top2) & 0xFF)
         k2[i] = np.uint8(kk2)
-        bits1 += kk1
+        bits1 += kk2 + wide
         bits2 += kk2
     return sym1, k1, sym2, k2, bits1, bits2
 
-
-@functools.lru_cache(maxsize=1)
-def _small_symbols() -> Any:
-    """uint32[65536]: sym1 | k1 << 8 | sym2 << 16 | k2 << 24 of every value below 2**16, from
-    the numpy reference."""
-    from lidarscan._codec_bits import NUMPY, bitlen_table
-    sym1, k1, sym2, k2, _, _ = NUMPY.symbols(np.arange(1 << 16, dtype=np.uint32),
-                                             bitlen_table())
-    return (sym1.astype(np.uint32) | (k1.astype(np.uint32) << 8)
-            | (sym2.astype(np.uint32) << 16) | (k2.astype(np.uint32) << 24))
 
 def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     """The low-bit stream: values grouped by k ascending (value order inside a group), each
@@ -259,13 +285,12 @@ def _dequantise(q: Any, step: float, out: Any) -> None:  # pragma: no cover - co
         out[i] = np.float32(np.float64(q[i]) * step)
 
 
-def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, table: Any,
+def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int,
            g1: Any, g2: Any, g3: Any) -> Any:  # pragma: no cover - compiled
     """The sums of the residuals' bit lengths under predictors 0 .. 3 (and 4 when ``nref``)
     of the valid pixels, in one pass (int64[5], -1 for REF without a reference). The left, up
-    and planar predictions read g1, g2, g3: with a mask, one fill grid each (int64, written:
-    a masked pixel holds each predictor's own prediction); without one (valid None), x
-    itself."""
+    and planar predictions read g1, g2, g3: one fill grid each (int64, written: a masked
+    pixel holds each predictor's own prediction). Without a mask: :func:`_costs_plain`."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
@@ -285,39 +310,17 @@ def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, tabl
             if r > 0:
                 p3 += np.int64(g3[i - row])
             p3 &= mask
-            if valid is None or valid[i]:
+            if valid[i]:
                 v = np.int64(x[i])
-                for p in range(5):
-                    if p == 0:
-                        d = v
-                    elif p == 1:
-                        d = v - p1
-                    elif p == 2:
-                        d = v - p2
-                    elif p == 3:
-                        d = v - p3
-                    else:
-                        if not nref:
-                            break
-                        d = v - np.int64(ref[i])
-                    d = ((d & mask) ^ half) - half
-                    zz = ((d << 1) ^ (d >> 63)) & mask
-                    hi = zz >> 16
-                    b = np.int64(table[hi]) + 16 if hi else np.int64(table[zz])
-                    if p == 0:
-                        s0 += b
-                    elif p == 1:
-                        s1 += b
-                    elif p == 2:
-                        s2 += b
-                    elif p == 3:
-                        s3 += b
-                    else:
-                        s4 += b
-                if valid is not None:
-                    g1[i] = v
-                    g2[i] = v
-                    g3[i] = v
+                s0 += _zbits(v, mask, half)
+                s1 += _zbits(v - p1, mask, half)
+                s2 += _zbits(v - p2, mask, half)
+                s3 += _zbits(v - p3, mask, half)
+                if nref:
+                    s4 += _zbits(v - np.int64(ref[i]), mask, half)
+                g1[i] = v
+                g2[i] = v
+                g3[i] = v
             else:
                 g1[i] = p1
                 g2[i] = p2
@@ -325,6 +328,52 @@ def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, tabl
     out = np.empty(5, np.int64)
     out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
+
+
+def _costs_plain(x: Any, ref: Any, nref: int, h: int, w: int, c: int
+                 ) -> Any:  # pragma: no cover - compiled
+    """:func:`_costs` without a mask (every pixel valid; predictions read x itself); the loop
+    over a row's inner pixels has no branch (vectorised)."""
+    bits = x.itemsize * 8
+    mask = (np.int64(1) << bits) - 1
+    half = np.int64(1) << (bits - 1)
+    row = w * c
+    s0 = s1 = s2 = s3 = s4 = np.int64(0)
+    for r in range(h):
+        base = r * row
+        for i in range(base, base + min(c, row)):  # first cell: no left neighbour
+            v = np.int64(x[i])
+            up = np.int64(x[i - row]) if r > 0 else np.int64(0)
+            s0 += _zbits(v, mask, half)
+            s1 += _zbits(v, mask, half)
+            s2 += _zbits(v - up, mask, half)
+            s3 += _zbits(v - up, mask, half)
+            if nref:
+                s4 += _zbits(v - np.int64(ref[i]), mask, half)
+        if r == 0:
+            for i in range(base + c, base + row):
+                v = np.int64(x[i])
+                left = np.int64(x[i - c])
+                s0 += _zbits(v, mask, half)
+                s1 += _zbits(v - left, mask, half)
+                s2 += _zbits(v, mask, half)
+                s3 += _zbits(v - left, mask, half)
+        else:
+            for i in range(base + c, base + row):
+                v = np.int64(x[i])
+                left = np.int64(x[i - c])
+                up = np.int64(x[i - row])
+                s0 += _zbits(v, mask, half)
+                s1 += _zbits(v - left, mask, half)
+                s2 += _zbits(v - up, mask, half)
+                s3 += _zbits(v - left - up + np.int64(x[i - row - c]), mask, half)
+        if nref:
+            for i in range(base + c, base + row):
+                s4 += _zbits(np.int64(x[i]) - np.int64(ref[i]), mask, half)
+    out = np.empty(5, np.int64)
+    out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
+    return out
+
 
 def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c: int
                      ) -> None:  # pragma: no cover - compiled
@@ -388,14 +437,18 @@ def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
 
 
 def _load() -> Any:
-    fns = [numba_jit(fn, boundscheck=False) for fn in (
-        _symbols, _pack_low, _low_counts, _grid, _costs, _unpack_grid, _quantise,
-        _dequantise, _residuals_plain, _roll_rows, _unpredict)]
-    if fns[0] is None:
+    global _bitlen, _zbits
+    try:
+        _bitlen = _make_bitlen()
+    except ImportError:
         return None
+    _zbits = numba_jit(_zbits, inline="always")
+    fns = [numba_jit(fn, boundscheck=False) for fn in (
+        _symbols, _pack_low, _low_counts, _grid, _costs, _costs_plain, _unpack_grid, _quantise,
+        _dequantise, _residuals_plain, _roll_rows, _unpredict)]
     from lidarscan._codec_bits import ResidualCoder, bitlen_table, roll, symbol_tables
-    (symbols, pack_low, low_counts, grid, costs, unpack_grid, quantise, dequantise,
-     residuals_plain, roll_rows, unpredict) = fns
+    (symbols, pack_low, low_counts, grid, costs, costs_plain, unpack_grid, quantise,
+     dequantise, residuals_plain, roll_rows, unpredict) = fns
 
     def flat(a: Any) -> Any:
         return None if a is None else np.ascontiguousarray(a).reshape(-1)
@@ -416,10 +469,12 @@ def _load() -> Any:
 
     def costs_of(x: Any, valid: Any, ref: Any) -> Any:
         flat_x = flat(x)
-        g = (flat_x,) * 3 if valid is None else tuple(np.empty(x.size, np.int64)
-                                                         for _ in range(3))
-        return costs(flat_x, flat(valid), flat(x if ref is None else ref),
-                     0 if ref is None else 1, *x.shape, bitlen_table(), *g)
+        flat_ref = flat(x if ref is None else ref)
+        nref = 0 if ref is None else 1
+        if valid is None:
+            return costs_plain(flat_x, flat_ref, nref, *x.shape)
+        g = tuple(np.empty(x.size, np.int64) for _ in range(3))
+        return costs(flat_x, flat(valid), flat_ref, nref, *x.shape, *g)
 
     def decode_of(symbols_: Any, extra: int, counts: Any, low: Any, valid: Any,
                   predictor: int, ref: Any, out: Any) -> Any:
@@ -449,8 +504,8 @@ def _load() -> Any:
                   out.reshape(x.shape[0], -1))
         return out
 
-    def symbols_of(z: Any, table: Any) -> Any:
-        return symbols(z, table, _small_symbols())
+    def symbols_of(z: Any, table: Any) -> Any:  # table: the reference's, not needed
+        return symbols(np.ascontiguousarray(z, np.uint32))
 
     return ResidualCoder("numba", symbols_of, pack_low, low_counts_of, residuals_of, costs_of,
                          decode_of, quantise_of, dequantise_of, roll_of)
