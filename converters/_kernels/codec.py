@@ -32,19 +32,24 @@ import numpy as np
 from converters._kernels._loader import LoadOnce, numba_jit
 
 
-#: bit length of an integer below 2**32 (0 for 0): set by :func:`_load` (an LLVM intrinsic
-#: made when numba is imported) before any kernel compiles
+#: bit length of an integer below 2**32 (0 for 0), two LLVM intrinsics (:func:`_make_bitlen`)
+#: set by :func:`_load` before any kernel compiles: ``_bitlen`` for vectorised loops,
+#: ``_clzlen`` (count leading zeros) for scalar ones
 _bitlen: Any = None
+_clzlen: Any = None
 
 
-def _make_bitlen() -> Any:
-    """The numba intrinsic ``bitlen(x) -> int64`` of an integer 0 <= x < 2**32, branch-free and
-    vectorisable (no count-leading-zeros instruction in AVX2): the float64 2**52 + x (its bit
-    pattern: 2**52's exponent ORed with x) minus 2**52 is x exactly; its biased exponent minus
-    1022 is the bit length of x >= 1 (0 for x = 0, clamped)."""
+def _make_bitlen() -> tuple[Any, Any]:
+    """The numba intrinsics ``(bitlen, clzlen)(x) -> int64`` of an integer 0 <= x < 2**32.
+    bitlen is branch-free and vectorisable (AVX2 has no vector count-leading-zeros): the
+    float64 2**52 + x (its bit pattern: 2**52's exponent ORed with x) minus 2**52 is x exactly;
+    its biased exponent minus 1022 is the bit length of x >= 1 (0 for x = 0, clamped). clzlen
+    is 64 - ctlz(x), one instruction in a scalar loop."""
     from llvmlite import ir
     from numba.core import types
     from numba.extending import intrinsic
+
+    i64, f64 = ir.IntType(64), ir.DoubleType()
 
     @intrinsic  # type: ignore[misc]
     def bitlen(typingctx: Any, x: Any) -> Any:
@@ -52,7 +57,6 @@ def _make_bitlen() -> Any:
             return None
 
         def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            i64, f64 = ir.IntType(64), ir.DoubleType()
             v = context.cast(builder, args[0], signature.args[0], types.int64)
             f = builder.bitcast(builder.or_(v, ir.Constant(i64, 0x4330000000000000)), f64)
             f = builder.fsub(f, ir.Constant(f64, 4503599627370496.0))
@@ -61,14 +65,31 @@ def _make_bitlen() -> Any:
             zero = ir.Constant(i64, 0)
             return builder.select(builder.icmp_signed("<", e, zero), zero, e)
         return types.int64(x), codegen
-    return bitlen
+
+    @intrinsic  # type: ignore[misc]
+    def clzlen(typingctx: Any, x: Any) -> Any:
+        if not isinstance(x, types.Integer):
+            return None
+
+        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+            v = context.cast(builder, args[0], signature.args[0], types.int64)
+            clz = builder.ctlz(v, ir.Constant(ir.IntType(1), 0))
+            return builder.sub(ir.Constant(i64, 64), clz)
+        return types.int64(x), codegen
+    return bitlen, clzlen
 
 
 def _zbits(d: Any, mask: Any, half: Any) -> Any:  # pragma: no cover - compiled
     """Bit length of zigzag(d) for a difference d of values of a grid of ``mask``'s width
-    (wrapping: d is reduced to that width's signed range first)."""
+    (wrapping: d is reduced to that width's signed range first); vectorisable."""
     d = ((d & mask) ^ half) - half
     return _bitlen(((d << 1) ^ (d >> 63)) & mask)
+
+
+def _zbits_scalar(d: Any, mask: Any, half: Any) -> Any:  # pragma: no cover - compiled
+    """:func:`_zbits` for scalar loops (count leading zeros)."""
+    d = ((d & mask) ^ half) - half
+    return _clzlen(((d << 1) ^ (d >> 63)) & mask)
 
 
 def _symbols(z: Any) -> Any:  # pragma: no cover - compiled
@@ -159,42 +180,47 @@ def _low_counts(symbols: Any, kk: Any) -> Any:  # pragma: no cover - compiled
 
 def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, w: int, c: int
           ) -> int:  # pragma: no cover - compiled
-    """The zigzag residuals (uint32, to z) of the valid pixels of an unsigned grid x (H, W, C
-    flattened; valid likewise; predictors 0..4: none, left, up, planar, the reference grid
-    ``ref``), in row-major order; an invalid pixel holds its own prediction, and g (like x,
-    written) is the grid the predictions read. Returns the number of valid pixels."""
+    """The zigzag residuals (uint32, to z: n values of room) of the valid pixels of an
+    unsigned grid x (H, W, C flattened; valid likewise; predictors 0..4: none, left, up,
+    planar, the reference grid ``ref``), in row-major order; an invalid pixel holds its own
+    prediction, and g (like x, written) is the grid the predictions read. Branch-free: the
+    prediction is a1 * left + a2 * up - a3 * up-left + a4 * ref with the predictor's 0/1
+    coefficients; per row and count index the left and up-left fill values are carried in
+    registers. With C = 1 the residuals are written compacted as they come; else every
+    pixel's goes to its own index and the row's valid ones are moved forward after the row
+    (in place: the write index never passes the read index). Returns the number of valid
+    pixels."""
     bits = g.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
+    a1 = np.int64(predictor == 1 or predictor == 3)
+    a2 = np.int64(predictor == 2 or predictor == 3)
+    a3 = np.int64(predictor == 3)
+    a4 = np.int64(predictor == 4)
+    one = c == 1
     row = w * c
     j = 0
     for r in range(h):
         base = r * row
-        for i in range(base, base + row):
-            p = np.int64(0)
-            if predictor == 1:
-                if i - base >= c:
-                    p = np.int64(g[i - c])
-            elif predictor == 2:
-                if r > 0:
-                    p = np.int64(g[i - row])
-            elif predictor == 3:
-                if i - base >= c:
-                    p += np.int64(g[i - c])
-                    if r > 0:
-                        p -= np.int64(g[i - row - c])
-                if r > 0:
-                    p += np.int64(g[i - row])
-            elif predictor == 4:
-                p = np.int64(ref[i])
-            if valid is None or valid[i]:
-                d = (np.int64(x[i]) - p) & mask
-                if d >= half:
-                    d -= mask + 1
-                z[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
-                p = np.int64(x[i])
-                j += 1
-            g[i] = p & mask
+        for kx in range(c):
+            f = corner = np.int64(0)  # the left neighbour's fill value, the up-left one's
+            for t in range(w):  # a unit-step loop: faster than a range with a variable step
+                i = base + kx + t * c
+                up = np.int64(g[i - row]) if r > 0 else np.int64(0)
+                p = (a1 * f + a2 * up - a3 * corner + a4 * np.int64(ref[i])) & mask
+                corner = up
+                v = np.int64(x[i])
+                d = (((v - p) & mask) ^ half) - half
+                z[j if one else i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                ok = valid[i]
+                j += np.int64(ok)
+                f = v if ok else p
+                g[i] = f
+        if not one:
+            j -= np.int64(valid[base:base + row].sum())
+            for i in range(base, base + row):
+                z[j] = z[i]
+                j += np.int64(valid[i])
     return j
 
 
@@ -286,11 +312,13 @@ def _dequantise(q: Any, step: float, out: Any) -> None:  # pragma: no cover - co
 
 
 def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int,
-           g1: Any, g2: Any, g3: Any) -> Any:  # pragma: no cover - compiled
+           g2: Any, g3: Any) -> Any:  # pragma: no cover - compiled
     """The sums of the residuals' bit lengths under predictors 0 .. 3 (and 4 when ``nref``)
-    of the valid pixels, in one pass (int64[5], -1 for REF without a reference). The left, up
-    and planar predictions read g1, g2, g3: one fill grid each (int64, written: a masked
-    pixel holds each predictor's own prediction). Without a mask: :func:`_costs_plain`."""
+    of the valid pixels, in one pass (int64[5], -1 for REF without a reference). A masked
+    pixel holds each predictor's own prediction: the left and planar fill values to the left
+    are carried in registers (per row and count index), the up and planar ones of the row
+    above read g2, g3 (int64 like x, written: the fill grids). Branch-free. Without a mask:
+    :func:`_costs_plain`."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
@@ -298,33 +326,27 @@ def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int,
     s0 = s1 = s2 = s3 = s4 = np.int64(0)
     for r in range(h):
         base = r * row
-        for i in range(base, base + row):
-            inner = i - base >= c
-            p1 = np.int64(g1[i - c]) if inner else np.int64(0)
-            p2 = np.int64(g2[i - row]) if r > 0 else np.int64(0)
-            p3 = np.int64(0)
-            if inner:
-                p3 += np.int64(g3[i - c])
-                if r > 0:
-                    p3 -= np.int64(g3[i - row - c])
-            if r > 0:
-                p3 += np.int64(g3[i - row])
-            p3 &= mask
-            if valid[i]:
+        for kx in range(c):
+            f1 = f3 = corner = np.int64(0)
+            for t in range(w):  # a unit-step loop: faster than a range with a variable step
+                i = base + kx + t * c
+                up2 = np.int64(g2[i - row]) if r > 0 else np.int64(0)
+                up3 = np.int64(g3[i - row]) if r > 0 else np.int64(0)
+                p3 = (f3 + up3 - corner) & mask
+                corner = up3
                 v = np.int64(x[i])
-                s0 += _zbits(v, mask, half)
-                s1 += _zbits(v - p1, mask, half)
-                s2 += _zbits(v - p2, mask, half)
-                s3 += _zbits(v - p3, mask, half)
+                ok = valid[i]
+                on = np.int64(ok)
+                s0 += on * _zbits_scalar(v, mask, half)
+                s1 += on * _zbits_scalar(v - f1, mask, half)
+                s2 += on * _zbits_scalar(v - up2, mask, half)
+                s3 += on * _zbits_scalar(v - p3, mask, half)
                 if nref:
-                    s4 += _zbits(v - np.int64(ref[i]), mask, half)
-                g1[i] = v
-                g2[i] = v
-                g3[i] = v
-            else:
-                g1[i] = p1
-                g2[i] = p2
-                g3[i] = p3
+                    s4 += on * _zbits_scalar(v - np.int64(ref[i]), mask, half)
+                f1 = v if ok else f1
+                g2[i] = v if ok else up2
+                f3 = v if ok else p3
+                g3[i] = f3
     out = np.empty(5, np.int64)
     out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
@@ -437,12 +459,13 @@ def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
 
 
 def _load() -> Any:
-    global _bitlen, _zbits
+    global _bitlen, _clzlen, _zbits, _zbits_scalar
     try:
-        _bitlen = _make_bitlen()
+        _bitlen, _clzlen = _make_bitlen()
     except ImportError:
         return None
     _zbits = numba_jit(_zbits, inline="always")
+    _zbits_scalar = numba_jit(_zbits_scalar, inline="always")
     fns = [numba_jit(fn, boundscheck=False) for fn in (
         _symbols, _pack_low, _low_counts, _grid, _costs, _costs_plain, _unpack_grid, _quantise,
         _dequantise, _residuals_plain, _roll_rows, _unpredict)]
@@ -473,7 +496,7 @@ def _load() -> Any:
         nref = 0 if ref is None else 1
         if valid is None:
             return costs_plain(flat_x, flat_ref, nref, *x.shape)
-        g = tuple(np.empty(x.size, np.int64) for _ in range(3))
+        g = tuple(np.empty(x.size, np.int64) for _ in range(2))
         return costs(flat_x, flat(valid), flat_ref, nref, *x.shape, *g)
 
     def decode_of(symbols_: Any, extra: int, counts: Any, low: Any, valid: Any,
