@@ -472,7 +472,8 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
         native = coder.roll(raw.astype(np.float32, copy=False), shifts, 1)
-        words = coder.roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
+        words = (native.view(np.uint32) if raw.dtype.isnative  # the block's own bytes
+                 else coder.roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1))
         got = _encode_quant2(native, words, float_step, level, coder)
         if got is not None:
             predictor, extra, masked, step, payload = got

@@ -27,9 +27,28 @@ from __future__ import annotations
 
 from typing import Any
 
+import threading
+
 import numpy as np
 
 from converters._kernels._loader import LoadOnce, numba_jit
+
+_SCRATCH = threading.local()
+
+
+def _scratch(name: str, n: int, dtype: Any) -> Any:
+    """This thread's work array ``name`` of n values of ``dtype`` (contents undefined), kept
+    and reused from call to call: a fresh megabyte-sized array costs a page fault per 4 KiB
+    page at its first writes, a large part of a kernel's time. Only for a wrapper's own
+    temporaries, never for what it returns."""
+    pool = getattr(_SCRATCH, "pool", None)
+    if pool is None:
+        pool = _SCRATCH.pool = {}
+    key = (name, np.dtype(dtype).str)
+    got = pool.get(key)
+    if got is None or got.size < n:
+        got = pool[key] = np.empty(max(n, 1), dtype)
+    return got[:n]
 
 
 #: bit length of an integer below 2**32 (0 for 0), two LLVM intrinsics (:func:`_make_bitlen`)
@@ -483,7 +502,7 @@ def _load() -> Any:
         if valid is None:
             residuals_plain(flat_x, z, predictor, flat(x if ref is None else ref), *x.shape)
             return z
-        n = grid(flat_x, np.empty_like(flat_x), z, flat(valid), predictor,
+        n = grid(flat_x, _scratch("fill", x.size, x.dtype), z, flat(valid), predictor,
                  flat(x if ref is None else ref), *x.shape)
         return z[:n]
 
@@ -496,14 +515,15 @@ def _load() -> Any:
         nref = 0 if ref is None else 1
         if valid is None:
             return costs_plain(flat_x, flat_ref, nref, *x.shape)
-        g = tuple(np.empty(x.size, np.int64) for _ in range(2))
-        return costs(flat_x, flat(valid), flat_ref, nref, *x.shape, *g)
+        return costs(flat_x, flat(valid), flat_ref, nref, *x.shape,
+                     _scratch("up fill", x.size, np.int64), _scratch("planar fill", x.size, np.int64))
 
     def decode_of(symbols_: Any, extra: int, counts: Any, low: Any, valid: Any,
                   predictor: int, ref: Any, out: Any) -> Any:
-        padded = np.zeros(low.size + 5, np.uint8)
+        padded = _scratch("low bits", low.size + 5, np.uint8)
         padded[:low.size] = low
-        d = np.empty(out.size, np.int64)
+        padded[low.size:] = 0
+        d = _scratch("residuals", out.size, np.int64)
         unpack_grid(symbols_, *symbol_tables(extra), counts, padded, flat(valid), d)
         unpredict(d, out.reshape(-1), predictor, flat(out if ref is None else ref), *out.shape)
         return out
