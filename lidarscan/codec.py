@@ -263,9 +263,10 @@ def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = 
     options = []
     for extra, sym, k, bits in ((1, sym1, k1, bits1), (2, sym2, k2, bits2)):
         frame = _zc(level).compress(sym)
-        options.append((len(frame) + (int(bits) + 7) // 8, extra, frame, k))
-    _, extra, frame, k = min(options, key=lambda option: option[0])
-    return extra, frame, _zc(level).compress(coder.pack_low(z, k))
+        options.append((len(frame) + (int(bits) + 7) // 8, extra, frame, k, int(bits)))
+    _, extra, frame, k, bits = min(options, key=lambda option: option[0])
+    low = coder.pack_low(z, k) if bits else b""  # no low bits (e.g. a constant grid)
+    return extra, frame, _zc(level).compress(low)
 
 
 def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
