@@ -7,10 +7,15 @@ channels go through an int32 grid first. Its numpy reference (:mod:`lidarscan._c
 the test oracle) makes one pass per predictor step and per bit width; the kernels here make
 one pass over the values and give the same bytes (integer arithmetic, and the same float64
 products and float32 roundings for the float grid: bit-identical by construction, and tested
-so): the predictor costs of all candidates in one pass, residuals with one loop per predictor
-when no pixel is masked, symbols of both symbol splits in one pass, the low-bit packing, the
-float32 grid (quantisation and its inverse), the destaggering roll, and on decoding a
-branch-free unpacking into residuals followed by one loop per predictor.
+so): the predictor costs of all candidates in one pass (without a mask: a vectorised loop per
+row; with one: branch-free, the fill values to the left carried in registers), residuals with
+one loop per predictor when no pixel is masked (branch-free when one is), symbols of both
+symbol splits in one branch-free (vectorised) pass, the low-bit packing, the float32 grid
+(quantisation and its inverse), the destaggering roll, and on decoding a branch-free
+unpacking into residuals followed by one loop per predictor. Bit lengths come from two small
+LLVM intrinsics (:func:`_make_bitlen`: an exact float64 exponent where the loop vectorises,
+count-leading-zeros where it does not); the wrappers' own large temporaries are reused per
+thread (:func:`_scratch`).
 
 :func:`coder` bundles them as a :class:`lidarscan.codec.ResidualCoder` (the fields and their
 arguments are documented there); ``compress_scan`` / ``decompress_scan`` take it as
@@ -25,9 +30,8 @@ x for an absent reference grid (only predictor 4 reads it).
 
 from __future__ import annotations
 
-from typing import Any
-
 import threading
+from typing import Any
 
 import numpy as np
 
@@ -488,7 +492,7 @@ def _load() -> Any:
     fns = [numba_jit(fn, boundscheck=False) for fn in (
         _symbols, _pack_low, _low_counts, _grid, _costs, _costs_plain, _unpack_grid, _quantise,
         _dequantise, _residuals_plain, _roll_rows, _unpredict)]
-    from lidarscan._codec_bits import ResidualCoder, bitlen_table, roll, symbol_tables
+    from lidarscan._codec_bits import ResidualCoder, roll, symbol_tables
     (symbols, pack_low, low_counts, grid, costs, costs_plain, unpack_grid, quantise,
      dequantise, residuals_plain, roll_rows, unpredict) = fns
 
@@ -516,7 +520,8 @@ def _load() -> Any:
         if valid is None:
             return costs_plain(flat_x, flat_ref, nref, *x.shape)
         return costs(flat_x, flat(valid), flat_ref, nref, *x.shape,
-                     _scratch("up fill", x.size, np.int64), _scratch("planar fill", x.size, np.int64))
+                     _scratch("up fill", x.size, np.int64),
+                     _scratch("planar fill", x.size, np.int64))
 
     def decode_of(symbols_: Any, extra: int, counts: Any, low: Any, valid: Any,
                   predictor: int, ref: Any, out: Any) -> Any:
