@@ -88,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         import importlib.util
         spec = importlib.util.spec_from_file_location("baseline_codec", args.baseline)
         module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module  # numba's on-disk cache finds the module by name
         spec.loader.exec_module(module)
         coders["codec (baseline)"] = module.coder()
     packed = {"zstd-3 (buffer)": z3.compress(raw), "zstd-1 (buffer)": z1.compress(raw),
