@@ -74,32 +74,33 @@ def _make_bitlen() -> tuple[Any, Any]:
 
     i64, f64 = ir.IntType(64), ir.DoubleType()
 
-    @intrinsic  # type: ignore[misc]
-    def bitlen(typingctx: Any, x: Any) -> Any:
-        if not isinstance(x, types.Integer):
-            return None
+    def of_int64(body: Any) -> Any:
+        """An intrinsic ``f(x) -> int64`` of any integer x, computed by ``body(builder,
+        x as i64)``."""
+        @intrinsic  # type: ignore[misc]
+        def fn(typingctx: Any, x: Any) -> Any:
+            if not isinstance(x, types.Integer):
+                return None
 
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            v = context.cast(builder, args[0], signature.args[0], types.int64)
-            f = builder.bitcast(builder.or_(v, ir.Constant(i64, 0x4330000000000000)), f64)
-            f = builder.fsub(f, ir.Constant(f64, 4503599627370496.0))
-            e = builder.sub(builder.lshr(builder.bitcast(f, i64), ir.Constant(i64, 52)),
-                            ir.Constant(i64, 1022))
-            zero = ir.Constant(i64, 0)
-            return builder.select(builder.icmp_signed("<", e, zero), zero, e)
-        return types.int64(x), codegen
+            def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+                return body(builder, context.cast(builder, args[0], signature.args[0],
+                                                  types.int64))
+            return types.int64(x), codegen
+        return fn
 
-    @intrinsic  # type: ignore[misc]
-    def clzlen(typingctx: Any, x: Any) -> Any:
-        if not isinstance(x, types.Integer):
-            return None
+    def bitlen(builder: Any, v: Any) -> Any:
+        f = builder.bitcast(builder.or_(v, ir.Constant(i64, 0x4330000000000000)), f64)
+        f = builder.fsub(f, ir.Constant(f64, 4503599627370496.0))
+        e = builder.sub(builder.lshr(builder.bitcast(f, i64), ir.Constant(i64, 52)),
+                        ir.Constant(i64, 1022))
+        zero = ir.Constant(i64, 0)
+        return builder.select(builder.icmp_signed("<", e, zero), zero, e)
 
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            v = context.cast(builder, args[0], signature.args[0], types.int64)
-            clz = builder.ctlz(v, ir.Constant(ir.IntType(1), 0))
-            return builder.sub(ir.Constant(i64, 64), clz)
-        return types.int64(x), codegen
-    return bitlen, clzlen
+    def clzlen(builder: Any, v: Any) -> Any:
+        clz = builder.ctlz(v, ir.Constant(ir.IntType(1), 0))
+        return builder.sub(ir.Constant(i64, 64), clz)
+
+    return of_int64(bitlen), of_int64(clzlen)
 
 
 def _zbits(d: Any, mask: Any, half: Any) -> Any:  # pragma: no cover - compiled
