@@ -14,7 +14,13 @@ machine costs less), ratio to zstd-3's time, frames per second; and the load ave
 (issue): encode and decode >= 50 Hz on one core at 128 x 2048 (the compiled coder); bytes
 below zstd-3's. Exits 1 when one is missed.
 
-Usage: ``.venv/bin/python bench/bench_compression.py [--rounds N]``.
+``--baseline FILE``: also time the compiled coder of another revision, FILE being a copy of its
+``converters/_kernels/codec.py`` (e.g. ``git show main:converters/_kernels/codec.py >
+/tmp/main_codec.py``), interleaved with the others; it must write the same bytes, and the
+ratios of this revision's encode / decode time to it are printed (the before/after of a change,
+measured in one run).
+
+Usage: ``.venv/bin/python bench/bench_compression.py [--rounds N] [--baseline FILE]``.
 """
 
 from __future__ import annotations
@@ -62,6 +68,8 @@ def make_scan() -> tuple[Any, Any]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=15, help="timed rounds")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="a copy of another revision's converters/_kernels/codec.py")
     args = parser.parse_args(argv)
 
     import lz4.frame
@@ -76,6 +84,13 @@ def main(argv: list[str] | None = None) -> int:
     dz = zstandard.ZstdDecompressor()
     coders = {"lidarscan.codec": compiled} if compiled is not None else {}
     coders["codec (numpy)"] = None
+    if args.baseline is not None and compiled is not None:
+        import importlib.util
+        spec = importlib.util.spec_from_file_location("baseline_codec", args.baseline)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module  # numba's on-disk cache finds the module by name
+        spec.loader.exec_module(module)
+        coders["codec (baseline)"] = module.coder()
     packed = {"zstd-3 (buffer)": z3.compress(raw), "zstd-1 (buffer)": z1.compress(raw),
               "lz4 (buffer)": lz4.frame.compress(raw)}
     enc = {"zstd-3 (buffer)": lambda: z3.compress(raw), "zstd-1 (buffer)": lambda: z1.compress(raw),
@@ -112,6 +127,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{te[name] / base_e:>8.2f} {td[name] * 1e3:>8.2f} {td[name] / base_d:>8.2f} "
               f"{1 / te[name]:>7.0f} {1 / td[name]:>7.0f}")
     ours = next(iter(coders))
+    if "codec (baseline)" in coders:
+        base = "codec (baseline)"
+        print(f"  {ours} / baseline: encode {te[ours] / te[base]:.3f}x, "
+              f"decode {td[ours] / td[base]:.3f}x")
     checks = [("bytes below zstd-3 of the buffer", len(packed[ours]) < base_b),
               ("encode >= 50 Hz", 1 / te[ours] >= 50), ("decode >= 50 Hz", 1 / td[ours] >= 50)]
     for label, ok in checks:

@@ -269,9 +269,10 @@ def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = 
     options = []
     for extra, sym, k, bits in ((1, sym1, k1, bits1), (2, sym2, k2, bits2)):
         frame = _zc(level).compress(sym)
-        options.append((len(frame) + (int(bits) + 7) // 8, extra, frame, k))
-    _, extra, frame, k = min(options, key=lambda option: option[0])
-    return extra, frame, _zc(level).compress(coder.pack_low(z, k))
+        options.append((len(frame) + (int(bits) + 7) // 8, extra, frame, k, int(bits)))
+    _, extra, frame, k, bits = min(options, key=lambda option: option[0])
+    low = coder.pack_low(z, k) if bits else b""  # no low bits (e.g. a constant grid)
+    return extra, frame, _zc(level).compress(low)
 
 
 def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
@@ -485,7 +486,8 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
         native = coder.roll(raw.astype(np.float32, copy=False), shifts, 1)
-        words = coder.roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1)
+        words = (native.view(np.uint32) if raw.dtype.isnative  # the block's own bytes
+                 else coder.roll(np.frombuffer(block, np.uint32).reshape(shape), shifts, 1))
         got = _encode_quant2(native, words, float_step, level, coder)
         if got is not None:
             predictor, extra, masked, step, payload = got

@@ -1,7 +1,8 @@
 """lidarscan.codec: the compressed LidarScan format restores every byte of the scan.
 
 Layers: golden bytes of the format (version 2 decoded, and re-encoded with the zstd library they
-were made with; version 1 still decoded), loop-based oracles of the predictors, zigzag, masked
+were made with, by the numpy reference coder and by the compiled one; version 1 still
+decoded), loop-based oracles of the predictors, zigzag, masked
 pixels' fill and the bit-length coding, round trips on hypothesis scans (shapes,
 every datatype, counts, both byte orders, arbitrary bytes including NaN payloads, +-Inf, -0,
 padding bytes and trailing bytes), round trips of the real Ouster frames, and damaged buffers;
@@ -102,8 +103,15 @@ def test_golden_v1_bytes_still_decode_to_the_golden_scan() -> None:
         (0, 24, "shuffle"), (24, 12, "predict")]
 
 
-def test_golden_v2_bytes_decode_to_the_golden_scan() -> None:
-    back = codec.decompress_scan(GOLDEN_V2)
+def _coder(name: str) -> Any:
+    """The residual coder ``name``: "numpy" (the reference, None) or "compiled" (skipped
+    without numba)."""
+    return None if name == "numpy" else _compiled()
+
+
+@pytest.mark.parametrize("coder", ["numpy", "compiled"])
+def test_golden_v2_bytes_decode_to_the_golden_scan(coder: str) -> None:
+    back = codec.decompress_scan(GOLDEN_V2, coder=_coder(coder))
     _same(back, _golden_scan_v2())
     r = ls.channel(back, "range")
     assert np.isposinf(r[1, 3]) and np.isnan(r[2, 5]) and np.signbit(r[3, 7]) and r[3, 7] == 0
@@ -149,9 +157,11 @@ def test_second_returns_are_predicted_from_the_first_and_roundtrip(
     _same(codec.decompress_scan(buf), scan)
 
 
-def test_golden_bytes_are_what_the_encoder_writes() -> None:
+@pytest.mark.parametrize("coder", ["numpy", "compiled"])
+def test_golden_bytes_are_what_the_encoder_writes(coder: str) -> None:
     import zstandard
-    out = codec.compress_scan(_golden_scan_v2(), level=3)
+    out = codec.compress_scan(_golden_scan_v2(), level=3, coder=_coder(coder))
+    _same(codec.decompress_scan(out, coder=_coder(coder)), _golden_scan_v2())
     assert out[:8] == GOLDEN_V2[:8]
     assert [(s["offset"], s["length"], s["method"], s["params"]) for s in codec.segments(out)] \
         == [(s["offset"], s["length"], s["method"], s["params"])

@@ -7,10 +7,15 @@ channels go through an int32 grid first. Its numpy reference (:mod:`lidarscan._c
 the test oracle) makes one pass per predictor step and per bit width; the kernels here make
 one pass over the values and give the same bytes (integer arithmetic, and the same float64
 products and float32 roundings for the float grid: bit-identical by construction, and tested
-so): the predictor costs of all candidates in one pass, residuals with one loop per predictor
-when no pixel is masked, symbols of both symbol splits in one pass, the low-bit packing, the
-float32 grid (quantisation and its inverse), the destaggering roll, and on decoding a
-branch-free unpacking into residuals followed by one loop per predictor.
+so): the predictor costs of all candidates in one pass (without a mask: a vectorised loop per
+row; with one: branch-free, the fill values to the left carried in registers), residuals with
+one loop per predictor when no pixel is masked (branch-free when one is), symbols of both
+symbol splits in one branch-free (vectorised) pass, the low-bit packing, the float32 grid
+(quantisation and its inverse), the destaggering roll, and on decoding a branch-free
+unpacking into residuals followed by one loop per predictor. Bit lengths come from two small
+LLVM intrinsics (:func:`_make_bitlen`: an exact float64 exponent where the loop vectorises,
+count-leading-zeros where it does not); the wrappers' own large temporaries are reused per
+thread (:func:`_scratch`).
 
 :func:`coder` bundles them as a :class:`lidarscan.codec.ResidualCoder` (the fields and their
 arguments are documented there); ``compress_scan`` / ``decompress_scan`` take it as
@@ -25,18 +30,97 @@ x for an absent reference grid (only predictor 4 reads it).
 
 from __future__ import annotations
 
-import functools
+import threading
 from typing import Any
 
 import numpy as np
 
 from converters._kernels._loader import LoadOnce, numba_jit
 
+_SCRATCH = threading.local()
 
-def _symbols(z: Any, table: Any, small: Any) -> Any:  # pragma: no cover - compiled
+
+def _scratch(name: str, n: int, dtype: Any) -> Any:
+    """This thread's work array ``name`` of n values of ``dtype`` (contents undefined), kept
+    and reused from call to call: a fresh megabyte-sized array costs a page fault per 4 KiB
+    page at its first writes, a large part of a kernel's time. Only for a wrapper's own
+    temporaries, never for what it returns."""
+    pool = getattr(_SCRATCH, "pool", None)
+    if pool is None:
+        pool = _SCRATCH.pool = {}
+    key = (name, np.dtype(dtype).str)
+    got = pool.get(key)
+    if got is None or got.size < n:
+        got = pool[key] = np.empty(max(n, 1), dtype)
+    return got[:n]
+
+
+#: bit length of an integer below 2**32 (0 for 0), two LLVM intrinsics (:func:`_make_bitlen`)
+#: set by :func:`_load` before any kernel compiles: ``_bitlen`` for vectorised loops,
+#: ``_clzlen`` (count leading zeros) for scalar ones
+_bitlen: Any = None
+_clzlen: Any = None
+
+
+def _make_bitlen() -> tuple[Any, Any]:
+    """The numba intrinsics ``(bitlen, clzlen)(x) -> int64`` of an integer 0 <= x < 2**32.
+    bitlen is branch-free and vectorisable (AVX2 has no vector count-leading-zeros): the
+    float64 2**52 + x (its bit pattern: 2**52's exponent ORed with x) minus 2**52 is x exactly;
+    its biased exponent minus 1022 is the bit length of x >= 1 (0 for x = 0, clamped). clzlen
+    is 64 - ctlz(x), one instruction in a scalar loop."""
+    from llvmlite import ir
+    from numba.core import types
+    from numba.extending import intrinsic
+
+    i64, f64 = ir.IntType(64), ir.DoubleType()
+
+    def of_int64(body: Any) -> Any:
+        """An intrinsic ``f(x) -> int64`` of any integer x, computed by ``body(builder,
+        x as i64)``."""
+        @intrinsic  # type: ignore[misc]
+        def fn(typingctx: Any, x: Any) -> Any:
+            if not isinstance(x, types.Integer):
+                return None
+
+            def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+                return body(builder, context.cast(builder, args[0], signature.args[0],
+                                                  types.int64))
+            return types.int64(x), codegen
+        return fn
+
+    def bitlen(builder: Any, v: Any) -> Any:
+        f = builder.bitcast(builder.or_(v, ir.Constant(i64, 0x4330000000000000)), f64)
+        f = builder.fsub(f, ir.Constant(f64, 4503599627370496.0))
+        e = builder.sub(builder.lshr(builder.bitcast(f, i64), ir.Constant(i64, 52)),
+                        ir.Constant(i64, 1022))
+        zero = ir.Constant(i64, 0)
+        return builder.select(builder.icmp_signed("<", e, zero), zero, e)
+
+    def clzlen(builder: Any, v: Any) -> Any:
+        clz = builder.ctlz(v, ir.Constant(ir.IntType(1), 0))
+        return builder.sub(ir.Constant(i64, 64), clz)
+
+    return of_int64(bitlen), of_int64(clzlen)
+
+
+def _zbits(d: Any, mask: Any, half: Any) -> Any:  # pragma: no cover - compiled
+    """Bit length of zigzag(d) for a difference d of values of a grid of ``mask``'s width
+    (wrapping: d is reduced to that width's signed range first); vectorisable."""
+    d = ((d & mask) ^ half) - half
+    return _bitlen(((d << 1) ^ (d >> 63)) & mask)
+
+
+def _zbits_scalar(d: Any, mask: Any, half: Any) -> Any:  # pragma: no cover - compiled
+    """:func:`_zbits` for scalar loops (count leading zeros)."""
+    d = ((d & mask) ^ half) - half
+    return _clzlen(((d << 1) ^ (d >> 63)) & mask)
+
+
+def _symbols(z: Any) -> Any:  # pragma: no cover - compiled
     """z (n,) uint32 -> (sym1, k1, sym2, k2) (n,) uint8 each and the low-bit totals (bits1,
-    bits2) (see the reference); ``small``: those four bytes of every value below 2**16
-    packed in a uint32 (sym1 | k1 << 8 | sym2 << 16 | k2 << 24, :func:`_small_symbols`)."""
+    bits2) (see the reference), branch-free (vectorised): bit length b, bm = b - 1 bits below
+    the leading one (0 for z = 0), k2 = bm - min(bm, 2) low bits and the e2 = min(bm, 2) top
+    bits of extra 2; extra 1 keeps one top bit less when bm >= 2 ("wide")."""
     n = z.shape[0]
     sym1 = np.empty(n, np.uint8)
     k1 = np.empty(n, np.uint8)
@@ -45,32 +129,19 @@ def _symbols(z: Any, table: Any, small: Any) -> Any:  # pragma: no cover - compi
     bits1 = bits2 = np.int64(0)
     for i in range(n):
         v = np.int64(z[i])
-        if v < 65536:
-            p = np.int64(small[v])
-            s1, kk1, s2, kk2 = p & 0xFF, (p >> 8) & 0xFF, (p >> 16) & 0xFF, p >> 24
-        else:  # bit length b > 16: e = 2 (extra 2) and 1 (extra 1)
-            b = np.int64(table[v >> 16]) + 16
-            kk2 = b - 3
-            top2 = (v >> kk2) & 3
-            s1, kk1, s2 = ((b << 1) | (top2 >> 1)) & 0xFF, kk2 + 1, ((b << 2) | top2) & 0xFF
-        sym1[i] = np.uint8(s1)
-        k1[i] = np.uint8(kk1)
-        sym2[i] = np.uint8(s2)
+        b = _bitlen(v)
+        bm = max(b - 1, 0)
+        kk2 = max(bm - 2, 0)
+        top2 = (v >> kk2) & ((np.int64(1) << (bm - kk2)) - 1)
+        wide = np.int64(bm >= 2)
+        sym1[i] = np.uint8(((b << 1) | (top2 >> wide)) & 0xFF)
+        k1[i] = np.uint8(kk2 + wide)
+        sym2[i] = np.uint8(((b << 2) | top2) & 0xFF)
         k2[i] = np.uint8(kk2)
-        bits1 += kk1
+        bits1 += kk2 + wide
         bits2 += kk2
     return sym1, k1, sym2, k2, bits1, bits2
 
-
-@functools.lru_cache(maxsize=1)
-def _small_symbols() -> Any:
-    """uint32[65536]: sym1 | k1 << 8 | sym2 << 16 | k2 << 24 of every value below 2**16, from
-    the numpy reference."""
-    from lidarscan._codec_bits import NUMPY, bitlen_table
-    sym1, k1, sym2, k2, _, _ = NUMPY.symbols(np.arange(1 << 16, dtype=np.uint32),
-                                             bitlen_table())
-    return (sym1.astype(np.uint32) | (k1.astype(np.uint32) << 8)
-            | (sym2.astype(np.uint32) << 16) | (k2.astype(np.uint32) << 24))
 
 def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     """The low-bit stream: values grouped by k ascending (value order inside a group), each
@@ -133,42 +204,47 @@ def _low_counts(symbols: Any, kk: Any) -> Any:  # pragma: no cover - compiled
 
 def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, w: int, c: int
           ) -> int:  # pragma: no cover - compiled
-    """The zigzag residuals (uint32, to z) of the valid pixels of an unsigned grid x (H, W, C
-    flattened; valid likewise; predictors 0..4: none, left, up, planar, the reference grid
-    ``ref``), in row-major order; an invalid pixel holds its own prediction, and g (like x,
-    written) is the grid the predictions read. Returns the number of valid pixels."""
+    """The zigzag residuals (uint32, to z: n values of room) of the valid pixels of an
+    unsigned grid x (H, W, C flattened; valid likewise; predictors 0..4: none, left, up,
+    planar, the reference grid ``ref``), in row-major order; an invalid pixel holds its own
+    prediction, and g (like x, written) is the grid the predictions read. Branch-free: the
+    prediction is a1 * left + a2 * up - a3 * up-left + a4 * ref with the predictor's 0/1
+    coefficients; per row and count index the left and up-left fill values are carried in
+    registers. With C = 1 the residuals are written compacted as they come; else every
+    pixel's goes to its own index and the row's valid ones are moved forward after the row
+    (in place: the write index never passes the read index). Returns the number of valid
+    pixels."""
     bits = g.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
+    a1 = np.int64(predictor == 1 or predictor == 3)
+    a2 = np.int64(predictor == 2 or predictor == 3)
+    a3 = np.int64(predictor == 3)
+    a4 = np.int64(predictor == 4)
+    one = c == 1
     row = w * c
     j = 0
     for r in range(h):
         base = r * row
-        for i in range(base, base + row):
-            p = np.int64(0)
-            if predictor == 1:
-                if i - base >= c:
-                    p = np.int64(g[i - c])
-            elif predictor == 2:
-                if r > 0:
-                    p = np.int64(g[i - row])
-            elif predictor == 3:
-                if i - base >= c:
-                    p += np.int64(g[i - c])
-                    if r > 0:
-                        p -= np.int64(g[i - row - c])
-                if r > 0:
-                    p += np.int64(g[i - row])
-            elif predictor == 4:
-                p = np.int64(ref[i])
-            if valid is None or valid[i]:
-                d = (np.int64(x[i]) - p) & mask
-                if d >= half:
-                    d -= mask + 1
-                z[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
-                p = np.int64(x[i])
-                j += 1
-            g[i] = p & mask
+        for kx in range(c):
+            f = corner = np.int64(0)  # the left neighbour's fill value, the up-left one's
+            for t in range(w):  # a unit-step loop: faster than a range with a variable step
+                i = base + kx + t * c
+                up = np.int64(g[i - row]) if r > 0 else np.int64(0)
+                p = (a1 * f + a2 * up - a3 * corner + a4 * np.int64(ref[i])) & mask
+                corner = up
+                v = np.int64(x[i])
+                d = (((v - p) & mask) ^ half) - half
+                z[j if one else i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                ok = valid[i]
+                j += np.int64(ok)
+                f = v if ok else p
+                g[i] = f
+        if not one:
+            j -= np.int64(valid[base:base + row].sum())
+            for i in range(base, base + row):
+                z[j] = z[i]
+                j += np.int64(valid[i])
     return j
 
 
@@ -259,13 +335,14 @@ def _dequantise(q: Any, step: float, out: Any) -> None:  # pragma: no cover - co
         out[i] = np.float32(np.float64(q[i]) * step)
 
 
-def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, table: Any,
-           g1: Any, g2: Any, g3: Any) -> Any:  # pragma: no cover - compiled
+def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int,
+           g2: Any, g3: Any) -> Any:  # pragma: no cover - compiled
     """The sums of the residuals' bit lengths under predictors 0 .. 3 (and 4 when ``nref``)
-    of the valid pixels, in one pass (int64[5], -1 for REF without a reference). The left, up
-    and planar predictions read g1, g2, g3: with a mask, one fill grid each (int64, written:
-    a masked pixel holds each predictor's own prediction); without one (valid None), x
-    itself."""
+    of the valid pixels, in one pass (int64[5], -1 for REF without a reference). A masked
+    pixel holds each predictor's own prediction: the left and planar fill values to the left
+    are carried in registers (per row and count index), the up and planar ones of the row
+    above read g2, g3 (int64 like x, written: the fill grids). Branch-free. Without a mask:
+    :func:`_costs_plain`."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
@@ -273,58 +350,76 @@ def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int, tabl
     s0 = s1 = s2 = s3 = s4 = np.int64(0)
     for r in range(h):
         base = r * row
-        for i in range(base, base + row):
-            inner = i - base >= c
-            p1 = np.int64(g1[i - c]) if inner else np.int64(0)
-            p2 = np.int64(g2[i - row]) if r > 0 else np.int64(0)
-            p3 = np.int64(0)
-            if inner:
-                p3 += np.int64(g3[i - c])
-                if r > 0:
-                    p3 -= np.int64(g3[i - row - c])
-            if r > 0:
-                p3 += np.int64(g3[i - row])
-            p3 &= mask
-            if valid is None or valid[i]:
+        for kx in range(c):
+            f1 = f3 = corner = np.int64(0)
+            for t in range(w):  # a unit-step loop: faster than a range with a variable step
+                i = base + kx + t * c
+                up2 = np.int64(g2[i - row]) if r > 0 else np.int64(0)
+                up3 = np.int64(g3[i - row]) if r > 0 else np.int64(0)
+                p3 = (f3 + up3 - corner) & mask
+                corner = up3
                 v = np.int64(x[i])
-                for p in range(5):
-                    if p == 0:
-                        d = v
-                    elif p == 1:
-                        d = v - p1
-                    elif p == 2:
-                        d = v - p2
-                    elif p == 3:
-                        d = v - p3
-                    else:
-                        if not nref:
-                            break
-                        d = v - np.int64(ref[i])
-                    d = ((d & mask) ^ half) - half
-                    zz = ((d << 1) ^ (d >> 63)) & mask
-                    hi = zz >> 16
-                    b = np.int64(table[hi]) + 16 if hi else np.int64(table[zz])
-                    if p == 0:
-                        s0 += b
-                    elif p == 1:
-                        s1 += b
-                    elif p == 2:
-                        s2 += b
-                    elif p == 3:
-                        s3 += b
-                    else:
-                        s4 += b
-                if valid is not None:
-                    g1[i] = v
-                    g2[i] = v
-                    g3[i] = v
-            else:
-                g1[i] = p1
-                g2[i] = p2
-                g3[i] = p3
+                ok = valid[i]
+                on = np.int64(ok)
+                s0 += on * _zbits_scalar(v, mask, half)
+                s1 += on * _zbits_scalar(v - f1, mask, half)
+                s2 += on * _zbits_scalar(v - up2, mask, half)
+                s3 += on * _zbits_scalar(v - p3, mask, half)
+                if nref:
+                    s4 += on * _zbits_scalar(v - np.int64(ref[i]), mask, half)
+                f1 = v if ok else f1
+                g2[i] = v if ok else up2
+                f3 = v if ok else p3
+                g3[i] = f3
     out = np.empty(5, np.int64)
     out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
+
+
+def _costs_plain(x: Any, ref: Any, nref: int, h: int, w: int, c: int
+                 ) -> Any:  # pragma: no cover - compiled
+    """:func:`_costs` without a mask (every pixel valid; predictions read x itself); the loop
+    over a row's inner pixels has no branch (vectorised)."""
+    bits = x.itemsize * 8
+    mask = (np.int64(1) << bits) - 1
+    half = np.int64(1) << (bits - 1)
+    row = w * c
+    s0 = s1 = s2 = s3 = s4 = np.int64(0)
+    for r in range(h):
+        base = r * row
+        for i in range(base, base + min(c, row)):  # first cell: no left neighbour
+            v = np.int64(x[i])
+            up = np.int64(x[i - row]) if r > 0 else np.int64(0)
+            s0 += _zbits(v, mask, half)
+            s1 += _zbits(v, mask, half)
+            s2 += _zbits(v - up, mask, half)
+            s3 += _zbits(v - up, mask, half)
+            if nref:
+                s4 += _zbits(v - np.int64(ref[i]), mask, half)
+        if r == 0:
+            for i in range(base + c, base + row):
+                v = np.int64(x[i])
+                left = np.int64(x[i - c])
+                s0 += _zbits(v, mask, half)
+                s1 += _zbits(v - left, mask, half)
+                s2 += _zbits(v, mask, half)
+                s3 += _zbits(v - left, mask, half)
+        else:
+            for i in range(base + c, base + row):
+                v = np.int64(x[i])
+                left = np.int64(x[i - c])
+                up = np.int64(x[i - row])
+                s0 += _zbits(v, mask, half)
+                s1 += _zbits(v - left, mask, half)
+                s2 += _zbits(v - up, mask, half)
+                s3 += _zbits(v - left - up + np.int64(x[i - row - c]), mask, half)
+        if nref:
+            for i in range(base + c, base + row):
+                s4 += _zbits(np.int64(x[i]) - np.int64(ref[i]), mask, half)
+    out = np.empty(5, np.int64)
+    out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
+    return out
+
 
 def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c: int
                      ) -> None:  # pragma: no cover - compiled
@@ -388,14 +483,19 @@ def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
 
 
 def _load() -> Any:
-    fns = [numba_jit(fn, boundscheck=False) for fn in (
-        _symbols, _pack_low, _low_counts, _grid, _costs, _unpack_grid, _quantise,
-        _dequantise, _residuals_plain, _roll_rows, _unpredict)]
-    if fns[0] is None:
+    global _bitlen, _clzlen, _zbits, _zbits_scalar
+    try:
+        _bitlen, _clzlen = _make_bitlen()
+    except ImportError:
         return None
-    from lidarscan._codec_bits import ResidualCoder, bitlen_table, roll, symbol_tables
-    (symbols, pack_low, low_counts, grid, costs, unpack_grid, quantise, dequantise,
-     residuals_plain, roll_rows, unpredict) = fns
+    _zbits = numba_jit(_zbits, inline="always")
+    _zbits_scalar = numba_jit(_zbits_scalar, inline="always")
+    fns = [numba_jit(fn, boundscheck=False) for fn in (
+        _symbols, _pack_low, _low_counts, _grid, _costs, _costs_plain, _unpack_grid, _quantise,
+        _dequantise, _residuals_plain, _roll_rows, _unpredict)]
+    from lidarscan._codec_bits import ResidualCoder, roll, symbol_tables
+    (symbols, pack_low, low_counts, grid, costs, costs_plain, unpack_grid, quantise,
+     dequantise, residuals_plain, roll_rows, unpredict) = fns
 
     def flat(a: Any) -> Any:
         return None if a is None else np.ascontiguousarray(a).reshape(-1)
@@ -407,7 +507,7 @@ def _load() -> Any:
         if valid is None:
             residuals_plain(flat_x, z, predictor, flat(x if ref is None else ref), *x.shape)
             return z
-        n = grid(flat_x, np.empty_like(flat_x), z, flat(valid), predictor,
+        n = grid(flat_x, _scratch("fill", x.size, x.dtype), z, flat(valid), predictor,
                  flat(x if ref is None else ref), *x.shape)
         return z[:n]
 
@@ -416,16 +516,20 @@ def _load() -> Any:
 
     def costs_of(x: Any, valid: Any, ref: Any) -> Any:
         flat_x = flat(x)
-        g = (flat_x,) * 3 if valid is None else tuple(np.empty(x.size, np.int64)
-                                                         for _ in range(3))
-        return costs(flat_x, flat(valid), flat(x if ref is None else ref),
-                     0 if ref is None else 1, *x.shape, bitlen_table(), *g)
+        flat_ref = flat(x if ref is None else ref)
+        nref = 0 if ref is None else 1
+        if valid is None:
+            return costs_plain(flat_x, flat_ref, nref, *x.shape)
+        return costs(flat_x, flat(valid), flat_ref, nref, *x.shape,
+                     _scratch("up fill", x.size, np.int64),
+                     _scratch("planar fill", x.size, np.int64))
 
     def decode_of(symbols_: Any, extra: int, counts: Any, low: Any, valid: Any,
                   predictor: int, ref: Any, out: Any) -> Any:
-        padded = np.zeros(low.size + 5, np.uint8)
+        padded = _scratch("low bits", low.size + 5, np.uint8)
         padded[:low.size] = low
-        d = np.empty(out.size, np.int64)
+        padded[low.size:] = 0
+        d = _scratch("residuals", out.size, np.int64)
         unpack_grid(symbols_, *symbol_tables(extra), counts, padded, flat(valid), d)
         unpredict(d, out.reshape(-1), predictor, flat(out if ref is None else ref), *out.shape)
         return out
@@ -449,8 +553,8 @@ def _load() -> Any:
                   out.reshape(x.shape[0], -1))
         return out
 
-    def symbols_of(z: Any, table: Any) -> Any:
-        return symbols(z, table, _small_symbols())
+    def symbols_of(z: Any, table: Any) -> Any:  # table: the reference's, not needed
+        return symbols(np.ascontiguousarray(z, np.uint32))
 
     return ResidualCoder("numba", symbols_of, pack_low, low_counts_of, residuals_of, costs_of,
                          decode_of, quantise_of, dequantise_of, roll_of)
