@@ -9,6 +9,7 @@ which :func:`_fill_views` writes a rotation's channels into a ScanBuffer, by the
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from collections.abc import Mapping
@@ -97,8 +98,16 @@ class _Layout:
     measured: np.ndarray[Any, Any]  # (sequences,) block whose azimuth is the sequence's, or -1
     flags: bytes              # expected second flag byte of each used block (first is 0xFF)
     last_offset: int          # byte offset of the packet's last measured azimuth
+    # derived (per layout, read-only):
+    seq_times: np.ndarray[Any, Any]    # (sequences,) int64 round(seq_ns)
+    measured_seqs: tuple[int, ...]     # the M sequences with a measured azimuth
+    azimuth_at: np.ndarray[Any, Any]   # (M,) int64 offset of their azimuths (low byte)
+    head_at: np.ndarray[Any, Any]      # (4 + 2 S,) int64 offsets of the 4 timestamp bytes and
+    #                                    the sequences' azimuth bytes (low, then high; block
+    #                                    0's where a sequence has no measured azimuth)
 
 
+@functools.cache
 def _layout(product: int, mode: int) -> _Layout:
     model = MODELS[product]
     dual = mode == _DUAL
@@ -119,8 +128,16 @@ def _layout(product: int, mode: int) -> _Layout:
     seq_ns = np.arange(seqs) * model.sequence_ns + model.first_firing_ns
     if model.last_firing_stamp:           # HDL-32E: the stamp is the last firing of the packet
         seq_ns -= (seqs - 1) * model.sequence_ns + model.laser_ns[-1]
-    return _Layout(model, dual, seqs, seq_ns, measured.astype(np.int64), flags,
-                   2 + 100 * int(measured[measured >= 0][-1]))
+    measured = measured.astype(np.int64)
+    blocks = 2 + 100 * np.maximum(measured, 0)
+    arrays = (seq_ns, measured, np.round(seq_ns).astype(np.int64),
+              2 + 100 * measured[measured >= 0],
+              np.concatenate([np.arange(1200, 1204), blocks, blocks + 1]))
+    for array in arrays:
+        array.flags.writeable = False                   # shared by every decoder (cached)
+    return _Layout(model, dual, seqs, arrays[0], arrays[1], flags,
+                   2 + 100 * int(measured[measured >= 0][-1]), arrays[2],
+                   tuple(np.flatnonzero(measured >= 0).tolist()), *arrays[3:])
 
 
 def _blocks_to_sequences(values: np.ndarray[Any, Any], layout: _Layout
