@@ -32,6 +32,7 @@ from converters.velodyne.packets import (
     _layout,
     _nebula_rotation,
     _tables,
+    _words,
 )
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
 from lidarscan.scan import ScanBuffer
@@ -116,6 +117,7 @@ class PacketDecoder:
         self._offsets_key: tuple[Any, ...] | None = None
         self._rotation = np.zeros(0)                    # see _nebula_rotation
         self._rotations: dict[str, np.ndarray[Any, Any]] = {}   # ... per model name
+        self._lib = select("velodyne").c                # the C kernel (LIDARSCAN_NO_KERNEL)
 
     # -------------------------------------------------------------------------------- public
 
@@ -182,6 +184,9 @@ class PacketDecoder:
         if stamps.shape != (rows.shape[0],) or stamps.dtype.kind not in "iu":
             raise DecodeError("stamps_ns", f"{stamps.dtype} {stamps.shape}",
                               f"({rows.shape[0]},) integer ns, one per payload")
+        if rows.strides[1] != 1:                      # a row's bytes must be contiguous
+            return self._push_array(stamps.astype(np.int64, copy=False),
+                                    np.ascontiguousarray(rows), errors=errors, owned=True)
         return self._push_array(stamps.astype(np.int64, copy=False), rows, errors=errors,
                                 owned=_immutable(rows))
 
@@ -256,7 +261,7 @@ class PacketDecoder:
         """The (product, mode) of rows (N >= 1, 1206) when the C kernel finds every packet
         valid and of the same model and mode in one pass; else None (also without the kernel:
         then :meth:`_good_rows` judges, and it alone builds the exact errors)."""
-        lib = select("velodyne").c
+        lib = self._lib
         if lib is None or rows.strides[1] != 1:
             return None
         from converters._kernels.velodyne import first_bad
@@ -303,9 +308,8 @@ class PacketDecoder:
         """Add validated packets (m, 1206) of the current model and mode; cut rotations."""
         layout = self._layout
         assert layout is not None
-        at = layout.azimuth_at
-        az = rows[:, at].astype(np.int64) | (rows[:, at + 1].astype(np.int64) << 8)
-        rel = ((az - self._cut) % 36000).reshape(-1)
+        at = layout.azimuth_words
+        rel = ((_words(rows)[:, at].astype(np.int64) - self._cut) % 36000).reshape(-1)
         cuts = np.nonzero(rel < np.concatenate([[self._prev_rel], rel[:-1]]))[0]
         out: list[tuple[Any, Any]] = []
         row0 = 0
@@ -384,11 +388,11 @@ class PacketDecoder:
         if end - begin <= 0:
             return []
         runs, stamps = self._buffered()
-        at = layout.head_at                      # timestamp, azimuth low and high bytes
-        head = runs[0][:, at] if len(runs) == 1 else np.concatenate([r[:, at] for r in runs])
-        seqs = layout.sequences
-        azimuth = head[:, 4:4 + seqs] + 256.0 * head[:, 4 + seqs:]
-        toh = np.ascontiguousarray(head[:, :4]).view("<u4")[:, 0].astype(np.int64)
+        at = layout.head_words                   # timestamp (2 words), sequence azimuths
+        head = (_words(runs[0])[:, at] if len(runs) == 1
+                else np.concatenate([_words(r)[:, at] for r in runs]))
+        azimuth = head[:, 2:].astype(np.float64)
+        toh = head[:, 0].astype(np.int64) | (head[:, 1].astype(np.int64) << 16)
         times, azimuth = _sequence_columns(azimuth, toh, stamps, layout, self._time_source)
         return [self._assemble(runs, begin, times[begin:end], azimuth[begin:end],
                                partial=partial)]
@@ -490,8 +494,10 @@ def _packet_times(toh_us: np.ndarray[Any, Any], stamps: np.ndarray[Any, Any],
     """(n,) int64 ns of each packet's timestamp (see PacketDecoder ``time_source``), from the
     packets' (n,) int64 microseconds past the hour and their recorded stamps (ns)."""
     toh = toh_us * 1000
-    delta = (toh - toh[0]) % _HOUR_NS                 # forward in time, across the hour wrap
-    delta = np.where(delta > _HOUR_NS // 2, delta - _HOUR_NS, delta)
+    delta = toh - toh[0]
+    if delta.min() < 0 or delta.max() > _HOUR_NS // 2:
+        delta %= _HOUR_NS                             # forward in time, across the hour wrap
+        delta = np.where(delta > _HOUR_NS // 2, delta - _HOUR_NS, delta)
     # receive time of the least delayed packet, relative to the sensor clock
     anchor = int(np.min(stamps - delta))
     if source != "receive":
