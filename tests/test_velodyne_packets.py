@@ -979,7 +979,9 @@ def test_scan_buffer_not_zeroed_keeps_the_padding_zero() -> None:
 def test_wrap_is_np_mod_bit_for_bit(values: list[float]) -> None:
     from converters.velodyne.decoder import _wrap
     x = np.array(values, np.float64)
-    for sub in (x, x[(x > -36000) & (x < 72000)], np.abs(x[np.isfinite(x)]) % 36000):
+    finite = x[np.isfinite(x)]
+    for sub in (x, x[(x > -36000) & (x < 72000)], np.abs(finite) % 36000,
+                np.abs(finite) % 72000, np.fmod(finite, 36000)):
         with np.errstate(invalid="ignore"):               # np.mod of inf
             np.testing.assert_array_equal(_wrap(sub).view(np.int64),
                                           np.mod(sub, 36000.0).view(np.int64))

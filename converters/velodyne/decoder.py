@@ -71,6 +71,9 @@ class PacketDecoder:
             timing on the real VLS-128 recording, ``converters.evidence.velodyne_timing``).
         as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
 
+    The C kernel (``converters._kernels.select("velodyne")``, switched off by
+    ``LIDARSCAN_NO_KERNEL``) is chosen when the decoder is made.
+
     Width: W = ceil((1 + width_margin) * 2 pi / (omega * T)), omega the rotation rate and T the
     mean column period, both measured on the first rotation of an info version (a rotation
     whose rate differs by more than 1 % starts a new version). A shorter
@@ -309,7 +312,10 @@ class PacketDecoder:
         layout = self._layout
         assert layout is not None
         at = layout.azimuth_words
-        rel = ((_words(rows)[:, at].astype(np.int64) - self._cut) % 36000).reshape(-1)
+        rel = _words(rows)[:, at].astype(np.int64).reshape(-1)     # 0..35999 (checked)
+        if self._cut:                                # (rel - cut) % 36000
+            rel -= self._cut
+            rel += 36000 * (rel < 0)
         cuts = np.nonzero(rel < np.concatenate([[self._prev_rel], rel[:-1]]))[0]
         out: list[tuple[Any, Any]] = []
         row0 = 0
@@ -572,9 +578,10 @@ def _wrap(values: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     +0.0 that np.mod gives)."""
     if values.size:
         low, high = values.min(), values.max()        # (NaN: both comparisons fail)
+        if low >= 0.0 and high < 36000.0:
+            return values + 0.0
         if low >= 0.0 and high < 72000.0:
-            return values - 36000.0 * (values >= 36000.0) + 0.0 if high >= 36000.0 \
-                else values + 0.0
+            return values - 36000.0 * (values >= 36000.0) + 0.0
         if low > -36000.0 and high < 36000.0:
             return values + 36000.0 * (values < 0.0)
     return np.mod(values, 36000.0)
