@@ -274,13 +274,17 @@ class ScanBuffer:
             per pixel (int8..uint32, float32, float64).
         is_bigendian: byte order of the blocks (the views are in that order).
         as_dataclass: build :mod:`lidarscan.types` dataclasses instead of rclpy messages.
+        zeroed: False: the views start with arbitrary bytes (no memset of the block; the
+            caller writes every element); the padding between the channels is zero either way.
+            rclpy message buffers are always zeroed.
 
     Attributes:
-        views: name -> writable (H, W) or (H, W, count) ndarray over the block, zero-filled.
+        views: name -> writable (H, W) or (H, W, count) ndarray over the block, zero-filled
+            (unless ``zeroed`` is False).
     """
 
     def __init__(self, info: Any, channels: Mapping[str, Any], *, is_bigendian: bool = False,
-                 as_dataclass: bool = False) -> None:
+                 as_dataclass: bool = False, zeroed: bool = True) -> None:
         self.info, self.is_bigendian, self.as_dataclass = info, bool(is_bigendian), as_dataclass
         height, width = int(info.height), int(info.width)
         layout = []
@@ -298,9 +302,14 @@ class ScanBuffer:
             offset += height * width * int(count) * target.itemsize
         self._descs = [entry[:4] for entry in layout]
         # rclpy keeps an array.array('B') as the message's buffer (no conversion)
-        self._data: Any = (np.zeros(offset, np.uint8) if as_dataclass
+        self._data: Any = ((np.zeros if zeroed else np.empty)(offset, np.uint8) if as_dataclass
                            else array.array("B", bytes(offset)))
         block = np.frombuffer(self._data, np.uint8) if not as_dataclass else self._data
+        if not zeroed and as_dataclass:
+            end = 0
+            for _, o, _, c, t in layout:                # the alignment padding
+                block[end:o] = 0
+                end = o + height * width * c * t.itemsize
         shape = (height, width)
         self.views: dict[str, np.ndarray[Any, Any]] = {
             name: block[o:o + height * width * c * t.itemsize].view(t).reshape(

@@ -864,3 +864,165 @@ def test_azimuth_channel_drives_every_projection() -> None:
     same = np.isclose(rolled, bins["after"], atol=1e-4) | (np.isinf(rolled)
                                                            & np.isinf(bins["after"]))
     assert same.mean() > 0.95 and not np.array_equal(bins["before"], bins["after"])
+
+
+# ------------------------------------------------------------------- decode_packets' chunks
+
+def test_decode_packets_batches_mixed_payload_types(monkeypatch: pytest.MonkeyPatch) -> None:
+    """bytes, bytearray, memoryview and 1-D uint8 ndarray payloads in one chunk: the batch path
+    (every payload as push() takes it) gives what push() one by one gives, across chunks."""
+    from converters.velodyne import decoder as module
+    monkeypatch.setattr(module, "_CHUNK", 64)
+    calib = _random_calibration(32, 21)
+    packets = synthetic_stream(0x28, 0x39, 300, deg_per_sequence=1.7)
+    kinds = (bytes, bytearray, memoryview, lambda d: np.frombuffer(d, np.uint8))
+    mixed = [(s, kinds[i % 4](d)) for i, (s, d) in enumerate(packets)]
+    one = PacketDecoder(calib, as_dataclass=True)
+    expected = [r for s, d in packets for r in one.push(s, d)] + one.flush()
+    pushed = []
+    real = PacketDecoder.push
+    monkeypatch.setattr(PacketDecoder, "push", lambda self, s, d: pushed.append(s) or real(self, s, d))
+    _same_scans(expected, list(decode_packets(mixed, calib, as_dataclass=True)))
+    assert pushed == []                                   # every chunk went through the batch
+    # numpy stamps and a stamps/payloads pair type other than tuple
+    rows = [[np.int64(s), d] for s, d in packets]
+    _same_scans(expected, list(decode_packets(rows, calib, as_dataclass=True)))
+    assert pushed == []
+
+
+@pytest.mark.parametrize("defect", ["short", "long", "flag", "2-D array", "int8 array",
+                                    "float stamp"])
+def test_decode_packets_bad_packet_in_a_batch(defect: str, monkeypatch: pytest.MonkeyPatch
+                                              ) -> None:
+    """A defect in the third chunk: decode_packets yields exactly the rotations the packets
+    before it complete (push() one by one), then raises that packet's DecodeError."""
+    from converters.velodyne import decoder as module
+    monkeypatch.setattr(module, "_CHUNK", 64)
+    calib = _random_calibration(16, 22)
+    packets = synthetic_stream(0x22, 0x37, 400, deg_per_sequence=1.1)
+    at = 150
+    stamp, data = packets[at]
+    bad: Any = {"short": data[:-1], "long": data + b"\0", "2-D array":
+                np.frombuffer(data, np.uint8).reshape(-1, 1),
+                "int8 array": np.frombuffer(data, np.int8),
+                "flag": data[:1] + b"\x12" + data[2:], "float stamp": data}[defect]
+    stream = [*packets[:at], (float(stamp) if defect == "float stamp" else stamp, bad),
+              *packets[at + 1:]]
+    one = PacketDecoder(calib, as_dataclass=True)
+    before = [r for s, d in packets[:at] for r in one.push(s, d)]
+    assert before                                         # rotations before the defect
+    got: list[Any] = []
+    if defect == "float stamp":                           # push() takes int(stamp): no error
+        got = list(decode_packets(stream, calib, as_dataclass=True))
+        _same_scans(list(decode_packets(packets, calib, as_dataclass=True)), got)
+        return
+    expected = {"short": "1205 bytes", "long": "1207 bytes", "flag": "flag",
+                "2-D array": "1-D uint8", "int8 array": "1-D uint8"}[defect]
+    with pytest.raises(DecodeError, match=expected):
+        for result in decode_packets(stream, calib, as_dataclass=True):
+            got.append(result)
+    _same_scans(before, got)
+
+
+# ------------------------------------------------------------------ uninitialised scan data
+
+@pytest.mark.parametrize("azimuth_model", ["nebula", "manual"])
+@pytest.mark.parametrize("kernel", ["C", "numpy"])
+def test_fill_writes_every_pixel(kernel: str, azimuth_model: str,
+                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """The decoder's ScanBuffers start uninitialised (``zeroed=False``): filled with junk
+    instead, every channel of every model and return mode (short rotations with padding
+    columns included) comes out as from a zeroed buffer."""
+    from converters.velodyne import decoder as module
+    from lidarscan.scan import ScanBuffer
+
+    if kernel == "C":
+        from converters._kernels import select
+        if select("velodyne").c is None:
+            pytest.skip("converters._kernels._velokernel is not built")
+    else:
+        monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "1")
+
+    class Junk(ScanBuffer):
+        def __init__(self, *args: Any, zeroed: bool = True, **kw: Any) -> None:
+            super().__init__(*args, zeroed=zeroed, **kw)
+            if not zeroed:
+                for view in self.views.values():
+                    view.view(np.uint8)[...] = 0xA5
+
+    class Zero(ScanBuffer):
+        def __init__(self, *args: Any, zeroed: bool = True, **kw: Any) -> None:
+            super().__init__(*args, **kw)
+
+    for name, product in sorted(PRODUCTS.items()):
+        calib = _random_calibration(MODELS[product].lasers, 23)
+        for mode in sorted(MODES.values()):
+            stream = synthetic_stream(product, mode, 130, deg_per_sequence=2.9, seed=mode)
+            results = {}
+            for buffer in (Junk, Zero):
+                monkeypatch.setattr(module, "ScanBuffer", buffer)
+                results[buffer] = list(decode_packets(stream, calib, as_dataclass=True,
+                                                      azimuth_model=azimuth_model))
+            assert len(results[Zero]) >= 2 and any(           # a padded, short rotation
+                int(np.count_nonzero(s.column_time_offsets)) < s.width for s, _ in results[Zero])
+            _same_scans(results[Zero], results[Junk])
+
+
+def test_scan_buffer_not_zeroed_keeps_the_padding_zero() -> None:
+    """ScanBuffer(zeroed=False): views over uninitialised memory, the alignment padding between
+    channels zero (numpy hands out its cached small blocks again: junk first)."""
+    from lidarscan.scan import ScanBuffer
+    from lidarscan.types import LidarInfo
+    info = LidarInfo(height=3, width=3)
+    channels = {"a": np.uint8, "b": np.uint16, "c": np.uint8, "d": np.float32}
+    size = ScanBuffer(info, channels, as_dataclass=True)._data.size
+    assert size == 92                                     # blocks at multiples of 8
+    for _ in range(20):
+        junk = np.full(size, 0xFF, np.uint8)
+        del junk
+        buffer = ScanBuffer(info, channels, as_dataclass=True, zeroed=False)
+        data = buffer._data
+        assert not data[9:16].any() and not data[34:40].any() and not data[49:56].any()
+        for view in buffer.views.values():
+            view[...] = 1
+        scan = buffer.build(5)
+        assert scan.data.size == size and lidarscan.channel(scan, "d").tolist() == [[1.0] * 3] * 3
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(
+    st.floats(-80000.0, 80000.0), st.sampled_from([0.0, -0.0, 36000.0, -36000.0, 72000.0,
+                                                   35999.99, 71999.99, -35999.99, 1e300,
+                                                   float("nan"), float("inf")])),
+    min_size=0, max_size=12))
+def test_wrap_is_np_mod_bit_for_bit(values: list[float]) -> None:
+    from converters.velodyne.decoder import _wrap
+    x = np.array(values, np.float64)
+    finite = x[np.isfinite(x)]
+    for sub in (x, x[(x > -36000) & (x < 72000)], np.abs(finite) % 36000,
+                np.abs(finite) % 72000, np.fmod(finite, 36000)):
+        with np.errstate(invalid="ignore"):               # np.mod of inf
+            np.testing.assert_array_equal(_wrap(sub).view(np.int64),
+                                          np.mod(sub, 36000.0).view(np.int64))
+
+
+def test_push_many_of_unaligned_and_strided_rows() -> None:
+    """Rows at odd addresses (a view into wider rows), Fortran order and a negative column
+    step give what push() one by one gives (the azimuths and timestamps are read as 16-bit
+    words of each row; rows whose bytes are not contiguous are copied first)."""
+    product = PRODUCTS["VLS-128"]
+    calib = _random_calibration(128, 24)
+    packets = synthetic_stream(product, 0x37, 120, deg_per_sequence=1.9)
+    one = PacketDecoder(calib, as_dataclass=True)
+    expected = [r for s, d in packets for r in one.push(s, d)] + one.flush()
+    rows = np.frombuffer(b"".join(d for _, d in packets), np.uint8).reshape(-1, 1206)
+    stamps = np.array([s for s, _ in packets], np.int64)
+    wide = np.zeros((rows.shape[0], 1207), np.uint8)
+    wide[:, 1:] = rows
+    reversed_ = np.ascontiguousarray(rows[:, ::-1])[:, ::-1]
+    for variant in (wide[:, 1:], np.asfortranarray(rows), reversed_):
+        batch = PacketDecoder(calib, as_dataclass=True)
+        got = []
+        for i in range(0, len(rows), 29):
+            got += batch.push_many(stamps[i:i + 29], variant[i:i + 29])
+        _same_scans(expected, got + batch.flush())

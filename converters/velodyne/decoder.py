@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import operator
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
@@ -31,6 +32,7 @@ from converters.velodyne.packets import (
     _layout,
     _nebula_rotation,
     _tables,
+    _words,
 )
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
 from lidarscan.scan import ScanBuffer
@@ -68,6 +70,9 @@ class PacketDecoder:
             channel, the manuals' firing times as per-beam offsets (physically the better
             timing on the real VLS-128 recording, ``converters.evidence.velodyne_timing``).
         as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
+
+    The C kernel (``converters._kernels.select("velodyne")``, switched off by
+    ``LIDARSCAN_NO_KERNEL``) is chosen when the decoder is made.
 
     Width: W = ceil((1 + width_margin) * 2 pi / (omega * T)), omega the rotation rate and T the
     mean column period, both measured on the first rotation of an info version (a rotation
@@ -115,6 +120,7 @@ class PacketDecoder:
         self._offsets_key: tuple[Any, ...] | None = None
         self._rotation = np.zeros(0)                    # see _nebula_rotation
         self._rotations: dict[str, np.ndarray[Any, Any]] = {}   # ... per model name
+        self._lib = select("velodyne").c                # the C kernel (LIDARSCAN_NO_KERNEL)
 
     # -------------------------------------------------------------------------------- public
 
@@ -181,6 +187,9 @@ class PacketDecoder:
         if stamps.shape != (rows.shape[0],) or stamps.dtype.kind not in "iu":
             raise DecodeError("stamps_ns", f"{stamps.dtype} {stamps.shape}",
                               f"({rows.shape[0]},) integer ns, one per payload")
+        if rows.strides[1] != 1:                      # a row's bytes must be contiguous
+            return self._push_array(stamps.astype(np.int64, copy=False),
+                                    np.ascontiguousarray(rows), errors=errors, owned=True)
         return self._push_array(stamps.astype(np.int64, copy=False), rows, errors=errors,
                                 owned=_immutable(rows))
 
@@ -198,9 +207,11 @@ class PacketDecoder:
                 out.extend(self.flush())
                 self._key, self._layout = key, self._check_key(key)
             out.extend(self._push_rows(stamps, rows))
-            n = 0                                     # (nothing left for the general path)
-        keys = (rows[:n, 1205].astype(np.int64) << 8) | rows[:n, 1204]
-        good = self._good_rows(rows, keys) if n else np.ones(0, bool)
+            if not owned:
+                self._own(stamps, rows)
+            return out
+        keys = (rows[:, 1205].astype(np.int64) << 8) | rows[:, 1204]
+        good = self._good_rows(rows, keys)
         if not good.all():
             bad = np.flatnonzero(~good)
             if errors is None:
@@ -209,7 +220,7 @@ class PacketDecoder:
                                   err.expected) from err
             errors.extend((int(i), self._row_error(rows[i])) for i in bad.tolist())
         starts = np.flatnonzero((keys[1:] != keys[:-1]) | (good[1:] != good[:-1])) + 1
-        bounds = [0, *starts.tolist(), n] if n else []
+        bounds = [0, *starts.tolist(), n]
         for i, j in itertools.pairwise(bounds):
             if not good[i]:
                 continue
@@ -218,12 +229,16 @@ class PacketDecoder:
                 out.extend(self.flush())
                 self._key, self._layout = key, self._check_key(key)
             out.extend(self._push_rows(stamps[i:j], rows[i:j]))
-        if not owned:                                 # keep no view of a mutable buffer
-            self._packets = [p.copy() if isinstance(p, np.ndarray)
-                             and np.may_share_memory(p, rows) else p for p in self._packets]
-            self._stamps = [s.copy() if isinstance(s, np.ndarray)
-                            and np.may_share_memory(s, stamps) else s for s in self._stamps]
+        if not owned:
+            self._own(stamps, rows)
         return out
+
+    def _own(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]) -> None:
+        """Copy the buffered packets and stamps that view the caller's (mutable) arrays."""
+        self._packets = [p.copy() if isinstance(p, np.ndarray)
+                         and np.may_share_memory(p, rows) else p for p in self._packets]
+        self._stamps = [s.copy() if isinstance(s, np.ndarray)
+                        and np.may_share_memory(s, stamps) else s for s in self._stamps]
 
     def _validate(self, data: bytes) -> tuple[tuple[int, int], _Layout]:
         """(key, layout) of one payload, or the DecodeError saying what is wrong with it."""
@@ -249,7 +264,7 @@ class PacketDecoder:
         """The (product, mode) of rows (N >= 1, 1206) when the C kernel finds every packet
         valid and of the same model and mode in one pass; else None (also without the kernel:
         then :meth:`_good_rows` judges, and it alone builds the exact errors)."""
-        lib = select("velodyne").c
+        lib = self._lib
         if lib is None or rows.strides[1] != 1:
             return None
         from converters._kernels.velodyne import first_bad
@@ -296,16 +311,17 @@ class PacketDecoder:
         """Add validated packets (m, 1206) of the current model and mode; cut rotations."""
         layout = self._layout
         assert layout is not None
-        index = np.nonzero(layout.measured >= 0)[0]
-        offsets = 2 + 100 * layout.measured[index]
-        az = rows[:, offsets].astype(np.int64) | (rows[:, offsets + 1].astype(np.int64) << 8)
-        rel = ((az - self._cut) % 36000).reshape(-1)
+        at = layout.azimuth_words
+        rel = _words(rows)[:, at].astype(np.int64).reshape(-1)     # 0..35999 (checked)
+        if self._cut:                                # (rel - cut) % 36000
+            rel -= self._cut
+            rel += 36000 * (rel < 0)
         cuts = np.nonzero(rel < np.concatenate([[self._prev_rel], rel[:-1]]))[0]
         out: list[tuple[Any, Any]] = []
         row0 = 0
         for j in cuts.tolist():                     # sequence s of packet p starts a rotation
-            p, s = divmod(j, index.size)
-            s = int(index[s])
+            p, s = divmod(j, at.size)
+            s = layout.measured_seqs[s]
             self._add(stamps[row0:p + (s > 0)], rows[row0:p + (s > 0)])
             out.extend(self._emit(stop=s if s > 0 else None))
             self._packets, self._stamps, self._rows, self._first_seq = [], [], 0, s
@@ -378,13 +394,11 @@ class PacketDecoder:
         if end - begin <= 0:
             return []
         runs, stamps = self._buffered()
-        blocks = 2 + 100 * np.maximum(layout.measured, 0)
-        head = np.concatenate([run[:, np.append(blocks, blocks + 1)] for run in runs]
-                              if len(runs) > 1 else [runs[0][:, np.append(blocks, blocks + 1)]])
-        toh = np.concatenate([run[:, 1200:1204] for run in runs]) if len(runs) > 1 else \
-            runs[0][:, 1200:1204]
-        azimuth = head[:, :blocks.size] + 256.0 * head[:, blocks.size:]
-        toh = np.ascontiguousarray(toh).view("<u4").reshape(-1).astype(np.int64)
+        at = layout.head_words                   # timestamp (2 words), sequence azimuths
+        head = (_words(runs[0])[:, at] if len(runs) == 1
+                else np.concatenate([_words(r)[:, at] for r in runs]))
+        azimuth = head[:, 2:].astype(np.float64)
+        toh = head[:, 0].astype(np.int64) | (head[:, 1].astype(np.int64) << 16)
         times, azimuth = _sequence_columns(azimuth, toh, stamps, layout, self._time_source)
         return [self._assemble(runs, begin, times[begin:end], azimuth[begin:end],
                                partial=partial)]
@@ -431,10 +445,15 @@ class PacketDecoder:
             specs.update(range2=np.uint16, intensity2=np.uint8)
         if nebula:
             specs.update(azimuth=np.uint16, **({"azimuth2": np.uint16} if returns == 2 else {}))
-        buffer = ScanBuffer(info, specs, as_dataclass=self._as_dataclass)
+        # every pixel of the columns 0..count-1 is written (tests/test_velodyne_packets.py,
+        # test_fill_writes_every_pixel): only the padding columns need zeros
+        buffer = ScanBuffer(info, specs, as_dataclass=self._as_dataclass, zeroed=False)
+        if pad:
+            for view in buffer.views.values():
+                view[:, count:] = 0
         _fill_views(runs, begin, count, layout, tables, buffer.views)
         stamp = int(times[0])
-        column_azimuth = -np.deg2rad(np.mod(azimuth, 36000.0) / 100.0)
+        column_azimuth = -np.deg2rad(_wrap(azimuth) / 100.0)
         scan = buffer.build(stamp, column_azimuth_angles=column_azimuth,
                             column_time_offsets=times - stamp)
         return scan, info
@@ -481,8 +500,10 @@ def _packet_times(toh_us: np.ndarray[Any, Any], stamps: np.ndarray[Any, Any],
     """(n,) int64 ns of each packet's timestamp (see PacketDecoder ``time_source``), from the
     packets' (n,) int64 microseconds past the hour and their recorded stamps (ns)."""
     toh = toh_us * 1000
-    delta = (toh - toh[0]) % _HOUR_NS                 # forward in time, across the hour wrap
-    delta = np.where(delta > _HOUR_NS // 2, delta - _HOUR_NS, delta)
+    delta = toh - toh[0]
+    if delta.min() < 0 or delta.max() > _HOUR_NS // 2:
+        delta %= _HOUR_NS                             # forward in time, across the hour wrap
+        delta = np.where(delta > _HOUR_NS // 2, delta - _HOUR_NS, delta)
     # receive time of the least delayed packet, relative to the sensor clock
     anchor = int(np.min(stamps - delta))
     if source != "receive":
@@ -506,25 +527,25 @@ def _sequence_columns(seq_az: np.ndarray[Any, Any], toh_us: np.ndarray[Any, Any]
     clockwise centidegrees (measured, or interpolated for VLP-16's second sequence of a block).
     """
     n = seq_az.shape[0]
-    if np.any(layout.measured < 0):      # VLP-16: second sequence of a block, half-way in time
+    measured = layout.measured_seqs
+    if len(measured) < layout.sequences:  # VLP-16: second sequence of a block, half-way in time
         meas = seq_az[:, 0::2]
-        gap = np.mod(np.diff(meas, axis=1), 36000.0)
+        gap = _wrap(np.diff(meas, axis=1))
         gap = np.concatenate([gap, gap[:, -1:]], axis=1) if gap.shape[1] else np.zeros_like(meas)
         seq_az[:, 1::2] = meas + gap / 2.0
     times = _packet_times(toh_us, stamps, source)
-    seq_ns = np.round(layout.seq_ns).astype(np.int64)
+    seq_ns = layout.seq_times
     grid = times[:, None] + seq_ns[None]
     # A sensor with a restricted field of view completes its last packet before the gap with
     # the first firings after it: sequences after an azimuth jump inside a packet are timed
     # backwards from the next packet (they directly precede it).
-    meas = seq_az[:, layout.measured >= 0]
-    if meas.shape[1] > 1 and n > 1:
-        jump = np.mod(np.diff(meas, axis=1), 36000.0) > _JUMP_CENTIDEG
+    if len(measured) > 1 and n > 1:
+        meas = seq_az if len(measured) == layout.sequences else seq_az[:, list(measured)]
+        jump = _wrap(np.diff(meas, axis=1)) > _JUMP_CENTIDEG
         rows = np.nonzero(jump[:-1].any(axis=1))[0]
         if rows.size:
-            index = np.nonzero(layout.measured >= 0)[0]
             for p in rows.tolist():
-                first = int(index[int(np.argmax(jump[p])) + 1])
+                first = measured[int(np.argmax(jump[p])) + 1]
                 grid[p, first:] = (times[p + 1] + seq_ns[0] - int(round(layout.model.sequence_ns))
                                    - (seq_ns[-1] - seq_ns[first:]))
     return grid.reshape(-1), seq_az.reshape(-1)
@@ -535,7 +556,7 @@ def _rates(times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any]) -> tuple[
     if times.size < 2:
         return 0.0, 0.0
     dt = np.diff(times.astype(np.float64))
-    da = np.mod(np.diff(azimuth), 36000.0)
+    da = _wrap(np.diff(azimuth))
     half = dt.size // 2                               # np.median(dt), without its overhead
     if dt.size % 2:
         median = float(np.partition(dt, half)[half])
@@ -543,11 +564,27 @@ def _rates(times: np.ndarray[Any, Any], azimuth: np.ndarray[Any, Any]) -> tuple[
         low, high = np.partition(dt, (half - 1, half))[half - 1:half + 1]
         median = float((low + high) / 2.0)
     regular = (dt > 0) & (dt < 1.5 * median)          # consecutive firings, not gaps
-    if not np.any(regular):
-        return 0.0, 0.0
-    period = float(dt[regular].mean())
-    omega = float(np.radians(da[regular].sum() / 100.0) / (dt[regular].sum() * 1e-9))
-    return period, omega
+    if not regular.all():
+        if not regular.any():
+            return 0.0, 0.0
+        dt, da = dt[regular], da[regular]
+    total = dt.sum()                                  # (dt.mean() is total / size)
+    return float(total / dt.size), float(np.radians(da.sum() / 100.0) / (total * 1e-9))
+
+
+def _wrap(values: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """``np.mod(values, 36000.0)`` bit for bit (float64), without its cost where every value is
+    in (-36000, 72000): there one exact addition or subtraction of 36000 (+0.0 makes -0.0 the
+    +0.0 that np.mod gives)."""
+    if values.size:
+        low, high = values.min(), values.max()        # (NaN: both comparisons fail)
+        if low >= 0.0 and high < 36000.0:
+            return values + 0.0
+        if low >= 0.0 and high < 72000.0:
+            return values - 36000.0 * (values >= 36000.0) + 0.0
+        if low > -36000.0 and high < 36000.0:
+            return values + 36000.0 * (values < 0.0)
+    return np.mod(values, 36000.0)
 
 
 def _immutable(rows: np.ndarray[Any, Any]) -> bool:
@@ -564,24 +601,28 @@ def _immutable(rows: np.ndarray[Any, Any]) -> bool:
     return type(base) is bytes
 
 
+#: packets decode_packets() pushes at once (one join, one C header pass, one stamps array)
+_CHUNK = 4096
+_stamp_of, _payload_of = operator.itemgetter(0), operator.itemgetter(1)
+
+
 def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
                    **kw: Any) -> Iterator[tuple[Any, Any]]:
     """Decode (stamp_ns, payload) pairs: :meth:`PacketDecoder.push` each, then ``flush``.
 
-    Runs of ``bytes`` payloads go through :meth:`PacketDecoder.push_many` (same results).
-    Keyword arguments go to :class:`PacketDecoder`. A malformed packet raises its DecodeError
-    after the rotations before it (use :class:`PacketDecoder` directly to report and continue).
+    Chunks of up to 4096 pairs go through :meth:`PacketDecoder.push_many` when every payload
+    of the chunk is a valid packet (same results). Keyword arguments go to
+    :class:`PacketDecoder`. A malformed packet raises its DecodeError after the rotations
+    before it (use :class:`PacketDecoder` directly to report and continue).
     """
     decoder = PacketDecoder(calibration, **kw)
     source = iter(packets)
-    while chunk := list(itertools.islice(source, 4096)):
-        stamps, payloads = zip(*chunk)
+    while chunk := list(itertools.islice(source, _CHUNK)):
+        batch = _as_rows(chunk)
         done = None
-        if set(map(type, payloads)) == {bytes} and set(map(len, payloads)) == {PACKET_SIZE}:
-            rows = np.frombuffer(b"".join(payloads), np.uint8).reshape(-1, PACKET_SIZE)
+        if batch is not None:
             try:
-                done = decoder._push_array(np.array(stamps, np.int64), rows, errors=None,
-                                           owned=True)
+                done = decoder._push_array(*batch, errors=None, owned=True)
             except LidarScanError:               # raised before anything was consumed
                 done = None
         if done is None:                         # odd inputs or a bad packet: one by one
@@ -590,3 +631,23 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
         else:
             yield from done
     yield from decoder.flush()
+
+
+def _as_rows(chunk: list[Any]) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
+    """(stamps (n,) int64 ns, rows (n, 1206) uint8 over one new ``bytes``) of n (stamp,
+    payload) pairs, the payloads taken as :meth:`PacketDecoder.push` takes them; None when a
+    pair, stamp or payload is odd (then push() one by one says what is wrong)."""
+    n = len(chunk)
+    try:
+        payloads = list(map(_payload_of, chunk))
+        stamps = np.fromiter(map(_stamp_of, chunk), np.int64, n)
+    except (TypeError, ValueError, IndexError, KeyError, OverflowError):
+        return None
+    if set(map(type, payloads)) != {bytes}:      # bytearray, memoryview, ndarray payloads
+        try:
+            payloads = list(map(payload_bytes, payloads))
+        except LidarScanError:
+            return None
+    if set(map(len, payloads)) != {PACKET_SIZE}:
+        return None
+    return stamps, np.frombuffer(b"".join(payloads), np.uint8).reshape(n, PACKET_SIZE)

@@ -9,6 +9,7 @@ which :func:`_fill_views` writes a rotation's channels into a ScanBuffer, by the
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from collections.abc import Mapping
@@ -98,8 +99,16 @@ class _Layout:
     measured: np.ndarray[Any, Any]  # (sequences,) block whose azimuth is the sequence's, or -1
     flags: bytes              # expected second flag byte of each used block (first is 0xFF)
     last_offset: int          # byte offset of the packet's last measured azimuth
+    # derived (per layout, read-only):
+    seq_times: np.ndarray[Any, Any]    # (sequences,) int64 round(seq_ns)
+    measured_seqs: tuple[int, ...]     # the M sequences with a measured azimuth
+    # indices into a packet as 603 little-endian uint16 words (:func:`_words`):
+    azimuth_words: np.ndarray[Any, Any]   # (M,) of those sequences' azimuths
+    head_words: np.ndarray[Any, Any]   # (2 + S,) the timestamp's low and high word, then the
+    #                                    azimuth of each sequence (block 0's where unmeasured)
 
 
+@functools.cache
 def _layout(product: int, mode: int) -> _Layout:
     model = MODELS[product]
     dual = mode == _DUAL
@@ -120,8 +129,21 @@ def _layout(product: int, mode: int) -> _Layout:
     seq_ns = np.arange(seqs) * model.sequence_ns + model.first_firing_ns
     if model.last_firing_stamp:           # HDL-32E: the stamp is the last firing of the packet
         seq_ns -= (seqs - 1) * model.sequence_ns + model.laser_ns[-1]
-    return _Layout(model, dual, seqs, seq_ns, measured.astype(np.int64), flags,
-                   2 + 100 * int(measured[measured >= 0][-1]))
+    measured = measured.astype(np.int64)
+    arrays = (seq_ns, measured, np.round(seq_ns).astype(np.int64),
+              1 + 50 * measured[measured >= 0],
+              np.concatenate([[600, 601], 1 + 50 * np.maximum(measured, 0)]))
+    for array in arrays:
+        array.flags.writeable = False                   # shared by every decoder (cached)
+    return _Layout(model, dual, seqs, arrays[0], arrays[1], flags,
+                   2 + 100 * int(measured[measured >= 0][-1]), arrays[2],
+                   tuple(np.flatnonzero(measured >= 0).tolist()), *arrays[3:])
+
+
+def _words(rows: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """(n, 1206) uint8 packets as (n, 603) little-endian uint16 words (a view when the bytes of
+    a row are contiguous; the block azimuths are the words 1 + 50 b, the timestamp 600-601)."""
+    return (rows if rows.strides[1] == 1 else np.ascontiguousarray(rows)).view("<u2")
 
 
 def _blocks_to_sequences(values: np.ndarray[Any, Any], layout: _Layout
@@ -263,11 +285,13 @@ class _Tables:
             without an azimuth channel.
         plan: the C kernel's arguments (``converters._kernels.velodyne.Plan``), or None (no
             kernel: the numpy references).
+        lib: the loaded C kernel the plan is for (None without a plan).
     """
 
     offsets: np.ndarray[Any, Any]
     rotation: np.ndarray[Any, Any]
     plan: Any = None
+    lib: Any = None
 
 
 def _tables(layout: _Layout, order: np.ndarray[Any, Any], rotation: np.ndarray[Any, Any] | None
@@ -281,7 +305,8 @@ def _tables(layout: _Layout, order: np.ndarray[Any, Any], rotation: np.ndarray[A
     nebula = rotation is not None
     if rotation is None:
         rotation = np.zeros(layout.model.lasers)
-    if select("velodyne").c is None:
+    lib = select("velodyne").c
+    if lib is None:
         return _Tables(offsets, rotation)
     from converters._kernels.velodyne import Plan
 
@@ -297,7 +322,9 @@ def _tables(layout: _Layout, order: np.ndarray[Any, Any], rotation: np.ndarray[A
         factor = (_F32(2.665) / _F32(53.3)) * (group + group // 8).astype(_F32)
     plan = Plan(offsets, factor, rotation[laser], ("vlp16", "vlp32", "vls128").index(family),
                 layout.dual, 8 if family == "vls128" and layout.dual else _BLOCKS)
-    return _Tables(offsets, rotation, plan if plan.angles_ok or not nebula else None)
+    if plan.angles_ok or not nebula:
+        return _Tables(offsets, rotation, plan, lib)
+    return _Tables(offsets, rotation)
 
 
 def _fill_views(runs: list[np.ndarray[Any, Any]], begin: int, count: int, layout: _Layout,
@@ -306,11 +333,9 @@ def _fill_views(runs: list[np.ndarray[Any, Any]], begin: int, count: int, layout
     ScanBuffer's views (``range``, ``intensity``, [``range2``, ``intensity2``], [``azimuth``,
     [``azimuth2``]]), by the C kernel when ``tables`` has its plan, else by the numpy
     references (:func:`_fill_numpy`, :func:`_azimuths_numpy`); identical results."""
-    lib = None
-    if tables.plan is not None:
-        from converters._kernels import select
+    lib = tables.lib
+    if lib is not None:
         from converters._kernels.velodyne import fill
-        lib = select("velodyne").c
     offsets = tables.offsets
     nebula = "azimuth" in views
     seqs = layout.sequences
