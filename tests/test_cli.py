@@ -484,3 +484,27 @@ def test_leaving_a_read_ahead_early_closes_its_iterator_in_its_thread() -> None:
     reader.close()                               # as a KeyboardInterrupt in the loop does
     assert closed == ["read-ahead"]
     assert threading.active_count() == before
+
+
+def test_prepared_items_come_in_pairs_with_the_error_in_place_of_the_value() -> None:
+    import threading
+
+    from converters.cli._common import _open_input
+    from lidarscan.errors import DecodeError
+
+    bag = Path(__file__).parent / "data" / "nebula" / "velodyne_vls128" / "bag"
+    seen: list[str] = []
+
+    def prepare(item: Any) -> int:
+        seen.append(threading.current_thread().name)
+        if item.index == 1:
+            raise DecodeError("packets", item.index, "a message this test does not break")
+        return item.index * 10
+
+    source = _open_input(str(bag), "IN")
+    pairs = list(source.items(prepare=prepare))
+    plain = list(source.items())
+    assert [item.index for item, _ in pairs] == [item.index for item in plain]
+    assert len(pairs) > 2 and pairs[0][1] == 0 and pairs[2][1] == 20
+    assert isinstance(pairs[1][1], DecodeError)
+    assert set(seen) == {"read-ahead"}

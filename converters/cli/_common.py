@@ -108,24 +108,24 @@ class _Input:
             return {t.name: t.msgtype for t in self.bag.topics.values()}
         return _file_topics(self.path)
 
-    def items(self, progress: Progress | None = None) -> Iterator[Any]:
+    def items(self, progress: Progress | None = None,
+              prepare: Callable[[Any], Any] | None = None) -> Iterator[Any]:
         """Every message (McapMessage) and damaged part (BadMessage), updating ``progress``;
         read (and decompressed) by a background thread a few messages ahead of the caller
-        (:func:`_read_ahead`)."""
-        if self.bag is not None:
+        (:func:`_read_ahead`). With ``prepare`` (a function of a McapMessage, e.g. a packet
+        parser), ``(item, prepare(item))`` pairs, ``prepare`` run in that thread too (a
+        LidarScanError it raises is given in place of its value; None for a BadMessage)."""
+        if self.bag is not None and progress is not None:
+            progress.total = max(self.bag.message_count, 1)
+        source = self.bag.messages if self.bag is not None else \
+            functools.partial(_mcap_items, self.path)
+        count = 0
+        for item, position, value in _read_ahead(functools.partial(
+                _prepared, source, prepare, self.bag is None)):
+            count += 1
             if progress is not None:
-                progress.total = max(self.bag.message_count, 1)
-            count = 0
-            for item in _read_ahead(self.bag.messages):
-                count += 1
-                if progress is not None:
-                    progress.update(count, f"{count} msgs")
-                yield item
-        else:
-            for item, position in _read_ahead(functools.partial(_mcap_items, self.path)):
-                if progress is not None:
-                    progress.update(position, f"{item.index + 1} msgs")
-                yield item
+                progress.update(position if self.bag is None else count, f"{count} msgs")
+            yield item if prepare is None else (item, value)
         if progress is not None:
             progress.update(progress.total, "done", force=True)
 
@@ -137,6 +137,24 @@ def _mcap_items(path: Path) -> Iterator[tuple[Any, int]]:
     with open(path, "rb") as stream:
         for item in read_messages(stream):
             yield item, stream.tell()
+
+
+def _prepared(source: Callable[[], Iterator[Any]], prepare: Callable[[Any], Any] | None,
+              positioned: bool) -> Iterator[tuple[Any, int, Any]]:
+    """(item, file position (``positioned``: the source gives (item, position) pairs) or 0,
+    ``prepare(item)`` or the LidarScanError it raised or None)."""
+    from lidarscan.errors import LidarScanError
+    from lidarscan.mcap import McapMessage
+
+    for entry in source():
+        item, position = entry if positioned else (entry, 0)
+        value = None
+        if prepare is not None and isinstance(item, McapMessage):
+            try:
+                value = prepare(item)
+            except LidarScanError as err:
+                value = err
+        yield item, position, value
 
 
 #: messages read ahead of the one being converted (a few MB: bounded memory)
