@@ -21,8 +21,9 @@ Candidates (the bag already on disk, page cache warm, one untimed convert of the
 recording first), timed in interleaved rounds (medians of ``--repeat`` rounds; ratios against
 ``convert`` in the same round). Each is timed three ways: process CPU (every thread), the main
 thread's CPU (``time.thread_time``) and wall; from these the **2-core bound**: sensor seconds /
-max(main-thread CPU, CPU / 2, the output threads' CPU / their number), the real-time factor the
-run would reach on 2 free cores (the wall time of a shared machine says little):
+max(main-thread CPU, CPU / 2, the other threads' CPU / the number of output threads), the
+real-time factor the run would reach on 2 free cores (the wall time of a shared machine says
+little; the other threads are the output threads and the thread reading the bag ahead):
 
 - ``main``: with ``--base DIR``, the default ``convert`` of the source tree DIR (e.g.
   ``git archive main | tar -x -C DIR`` with the compiled modules copied in) in a child process
@@ -363,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
                 size = f"; {sizes[label] / 1e6:6.1f} MB" if label in sizes else ""
                 # on 2 free cores a run takes at least its CPU / 2, its main thread's CPU,
                 # and its output threads' CPU / their number
-                helpers = _threads(converts.get(label, [])) - 1 if label != "main" else 0
+                # (main: the base tree's default convert, 3 threads too since e404878)
+                helpers = _threads(converts.get(label, [])) - 1
                 bound = max(main_cpu, cpu / 2, (cpu - main_cpu) / max(helpers, 1))
                 print(f"  {label:15s} CPU {cpu:6.2f} s = {sensor_s / cpu:5.1f}x (/ convert "
                       f"{cpu / base:4.2f}); main thread {main_cpu:5.2f} s; 2-core bound "
