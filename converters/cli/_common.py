@@ -96,11 +96,13 @@ class _Input:
         path: as given.
         kind: :class:`converters.bags.InputKind` (``kind.kind`` is ``"ouster"`` for .pcap/.osf).
         bag: the :class:`converters.bags.Bag` of a rosbag2 directory or .db3 file.
+        ahead: :meth:`items` reads in a background thread (False: in the caller's).
     """
 
     path: Path
     kind: Any
     bag: Any = None
+    ahead: bool = True
 
     def topics(self) -> dict[str, str]:
         """topic -> message type."""
@@ -112,16 +114,16 @@ class _Input:
               prepare: Callable[[Any], Any] | None = None) -> Iterator[Any]:
         """Every message (McapMessage) and damaged part (BadMessage), updating ``progress``;
         read (and decompressed) by a background thread a few messages ahead of the caller
-        (:func:`_read_ahead`). With ``prepare`` (a function of a McapMessage, e.g. a packet
+        (:func:`_read_ahead`; in the caller's thread when ``ahead`` is False). With ``prepare`` (a function of a McapMessage, e.g. a packet
         parser), ``(item, prepare(item))`` pairs, ``prepare`` run in that thread too (a
         LidarScanError it raises is given in place of its value; None for a BadMessage)."""
         if self.bag is not None and progress is not None:
             progress.total = max(self.bag.message_count, 1)
         source = self.bag.messages if self.bag is not None else \
             functools.partial(_mcap_items, self.path)
+        entries = functools.partial(_prepared, source, prepare, self.bag is None)
         count = 0
-        for item, position, value in _read_ahead(functools.partial(
-                _prepared, source, prepare, self.bag is None)):
+        for item, position, value in _read_ahead(entries) if self.ahead else entries():
             count += 1
             if progress is not None:
                 progress.update(position if self.bag is None else count, f"{count} msgs")
