@@ -21,8 +21,9 @@ Candidates (the bag already on disk, page cache warm, one untimed convert of the
 recording first), timed in interleaved rounds (medians of ``--repeat`` rounds; ratios against
 ``convert`` in the same round). Each is timed three ways: process CPU (every thread), the main
 thread's CPU (``time.thread_time``) and wall; from these the **2-core bound**: sensor seconds /
-max(main-thread CPU, CPU / 2, the output threads' CPU / their number), the real-time factor the
-run would reach on 2 free cores (the wall time of a shared machine says little):
+max(main-thread CPU, CPU / 2, the other threads' CPU / the number of output threads), the
+real-time factor the run would reach on 2 free cores (the wall time of a shared machine says
+little; the other threads are the output threads and the thread reading the bag ahead):
 
 - ``main``: with ``--base DIR``, the default ``convert`` of the source tree DIR (e.g.
   ``git archive main | tar -x -C DIR`` with the compiled modules copied in) in a child process
@@ -43,7 +44,10 @@ run would reach on 2 free cores (the wall time of a shared machine says little):
   (what a Python tool does before any decoding): no decode, no output.
 
 Printed after them: the split decode / the rest of ``--threads 1`` and the decoder CPU that 20x
-would need, on one core and on 2 free cores with the default threads.
+would need, on one core and on 2 free cores with the default threads; then the chunk compression
+alone (one thread, medians of 3 interleaved rounds): the records of every chunk of the default
+output compressed with the parameters the writer chose for it (level 2, its hash table smaller
+for chunks of single-return scans) vs level 2's own parameters for every chunk.
 
 The output size is printed beside each convert candidate.
 """
@@ -294,6 +298,38 @@ def run_rosbags(bag: Path) -> int:
     return count
 
 
+def chunk_compression(out: Path, bag: Path, calibration: Path, rounds: int = 3) -> None:
+    """Print the CPU and bytes of the default output's chunks compressed as the writer chose
+    (told by which compressor gives the stored frame) vs with level 2's own parameters."""
+    import zstandard
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    from lidarscan._mcapfile import _compressor
+
+    run_convert(bag, calibration, out)
+    with open(out, "rb") as stream:
+        frames = [r.data for r in StreamReader(stream, emit_chunks=True).records
+                  if isinstance(r, Chunk) and r.compression == "zstd"]
+    records = [zstandard.ZstdDecompressor().decompress(f) for f in frames]
+    level2, small = _compressor("zstd", 2)[1], _compressor("zstd", None, True)[1]
+    chosen = [small if small(r) == f else level2 for r, f in zip(records, frames)]
+    spent: dict[str, list[float]] = {"chosen": [], "level 2": []}
+    size: dict[str, int] = {}
+    for _ in range(rounds):
+        for label, fns in (("chosen", chosen), ("level 2", [level2] * len(records))):
+            c0 = time.process_time()
+            size[label] = sum(len(fn(r)) for fn, r in zip(fns, records))
+            spent[label].append(time.process_time() - c0)
+    cpu = {label: statistics.median(v) for label, v in spent.items()}
+    print(f"  chunk compression alone ({len(records)} chunks, "
+          f"{sum(map(len, records)) / 1e6:.1f} MB, {sum(c is small for c in chosen)} with the "
+          f"small hash table): as chosen {cpu['chosen']:.2f} s, {size['chosen'] / 1e6:.1f} MB; "
+          f"level 2's own {cpu['level 2']:.2f} s, {size['level 2'] / 1e6:.1f} MB "
+          f"(chosen / level 2: CPU {cpu['chosen'] / cpu['level 2']:.2f}, bytes "
+          f"{size['chosen'] / size['level 2']:.3f})")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="sensor time per bag")
@@ -363,7 +399,8 @@ def main(argv: list[str] | None = None) -> int:
                 size = f"; {sizes[label] / 1e6:6.1f} MB" if label in sizes else ""
                 # on 2 free cores a run takes at least its CPU / 2, its main thread's CPU,
                 # and its output threads' CPU / their number
-                helpers = _threads(converts.get(label, [])) - 1 if label != "main" else 0
+                # (main: the base tree's default convert, 3 threads too since e404878)
+                helpers = _threads(converts.get(label, [])) - 1
                 bound = max(main_cpu, cpu / 2, (cpu - main_cpu) / max(helpers, 1))
                 print(f"  {label:15s} CPU {cpu:6.2f} s = {sensor_s / cpu:5.1f}x (/ convert "
                       f"{cpu / base:4.2f}); main thread {main_cpu:5.2f} s; 2-core bound "
@@ -384,6 +421,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"{cpu - main_cpu:.2f} s; 20x on 2 free cores needs decode <= "
                       f"{need:.2f} s ({dec / max(need, 1e-9):.1f}x faster)" if need > 0 else
                       f"  convert: 20x on 2 free cores is out of reach whatever the decoder")
+            chunk_compression(out, bag, cal)
             if args.profile:
                 prof = cProfile.Profile()
                 prof.runcall(run_convert, bag, cal, out, ["--threads", "1"])

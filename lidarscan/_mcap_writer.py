@@ -45,6 +45,20 @@ def _payload(pieces: list[Any]) -> Any:
     return out[0] if len(out) == 1 else out
 
 
+def _local(msg: Any, msgtype: str) -> bool:
+    """Whether a message's CDR repeats its bytes only nearby (see
+    :meth:`lidarscan._mcapfile.ChunkedMcapWriter.add_message`): a LidarInfo, or a LidarScan
+    without an N-th return channel (``range2``, ``intensity2``, ...: its grid repeats the first
+    return's a whole grid back wherever there is no second return). Encoded bytes: unknown
+    (False)."""
+    if isinstance(msg, (bytes, bytearray, memoryview)):
+        return False
+    if msgtype == INFO_TYPE:
+        return True
+    return msgtype == SCAN_TYPE and not any(
+        str(c.name)[-1:].isdigit() for c in msg.channels)
+
+
 @contextlib.contextmanager
 def _interrupts_deferred() -> Iterator[None]:
     """Hold SIGINT (Ctrl-C) until the block is done, then deliver it as the previous handler
@@ -86,7 +100,9 @@ class McapWriter:
         output: path or binary stream.
         compression: "zstd" (default), "lz4" or "none" (of the chunks).
         level: zstd level of the chunks; default :data:`lidarscan._mcapfile.DEFAULT_ZSTD_LEVEL`
-            (2: fast, see bench/README.md); up to 22 for smaller files, negative for faster.
+            (2: fast, see bench/README.md; chunks of LidarInfos and scans without a second
+            return with a smaller hash table, :data:`lidarscan._mcapfile.LOCAL_HASH_LOG`); up
+            to 22 for smaller files, negative for faster.
         chunk_size: bytes per chunk; a smaller chunk loses less when a run is interrupted.
         scan_encoding: message encoding of the LidarScan channels: "cdr" (default) or
             :data:`CODEC_ENCODING` (every scan compressed by :func:`lidarscan.codec.compress_scan`
@@ -231,7 +247,8 @@ class McapWriter:
             self._writer.add_message(channel_id=channel_id, log_time=int(log_time_ns),
                                      data=payload, sequence=sequence,
                                      publish_time=int(publish_time_ns if publish_time_ns
-                                                      is not None else log_time_ns))
+                                                      is not None else log_time_ns),
+                                     local=encoding == "cdr" and _local(msg, full))
             self.count += 1
             self._times = [min(self._times[0], log_time_ns), max(self._times[1], log_time_ns)] \
                 if self._times else [int(log_time_ns), int(log_time_ns)]

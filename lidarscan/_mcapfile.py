@@ -5,7 +5,9 @@ the chunk compression level can be chosen (``mcap.writer`` compresses zstd at th
 default level, the largest cost of ``lidarscan convert``) and so message payloads reach the file
 without Python-side copies: a chunk's records are kept as a list of byte pieces (record headers
 and the callers' payloads), joined once for the compressor (or written as they are without
-compression), the compressed chunk goes to the stream as it is. Closed chunks can be compressed
+compression), the compressed chunk goes to the stream as it is. At the default zstd level a
+chunk's parameters follow from what its messages are (a smaller hash table when every message
+repeats its bytes only nearby: :data:`LOCAL_HASH_LOG`). Closed chunks can be compressed
 and written by background threads (``threads``): the file's bytes do not depend on it.
 
 The file layout is what ``mcap.writer.Writer`` writes with its defaults (so every MCAP reader,
@@ -37,6 +39,14 @@ MAGIC = b"\x89MCAP0\r\n"
 #: on lidar scans level 2 costs a third to a half of level 3's CPU for 5 % more bytes; level 1
 #: is hardly faster and misses the repeats of dual-return scans: 40 % more bytes)
 DEFAULT_ZSTD_LEVEL = 2
+#: log2 of the zstd hash table of a chunk whose messages all repeat their bytes only nearby
+#: (``add_message(local=True)``: a single-return LidarScan, a LidarInfo) at the default level:
+#: 2^14 four-byte entries (64 KiB) stay in a core's cache beside the chunk streaming through,
+#: level 2's own 2^16 (256 KiB) hardly do; repeats between neighbouring pixels and no-return
+#: runs are found all the same (bench/README.md, bench_convert: VLS-128 chunks ~0.65x the CPU
+#: for +0.4 % bytes). Repeats a whole grid back (a second return repeating the first where
+#: there is none, 100-400 KB back) need level 2's own table: chunks with them keep it.
+LOCAL_HASH_LOG = 14
 COMPRESSIONS = ("zstd", "lz4", "none")
 
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
@@ -114,11 +124,22 @@ class _Background:
         return self._error is not None
 
 
-def _compressor(compression: str, level: int | None) -> tuple[str, Callable[[bytes], bytes]]:
-    """(the Chunk record's compression name, compress(records) -> frame)."""
+def _compressor(compression: str, level: int | None, local: bool = False
+                ) -> tuple[str, Callable[[bytes], bytes]]:
+    """(the Chunk record's compression name, compress(records) -> frame); ``local``: the
+    records repeat their bytes only nearby (used at the default level only: its parameters with
+    a hash table of :data:`LOCAL_HASH_LOG`)."""
     if compression == "zstd":
         import zstandard
 
+        if local and level is None:
+            base = zstandard.ZstdCompressionParameters.from_level(DEFAULT_ZSTD_LEVEL)
+            params = zstandard.ZstdCompressionParameters(
+                window_log=base.window_log, chain_log=base.chain_log,
+                hash_log=min(base.hash_log, LOCAL_HASH_LOG), search_log=base.search_log,
+                min_match=base.min_match, target_length=base.target_length,
+                strategy=base.strategy, write_content_size=1)
+            return "zstd", zstandard.ZstdCompressor(compression_params=params).compress
         cctx = zstandard.ZstdCompressor(
             level=DEFAULT_ZSTD_LEVEL if level is None else level, write_content_size=True)
         return "zstd", cctx.compress
@@ -138,8 +159,9 @@ class ChunkedMcapWriter:
         stream: binary stream; left open by :meth:`finish`.
         chunk_size: a chunk is closed once its uncompressed records pass this many bytes.
         compression: "zstd", "lz4" or "none" (the caller checks the name).
-        level: zstd level (default :data:`DEFAULT_ZSTD_LEVEL`; negative levels are zstd's fast
-            ones); ignored for the others.
+        level: zstd level (default :data:`DEFAULT_ZSTD_LEVEL`, with a hash table of
+            :data:`LOCAL_HASH_LOG` for chunks of local messages, see :meth:`add_message`;
+            negative levels are zstd's fast ones); ignored for the others.
         threads: 1: everything in the caller's thread; 2: the chunks are compressed and
             written by one writer thread (zstd, lz4, CRC-32 and file writes release the GIL:
             they overlap the caller's work on another core); N > 2: N - 1 threads compress
@@ -171,6 +193,7 @@ class ChunkedMcapWriter:
         self._chunk_bytes = 0
         self._index: dict[int, list[int]] = {}   # channel -> [log time, offset, ...]
         self._chunk_times: list[int] = []        # [first, last] log time of the open chunk
+        self._chunk_local = True                 # every message of the open chunk is local
         self._chunk_indexes: list[bytes] = []
         self._metadata_indexes: list[bytes] = []
         self._counts: dict[int, int] = {}
@@ -218,10 +241,14 @@ class ChunkedMcapWriter:
         return channel_id
 
     def add_message(self, *, channel_id: int, log_time: int, data: Any, publish_time: int,
-                    sequence: int = 0) -> None:
+                    sequence: int = 0, local: bool = False) -> None:
         """One Message record; ``data`` (bytes-like, or a list of bytes-like pieces that make
         the payload together) is kept by reference until its chunk is written: the caller must
-        not change it."""
+        not change it. ``local``: the payload repeats its bytes only nearby (a few KiB back,
+        not an earlier message's): a chunk of only such messages is compressed with a smaller
+        zstd hash table at the default level (:data:`LOCAL_HASH_LOG`)."""
+        if not local:
+            self._chunk_local = False
         parts = data if isinstance(data, list) else [data]
         size = sum(len(p) if isinstance(p, bytes) else memoryview(p).nbytes for p in parts)
         self._index.setdefault(channel_id, []).extend((log_time, self._chunk_bytes))
@@ -249,26 +276,32 @@ class ChunkedMcapWriter:
         start, end = self._chunk_times
         self._times = [min(self._times[0], start), max(self._times[1], end)] if self._times \
             else [start, end]
-        pieces, size, index = self._pieces, self._chunk_bytes, self._index
+        pieces, size, index, local = self._pieces, self._chunk_bytes, self._index, \
+            self._chunk_local
         self._pieces, self._chunk_bytes, self._index, self._chunk_times = [], 0, {}, []
+        self._chunk_local = True
         if self._background is None:
-            self._write_chunk(self._pack(pieces), size, index, start, end)
+            self._write_chunk(self._pack(pieces, local), size, index, start, end)
         elif self._pool is None:    # the writer thread compresses and writes
             self._background.submit(
-                lambda: self._write_chunk(self._pack(pieces), size, index, start, end))
+                lambda: self._write_chunk(self._pack(pieces, local), size, index, start, end))
         else:                       # the pool compresses, the writer thread writes in order
-            packed = self._pool.submit(self._pack, pieces)
+            packed = self._pool.submit(self._pack, pieces, local)
             self._background.submit(
                 lambda: self._write_chunk(packed.result(), size, index, start, end))
 
-    def _pack(self, pieces: list[Any]) -> tuple[int, list[Any]]:
+    def _pack(self, pieces: list[Any], local: bool = False) -> tuple[int, list[Any]]:
         """(CRC-32 of the records, the frames that hold them in the file: one compressed
-        frame, or the pieces themselves without compression). Thread-safe."""
+        frame, or the pieces themselves without compression); ``local``: every message of the
+        chunk is local (see :meth:`add_message`). Thread-safe."""
         if self._name:
             records = b"".join(pieces)
-            compress = getattr(self._local, "compress", None)
-            if compress is None:        # a zstd compressor is used by one thread at a time
-                compress = self._local.compress = _compressor(*self._codec)[1]
+            compressors = getattr(self._local, "compressors", None)
+            if compressors is None:     # a zstd compressor is used by one thread at a time
+                compressors = self._local.compressors = {}
+            compress = compressors.get(local)
+            if compress is None:
+                compress = compressors[local] = _compressor(*self._codec, local)[1]
             return (_crc32(records) if self._check else 0), [compress(records)]
         crc = 0
         if self._check:

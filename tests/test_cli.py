@@ -434,3 +434,71 @@ def test_zstd_level_is_checked_and_written(tmp_path: Path, demo_mcap: Path,
                 sum(1 for _ in read_messages(demo_mcap))
         sizes[level] = out.stat().st_size
     assert sizes["9"] < sizes["-5"]   # the level reached the compressor
+
+
+# ------------------------------------------------------------------------------ read ahead
+
+def test_read_ahead_gives_every_item_in_order_then_the_error_of_its_iterator() -> None:
+    import threading
+
+    from converters.cli._common import _read_ahead
+
+    threads: set[str] = set()
+
+    def items() -> Any:
+        for k in range(50):
+            threads.add(threading.current_thread().name)
+            yield k
+        raise ValueError("damaged after 50")
+
+    got: list[int] = []
+    with pytest.raises(ValueError, match="damaged after 50"):
+        for item in _read_ahead(items, depth=3):
+            got.append(item)
+    assert got == list(range(50))
+    assert threads == {"read-ahead"}            # made in the background thread
+
+
+def test_leaving_a_read_ahead_early_closes_its_iterator_in_its_thread() -> None:
+    import threading
+
+    from converters.cli._common import _read_ahead
+
+    before = threading.active_count()
+    closed: list[str] = []
+
+    def items() -> Any:
+        try:
+            yield from range(10_000)
+        finally:
+            closed.append(threading.current_thread().name)
+
+    reader = _read_ahead(items, depth=2)
+    assert [next(reader) for _ in range(5)] == [0, 1, 2, 3, 4]
+    reader.close()                               # as a KeyboardInterrupt in the loop does
+    assert closed == ["read-ahead"]
+    assert threading.active_count() == before
+
+
+def test_prepared_items_come_in_pairs_with_the_error_in_place_of_the_value() -> None:
+    import threading
+
+    from converters.cli._common import _open_input
+    from lidarscan.errors import DecodeError
+
+    bag = Path(__file__).parent / "data" / "nebula" / "velodyne_vls128" / "bag"
+    seen: list[str] = []
+
+    def prepare(item: Any) -> int:
+        seen.append(threading.current_thread().name)
+        if item.index == 1:
+            raise DecodeError("packets", item.index, "a message this test does not break")
+        return item.index * 10
+
+    source = _open_input(str(bag), "IN")
+    pairs = list(source.items(prepare=prepare))
+    plain = list(source.items())
+    assert [item.index for item, _ in pairs] == [item.index for item in plain]
+    assert len(pairs) > 2 and pairs[0][1] == 0 and pairs[2][1] == 20
+    assert isinstance(pairs[1][1], DecodeError)
+    assert set(seen) == {"read-ahead"}

@@ -216,3 +216,25 @@ def test_a_failing_output_stops_the_threads_and_leaves_no_file(
     assert status == 2 and "No space left on device" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
     assert threading.active_count() == before
+
+
+def test_the_input_is_read_ahead_by_a_thread_unless_threads_is_1(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from converters.cli import _common
+
+    real = _common._read_ahead
+    calls: list[int] = []
+
+    def read_ahead(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(_common, "_read_ahead", read_ahead)
+    name = "velodyne_vls128"
+    for threads, expected in (("1", []), ("2", [1])):
+        calls.clear()
+        assert cli.main(["convert", str(DATA / name / "bag"), str(tmp_path / f"{threads}.mcap"),
+                         "--calibration", str(DATA / name / RECORDINGS[name][0]), "-q",
+                         "--threads", threads]) == 0
+        assert calls == expected
+    assert (tmp_path / "1.mcap").stat().st_size == (tmp_path / "2.mcap").stat().st_size

@@ -281,3 +281,82 @@ def test_mcap_writer_keeps_read_only_arrays_and_copies_writable_ones(tmp_path: A
 def test_mcap_writer_refuses_a_thread_count_it_cannot_use(tmp_path: Any, threads: Any) -> None:
     with pytest.raises(ConfigError, match="threads"):
         McapWriter(tmp_path / "x.mcap", threads=threads)
+
+
+# ------------------------------------------------- zstd parameters chosen from the messages
+
+def _grid_scan(names: tuple[str, ...], stamp: int, rows: int = 32, cols: int = 512) -> Any:
+    """A LidarScan dataclass: one uint16 grid per name, second returns equal to the first
+    where a pixel has no second return (as a dual-return sensor's)."""
+    import numpy as np
+
+    from lidarscan import types
+
+    rng = np.random.default_rng(stamp)
+    first = rng.integers(0, 4000, (rows, cols), dtype=np.uint16)
+    grids = []
+    for name in names:
+        grid = first.copy() if name[-1:].isdigit() else \
+            rng.integers(0, 4000, (rows, cols), dtype=np.uint16)
+        if name[-1:].isdigit():
+            grid[:, ::7] = 0
+        grids.append(grid)
+    data = np.concatenate([g.ravel() for g in grids]).view(np.uint8)
+    data.flags.writeable = False
+    plane = rows * cols * 2
+    return types.LidarScan(
+        header=types.Header(types.Time(stamp, 0), "lidar"), lidar_info_time=types.Time(1, 0),
+        height=rows, width=cols, data=data,
+        channels=tuple(types.LidarChannel(n, k * plane, 4, 1) for k, n in enumerate(names)))
+
+
+def test_local_messages_are_lidar_infos_and_scans_without_a_second_return() -> None:
+    from lidarscan._mcap_writer import _local
+    from lidarscan.mcap import INFO_TYPE, SCAN_TYPE
+
+    assert _local(_grid_scan(("range", "intensity"), 1), SCAN_TYPE)
+    assert not _local(_grid_scan(("range", "intensity", "range2"), 1), SCAN_TYPE)
+    assert not _local(b"\x00\x01\x00\x00", SCAN_TYPE)          # encoded: unknown
+    assert _local(object(), INFO_TYPE)
+    assert not _local(object(), "sensor_msgs/msg/PointCloud2")
+
+
+@pytest.mark.parametrize("level", [None, 2])
+def test_each_chunk_is_compressed_with_the_parameters_its_messages_call_for(
+        tmp_path: Any, level: int | None) -> None:
+    """Default level: a chunk of single-return scans only gets the small hash table, a chunk
+    with a second return (or any other message) level 2's own; a chosen level is used as it
+    is. Every chunk reads back (CRCs checked) and the bytes do not depend on the threads."""
+    import zstandard
+    from mcap.reader import make_reader
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    from lidarscan._mcapfile import _compressor
+
+    single, dual = ("range", "intensity"), ("range", "intensity", "range2", "intensity2")
+    plan = [("/s", single), ("/s", single), ("/d", dual), ("/s", single), ("/d", dual)]
+    outputs = []
+    for threads in (1, 3):
+        path = tmp_path / f"t{threads}.mcap"
+        with McapWriter(path, level=level, chunk_size=1, threads=threads,
+                        file_name="x.mcap") as writer:
+            for k, (topic, names) in enumerate(plan):    # chunk_size 1: a chunk per message
+                writer.write(topic, _grid_scan(names, 10 + k), log_time_ns=k)
+        outputs.append(path.read_bytes())
+    assert outputs[0] == outputs[1]
+    chunks = [r for r in StreamReader(io.BytesIO(outputs[0]), emit_chunks=True).records
+              if isinstance(r, Chunk)]
+    assert len(chunks) == len(plan)
+    small, default = _compressor("zstd", None, True)[1], _compressor("zstd", level)[1]
+    differ = 0
+    for chunk, (_, names) in zip(chunks, plan):
+        records = zstandard.ZstdDecompressor().decompress(chunk.data)
+        want = small if level is None and names == single else default
+        assert chunk.data == want(records)
+        differ += small(records) != default(records)
+    assert differ == len(plan)          # the two parameter sets do give different frames
+    with open(tmp_path / "t1.mcap", "rb") as stream:
+        got = [(c.topic, m.log_time) for _, c, m in
+               make_reader(stream, validate_crcs=True).iter_messages()]
+    assert got == [(topic, k) for k, (topic, _) in enumerate(plan)]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -96,11 +96,13 @@ class _Input:
         path: as given.
         kind: :class:`converters.bags.InputKind` (``kind.kind`` is ``"ouster"`` for .pcap/.osf).
         bag: the :class:`converters.bags.Bag` of a rosbag2 directory or .db3 file.
+        ahead: :meth:`items` reads in a background thread (False: in the caller's).
     """
 
     path: Path
     kind: Any
     bag: Any = None
+    ahead: bool = True
 
     def topics(self) -> dict[str, str]:
         """topic -> message type."""
@@ -108,28 +110,111 @@ class _Input:
             return {t.name: t.msgtype for t in self.bag.topics.values()}
         return _file_topics(self.path)
 
-    def items(self, progress: Progress | None = None) -> Iterator[Any]:
-        """Every message (McapMessage) and damaged part (BadMessage), updating ``progress``."""
-        from lidarscan.mcap import read_messages
-
-        if self.bag is not None:
+    def items(self, progress: Progress | None = None,
+              prepare: Callable[[Any], Any] | None = None) -> Iterator[Any]:
+        """Every message (McapMessage) and damaged part (BadMessage), updating ``progress``;
+        read (and decompressed) by a background thread a few messages ahead of the caller
+        (:func:`_read_ahead`; in the caller's thread when ``ahead`` is False). With ``prepare`` (a function of a McapMessage, e.g. a packet
+        parser), ``(item, prepare(item))`` pairs, ``prepare`` run in that thread too (a
+        LidarScanError it raises is given in place of its value; None for a BadMessage)."""
+        if self.bag is not None and progress is not None:
+            progress.total = max(self.bag.message_count, 1)
+        source = self.bag.messages if self.bag is not None else \
+            functools.partial(_mcap_items, self.path)
+        entries = functools.partial(_prepared, source, prepare, self.bag is None)
+        count = 0
+        for item, position, value in _read_ahead(entries) if self.ahead else entries():
+            count += 1
             if progress is not None:
-                progress.total = max(self.bag.message_count, 1)
-            count = 0
-            for item in self.bag.messages():
-                count += 1
-                if progress is not None:
-                    progress.update(count, f"{count} msgs")
-                yield item
-        else:
-            with open(self.path, "rb") as stream:
-                for item in read_messages(stream):
-                    count = item.index + 1
-                    if progress is not None:
-                        progress.update(stream.tell(), f"{count} msgs")
-                    yield item
+                progress.update(position if self.bag is None else count, f"{count} msgs")
+            yield item if prepare is None else (item, value)
         if progress is not None:
             progress.update(progress.total, "done", force=True)
+
+
+def _mcap_items(path: Path) -> Iterator[tuple[Any, int]]:
+    """(message or damaged part, file position after it) of an MCAP file."""
+    from lidarscan.mcap import read_messages
+
+    with open(path, "rb") as stream:
+        for item in read_messages(stream):
+            yield item, stream.tell()
+
+
+def _prepared(source: Callable[[], Iterator[Any]], prepare: Callable[[Any], Any] | None,
+              positioned: bool) -> Iterator[tuple[Any, int, Any]]:
+    """(item, file position (``positioned``: the source gives (item, position) pairs) or 0,
+    ``prepare(item)`` or the LidarScanError it raised or None)."""
+    from lidarscan.errors import LidarScanError
+    from lidarscan.mcap import McapMessage
+
+    for entry in source():
+        item, position = entry if positioned else (entry, 0)
+        value = None
+        if prepare is not None and isinstance(item, McapMessage):
+            try:
+                value = prepare(item)
+            except LidarScanError as err:
+                value = err
+        yield item, position, value
+
+
+#: messages read ahead of the one being converted (a few MB: bounded memory)
+READ_AHEAD = 4
+
+
+def _read_ahead(make: Callable[[], Iterator[Any]], depth: int = READ_AHEAD) -> Iterator[Any]:
+    """The items of the iterator ``make()``, made by a background thread at most ``depth``
+    ahead of the caller: the reading (sqlite3 steps, zstd decompression: they release the GIL)
+    overlaps the caller's work. The iterator is made, run and closed in that thread (an sqlite3
+    connection stays in the thread that opened it); an error it raises is raised here, after
+    the items before it. Leaving early (an error, Ctrl-C, ``close()``) stops the thread and
+    waits for it (its iterator is closed there)."""
+    import queue
+    import threading
+
+    items: queue.Queue[tuple[Any, BaseException | None]] = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(entry: tuple[Any, BaseException | None]) -> bool:
+        while not stop.is_set():
+            try:
+                items.put(entry, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run() -> None:
+        try:
+            source = make()
+            try:
+                for item in source:
+                    if not put((item, None)):
+                        return
+            finally:
+                close = getattr(source, "close", None)
+                if close is not None:
+                    close()
+        except BaseException as err:  # noqa: BLE001 - raised in the caller's thread
+            put((end, err))
+            return
+        put((end, None))
+
+    thread = threading.Thread(target=run, name="read-ahead", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, err = items.get()
+            if err is not None:
+                raise err
+            if item is end:
+                return
+            yield item
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _open_input(name: str, role: str, *, ouster: bool = False) -> _Input:

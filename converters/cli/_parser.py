@@ -118,14 +118,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="compression of the output MCAP's chunks (zstd; lz4 is faster to "
                         "write and larger, see bench/README.md)")
     p.add_argument("--zstd-level", type=_zstd_level, default=None, metavar="N",
-                   help="zstd level of the chunks: 2 (default, fast), up to 22 for smaller "
-                        "files, negative for faster and larger")
+                   help="zstd level of the chunks: 2 (default, fast; chunks of single-return "
+                        "scans with a smaller hash table), up to 22 for smaller files, "
+                        "negative for faster and larger")
     p.add_argument("--threads", type=int, choices=range(1, 17), default=3, metavar="N",
                    help="threads of the run (same output bytes for every N): 3 (default): "
-                        "reading and decoding in one, the output's chunks compressed by two "
+                        "decoding in one, the output's chunks compressed by two "
                         "others side by side (and written in order); 2: one thread compresses "
-                        "and writes; 1: everything in one thread (reproducible CPU "
-                        "measurements)")
+                        "and writes; with 2 or more, one more reads the input a few messages "
+                        "ahead; 1: everything in one thread (reproducible CPU measurements)")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar, notes or summary (bad messages are still listed)")
     p.set_defaults(func=cmd_convert)

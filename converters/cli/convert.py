@@ -135,6 +135,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter
 
     source = _open_input(args.input, "IN", ouster=True)
+    source.ahead = args.threads > 1     # --threads 1: everything in one thread
     src, dst = source.path, Path(args.output)
     if dst.is_dir():
         raise ConfigError("OUT", str(dst), "a file name (it is a directory)")

@@ -219,18 +219,19 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
             else:
                 report.converted += 1
 
+    def parse(item: Any) -> Any:    # in the reading thread
+        return PACKET_TYPES[item.msgtype][1](item.payload) if item.topic in decoders else None
+
     last: dict[str, tuple[int, int]] = {}
-    for item in report.good(source.items(progress), emit):
+    for item, packets in report.good(source.items(progress, prepare=parse), emit):
         try:
             _side_input(item, tf, args, merge)
         except LidarScanError as err:
             report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
             continue
         if item.topic in decoders:
-            try:
-                packets = PACKET_TYPES[item.msgtype][1](item.payload)
-            except LidarScanError as err:
-                report.report_bad(item.index, item.topic, item.log_time_ns, str(err), emit)
+            if isinstance(packets, LidarScanError):
+                report.report_bad(item.index, item.topic, item.log_time_ns, str(packets), emit)
                 continue
             decoder = active.get(item.topic)
             if decoder is None:  # built on first use: the frame comes from the messages

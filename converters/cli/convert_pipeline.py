@@ -27,13 +27,15 @@ class ConvertReport:
 
     def good(self, items: Iterable[Any], emit: Callable[[str], None]) -> Iterator[Any]:
         """The readable messages of ``items`` (counted in ``read``); each BadMessage of the
-        reader (a message, or a damaged part of the input) is reported."""
+        reader (a message, or a damaged part of the input) is reported. An item may come as
+        an ``(item, value)`` tuple (``_Input.items(prepare=...)``): yielded as it is."""
         from lidarscan.mcap import BadMessage
 
-        for item in items:
+        for entry in items:
+            item = entry[0] if type(entry) is tuple else entry
             if not isinstance(item, BadMessage):
                 self.read += 1
-                yield item
+                yield entry
             else:
                 self.bad.append((item.index, item.topic, item.log_time_ns, item.reason))
                 emit(_describe_bad(item))
