@@ -210,7 +210,8 @@ def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, 
     prediction, and g (like x, written) is the grid the predictions read. Branch-free: the
     prediction is a1 * left + a2 * up - a3 * up-left + a4 * ref with the predictor's 0/1
     coefficients; per row and count index the left and up-left fill values are carried in
-    registers. With C = 1 the residuals are written compacted as they come; else every
+    registers (the left predictor with C = 1 has a loop of its own that neither reads nor
+    writes g). With C = 1 the residuals are written compacted as they come; else every
     pixel's goes to its own index and the row's valid ones are moved forward after the row
     (in place: the write index never passes the read index). Returns the number of valid
     pixels."""
@@ -224,6 +225,17 @@ def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, 
     one = c == 1
     row = w * c
     j = 0
+    if predictor == 1 and one:  # left, one value per cell: only the fill value is carried
+        for r in range(h):
+            f = np.int64(0)
+            for i in range(r * w, r * w + w):
+                v = np.int64(x[i])
+                d = (((v - f) & mask) ^ half) - half
+                z[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                ok = valid[i]
+                j += np.int64(ok)
+                f = v if ok else f
+        return j
     for r in range(h):
         base = r * row
         for kx in range(c):
