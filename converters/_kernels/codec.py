@@ -391,43 +391,51 @@ def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int,
 def _costs_plain(x: Any, ref: Any, nref: int, h: int, w: int, c: int
                  ) -> Any:  # pragma: no cover - compiled
     """:func:`_costs` without a mask (every pixel valid; predictions read x itself); the loop
-    over a row's inner pixels has no branch (vectorised)."""
+    over a row's inner pixels has no branch (vectorised: it indexes views of the row from 0,
+    so that numba's negative-index wraparound, which stops vectorisation, is provably never
+    taken)."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
     row = w * c
+    m = row - c  # the cells with a left neighbour, from index c of the row
     s0 = s1 = s2 = s3 = s4 = np.int64(0)
     for r in range(h):
         base = r * row
-        for i in range(base, base + min(c, row)):  # first cell: no left neighbour
-            v = np.int64(x[i])
-            up = np.int64(x[i - row]) if r > 0 else np.int64(0)
+        xr = x[base:base + row]
+        up = x[base - row:base] if r > 0 else xr  # read only when r > 0
+        for k in range(min(c, row)):  # first cell: no left neighbour
+            v = np.int64(xr[k])
+            u = np.int64(up[k]) if r > 0 else np.int64(0)
             s0 += _zbits(v, mask, half)
             s1 += _zbits(v, mask, half)
-            s2 += _zbits(v - up, mask, half)
-            s3 += _zbits(v - up, mask, half)
+            s2 += _zbits(v - u, mask, half)
+            s3 += _zbits(v - u, mask, half)
             if nref:
-                s4 += _zbits(v - np.int64(ref[i]), mask, half)
+                s4 += _zbits(v - np.int64(ref[base + k]), mask, half)
+        cur, left = xr[c:], xr[:m]
         if r == 0:
-            for i in range(base + c, base + row):
-                v = np.int64(x[i])
-                left = np.int64(x[i - c])
+            for t in range(m):
+                v = np.int64(cur[t])
+                lv = np.int64(left[t])
                 s0 += _zbits(v, mask, half)
-                s1 += _zbits(v - left, mask, half)
+                s1 += _zbits(v - lv, mask, half)
                 s2 += _zbits(v, mask, half)
-                s3 += _zbits(v - left, mask, half)
+                s3 += _zbits(v - lv, mask, half)
         else:
-            for i in range(base + c, base + row):
-                v = np.int64(x[i])
-                left = np.int64(x[i - c])
-                up = np.int64(x[i - row])
+            above, corner = up[c:], up[:m]
+            for t in range(m):
+                v = np.int64(cur[t])
+                lv = np.int64(left[t])
+                u = np.int64(above[t])
                 s0 += _zbits(v, mask, half)
-                s1 += _zbits(v - left, mask, half)
-                s2 += _zbits(v - up, mask, half)
-                s3 += _zbits(v - left - up + np.int64(x[i - row - c]), mask, half)
+                s1 += _zbits(v - lv, mask, half)
+                s2 += _zbits(v - u, mask, half)
+                s3 += _zbits(v - lv - u + np.int64(corner[t]), mask, half)
         if nref:
-            for i in range(base + c, base + row):
-                s4 += _zbits(np.int64(x[i]) - np.int64(ref[i]), mask, half)
+            rr = ref[base + c:base + row]
+            for t in range(m):
+                s4 += _zbits(np.int64(cur[t]) - np.int64(rr[t]), mask, half)
     out = np.empty(5, np.int64)
     out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
@@ -436,12 +444,14 @@ def _costs_plain(x: Any, ref: Any, nref: int, h: int, w: int, c: int
 def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c: int
                      ) -> None:  # pragma: no cover - compiled
     """:func:`_grid` encoding without a mask, one loop per predictor (the predictions read x
-    itself): z = zigzag residuals (uint32) of every pixel."""
+    itself): z = zigzag residuals (uint32) of every pixel. The row loops index views of the
+    row from 0 (vectorised, as in :func:`_costs_plain`)."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
     row = w * c
     n = h * row
+    m = row - c
     if predictor == 0:
         for i in range(n):
             d = ((np.int64(x[i]) & mask) ^ half) - half
@@ -453,31 +463,37 @@ def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c
     else:
         for r in range(h):
             base = r * row
-            for i in range(base, base + c):
-                d = np.int64(x[i])
+            xr = x[base:base + row]
+            zr = z[base:base + row]
+            up = x[base - row:base] if r > 0 else xr  # read only when r > 0
+            for k in range(min(c, row)):
+                d = np.int64(xr[k])
                 if predictor >= 2 and r > 0:
-                    d -= np.int64(x[i - row])
+                    d -= np.int64(up[k])
                 d = ((d & mask) ^ half) - half
-                z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                zr[k] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+            cur, left, out = xr[c:], xr[:m], zr[c:]
             if predictor == 1 or (predictor == 3 and r == 0):
-                for i in range(base + c, base + row):
-                    d = (((np.int64(x[i]) - np.int64(x[i - c])) & mask) ^ half) - half
-                    z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                for t in range(m):
+                    d = (((np.int64(cur[t]) - np.int64(left[t])) & mask) ^ half) - half
+                    out[t] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
             elif predictor == 2:
                 if r == 0:
-                    for i in range(base + c, base + row):
-                        d = ((np.int64(x[i]) & mask) ^ half) - half
-                        z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                    for t in range(m):
+                        d = ((np.int64(cur[t]) & mask) ^ half) - half
+                        out[t] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
                 else:
-                    for i in range(base + c, base + row):
-                        d = (((np.int64(x[i]) - np.int64(x[i - row])) & mask) ^ half) - half
-                        z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                    above = up[c:]
+                    for t in range(m):
+                        d = (((np.int64(cur[t]) - np.int64(above[t])) & mask) ^ half) - half
+                        out[t] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
             else:
-                for i in range(base + c, base + row):
-                    d = (np.int64(x[i]) - np.int64(x[i - c]) - np.int64(x[i - row])
-                         + np.int64(x[i - row - c]))
+                above, corner = up[c:], up[:m]
+                for t in range(m):
+                    d = (np.int64(cur[t]) - np.int64(left[t]) - np.int64(above[t])
+                         + np.int64(corner[t]))
                     d = ((d & mask) ^ half) - half
-                    z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                    out[t] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
 
 
 def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
