@@ -228,11 +228,12 @@ def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, 
     if predictor == 1 and one:  # left, one value per cell: only the fill value is carried
         for r in range(h):
             f = np.int64(0)
-            for i in range(r * w, r * w + w):
-                v = np.int64(x[i])
+            xr, vr = x[r * w:r * w + w], valid[r * w:r * w + w]  # indexed from 0: no wraparound
+            for t in range(w):
+                v = np.int64(xr[t])
                 d = (((v - f) & mask) ^ half) - half
                 z[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
-                ok = valid[i]
+                ok = vr[t]
                 j += np.int64(ok)
                 f = v if ok else f
         return j
@@ -504,10 +505,12 @@ def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
     cells = n // c
     for r in range(h):
         k = ((sign * shifts[r]) % cells) * c if cells else 0
+        src, dst = x[r], out[r]
+        head, tail = dst[k:], src[n - k:]  # views indexed from 0: vectorised copies
         for i in range(n - k):
-            out[r, i + k] = x[r, i]
+            head[i] = src[i]
         for i in range(k):
-            out[r, i] = x[r, n - k + i]
+            dst[i] = tail[i]
 
 
 def _load() -> Any:
