@@ -363,27 +363,32 @@ def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int,
     s0 = s1 = s2 = s3 = s4 = np.int64(0)
     for r in range(h):
         base = r * row
+        # row views, indexed by an unsigned index: no negative-index wraparound checks
+        xr, vr, rr = x[base:base + row], valid[base:base + row], ref[base:base + row]
+        g2r, g3r = g2[base:base + row], g3[base:base + row]
+        g2u = g2[base - row:base] if r > 0 else g2r  # read only when r > 0
+        g3u = g3[base - row:base] if r > 0 else g3r
         for kx in range(c):
             f1 = f3 = corner = np.int64(0)
             for t in range(w):  # a unit-step loop: faster than a range with a variable step
-                i = base + kx + t * c
-                up2 = np.int64(g2[i - row]) if r > 0 else np.int64(0)
-                up3 = np.int64(g3[i - row]) if r > 0 else np.int64(0)
+                i = np.uint64(kx + t * c)
+                up2 = np.int64(g2u[i]) if r > 0 else np.int64(0)
+                up3 = np.int64(g3u[i]) if r > 0 else np.int64(0)
                 p3 = (f3 + up3 - corner) & mask
                 corner = up3
-                v = np.int64(x[i])
-                ok = valid[i]
+                v = np.int64(xr[i])
+                ok = vr[i]
                 on = np.int64(ok)
                 s0 += on * _zbits_scalar(v, mask, half)
                 s1 += on * _zbits_scalar(v - f1, mask, half)
                 s2 += on * _zbits_scalar(v - up2, mask, half)
                 s3 += on * _zbits_scalar(v - p3, mask, half)
                 if nref:
-                    s4 += on * _zbits_scalar(v - np.int64(ref[i]), mask, half)
+                    s4 += on * _zbits_scalar(v - np.int64(rr[i]), mask, half)
                 f1 = v if ok else f1
-                g2[i] = v if ok else up2
+                g2r[i] = v if ok else up2
                 f3 = v if ok else p3
-                g3[i] = f3
+                g3r[i] = f3
     out = np.empty(5, np.int64)
     out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
