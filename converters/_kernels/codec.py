@@ -162,21 +162,22 @@ def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     nbytes = (bit + 7) // 8
     out = np.zeros(nbytes + 8, np.uint8)
     for i in range(z.shape[0]):
-        w = np.int64(k[i])
-        n = nb[w] + w
-        a = (acc[w] << np.uint64(w)) | np.uint64(np.int64(z[i]) & ((np.int64(1) << w) - 1))
+        g = k[i]  # unsigned indices (g, p): no negative-index wraparound checks
+        w = np.int64(g)
+        n = nb[g] + w
+        a = (acc[g] << np.uint64(w)) | np.uint64(np.int64(z[i]) & ((np.int64(1) << w) - 1))
         if n >= 32:
             n -= 32
             top = a >> np.uint64(n)
-            p = pos[w]
+            p = np.uint64(pos[g])
             out[p] |= np.uint8((top >> np.uint64(24)) & np.uint64(0xFF))
-            out[p + 1] |= np.uint8((top >> np.uint64(16)) & np.uint64(0xFF))
-            out[p + 2] |= np.uint8((top >> np.uint64(8)) & np.uint64(0xFF))
-            out[p + 3] |= np.uint8(top & np.uint64(0xFF))
-            pos[w] = p + 4
+            out[p + np.uint64(1)] |= np.uint8((top >> np.uint64(16)) & np.uint64(0xFF))
+            out[p + np.uint64(2)] |= np.uint8((top >> np.uint64(8)) & np.uint64(0xFF))
+            out[p + np.uint64(3)] |= np.uint8(top & np.uint64(0xFF))
+            pos[g] = p + np.uint64(4)
             a &= (np.uint64(1) << np.uint64(n)) - np.uint64(1)
-        acc[w] = a
-        nb[w] = n
+        acc[g] = a
+        nb[g] = n
     for w in range(1, 33):  # the rest of each group, left-aligned in its last bytes
         n = nb[w]
         a = acc[w]
@@ -327,18 +328,16 @@ def _quantise(v: Any, step: float, q: Any, exc: Any) -> int:  # pragma: no cover
     ``lidarscan.codec._quantise``. Returns the number of exceptions."""
     n_exc = 0
     bits = v.view(np.uint32)
-    for i in range(v.shape[0]):
-        qf = np.rint(np.float64(v[i]) / step)
-        qi = np.int32(qf) if abs(qf) < 2147483648.0 else np.int32(0)
+    for i in range(v.shape[0]):  # branch-free
+        vi = v[i]
+        qf = np.rint(np.float64(vi) / step)
+        qi = np.int32(qf if abs(qf) < 2147483648.0 else 0.0)
         back = np.float32(np.float64(qi) * step)
         # back is finite and a zero of it is +0.0: equal bits unless v is -0.0
-        bad = not (back == v[i]) or (back == 0 and bits[i] != 0)
+        bad = (back != vi) | ((back == 0) & (bits[i] != 0))
         exc[i] = bad
-        if bad:
-            q[i] = 0
-            n_exc += 1
-        else:
-            q[i] = qi
+        q[i] = np.int32(0) if bad else qi
+        n_exc += np.int64(bad)
     return n_exc
 
 
