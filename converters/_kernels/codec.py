@@ -277,12 +277,13 @@ def _unpack_grid(symbols: Any, sbase: Any, kk: Any, counts: Any, low: Any, valid
         if valid is None or valid[i]:
             s = symbols[j]
             k = kk[s]
-            q = start[k]  # k = 0 reads a window and keeps none of it
-            start[k] = q + k
-            at = q >> 3
-            win = ((np.int64(low[at]) << 32) | (np.int64(low[at + 1]) << 24)
-                   | (np.int64(low[at + 2]) << 16) | (np.int64(low[at + 3]) << 8)
-                   | np.int64(low[at + 4]))
+            ku = np.uint64(k)  # unsigned indices (ku, at): no negative-index wraparound
+            q = start[ku]  # k = 0 reads a window and keeps none of it
+            start[ku] = q + k
+            at = np.uint64(q >> 3)
+            win = ((np.int64(low[at]) << 32) | (np.int64(low[at + np.uint64(1)]) << 24)
+                   | (np.int64(low[at + np.uint64(2)]) << 16)
+                   | (np.int64(low[at + np.uint64(3)]) << 8) | np.int64(low[at + np.uint64(4)]))
             zz = sbase[s] | ((win >> (40 - (q & 7) - k)) & ((np.int64(1) << k) - 1))
             d[i] = (zz >> 1) ^ -(zz & 1)
             j += 1
@@ -305,21 +306,28 @@ def _unpredict(d: Any, g: Any, predictor: int, ref: Any, h: int, w: int, c: int
         for i in range(n):
             g[i] = (np.int64(ref[i]) + d[i]) & mask
     elif predictor == 2:
-        for i in range(row):
+        for i in range(min(row, n)):
             g[i] = d[i] & mask
-        for i in range(row, n):
-            g[i] = (np.int64(g[i - row]) + d[i]) & mask
+        for r in range(1, h):  # row views indexed from 0: no negative-index wraparound
+            base = r * row
+            dr, gr, gu = d[base:base + row], g[base:base + row], g[base - row:base]
+            for t in range(row):
+                gr[t] = (np.int64(gu[t]) + dr[t]) & mask
     else:
         for r in range(h):
             base = r * row
+            dr, gr = d[base:base + row], g[base:base + row]
+            gu = g[base - row:base] if r > 0 else gr  # read only when r > 0
+            planar = predictor == 3 and r > 0
             for k in range(c):  # one running sum per count index along the row
                 acc = np.int64(0)
-                for i in range(base + k, base + row, c):
-                    acc += d[i]
-                    if predictor == 3 and r > 0:
-                        g[i] = (acc + np.int64(g[i - row])) & mask
+                for t in range(w):
+                    i = np.uint64(k + t * c)  # unsigned: no wraparound checks
+                    acc += dr[i]
+                    if planar:
+                        gr[i] = (acc + np.int64(gu[i])) & mask
                     else:
-                        g[i] = acc & mask
+                        gr[i] = acc & mask
 
 
 def _quantise(v: Any, step: float, q: Any, exc: Any) -> int:  # pragma: no cover - compiled
