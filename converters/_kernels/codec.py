@@ -15,7 +15,9 @@ symbol splits in one branch-free (vectorised) pass, the low-bit packing, the flo
 unpacking into residuals followed by one loop per predictor. Bit lengths come from two small
 LLVM intrinsics (:func:`_make_bitlen`: an exact float64 exponent where the loop vectorises,
 count-leading-zeros where it does not); the wrappers' own large temporaries are reused per
-thread (:func:`_scratch`).
+thread (:func:`_scratch`). Loops that must vectorise (or merely run without a branch per
+access) index row views from 0 or use unsigned indices: a signed index numba cannot prove
+non-negative (``x[i - c]``) gets a negative-index wraparound check, which keeps a loop scalar.
 
 :func:`coder` bundles them as a :class:`lidarscan.codec.ResidualCoder` (the fields and their
 arguments are documented there); ``compress_scan`` / ``decompress_scan`` take it as
