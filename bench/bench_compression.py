@@ -18,9 +18,13 @@ below zstd-3's. Exits 1 when one is missed.
 ``converters/_kernels/codec.py`` (e.g. ``git show main:converters/_kernels/codec.py >
 /tmp/main_codec.py``), interleaved with the others; it must write the same bytes, and the
 ratios of this revision's encode / decode time to it are printed (the before/after of a change,
-measured in one run).
+measured in one run). ``--baseline-core FILE``: with ``--baseline``, the baseline also runs
+that revision's encoder and decoder, FILE being a copy of its ``lidarscan/codec.py``
+(``git show main:lidarscan/codec.py > /tmp/main_core.py``): the before/after of a change to
+both.
 
-Usage: ``.venv/bin/python bench/bench_compression.py [--rounds N] [--baseline FILE]``.
+Usage: ``.venv/bin/python bench/bench_compression.py [--rounds N] [--baseline FILE
+[--baseline-core FILE]]``.
 """
 
 from __future__ import annotations
@@ -65,11 +69,23 @@ def make_scan() -> tuple[Any, Any]:
     return out, SimpleNamespace(pixel_shift_by_row=np.asarray(info.pixel_shift_by_row) * 2)
 
 
+def _load_module(name: str, path: Path) -> Any:
+    """The Python file ``path`` imported as module ``name`` (another revision's copy)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # numba's on-disk cache finds the module by name
+    spec.loader.exec_module(module)
+    return module
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=15, help="timed rounds")
     parser.add_argument("--baseline", type=Path, default=None,
                         help="a copy of another revision's converters/_kernels/codec.py")
+    parser.add_argument("--baseline-core", type=Path, default=None,
+                        help="with --baseline: a copy of that revision's lidarscan/codec.py")
     args = parser.parse_args(argv)
 
     import lz4.frame
@@ -84,13 +100,11 @@ def main(argv: list[str] | None = None) -> int:
     dz = zstandard.ZstdDecompressor()
     coders = {"lidarscan.codec": compiled} if compiled is not None else {}
     coders["codec (numpy)"] = None
+    cores = {}  # coder name -> the codec module that runs it (default: this revision's)
     if args.baseline is not None and compiled is not None:
-        import importlib.util
-        spec = importlib.util.spec_from_file_location("baseline_codec", args.baseline)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module  # numba's on-disk cache finds the module by name
-        spec.loader.exec_module(module)
-        coders["codec (baseline)"] = module.coder()
+        coders["codec (baseline)"] = _load_module("baseline_codec", args.baseline).coder()
+        if args.baseline_core is not None:
+            cores["codec (baseline)"] = _load_module("baseline_core", args.baseline_core)
     packed = {"zstd-3 (buffer)": z3.compress(raw), "zstd-1 (buffer)": z1.compress(raw),
               "lz4 (buffer)": lz4.frame.compress(raw)}
     enc = {"zstd-3 (buffer)": lambda: z3.compress(raw), "zstd-1 (buffer)": lambda: z1.compress(raw),
@@ -99,11 +113,12 @@ def main(argv: list[str] | None = None) -> int:
            "zstd-1 (buffer)": lambda: dz.decompress(packed["zstd-1 (buffer)"]),
            "lz4 (buffer)": lambda: lz4.frame.decompress(packed["lz4 (buffer)"])}
     for name, coder in coders.items():
-        packed[name] = codec.compress_scan(scan, info, coder=coder)
-        back = codec.decompress_scan(packed[name], coder=coder)
+        core = cores.get(name, codec)
+        packed[name] = core.compress_scan(scan, info, coder=coder)
+        back = core.decompress_scan(packed[name], coder=coder)
         assert ls.encode(back) == ls.encode(scan), name
-        enc[name] = lambda c=coder: codec.compress_scan(scan, info, coder=c)
-        dec[name] = lambda n=name, c=coder: codec.decompress_scan(packed[n], coder=c)
+        enc[name] = lambda c=coder, m=core: m.compress_scan(scan, info, coder=c)
+        dec[name] = lambda n=name, c=coder, m=core: m.decompress_scan(packed[n], coder=c)
     assert len({packed[name] for name in coders}) == 1, "the coders wrote different bytes"
     if compiled is not None:  # format version 3 (an option: lidarscan._codec_v3), compiled coder
         packed["codec v3"] = codec.compress_scan(scan, info, coder=compiled, version=3)

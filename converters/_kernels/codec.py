@@ -15,7 +15,9 @@ symbol splits in one branch-free (vectorised) pass, the low-bit packing, the flo
 unpacking into residuals followed by one loop per predictor. Bit lengths come from two small
 LLVM intrinsics (:func:`_make_bitlen`: an exact float64 exponent where the loop vectorises,
 count-leading-zeros where it does not); the wrappers' own large temporaries are reused per
-thread (:func:`_scratch`).
+thread (:func:`_scratch`). Loops that must vectorise (or merely run without a branch per
+access) index row views from 0 or use unsigned indices: a signed index numba cannot prove
+non-negative (``x[i - c]``) gets a negative-index wraparound check, which keeps a loop scalar.
 
 :func:`coder` bundles them as a :class:`lidarscan.codec.ResidualCoder` (the fields and their
 arguments are documented there); ``compress_scan`` / ``decompress_scan`` take it as
@@ -162,21 +164,22 @@ def _pack_low(z: Any, k: Any) -> Any:  # pragma: no cover - compiled
     nbytes = (bit + 7) // 8
     out = np.zeros(nbytes + 8, np.uint8)
     for i in range(z.shape[0]):
-        w = np.int64(k[i])
-        n = nb[w] + w
-        a = (acc[w] << np.uint64(w)) | np.uint64(np.int64(z[i]) & ((np.int64(1) << w) - 1))
+        g = k[i]  # unsigned indices (g, p): no negative-index wraparound checks
+        w = np.int64(g)
+        n = nb[g] + w
+        a = (acc[g] << np.uint64(w)) | np.uint64(np.int64(z[i]) & ((np.int64(1) << w) - 1))
         if n >= 32:
             n -= 32
             top = a >> np.uint64(n)
-            p = pos[w]
+            p = np.uint64(pos[g])
             out[p] |= np.uint8((top >> np.uint64(24)) & np.uint64(0xFF))
-            out[p + 1] |= np.uint8((top >> np.uint64(16)) & np.uint64(0xFF))
-            out[p + 2] |= np.uint8((top >> np.uint64(8)) & np.uint64(0xFF))
-            out[p + 3] |= np.uint8(top & np.uint64(0xFF))
-            pos[w] = p + 4
+            out[p + np.uint64(1)] |= np.uint8((top >> np.uint64(16)) & np.uint64(0xFF))
+            out[p + np.uint64(2)] |= np.uint8((top >> np.uint64(8)) & np.uint64(0xFF))
+            out[p + np.uint64(3)] |= np.uint8(top & np.uint64(0xFF))
+            pos[g] = p + np.uint64(4)
             a &= (np.uint64(1) << np.uint64(n)) - np.uint64(1)
-        acc[w] = a
-        nb[w] = n
+        acc[g] = a
+        nb[g] = n
     for w in range(1, 33):  # the rest of each group, left-aligned in its last bytes
         n = nb[w]
         a = acc[w]
@@ -210,7 +213,8 @@ def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, 
     prediction, and g (like x, written) is the grid the predictions read. Branch-free: the
     prediction is a1 * left + a2 * up - a3 * up-left + a4 * ref with the predictor's 0/1
     coefficients; per row and count index the left and up-left fill values are carried in
-    registers. With C = 1 the residuals are written compacted as they come; else every
+    registers (the left predictor with C = 1 has a loop of its own that neither reads nor
+    writes g). With C = 1 the residuals are written compacted as they come; else every
     pixel's goes to its own index and the row's valid ones are moved forward after the row
     (in place: the write index never passes the read index). Returns the number of valid
     pixels."""
@@ -224,6 +228,18 @@ def _grid(x: Any, g: Any, z: Any, valid: Any, predictor: int, ref: Any, h: int, 
     one = c == 1
     row = w * c
     j = 0
+    if predictor == 1 and one:  # left, one value per cell: only the fill value is carried
+        for r in range(h):
+            f = np.int64(0)
+            xr, vr = x[r * w:r * w + w], valid[r * w:r * w + w]  # indexed from 0: no wraparound
+            for t in range(w):
+                v = np.int64(xr[t])
+                d = (((v - f) & mask) ^ half) - half
+                z[j] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                ok = vr[t]
+                j += np.int64(ok)
+                f = v if ok else f
+        return j
     for r in range(h):
         base = r * row
         for kx in range(c):
@@ -263,12 +279,13 @@ def _unpack_grid(symbols: Any, sbase: Any, kk: Any, counts: Any, low: Any, valid
         if valid is None or valid[i]:
             s = symbols[j]
             k = kk[s]
-            q = start[k]  # k = 0 reads a window and keeps none of it
-            start[k] = q + k
-            at = q >> 3
-            win = ((np.int64(low[at]) << 32) | (np.int64(low[at + 1]) << 24)
-                   | (np.int64(low[at + 2]) << 16) | (np.int64(low[at + 3]) << 8)
-                   | np.int64(low[at + 4]))
+            ku = np.uint64(k)  # unsigned indices (ku, at): no negative-index wraparound
+            q = start[ku]  # k = 0 reads a window and keeps none of it
+            start[ku] = q + k
+            at = np.uint64(q >> 3)
+            win = ((np.int64(low[at]) << 32) | (np.int64(low[at + np.uint64(1)]) << 24)
+                   | (np.int64(low[at + np.uint64(2)]) << 16)
+                   | (np.int64(low[at + np.uint64(3)]) << 8) | np.int64(low[at + np.uint64(4)]))
             zz = sbase[s] | ((win >> (40 - (q & 7) - k)) & ((np.int64(1) << k) - 1))
             d[i] = (zz >> 1) ^ -(zz & 1)
             j += 1
@@ -291,21 +308,28 @@ def _unpredict(d: Any, g: Any, predictor: int, ref: Any, h: int, w: int, c: int
         for i in range(n):
             g[i] = (np.int64(ref[i]) + d[i]) & mask
     elif predictor == 2:
-        for i in range(row):
+        for i in range(min(row, n)):
             g[i] = d[i] & mask
-        for i in range(row, n):
-            g[i] = (np.int64(g[i - row]) + d[i]) & mask
+        for r in range(1, h):  # row views indexed from 0: no negative-index wraparound
+            base = r * row
+            dr, gr, gu = d[base:base + row], g[base:base + row], g[base - row:base]
+            for t in range(row):
+                gr[t] = (np.int64(gu[t]) + dr[t]) & mask
     else:
         for r in range(h):
             base = r * row
+            dr, gr = d[base:base + row], g[base:base + row]
+            gu = g[base - row:base] if r > 0 else gr  # read only when r > 0
+            planar = predictor == 3 and r > 0
             for k in range(c):  # one running sum per count index along the row
                 acc = np.int64(0)
-                for i in range(base + k, base + row, c):
-                    acc += d[i]
-                    if predictor == 3 and r > 0:
-                        g[i] = (acc + np.int64(g[i - row])) & mask
+                for t in range(w):
+                    i = np.uint64(k + t * c)  # unsigned: no wraparound checks
+                    acc += dr[i]
+                    if planar:
+                        gr[i] = (acc + np.int64(gu[i])) & mask
                     else:
-                        g[i] = acc & mask
+                        gr[i] = acc & mask
 
 
 def _quantise(v: Any, step: float, q: Any, exc: Any) -> int:  # pragma: no cover - compiled
@@ -314,18 +338,16 @@ def _quantise(v: Any, step: float, q: Any, exc: Any) -> int:  # pragma: no cover
     ``lidarscan.codec._quantise``. Returns the number of exceptions."""
     n_exc = 0
     bits = v.view(np.uint32)
-    for i in range(v.shape[0]):
-        qf = np.rint(np.float64(v[i]) / step)
-        qi = np.int32(qf) if abs(qf) < 2147483648.0 else np.int32(0)
+    for i in range(v.shape[0]):  # branch-free
+        vi = v[i]
+        qf = np.rint(np.float64(vi) / step)
+        qi = np.int32(qf if abs(qf) < 2147483648.0 else 0.0)
         back = np.float32(np.float64(qi) * step)
         # back is finite and a zero of it is +0.0: equal bits unless v is -0.0
-        bad = not (back == v[i]) or (back == 0 and bits[i] != 0)
+        bad = (back != vi) | ((back == 0) & (bits[i] != 0))
         exc[i] = bad
-        if bad:
-            q[i] = 0
-            n_exc += 1
-        else:
-            q[i] = qi
+        q[i] = np.int32(0) if bad else qi
+        n_exc += np.int64(bad)
     return n_exc
 
 
@@ -350,27 +372,32 @@ def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int,
     s0 = s1 = s2 = s3 = s4 = np.int64(0)
     for r in range(h):
         base = r * row
+        # row views, indexed by an unsigned index: no negative-index wraparound checks
+        xr, vr, rr = x[base:base + row], valid[base:base + row], ref[base:base + row]
+        g2r, g3r = g2[base:base + row], g3[base:base + row]
+        g2u = g2[base - row:base] if r > 0 else g2r  # read only when r > 0
+        g3u = g3[base - row:base] if r > 0 else g3r
         for kx in range(c):
             f1 = f3 = corner = np.int64(0)
             for t in range(w):  # a unit-step loop: faster than a range with a variable step
-                i = base + kx + t * c
-                up2 = np.int64(g2[i - row]) if r > 0 else np.int64(0)
-                up3 = np.int64(g3[i - row]) if r > 0 else np.int64(0)
+                i = np.uint64(kx + t * c)
+                up2 = np.int64(g2u[i]) if r > 0 else np.int64(0)
+                up3 = np.int64(g3u[i]) if r > 0 else np.int64(0)
                 p3 = (f3 + up3 - corner) & mask
                 corner = up3
-                v = np.int64(x[i])
-                ok = valid[i]
+                v = np.int64(xr[i])
+                ok = vr[i]
                 on = np.int64(ok)
                 s0 += on * _zbits_scalar(v, mask, half)
                 s1 += on * _zbits_scalar(v - f1, mask, half)
                 s2 += on * _zbits_scalar(v - up2, mask, half)
                 s3 += on * _zbits_scalar(v - p3, mask, half)
                 if nref:
-                    s4 += on * _zbits_scalar(v - np.int64(ref[i]), mask, half)
+                    s4 += on * _zbits_scalar(v - np.int64(rr[i]), mask, half)
                 f1 = v if ok else f1
-                g2[i] = v if ok else up2
+                g2r[i] = v if ok else up2
                 f3 = v if ok else p3
-                g3[i] = f3
+                g3r[i] = f3
     out = np.empty(5, np.int64)
     out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
@@ -379,43 +406,51 @@ def _costs(x: Any, valid: Any, ref: Any, nref: int, h: int, w: int, c: int,
 def _costs_plain(x: Any, ref: Any, nref: int, h: int, w: int, c: int
                  ) -> Any:  # pragma: no cover - compiled
     """:func:`_costs` without a mask (every pixel valid; predictions read x itself); the loop
-    over a row's inner pixels has no branch (vectorised)."""
+    over a row's inner pixels has no branch (vectorised: it indexes views of the row from 0,
+    so that numba's negative-index wraparound, which stops vectorisation, is provably never
+    taken)."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
     row = w * c
+    m = row - c  # the cells with a left neighbour, from index c of the row
     s0 = s1 = s2 = s3 = s4 = np.int64(0)
     for r in range(h):
         base = r * row
-        for i in range(base, base + min(c, row)):  # first cell: no left neighbour
-            v = np.int64(x[i])
-            up = np.int64(x[i - row]) if r > 0 else np.int64(0)
+        xr = x[base:base + row]
+        up = x[base - row:base] if r > 0 else xr  # read only when r > 0
+        for k in range(min(c, row)):  # first cell: no left neighbour
+            v = np.int64(xr[k])
+            u = np.int64(up[k]) if r > 0 else np.int64(0)
             s0 += _zbits(v, mask, half)
             s1 += _zbits(v, mask, half)
-            s2 += _zbits(v - up, mask, half)
-            s3 += _zbits(v - up, mask, half)
+            s2 += _zbits(v - u, mask, half)
+            s3 += _zbits(v - u, mask, half)
             if nref:
-                s4 += _zbits(v - np.int64(ref[i]), mask, half)
+                s4 += _zbits(v - np.int64(ref[base + k]), mask, half)
+        cur, left = xr[c:], xr[:m]
         if r == 0:
-            for i in range(base + c, base + row):
-                v = np.int64(x[i])
-                left = np.int64(x[i - c])
+            for t in range(m):
+                v = np.int64(cur[t])
+                lv = np.int64(left[t])
                 s0 += _zbits(v, mask, half)
-                s1 += _zbits(v - left, mask, half)
+                s1 += _zbits(v - lv, mask, half)
                 s2 += _zbits(v, mask, half)
-                s3 += _zbits(v - left, mask, half)
+                s3 += _zbits(v - lv, mask, half)
         else:
-            for i in range(base + c, base + row):
-                v = np.int64(x[i])
-                left = np.int64(x[i - c])
-                up = np.int64(x[i - row])
+            above, corner = up[c:], up[:m]
+            for t in range(m):
+                v = np.int64(cur[t])
+                lv = np.int64(left[t])
+                u = np.int64(above[t])
                 s0 += _zbits(v, mask, half)
-                s1 += _zbits(v - left, mask, half)
-                s2 += _zbits(v - up, mask, half)
-                s3 += _zbits(v - left - up + np.int64(x[i - row - c]), mask, half)
+                s1 += _zbits(v - lv, mask, half)
+                s2 += _zbits(v - u, mask, half)
+                s3 += _zbits(v - lv - u + np.int64(corner[t]), mask, half)
         if nref:
-            for i in range(base + c, base + row):
-                s4 += _zbits(np.int64(x[i]) - np.int64(ref[i]), mask, half)
+            rr = ref[base + c:base + row]
+            for t in range(m):
+                s4 += _zbits(np.int64(cur[t]) - np.int64(rr[t]), mask, half)
     out = np.empty(5, np.int64)
     out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4 if nref else -1
     return out
@@ -424,12 +459,14 @@ def _costs_plain(x: Any, ref: Any, nref: int, h: int, w: int, c: int
 def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c: int
                      ) -> None:  # pragma: no cover - compiled
     """:func:`_grid` encoding without a mask, one loop per predictor (the predictions read x
-    itself): z = zigzag residuals (uint32) of every pixel."""
+    itself): z = zigzag residuals (uint32) of every pixel. The row loops index views of the
+    row from 0 (vectorised, as in :func:`_costs_plain`)."""
     bits = x.itemsize * 8
     mask = (np.int64(1) << bits) - 1
     half = np.int64(1) << (bits - 1)
     row = w * c
     n = h * row
+    m = row - c
     if predictor == 0:
         for i in range(n):
             d = ((np.int64(x[i]) & mask) ^ half) - half
@@ -441,31 +478,37 @@ def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c
     else:
         for r in range(h):
             base = r * row
-            for i in range(base, base + c):
-                d = np.int64(x[i])
+            xr = x[base:base + row]
+            zr = z[base:base + row]
+            up = x[base - row:base] if r > 0 else xr  # read only when r > 0
+            for k in range(min(c, row)):
+                d = np.int64(xr[k])
                 if predictor >= 2 and r > 0:
-                    d -= np.int64(x[i - row])
+                    d -= np.int64(up[k])
                 d = ((d & mask) ^ half) - half
-                z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                zr[k] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+            cur, left, out = xr[c:], xr[:m], zr[c:]
             if predictor == 1 or (predictor == 3 and r == 0):
-                for i in range(base + c, base + row):
-                    d = (((np.int64(x[i]) - np.int64(x[i - c])) & mask) ^ half) - half
-                    z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                for t in range(m):
+                    d = (((np.int64(cur[t]) - np.int64(left[t])) & mask) ^ half) - half
+                    out[t] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
             elif predictor == 2:
                 if r == 0:
-                    for i in range(base + c, base + row):
-                        d = ((np.int64(x[i]) & mask) ^ half) - half
-                        z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                    for t in range(m):
+                        d = ((np.int64(cur[t]) & mask) ^ half) - half
+                        out[t] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
                 else:
-                    for i in range(base + c, base + row):
-                        d = (((np.int64(x[i]) - np.int64(x[i - row])) & mask) ^ half) - half
-                        z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                    above = up[c:]
+                    for t in range(m):
+                        d = (((np.int64(cur[t]) - np.int64(above[t])) & mask) ^ half) - half
+                        out[t] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
             else:
-                for i in range(base + c, base + row):
-                    d = (np.int64(x[i]) - np.int64(x[i - c]) - np.int64(x[i - row])
-                         + np.int64(x[i - row - c]))
+                above, corner = up[c:], up[:m]
+                for t in range(m):
+                    d = (np.int64(cur[t]) - np.int64(left[t]) - np.int64(above[t])
+                         + np.int64(corner[t]))
                     d = ((d & mask) ^ half) - half
-                    z[i] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
+                    out[t] = np.uint32(((d << 1) ^ (d >> 63)) & mask)
 
 
 def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
@@ -476,10 +519,12 @@ def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
     cells = n // c
     for r in range(h):
         k = ((sign * shifts[r]) % cells) * c if cells else 0
+        src, dst = x[r], out[r]
+        head, tail = dst[k:], src[n - k:]  # views indexed from 0: vectorised copies
         for i in range(n - k):
-            out[r, i + k] = x[r, i]
+            head[i] = src[i]
         for i in range(k):
-            out[r, i] = x[r, n - k + i]
+            dst[i] = tail[i]
 
 
 def _load() -> Any:
