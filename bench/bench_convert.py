@@ -420,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"(decode {dec:.2f} s, the rest {main_cpu - dec:.2f} s), output threads "
                       f"{cpu - main_cpu:.2f} s; 20x on 2 free cores needs decode <= "
                       f"{need:.2f} s ({dec / max(need, 1e-9):.1f}x faster)" if need > 0 else
-                      f"  convert: 20x on 2 free cores is out of reach whatever the decoder")
+                      "  convert: 20x on 2 free cores is out of reach whatever the decoder")
             chunk_compression(out, bag, cal)
             if args.profile:
                 prof = cProfile.Profile()
