@@ -56,6 +56,8 @@ from typing import Any
 
 import numpy as np
 
+from lidarscan.codec import (_FLOAT32, _GRID2, _INT_CODES, _SIZES, _decode_int2,
+                             _encode_int2, _shift_params)
 from lidarscan.errors import DecodeError
 
 __all__ = ["XParams", "decode_block", "encode_block", "fit", "pack_params", "predict",
@@ -64,8 +66,6 @@ __all__ = ["XParams", "decode_block", "encode_block", "fit", "pack_params", "pre
 _SRC = struct.Struct("<IBIBiH")   # signal offset, signal datatype, range offset, range datatype,
                                   # bin0, n_gain
 _COMP = struct.Struct("<IiH")     # knee, ubin0, n_comp
-_INT_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
-_FLOAT32 = 7
 _FIT_PIXELS = 1 << 16  # the encoder fits its tables on about this many pixels
 #: (target channel prefix, signal channel names, range channel prefix): the encoder's search;
 #: a suffix (e.g. "2" of a second return) is carried over to the sources.
@@ -114,7 +114,7 @@ def unpack_params(buf: bytes, what: str) -> XParams:
     if len(buf) != end:
         raise DecodeError(f"{what} params", len(buf), f"{end} bytes")
     comp = np.frombuffer(buf, "<u2", nc, pos + _COMP.size).astype(np.uint16)
-    if sd not in _INT_TYPES or (rd not in _INT_TYPES and rd != _FLOAT32) or ng < 1 or nc < 1:
+    if sd not in _INT_CODES or (rd not in _INT_CODES and rd != _FLOAT32) or ng < 1 or nc < 1:
         raise DecodeError(f"{what} params", (sd, rd, ng, nc),
                           "integer signal, float32 or integer range, non-empty tables")
     return XParams(so, sd, ro, rd, bin0, gain, row_gain, knee, ubin0, comp)
@@ -253,7 +253,6 @@ def encode_block(block: Any, desc: Any, scan: Any, level: int,
     """(params, payload) of the XPREDICT coding of an integer channel block, or None when the
     block has no sources (:func:`source_names`, earlier blocks of the same grid, count 1).
     ``knees``: the knee values tried (the smallest coding wins)."""
-    from lidarscan import codec as c
     from lidarscan.scan import channel, channel_names
     names = channel_names(scan)
     found = source_names(str(desc.name), names)
@@ -262,13 +261,13 @@ def encode_block(block: Any, desc: Any, scan: Any, level: int,
     height, width = int(scan.height), int(scan.width)
     sources = [_desc_of(scan, n) for n in found]
     for src in sources:
-        size = c._SIZES.get(int(src.datatype), 0)
+        size = _SIZES.get(int(src.datatype), 0)
         end = int(src.offset) + height * width * size
         if (int(src.count) != 1 or end > int(desc.offset) or int(src.datatype) not in
-                (_INT_TYPES.keys() if src is sources[0] else (*_INT_TYPES, _FLOAT32))):
+                (_INT_CODES.keys() if src is sources[0] else (*_INT_CODES, _FLOAT32))):
             return None
     big = bool(scan.is_bigendian)
-    size = c._SIZES[int(desc.datatype)]
+    size = _SIZES[int(desc.datatype)]
     f = np.frombuffer(block, np.dtype((">" if big else "<") + f"u{size}")).reshape(
         height, width).astype(f"u{size}")
     s = np.asarray(channel(scan, found[0], native=True)).reshape(height, width)
@@ -281,10 +280,10 @@ def encode_block(block: Any, desc: Any, scan: Any, level: int,
             return None
         d = (f - predict(s, r, p, f.dtype)).reshape(height, width, 1)
         d = coder.roll(d, shifts, 1)
-        predictor, extra, masked, payload = c._encode_int2(d, level, None, coder)
-        params = (c._GRID2.pack(int(desc.datatype), big, height, width, 1, predictor,
+        predictor, extra, masked, payload = _encode_int2(d, level, None, coder)
+        params = (_GRID2.pack(int(desc.datatype), big, height, width, 1, predictor,
                                 shifts is not None, extra, masked)
-                  + c._shift_params(shifts) + pack_params(p))
+                  + _shift_params(shifts) + pack_params(p))
         if len(params) >= 2**16:  # the container's u16 params length
             continue
         if best is None or len(params) + len(payload) < len(best[0]) + len(best[1]):
@@ -295,13 +294,12 @@ def encode_block(block: Any, desc: Any, scan: Any, level: int,
 def _source(data: np.ndarray[Any, Any], offset: int, datatype: int, shape: tuple[int, int],
             big: bool, before: int, what: str) -> np.ndarray[Any, Any]:
     """A native source grid read from the decoded ``data`` (ending at or before ``before``)."""
-    from lidarscan import codec as c
-    size = c._SIZES[datatype]
+    size = _SIZES[datatype]
     n = shape[0] * shape[1] * size
     if offset + n > before:
         raise DecodeError(f"{what} source offset", offset,
                           f"a block of {n} bytes decoded before offset {before}")
-    code = "f4" if datatype == _FLOAT32 else _INT_TYPES[datatype]
+    code = "f4" if datatype == _FLOAT32 else _INT_CODES[datatype]
     raw = np.frombuffer(data[offset:offset + n].tobytes(), (">" if big else "<") + code)
     return raw.astype(code).reshape(shape)
 
@@ -310,25 +308,24 @@ def decode_block(what: str, offset: int, length: int, params: bytes, payload: by
                  data: np.ndarray[Any, Any], coder: Any) -> np.ndarray[Any, Any]:
     """The bytes (uint8 array) of an XPREDICT segment; ``data``: the scan's data decoded up to
     ``offset``."""
-    from lidarscan import codec as c
-    if len(params) < c._GRID2.size:
-        raise DecodeError(f"{what} params", len(params), f"at least {c._GRID2.size} bytes")
-    datatype, big, h, w, count, predictor, rolled, extra, masked = c._GRID2.unpack_from(params)
-    size = c._SIZES.get(datatype, 0)
-    if (datatype not in _INT_TYPES or count != 1 or predictor > 3 or extra > 2 or masked > 1
+    if len(params) < _GRID2.size:
+        raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
+    datatype, big, h, w, count, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
+    size = _SIZES.get(datatype, 0)
+    if (datatype not in _INT_CODES or count != 1 or predictor > 3 or extra > 2 or masked > 1
             or h * w * size != length):
         raise DecodeError(f"{what} params", (datatype, h, w, count, predictor, extra, masked),
                           f"an integer grid of {length} bytes, count 1, predictor 0..3")
-    base = c._GRID2.size + (4 * h if rolled else 0)
+    base = _GRID2.size + (4 * h if rolled else 0)
     if len(params) < base:
         raise DecodeError(f"{what} params", len(params), f"at least {base} bytes")
-    shifts = np.frombuffer(params, "<i4", h, c._GRID2.size).astype(np.int64) if rolled else None
+    shifts = np.frombuffer(params, "<i4", h, _GRID2.size).astype(np.int64) if rolled else None
     p = unpack_params(params[base:], what)
     if p.row_gain.size != h:
         raise DecodeError(f"{what} params", p.row_gain.size, f"{h} row gains (one per row)")
     s = _source(data, p.signal_offset, p.signal_datatype, (h, w), bool(big), offset, what)
     r = _source(data, p.range_offset, p.range_datatype, (h, w), bool(big), offset, what)
-    d = c._decode_int2(payload, (h, w, 1), size, predictor, extra, bool(masked), what, None,
+    d = _decode_int2(payload, (h, w, 1), size, predictor, extra, bool(masked), what, None,
                        coder)
     d = coder.roll(d, shifts, -1).reshape(h, w)
     f = (d + predict(s, r, p, d.dtype)).astype(d.dtype)  # wrapping

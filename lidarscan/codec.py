@@ -536,7 +536,7 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
     from lidarscan.scan import data_view
     from lidarscan.types import LidarScan as ScanDC
     coder = coder or NUMPY
-    if version not in (2, 3) or isinstance(version, bool):
+    if version not in (2, 3):
         raise EncodeError("version", version, "2 or 3 (the format versions this library writes)")
 
     data = data_view(scan)
