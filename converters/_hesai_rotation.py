@@ -168,8 +168,7 @@ def _units(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], stream: _St
         _units_numpy(pieces, stream, rows, grids)
         return
     fmt = stream.fmt
-    returns = stream.returns
-    firings = fmt.blocks // returns
+    returns, firings = stream.returns, stream.firings
     width = grids[0][0].shape[1]
     rowbase = rows.astype(np.uint64) * np.uint64(width)
     flat = [(dist.reshape(-1), refl.reshape(-1)) for dist, refl in grids]
@@ -200,8 +199,7 @@ def _units_numpy(pieces: list[tuple[np.ndarray[Any, Any], int, int, int]], strea
     """The numpy reference of :func:`_units`: strided structured views of the rows, copied
     firing-major, transposed and put in row order."""
     fmt = stream.fmt
-    returns = stream.returns
-    firings = fmt.blocks // returns
+    returns, firings = stream.returns, stream.firings
     order = np.argsort(rows)                  # laser index of each row
     for payloads, first, count, col in pieces:
         k0, k1 = first // firings, -(-(first + count) // firings)

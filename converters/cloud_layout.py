@@ -52,7 +52,7 @@ from lidarscan.datatypes import FLOAT32, FLOAT64, UINT16, UINT32, dtype_of
 from lidarscan.errors import ConversionError, UnknownChannelError
 
 __all__ = ["CHANNEL_ALIASES", "COMPUTED_TYPES", "DEFAULT_FIELDS", "PRESETS", "FieldSpec", "Preset",
-           "cloud_dtype", "find_channel", "generic_layout", "read_points", "structured"]
+           "check_extent", "cloud_dtype", "find_channel", "generic_layout", "read_points", "structured"]
 
 #: Channel aliases tried in order when a field names a scan channel.
 CHANNEL_ALIASES: dict[str, tuple[str, ...]] = {
@@ -242,6 +242,17 @@ def cloud_dtype(fields: Sequence[Any], point_step: int, is_bigendian: bool = Fal
                               f"a point layout numpy can represent ({err})") from err
 
 
+def check_extent(height: int, width: int, step: int, row_step: int, nbytes: int) -> None:
+    """Raise :class:`ConversionError` unless ``nbytes`` of cloud data with this ``row_step``
+    hold ``height`` x ``width`` points of ``step`` bytes (both > 0)."""
+    if row_step < step * width:
+        raise ConversionError("row_step", row_step, f">= point_step * width = {step * width}")
+    need = (height - 1) * row_step + width * step
+    if nbytes < need:
+        raise ConversionError("data", f"length {nbytes}",
+                              f">= {need} bytes for {height}x{width} points")
+
+
 def read_points(cloud: Any) -> np.ndarray[Any, Any]:
     """Zero-copy, read-only structured (height, width) view of a cloud's points.
 
@@ -258,12 +269,7 @@ def read_points(cloud: Any) -> np.ndarray[Any, Any]:
     buf = data if isinstance(data, np.ndarray) else np.frombuffer(data, np.uint8)
     if height == 0 or width == 0:
         return np.zeros((height, width), dtype)
-    if row_step < step * width:
-        raise ConversionError("row_step", row_step, f">= point_step * width = {step * width}")
-    need = (height - 1) * row_step + width * step
-    if buf.size < need:
-        raise ConversionError("data", f"length {buf.size}",
-                              f">= {need} bytes for {height}x{width} points")
+    check_extent(height, width, step, row_step, buf.size)
     view = np.ndarray((height, width), dtype=dtype, buffer=buf.data if isinstance(
         buf, np.ndarray) else buf, strides=(row_step, step))
     view.flags.writeable = False

@@ -51,7 +51,7 @@ import numpy as np
 
 from converters import _grid, _kernels, options
 from converters._grid import AngleGrid, OutputOptions
-from converters.cloud_layout import read_points
+from converters.cloud_layout import check_extent, read_points
 from converters.frames import check_extrinsics
 from converters.laserscan import _OVERRIDES, SliceSpec, _as_spec, _Slice
 from converters.options import IfPresent
@@ -348,13 +348,7 @@ class CloudSliceConverter:
         step, row_step = layout.step, int(cloud.row_step)
         addr, nbytes, keep = _address(cloud.data)
         if height and width:
-            if row_step < step * width:
-                raise ConversionError("row_step", row_step, f">= point_step * width = "
-                                      f"{step * width}")
-            need = (height - 1) * row_step + width * step
-            if nbytes < need:
-                raise ConversionError("data", f"length {nbytes}",
-                                      f">= {need} bytes for {height}x{width} points")
+            check_extent(height, width, step, row_step, nbytes)
         inten = layout.intensity
         if layout.direct:
             xyz = (addr + layout.xyz[0], addr + layout.xyz[1], addr + layout.xyz[2])

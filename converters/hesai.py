@@ -473,7 +473,7 @@ class PacketDecoder:
         stream = self._stream
         assert stream is not None
         cols = self._columns()
-        firings = stream.fmt.blocks // stream.returns
+        firings = stream.firings
         total = cols["azimuth"].size
         end = total if limit is None else limit * firings
         start = self._skip
@@ -497,7 +497,7 @@ class PacketDecoder:
         stream = self._stream
         assert stream is not None
         fmt = stream.fmt
-        firings = fmt.blocks // stream.returns
+        firings = stream.firings
         count = hi - lo
         nominal = 60e9 / (stream.rpm * fmt.firing_period_ns)
         width = int(math.ceil(1.02 * nominal))

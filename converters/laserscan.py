@@ -107,7 +107,7 @@ from converters.frames import check_extrinsics, check_poses, transform_rays
 from converters.options import IfPresent, resolve_channel
 from converters.transforms import TransformTrack
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
-from lidarscan.geometry import azimuth_channel, info_key, make_projector, pixel_delays
+from lidarscan.geometry import azimuth_channel, info_key, make_projector
 from lidarscan.scan import as_array, channel, channel_names, range_m
 from lidarscan.stamps import to_ns
 
@@ -347,9 +347,8 @@ class SliceConverter:
             (scan column order, row-major). Kept for the next scan when it has no ``t`` channel
             (then they depend only on the column times and the column order).
         """
-        delays = pixel_delays(scan)
         key = None
-        if delays is None:
+        if not any(c.name == "t" for c in scan.channels):   # pixel_delays(scan) is None
             key = (self.projector.column_times(scan).tobytes(), bool(scan.is_destaggered))
             if self._time_cache is not None and self._time_cache[0] == key:
                 return self._time_cache[1]

@@ -73,7 +73,7 @@ def _real_packets(folder: str, tmp_path: Path) -> list[tuple[int, bytes]]:
 
 
 def _synthetic(name: str, mode: str) -> tuple[list[tuple[int, bytes]], dict[str, Any]]:
-    from converters.velodyne import _layout
+    from converters.velodyne.packets import _layout
     from test_velodyne_packets import _random_calibration, synthetic_stream
     product = PRODUCTS[name]
     per_packet = _layout(product, MODES[mode]).sequences       # ~3.3 turns, then a slower one

@@ -38,6 +38,7 @@ import lidarscan.geometry
 import lidarscan.stamps
 from converters import velodyne
 from converters.velodyne import MODELS, PacketDecoder, decode_packets
+from converters.velodyne.packets import _layout
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from pcd import read_pcd
 from test_velodyne import _rawdata_point    # the ros-drivers point formula (per point)
@@ -398,7 +399,7 @@ def synthetic_stream(product: int, mode: int, packets: int, *, seed: int = 0,
     """Packets of a sensor turning deg_per_sequence per firing sequence (random returns)."""
     model = MODELS[product]
     dual = mode == 0x39
-    layout = velodyne._layout(product, mode)
+    layout = _layout(product, mode)
     rng = np.random.default_rng(seed)
     out = []
     sequence = 0
@@ -439,7 +440,7 @@ def _random_calibration(lasers: int, seed: int) -> dict[str, Any]:
 def test_synthetic_packets_match_the_loop_oracle(name: str, mode: str) -> None:
     product = PRODUCTS[name]
     lasers = MODELS[product].lasers
-    per_packet = velodyne._layout(product, MODES[mode]).sequences
+    per_packet = _layout(product, MODES[mode]).sequences
     packets = synthetic_stream(product, MODES[mode], max(3, 500 // per_packet),
                                seed=product + MODES[mode])
     _compare_with_oracle(packets, _random_calibration(lasers, product), cut=0.0)
@@ -451,7 +452,7 @@ def test_manual_azimuth_model_matches_the_loop_oracle(name: str) -> None:
     rotation until its firing time in the manual's table."""
     product = PRODUCTS[name]
     mode = 0x39 if name == "VLS-128" else 0x37
-    per_packet = velodyne._layout(product, mode).sequences
+    per_packet = _layout(product, mode).sequences
     packets = synthetic_stream(product, mode, max(3, 300 // per_packet), seed=product)
     _compare_with_oracle(packets, _random_calibration(MODELS[product].lasers, product),
                          cut=0.0, azimuth_model="manual")
@@ -770,7 +771,7 @@ def test_c_header_check_finds_the_first_packet_the_numpy_checks_reject(name: str
     product = PRODUCTS[name]
     rng = np.random.default_rng(product)
     for mode in sorted(MODES.values()):
-        layout = velodyne._layout(product, mode)
+        layout = _layout(product, mode)
         rows = np.frombuffer(b"".join(d for _, d in synthetic_stream(product, mode, 40)),
                              np.uint8).reshape(-1, 1206).copy()
         decoder = PacketDecoder(_random_calibration(MODELS[product].lasers, 3))

@@ -75,7 +75,7 @@ def test_simd_path_equals_portable_path_and_numpy(seed: int, angles: bool,
     order = rng.permutation(128)
     scale = 9e5 if seed == 3 else 3000.0          # near the kernel's rotation limit too
     rotation = rng.uniform(-scale, scale, 128) if angles else None
-    tables = vp._tables(layout, order, rotation)
+    tables = vp._tables(layout, order, rotation, kv.library())
     assert tables.plan is not None
     rows = _packets(rng, 203)
     width = 230
@@ -102,7 +102,8 @@ def test_simd_path_equals_portable_path_with_one_return_slot(
     kernel's shape rules allow it): both paths write the same bytes."""
     rng = np.random.default_rng(11)
     layout = vp._layout(0xA1, 0x39)
-    tables = vp._tables(layout, rng.permutation(128), rng.uniform(-500, 500, 128))
+    tables = vp._tables(layout, rng.permutation(128), rng.uniform(-500, 500, 128),
+                         kv.library())
     full = tables.plan
     offsets = full.offsets[:1, :, rng.permutation(128)[:77]]
     plan = kv.Plan(offsets, full.factor.reshape(12, 32), full.rotation.reshape(12, 32),

@@ -138,8 +138,7 @@ from converters.velodyne.calibration import (
     scan_from_firings,
 )
 from converters.velodyne.decoder import PacketDecoder, decode_packets
-from converters.velodyne.packets import (  # noqa: F401 (_layout: tests)
-    MODELS, PACKET_SIZE, VelodyneModel, _layout)
+from converters.velodyne.packets import MODELS, PACKET_SIZE, VelodyneModel
 
 __all__ = [
     "MODELS",

@@ -435,7 +435,8 @@ class PacketDecoder:
                                       * math.degrees(self._omega) * 100.0])
         nebula = self._azimuth_model == "nebula"
         if self._offsets_key != (layout.model.name, layout.dual):
-            self._tables = _tables(layout, self._order, self._rotation if nebula else None)
+            self._tables = _tables(layout, self._order, self._rotation if nebula else None,
+                                   self._lib)
             self._offsets_key = (layout.model.name, layout.dual)
         tables = self._tables
         assert tables is not None

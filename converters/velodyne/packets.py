@@ -294,18 +294,16 @@ class _Tables:
     lib: Any = None
 
 
-def _tables(layout: _Layout, order: np.ndarray[Any, Any], rotation: np.ndarray[Any, Any] | None
-            ) -> _Tables:
+def _tables(layout: _Layout, order: np.ndarray[Any, Any], rotation: np.ndarray[Any, Any] | None,
+            lib: Any) -> _Tables:
     """The tables of one layout and row order; ``rotation`` from :func:`_nebula_rotation`, or
-    None: no azimuth channel. The kernel's plan is made when
-    :func:`converters._kernels.select` gives the C kernel (and it can take the rotations)."""
-    from converters._kernels import select
-
+    None: no azimuth channel; ``lib``: the C kernel the decoder chose
+    (``converters._kernels.select("velodyne").c``) or None. The kernel's plan is made when
+    there is one (and it can take the rotations)."""
     offsets = _offsets(layout, order)
     nebula = rotation is not None
     if rotation is None:
         rotation = np.zeros(layout.model.lasers)
-    lib = select("velodyne").c
     if lib is None:
         return _Tables(offsets, rotation)
     from converters._kernels.velodyne import Plan
