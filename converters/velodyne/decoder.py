@@ -28,11 +28,12 @@ from converters.velodyne.packets import (
     _flag_names,
     _flags,
     _Layout,
+    _Table,
     _Tables,
     _layout,
     _nebula_rotation,
     _tables,
-    _words,
+    _words_at,
 )
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
 from lidarscan.scan import ScanBuffer
@@ -42,6 +43,7 @@ _JUMP_CENTIDEG = 500.0      # an azimuth step this large between two firings is 
 _RATE_CHANGE = 0.01         # a rotation rate this much off the info's makes a new version
 _RATE_COLUMNS = 100         # ... when measured over at least this many columns
 _AZIMUTH_MODELS = ("nebula", "manual")
+_KEY_WORD = np.array([602])   # bytes 1204 (return mode) and 1205 (product) as one u16 word
 
 
 class PacketDecoder:
@@ -105,7 +107,8 @@ class PacketDecoder:
         self._as_dataclass = as_dataclass
         self._key: tuple[int, int] | None = None      # (product, mode) of the packets buffered
         self._layout: _Layout | None = None
-        self._packets: list[Any] = []                  # payloads (bytes) or (k, 1206) rows
+        self._packets: list[Any] = []                  # payloads (bytes), (k, 1206) rows
+        #                                                  or _Table (decode_packets)
         self._stamps: list[Any] = []                   # recorded stamps (ns): ints or arrays
         self._rows = 0                                  # packets buffered
         self._first_seq = 0                             # first sequence of _packets[0] to keep
@@ -201,26 +204,22 @@ class PacketDecoder:
         if n == 0:
             return []
         out: list[tuple[Any, Any]] = []
-        key = self._uniform_key(rows)
-        if key is not None:                           # one model and mode, every packet valid
-            if key != self._key:
-                out.extend(self.flush())
-                self._key, self._layout = key, self._check_key(key)
-            out.extend(self._push_rows(stamps, rows))
-            if not owned:
-                self._own(stamps, rows)
-            return out
-        keys = (rows[:, 1205].astype(np.int64) << 8) | rows[:, 1204]
-        good = self._good_rows(rows, keys)
-        if not good.all():
+        keys = _words_at(rows, _KEY_WORD)[:, 0].astype(np.int64)   # product << 8 | mode
+        uniform = bool((keys == keys[0]).all())
+        good = self._good_rows(rows, keys, uniform)
+        valid = bool(good.all())
+        if not valid:
             bad = np.flatnonzero(~good)
             if errors is None:
-                err = self._row_error(rows[bad[0]])
+                err = self._row_error(rows, int(bad[0]))
                 raise DecodeError(f"payloads[{int(bad[0])}]: {err.field}", err.value,
                                   err.expected) from err
-            errors.extend((int(i), self._row_error(rows[i])) for i in bad.tolist())
-        starts = np.flatnonzero((keys[1:] != keys[:-1]) | (good[1:] != good[:-1])) + 1
-        bounds = [0, *starts.tolist(), n]
+            errors.extend((int(i), self._row_error(rows, i)) for i in bad.tolist())
+        if uniform and valid:                         # one model and mode, every packet valid
+            bounds = [0, n]
+        else:
+            starts = np.flatnonzero((keys[1:] != keys[:-1]) | (good[1:] != good[:-1])) + 1
+            bounds = [0, *starts.tolist(), n]
         for i, j in itertools.pairwise(bounds):
             if not good[i]:
                 continue
@@ -260,45 +259,37 @@ class PacketDecoder:
                                   "0..35999 (hundredths of a degree)")
         return key, layout
 
-    def _uniform_key(self, rows: np.ndarray[Any, Any]) -> tuple[int, int] | None:
-        """The (product, mode) of rows (N >= 1, 1206) when the C kernel finds every packet
-        valid and of the same model and mode in one pass; else None (also without the kernel:
-        then :meth:`_good_rows` judges, and it alone builds the exact errors)."""
-        lib = self._lib
-        if lib is None or rows.strides[1] != 1:
-            return None
-        from converters._kernels.velodyne import first_bad
-        key = (int(rows[0, 1205]), int(rows[0, 1204]))
+    def _row_error(self, rows: np.ndarray[Any, Any] | _Table, i: int) -> DecodeError:
+        """The DecodeError push() gives for row i of rows (one :meth:`_good_rows` rejects)."""
         try:
-            layout = self._layout if key == self._key else self._check_key(key)
-        except DecodeError:
-            return None
-        assert layout is not None
-        if first_bad(lib, rows, key[0] << 8 | key[1], layout.flags) != rows.shape[0]:
-            return None
-        return key
-
-    def _row_error(self, row: np.ndarray[Any, Any]) -> DecodeError:
-        try:
-            self._validate(row.tobytes())
+            self._validate(rows.row(i) if isinstance(rows, _Table) else rows[i].tobytes())
         except DecodeError as err:
             return err
         raise AssertionError("a row judged malformed passes the per-packet checks")
 
-    def _good_rows(self, rows: np.ndarray[Any, Any], keys: np.ndarray[Any, Any]
-                   ) -> np.ndarray[Any, Any]:
-        """(N,) bool: the packets push() would accept (the same checks, vectorised)."""
+    def _good_rows(self, rows: np.ndarray[Any, Any] | _Table, keys: np.ndarray[Any, Any],
+                   uniform: bool) -> np.ndarray[Any, Any]:
+        """(N,) bool: the packets push() would accept (the same checks, vectorised: one C pass
+        per (product, mode) with the kernel, else numpy); ``keys`` (N,) product << 8 | mode of
+        each packet, ``uniform``: all the same."""
         good = np.zeros(rows.shape[0], bool)
-        first = int(keys[0])
-        for k in ([first] if np.all(keys == first) else np.unique(keys).tolist()):
+        lib = self._lib
+        if lib is not None:
+            from converters._kernels.velodyne import addresses, good as check
+            table = rows.addresses if isinstance(rows, _Table) else addresses(rows)
+        for k in ([int(keys[0])] if uniform else np.unique(keys).tolist()):
             key = (int(k) >> 8, int(k) & 0xFF)
             try:
                 layout = self._layout if key == self._key else self._check_key(key)
             except DecodeError:                        # unknown product or return mode
                 continue
             assert layout is not None
+            if lib is not None:
+                check(lib, table, int(k), layout.flags, good)
+                continue
+            assert isinstance(rows, np.ndarray)
             mine = keys == k
-            sub = rows if mine.all() else rows[mine]
+            sub = rows if uniform else rows[mine]
             used = len(layout.flags)
             # flag (2 bytes) and azimuth (u16) of each used block as one little-endian u32
             head = sub[:, :100 * used].reshape(-1, used, 100)[:, :, :4].view("<u4")[..., 0]
@@ -306,13 +297,14 @@ class PacketDecoder:
             good[mine] = np.all(((head & 0xFFFF) == flags) & (head < (36000 << 16)), axis=1)
         return good
 
-    def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]
+    def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any] | _Table
                    ) -> list[tuple[Any, Any]]:
-        """Add validated packets (m, 1206) of the current model and mode; cut rotations."""
+        """Add validated packets ((m, 1206) rows or a :class:`_Table`) of the current model
+        and mode; cut rotations."""
         layout = self._layout
         assert layout is not None
         at = layout.azimuth_words
-        rel = _words(rows)[:, at].astype(np.int64).reshape(-1)     # 0..35999 (checked)
+        rel = _words_at(rows, at).astype(np.int64).reshape(-1)     # 0..35999 (checked)
         if self._cut:                                # (rel - cut) % 36000
             rel -= self._cut
             rel += 36000 * (rel < 0)
@@ -330,7 +322,7 @@ class PacketDecoder:
         self._prev_rel = int(rel[-1])
         return out
 
-    def _add(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]) -> None:
+    def _add(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any] | _Table) -> None:
         if rows.shape[0]:
             self._packets.append(rows)
             self._stamps.append(stamps)
@@ -395,8 +387,8 @@ class PacketDecoder:
             return []
         runs, stamps = self._buffered()
         at = layout.head_words                   # timestamp (2 words), sequence azimuths
-        head = (_words(runs[0])[:, at] if len(runs) == 1
-                else np.concatenate([_words(r)[:, at] for r in runs]))
+        head = (_words_at(runs[0], at) if len(runs) == 1
+                else np.concatenate([_words_at(r, at) for r in runs]))
         azimuth = head[:, 2:].astype(np.float64)
         toh = head[:, 0].astype(np.int64) | (head[:, 1].astype(np.int64) << 16)
         times, azimuth = _sequence_columns(azimuth, toh, stamps, layout, self._time_source)
@@ -612,14 +604,19 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
     """Decode (stamp_ns, payload) pairs: :meth:`PacketDecoder.push` each, then ``flush``.
 
     Chunks of up to 4096 pairs go through :meth:`PacketDecoder.push_many` when every payload
-    of the chunk is a valid packet (same results). Keyword arguments go to
-    :class:`PacketDecoder`. A malformed packet raises its DecodeError after the rotations
-    before it (use :class:`PacketDecoder` directly to report and continue).
+    of the chunk is a valid packet (same results): with the C kernel, a chunk of (int,
+    1206-byte ``bytes``) tuples is read where it is, through a table of the payloads' addresses
+    (:func:`converters._kernels.velodyne.table`), other chunks are joined into one buffer.
+    Keyword arguments go to :class:`PacketDecoder`. A malformed packet raises its DecodeError
+    after the rotations before it (use :class:`PacketDecoder` directly to report and continue).
     """
     decoder = PacketDecoder(calibration, **kw)
+    lib = decoder._lib
     source = iter(packets)
     while chunk := list(itertools.islice(source, _CHUNK)):
-        batch = _as_rows(chunk)
+        batch = _as_table(chunk, lib) if lib is not None else None
+        if batch is None:
+            batch = _as_rows(chunk)
         done = None
         if batch is not None:
             try:
@@ -632,6 +629,18 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
         else:
             yield from done
     yield from decoder.flush()
+
+
+def _as_table(chunk: list[Any], lib: Any) -> tuple[np.ndarray[Any, Any], _Table] | None:
+    """(stamps (n,) int64 ns, the payloads as a :class:`_Table`) of n (stamp, payload) pairs
+    when each is a tuple of an int and a 1206-byte ``bytes`` (one C pass, no copy); else None
+    (then :func:`_as_rows`)."""
+    from converters._kernels.velodyne import table
+    found = table(chunk)
+    if found is None:
+        return None
+    addresses, stamps = found
+    return stamps, _Table(addresses, chunk, 0, lib)
 
 
 def _as_rows(chunk: list[Any]) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
