@@ -620,6 +620,54 @@ def test_model_and_return_mode_change_make_a_new_info_version() -> None:
         list(decode_packets(synthetic_stream(0x22, 0x37, 2), calib))
 
 
+def test_a_packet_of_another_model_mid_stream_raises_and_is_dropped() -> None:
+    """One decoder per sensor (as converters.hesai): a valid packet of another model in the
+    middle of a VLP-32C stream raises a DecodeError naming both models and is dropped; the
+    rotation in progress is not split (push, decode_packets, push_many with and without an
+    error list, by rows or by a table of the payloads)."""
+    calib = _random_calibration(32, 26)
+    packets = synthetic_stream(0x28, 0x39, 400, deg_per_sequence=1.3)
+    ref = list(decode_packets(packets, calib, as_dataclass=True))
+    mid = 150                                        # the middle of the fourth rotation
+    foreign = {"VLP-16": synthetic_stream(0x22, 0x39, 1, start_deg=100.0)[0][1],
+               "VLS-128": synthetic_stream(0xA1, 0x37, 1, start_deg=100.0)[0][1],
+               "HDL-32E": synthetic_stream(0x21, 0x39, 1, start_deg=100.0)[0][1]}
+    dec = PacketDecoder(calib, as_dataclass=True)
+    out = [r for s, d in packets[:mid] for r in dec.push(s, d)]
+    before = list(out)
+    for name, payload in foreign.items():
+        with pytest.raises(DecodeError, match="product_id") as err:
+            dec.push(packets[mid][0], payload)
+        assert name in str(err.value) and "VLP-32C" in str(err.value)
+    out += [r for s, d in packets[mid:] for r in dec.push(s, d)] + dec.flush()
+    _same_scans(out, ref)
+    stamps = np.array([s for s, _ in packets], np.int64)
+    for name, payload in foreign.items():
+        seq = packets[:mid] + [(packets[mid][0], payload)] + packets[mid:]
+        got: list[Any] = []
+        with pytest.raises(DecodeError, match=name):
+            for result in decode_packets(seq, calib, as_dataclass=True):
+                got.append(result)
+        _same_scans(before, got)
+        rows = np.frombuffer(b"".join(d for _, d in seq), np.uint8).reshape(-1, 1206)
+        times = np.insert(stamps, mid, stamps[mid])
+        with pytest.raises(DecodeError, match=rf"payloads\[{mid}\]: packet.product_id"):
+            PacketDecoder(calib, as_dataclass=True).push_many(times, rows)
+        errors: list[Any] = []
+        dec = PacketDecoder(calib, as_dataclass=True)
+        _same_scans(ref, dec.push_many(times, rows, errors=errors) + dec.flush())
+        assert [i for i, _ in errors] == [mid] and name in str(errors[0][1])
+        # a batch of the foreign packet alone, after the stream's first batch
+        dec = PacketDecoder(calib, as_dataclass=True)
+        got = dec.push_many(stamps[:mid], rows[:mid])
+        with pytest.raises(DecodeError, match=r"payloads\[0\]"):
+            dec.push_many(times[mid:mid + 1], rows[mid:mid + 1])
+        _same_scans(ref, got + dec.push_many(stamps[mid:], rows[mid + 1:]) + dec.flush())
+    # a new decoder takes the model of the first valid packet it sees
+    first = synthetic_stream(0x22, 0x37, 60, deg_per_sequence=2.0)
+    assert list(decode_packets(first, None, as_dataclass=True))
+
+
 def test_long_rotation_gets_a_wider_info_version() -> None:
     calib = _random_calibration(32, 7)
     fast = synthetic_stream(0x28, 0x37, 40, deg_per_sequence=2.0, start_deg=1.0)
@@ -801,19 +849,21 @@ def test_c_header_check_equals_the_numpy_checks(name: str) -> None:
                     else 1200] ^= 0xFF                                  # unchecked bytes
             keys = (bad[:, 1205].astype(np.int64) << 8) | bad[:, 1204]
             uniform = bool((keys == keys[0]).all())
-            expect = numpy_only._good_rows(bad, keys, uniform)
+            expect = numpy_only._good_rows(bad, keys, uniform, None)[0]
             assert expect.sum() >= bad.shape[0] - 1
             if kind != 3:                # (another mode: a valid packet, or not: VLS-128)
                 assert expect.all() == (kind == 5), (mode, trial)
-            assert np.array_equal(with_c._good_rows(bad, keys, uniform), expect), (mode, trial)
+            got = with_c._good_rows(bad, keys, uniform, None)[0]
+            assert np.array_equal(got, expect), (mode, trial)
             strided = np.zeros((bad.shape[0], 1300), np.uint8)
             strided[:, 1:1207] = bad
-            got = with_c._good_rows(strided[:, 1:1207], keys, uniform)
+            got = with_c._good_rows(strided[:, 1:1207], keys, uniform, None)[0]
             assert np.array_equal(got, expect), (mode, trial)
             pairs = [(0, r.tobytes()) for r in bad]
             found = kernel.table(pairs)
             assert found is not None
-            got = with_c._good_rows(_Table(found[0], pairs, 0, lib), keys, uniform)
+            table = _Table(found[0], pairs, 0, lib)
+            got = with_c._good_rows(table, keys, uniform, None)[0]
             assert np.array_equal(got, expect), (mode, trial)
 
 

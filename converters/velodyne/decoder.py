@@ -106,6 +106,7 @@ class PacketDecoder:
         self._azimuth_model = azimuth_model
         self._as_dataclass = as_dataclass
         self._key: tuple[int, int] | None = None      # (product, mode) of the packets buffered
+        self._model: VelodyneModel | None = None      # the stream's (its first valid packet's)
         self._layout: _Layout | None = None
         self._packets: list[Any] = []                  # payloads (bytes), (k, 1206) rows
         #                                                  or _Table (decode_packets)
@@ -130,21 +131,23 @@ class PacketDecoder:
     def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
         """Add one packet (1206-byte payload, never modified); return the rotations it completed.
 
-        A packet of another model or return mode ends the current rotation (returned here);
-        the info version changes only when the geometry does (model, calibration, single <->
-        dual, width, rotation rate).
+        A packet of another return mode ends the current rotation (returned here); the info
+        version changes only when the geometry does (single <-> dual, width, rotation rate).
+        The stream's model is that of its first valid packet: one decoder per sensor (its
+        calibration is that sensor's).
 
         Raises:
             DecodeError: malformed packet (size, block flags, azimuth, unknown product or
-                return mode); the packet is skipped and the decoder stays usable.
+                return mode) or a packet of another model than the stream's; the packet is
+                skipped (the rotation in progress goes on) and the decoder stays usable.
             ConfigError / ValidationError: the calibration does not fit the detected model.
         """
         data = packet if isinstance(packet, bytes) else payload_bytes(packet)
         key, layout = self._validate(data)
         out: list[tuple[Any, Any]] = []
-        if key != self._key:                          # a valid packet of another mode/model
+        if key != self._key:                          # a valid packet of another mode
             out.extend(self.flush())
-            self._key, self._layout = key, layout
+            self._key, self._layout, self._model = key, layout, layout.model
         cut = self._cut
         first, last = 2, layout.last_offset
         rel_first = ((data[first] | data[first + 1] << 8) - cut) % 36000
@@ -206,15 +209,15 @@ class PacketDecoder:
         out: list[tuple[Any, Any]] = []
         keys = _words_at(rows, _KEY_WORD)[:, 0].astype(np.int64)   # product << 8 | mode
         uniform = bool((keys == keys[0]).all())
-        good = self._good_rows(rows, keys, uniform)
+        good, model = self._good_rows(rows, keys, uniform, self._model)
         valid = bool(good.all())
         if not valid:
             bad = np.flatnonzero(~good)
             if errors is None:
-                err = self._row_error(rows, int(bad[0]))
+                err = self._row_error(rows, int(bad[0]), model)
                 raise DecodeError(f"payloads[{int(bad[0])}]: {err.field}", err.value,
                                   err.expected) from err
-            errors.extend((int(i), self._row_error(rows, i)) for i in bad.tolist())
+            errors.extend((int(i), self._row_error(rows, i, model)) for i in bad.tolist())
         if uniform and valid:                         # one model and mode, every packet valid
             bounds = [0, n]
         else:
@@ -224,9 +227,10 @@ class PacketDecoder:
             if not good[i]:
                 continue
             key = (int(keys[i]) >> 8, int(keys[i]) & 0xFF)
-            if key != self._key:                      # another model or mode: end the rotation
+            if key != self._key:                      # another mode: end the rotation
                 out.extend(self.flush())
-                self._key, self._layout = key, self._check_key(key)
+                self._key, self._layout = key, self._check_key(key, model)
+                self._model = model
             out.extend(self._push_rows(stamps[i:j], rows[i:j]))
         if not owned:
             self._own(stamps, rows)
@@ -239,13 +243,15 @@ class PacketDecoder:
         self._stamps = [s.copy() if isinstance(s, np.ndarray)
                         and np.may_share_memory(s, stamps) else s for s in self._stamps]
 
-    def _validate(self, data: bytes) -> tuple[tuple[int, int], _Layout]:
-        """(key, layout) of one payload, or the DecodeError saying what is wrong with it."""
+    def _validate(self, data: bytes, model: VelodyneModel | None = None
+                  ) -> tuple[tuple[int, int], _Layout]:
+        """(key, layout) of one payload, or the DecodeError saying what is wrong with it;
+        ``model``: the stream's (default: the decoder's, if it has seen a valid packet)."""
         if len(data) != PACKET_SIZE:
             raise DecodeError("packet", f"{len(data)} bytes", f"{PACKET_SIZE} bytes (a Velodyne "
                               "data packet payload)")
         key = (data[1205], data[1204])
-        layout = self._layout if key == self._key else self._check_key(key)
+        layout = self._layout if key == self._key else self._check_key(key, model)
         assert layout is not None
         used = len(layout.flags) * 100
         if data[0:used:100] != b"\xff" * len(layout.flags) or data[1:used:100] != layout.flags:
@@ -259,43 +265,58 @@ class PacketDecoder:
                                   "0..35999 (hundredths of a degree)")
         return key, layout
 
-    def _row_error(self, rows: np.ndarray[Any, Any] | _Table, i: int) -> DecodeError:
-        """The DecodeError push() gives for row i of rows (one :meth:`_good_rows` rejects)."""
+    def _row_error(self, rows: np.ndarray[Any, Any] | _Table, i: int,
+                   model: VelodyneModel | None) -> DecodeError:
+        """The DecodeError push() gives for row i of rows (one :meth:`_good_rows` rejects) in
+        a stream of ``model``."""
         try:
-            self._validate(rows.row(i) if isinstance(rows, _Table) else rows[i].tobytes())
+            self._validate(rows.row(i) if isinstance(rows, _Table) else rows[i].tobytes(),
+                           model)
         except DecodeError as err:
             return err
         raise AssertionError("a row judged malformed passes the per-packet checks")
 
     def _good_rows(self, rows: np.ndarray[Any, Any] | _Table, keys: np.ndarray[Any, Any],
-                   uniform: bool) -> np.ndarray[Any, Any]:
-        """(N,) bool: the packets push() would accept (the same checks, vectorised: one C pass
-        per (product, mode) with the kernel, else numpy); ``keys`` (N,) product << 8 | mode of
-        each packet, ``uniform``: all the same."""
+                   uniform: bool, model: VelodyneModel | None
+                   ) -> tuple[np.ndarray[Any, Any], VelodyneModel | None]:
+        """((N,) bool: the packets push() would accept, the stream's model) in a stream of
+        ``model`` (None: not yet known, then the model of the first (product, mode) in order of
+        appearance with a valid packet) by the same checks, vectorised: one C pass per (product,
+        mode) with the kernel, else numpy. ``keys`` (N,) product << 8 | mode of each packet,
+        ``uniform``: all the same."""
         good = np.zeros(rows.shape[0], bool)
         lib = self._lib
         if lib is not None:
             from converters._kernels.velodyne import addresses, good as check
             table = rows.addresses if isinstance(rows, _Table) else addresses(rows)
-        for k in ([int(keys[0])] if uniform else np.unique(keys).tolist()):
+        if uniform:
+            found = [int(keys[0])]
+        else:
+            unique, first = np.unique(keys, return_index=True)
+            found = unique[np.argsort(first)].tolist()
+        for k in found:
             key = (int(k) >> 8, int(k) & 0xFF)
             try:
-                layout = self._layout if key == self._key else self._check_key(key)
+                layout = self._layout if key == self._key else self._check_key(key, model)
             except DecodeError:                        # unknown product or return mode
                 continue
             assert layout is not None
             if lib is not None:
-                check(lib, table, int(k), layout.flags, good)
-                continue
-            assert isinstance(rows, np.ndarray)
-            mine = keys == k
-            sub = rows if uniform else rows[mine]
-            used = len(layout.flags)
-            # flag (2 bytes) and azimuth (u16) of each used block as one little-endian u32
-            head = sub[:, :100 * used].reshape(-1, used, 100)[:, :, :4].view("<u4")[..., 0]
-            flags = 0xFF | (np.frombuffer(layout.flags, np.uint8).astype(np.uint32) << 8)
-            good[mine] = np.all(((head & 0xFFFF) == flags) & (head < (36000 << 16)), axis=1)
-        return good
+                some = check(lib, table, int(k), layout.flags, good) > 0
+            else:
+                assert isinstance(rows, np.ndarray)
+                mine = keys == k
+                sub = rows if uniform else rows[mine]
+                used = len(layout.flags)
+                # flag (2 bytes) and azimuth (u16) of each used block as one little-endian u32
+                head = sub[:, :100 * used].reshape(-1, used, 100)[:, :, :4].view("<u4")[..., 0]
+                flags = 0xFF | (np.frombuffer(layout.flags, np.uint8).astype(np.uint32) << 8)
+                ok = np.all(((head & 0xFFFF) == flags) & (head < (36000 << 16)), axis=1)
+                good[mine] = ok
+                some = bool(ok.any())
+            if model is None and some:
+                model = layout.model
+        return good, model
 
     def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any] | _Table
                    ) -> list[tuple[Any, Any]]:
@@ -337,12 +358,19 @@ class PacketDecoder:
 
     # ------------------------------------------------------------------------------ internals
 
-    def _check_key(self, key: tuple[int, int]) -> _Layout:
+    def _check_key(self, key: tuple[int, int], stream: VelodyneModel | None = None) -> _Layout:
+        """The layout of packets of ``key`` (product, return mode) in a stream of model
+        ``stream`` (default: the decoder's; None: any), or the error saying why it has none."""
         product, mode = key
         if product not in MODELS:
             raise DecodeError("packet.product_id", hex(product), "a known Velodyne product id "
                               "(0x21 HDL-32E, 0x22 VLP-16/Puck LITE, 0x24 Puck Hi-Res, "
                               "0x28 VLP-32C, 0xA1 VLS-128)")
+        stream = stream or self._model
+        if stream is not None and MODELS[product] is not stream:
+            raise DecodeError("packet.product_id", f"{hex(product)} ({MODELS[product].name})",
+                              f"a {stream.name} packet, the model of this decoder's stream (one "
+                              "decoder per sensor: its calibration is that sensor's)")
         if mode not in _RETURN_MODES:
             raise DecodeError("packet.return_mode", hex(mode),
                               "0x37 strongest, 0x38 last or 0x39 dual")
