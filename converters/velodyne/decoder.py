@@ -207,10 +207,9 @@ class PacketDecoder:
         if n == 0:
             return []
         out: list[tuple[Any, Any]] = []
-        keys = _words_at(rows, _KEY_WORD)[:, 0].astype(np.int64)   # product << 8 | mode
-        uniform = bool((keys == keys[0]).all())
-        good, model = self._good_rows(rows, keys, uniform, self._model)
-        valid = bool(good.all())
+        good, keys, model = self._good_rows(rows, self._model)
+        uniform = isinstance(keys, int)
+        valid = uniform or bool(good.all())
         if not valid:
             bad = np.flatnonzero(~good)
             if errors is None:
@@ -218,8 +217,8 @@ class PacketDecoder:
                 raise DecodeError(f"payloads[{int(bad[0])}]: {err.field}", err.value,
                                   err.expected) from err
             errors.extend((int(i), self._row_error(rows, i, model)) for i in bad.tolist())
-        if uniform and valid:                         # one model and mode, every packet valid
-            bounds = [0, n]
+        if isinstance(keys, int):                     # one model and mode, every packet valid
+            bounds, keys = [0, n], np.full(1, keys)
         else:
             starts = np.flatnonzero((keys[1:] != keys[:-1]) | (good[1:] != good[:-1])) + 1
             bounds = [0, *starts.tolist(), n]
@@ -276,33 +275,44 @@ class PacketDecoder:
             return err
         raise AssertionError("a row judged malformed passes the per-packet checks")
 
-    def _good_rows(self, rows: np.ndarray[Any, Any] | _Table, keys: np.ndarray[Any, Any],
-                   uniform: bool, model: VelodyneModel | None
-                   ) -> tuple[np.ndarray[Any, Any], VelodyneModel | None]:
-        """((N,) bool: the packets push() would accept, the stream's model) in a stream of
-        ``model`` (None: not yet known, then the model of the first (product, mode) in order of
-        appearance with a valid packet) by the same checks, vectorised: one C pass per (product,
-        mode) with the kernel, else numpy. ``keys`` (N,) product << 8 | mode of each packet,
-        ``uniform``: all the same."""
-        good = np.zeros(rows.shape[0], bool)
+    def _good_rows(self, rows: np.ndarray[Any, Any] | _Table, model: VelodyneModel | None
+                   ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | int,
+                              VelodyneModel | None]:
+        """(good, keys, the stream's model) of N packets in a stream of ``model`` (None: not
+        yet known, then the model of the first (product, mode) in order of appearance with a
+        valid packet). ``good`` (N,) bool: the packets push() would accept, by the same checks,
+        vectorised: one C pass per (product, mode) with the kernel, else numpy; ``keys`` (N,)
+        int64 product << 8 | mode of each packet, or one int when all have the same and are
+        valid (the kernel's first pass, with the key of packet 0, found them so: no other
+        read of the packets)."""
+        n = rows.shape[0]
+        good = np.zeros(n, bool)
         lib = self._lib
         if lib is not None:
             from converters._kernels.velodyne import addresses, good as check
             table = rows.addresses if isinstance(rows, _Table) else addresses(rows)
+            head = rows.row(0) if isinstance(rows, _Table) else rows[0]
+            first = int(head[1205]) << 8 | int(head[1204])
+            try:
+                layout = self._layout_of(first, model)
+            except DecodeError:
+                layout = None
+            if layout is not None and check(lib, table, first, layout.flags, good) == n:
+                return good, first, model or layout.model
+        keys = _words_at(rows, _KEY_WORD)[:, 0].astype(np.int64)   # product << 8 | mode
+        uniform = bool((keys == keys[0]).all())
         if uniform:
             found = [int(keys[0])]
         else:
-            unique, first = np.unique(keys, return_index=True)
-            found = unique[np.argsort(first)].tolist()
+            unique, at = np.unique(keys, return_index=True)
+            found = unique[np.argsort(at)].tolist()
         for k in found:
-            key = (int(k) >> 8, int(k) & 0xFF)
             try:
-                layout = self._layout if key == self._key else self._check_key(key, model)
+                layout = self._layout_of(k, model)
             except DecodeError:                        # unknown product or return mode
                 continue
-            assert layout is not None
             if lib is not None:
-                some = check(lib, table, int(k), layout.flags, good) > 0
+                some = check(lib, table, k, layout.flags, good) > 0
             else:
                 assert isinstance(rows, np.ndarray)
                 mine = keys == k
@@ -316,7 +326,14 @@ class PacketDecoder:
                 some = bool(ok.any())
             if model is None and some:
                 model = layout.model
-        return good, model
+        return good, keys, model
+
+    def _layout_of(self, key: int, model: VelodyneModel | None) -> _Layout:
+        """:meth:`_check_key` of ``key`` (product << 8 | mode) in a stream of ``model``."""
+        pair = (key >> 8, key & 0xFF)
+        layout = self._layout if pair == self._key else self._check_key(pair, model)
+        assert layout is not None
+        return layout
 
     def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any] | _Table
                    ) -> list[tuple[Any, Any]]:
