@@ -8,15 +8,14 @@ VLS-128 dual-return packets (bench/bench_velodyne.py, default ``azimuth_model="n
 replays that rotation's calls on warm (already written) views and, separately, on fresh
 ``np.zeros`` views (first-touch page faults included, as a decoder that allocates a ScanBuffer
 per rotation pays). Candidates: the installed kernel on its portable path
-(``converters._kernels.velodyne.SIMD = 0``) and on its default path, and every extra shared object given
-with ``--so`` (built from a variant of the source, e.g. main's, with the same exported
-functions; ``PATH:0`` runs its portable path). With ``--push-many``, also
+(``converters._kernels.velodyne.SIMD = 0``) and on its default path, and every extra shared
+object given with ``--so`` (built from a variant of the source, e.g. main's, with the same
+exported functions and ABI; ``PATH:0`` runs its portable path). With ``--push-many``, also
 ``PacketDecoder.push_many`` on 1 s of the same packets (one rotation per call, as
-bench_velodyne.py) with each candidate as the decoder's kernel, in the same interleaved rounds.
-Prints CPU-time (``time.process_time``) medians of interleaved rounds (``bench/_timing.py``) per
-second of data, ratios to the portable path
-and the load average; checks that every candidate writes the same bytes (no assertions on
-speed).
+bench_velodyne.py) with each candidate as the decoder's kernel, in the same interleaved rounds
+(``bench/_timing.py``, in a new random order each round). Prints CPU-time
+(``time.process_time``) medians per second of data, ratios to the portable path and the load
+average; checks that every candidate writes the same bytes (no assertions on speed).
 """
 
 from __future__ import annotations

@@ -199,18 +199,17 @@ class PacketDecoder:
         return self._push_array(stamps.astype(np.int64, copy=False), rows, errors=errors,
                                 owned=_immutable(rows))
 
-    def _push_array(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], *,
+    def _push_array(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any] | _Table, *,
                     errors: list[tuple[int, LidarScanError]] | None, owned: bool
                     ) -> list[tuple[Any, Any]]:
-        """push_many() on checked arrays; ``owned``: rows may be kept without a copy."""
+        """push_many() on checked arrays (or a :class:`_Table` of payloads: decode_packets);
+        ``owned``: rows may be kept without a copy."""
         n = rows.shape[0]
         if n == 0:
             return []
         out: list[tuple[Any, Any]] = []
         good, keys, model = self._good_rows(rows, self._model)
-        uniform = isinstance(keys, int)
-        valid = uniform or bool(good.all())
-        if not valid:
+        if not isinstance(keys, int) and not good.all():
             bad = np.flatnonzero(~good)
             if errors is None:
                 err = self._row_error(rows, int(bad[0]), model)
@@ -250,8 +249,7 @@ class PacketDecoder:
             raise DecodeError("packet", f"{len(data)} bytes", f"{PACKET_SIZE} bytes (a Velodyne "
                               "data packet payload)")
         key = (data[1205], data[1204])
-        layout = self._layout if key == self._key else self._check_key(key, model)
-        assert layout is not None
+        layout = self._layout_of(key[0] << 8 | key[1], model)
         used = len(layout.flags) * 100
         if data[0:used:100] != b"\xff" * len(layout.flags) or data[1:used:100] != layout.flags:
             raise DecodeError("packet.blocks[*].flag", _flags(data, used // 100),
