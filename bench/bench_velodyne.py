@@ -8,7 +8,8 @@ time (<= 20 ms of CPU per second of data).
 Input: a VLS-128 in dual-return mode at 600 rpm (one firing sequence of 128 lasers x 2 returns
 per packet, 18 761 packets per second of sensor time), random returns with 20 % no-return,
 built in memory with numpy (the manual's layout). Candidates: the decoder (LidarScan + LidarInfo
-dataclasses, one per rotation) fed (stamp, bytes) pairs through ``decode_packets``; the batch
+dataclasses, one per rotation) fed (stamp, bytes) pairs through ``decode_packets`` (with the C
+kernel the payloads are read where they are, through a table of their addresses); the batch
 API ``PacketDecoder.push_many`` fed (N, 1206) uint8 arrays of one rotation's packets (what a bag
 reader gives for a VelodyneScan message, zero-copy), with the C kernel
 (``converters/_kernels/_velokernel.c``, built by ``pip install``), with ``LIDARSCAN_NO_KERNEL=1``'s

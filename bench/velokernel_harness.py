@@ -8,23 +8,25 @@ VLS-128 dual-return packets (bench/bench_velodyne.py, default ``azimuth_model="n
 replays that rotation's calls on warm (already written) views and, separately, on fresh
 ``np.zeros`` views (first-touch page faults included, as a decoder that allocates a ScanBuffer
 per rotation pays). Candidates: the installed kernel on its portable path
-(``LIDARSCAN_VELODYNE_SIMD=0``) and on its default path, and every extra shared object given
-with ``--so`` (built from a variant of the source, e.g. main's, with the same exported
-functions; ``PATH:0`` runs its portable path). With ``--push-many``, also
+(``converters._kernels.velodyne.SIMD = 0``) and on its default path, and every extra shared
+object given with ``--so`` (built from a variant of the source, e.g. main's, with the same
+exported functions and ABI; ``PATH:0`` runs its portable path). With ``--push-many``, also
 ``PacketDecoder.push_many`` on 1 s of the same packets (one rotation per call, as
-bench_velodyne.py) with each candidate as the decoder's kernel, in the same interleaved rounds.
-Prints CPU-time (``time.process_time``) medians per second of data, ratios to the portable path
-and the load average; checks that every candidate writes the same bytes (no assertions on
-speed).
+bench_velodyne.py) with each candidate as the decoder's kernel, in the same interleaved rounds
+(``bench/_timing.py``, in a new random order each round). Prints CPU-time
+(``time.process_time``) medians per second of data, ratios to the portable path and the load
+average; checks that every candidate writes the same bytes (no assertions on speed).
 """
 
 from __future__ import annotations
 
 import argparse
 import ctypes
+import functools
 import importlib.util
 import os
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -33,6 +35,8 @@ from typing import Any
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _timing import interleaved_times  # noqa: E402
 
 
 def _bench_module() -> Any:
@@ -81,21 +85,13 @@ def capture() -> tuple[list[tuple[Any, ...]], float]:
 
 
 def _bind(path: str | None) -> Any:
+    import converters._kernels.velodyne as kv
     if path is None:
-        import converters._kernels.velodyne as kv
         lib = kv.library()
         if lib is None:
             raise SystemExit("the installed kernel is not built or is disabled")
         return lib
-    lib = ctypes.CDLL(path)
-    i64, ptr = ctypes.c_int64, ctypes.c_void_p      # the argument types the module sets
-    lib.vdk_check.restype = i64
-    lib.vdk_check.argtypes = [ptr, i64, i64, ctypes.c_int32, ptr, i64]
-    lib.vdk_fill.restype = i64
-    lib.vdk_fill.argtypes = [ptr, i64, i64, i64, i64, i64, i64, i64,
-                             ptr, ptr, ptr, ptr, i64, i64, i64,
-                             ptr, ptr, ptr, ptr, ptr, ptr, i64]
-    return lib
+    return kv.bind(ctypes.CDLL(path))                # the argument types the module sets
 
 
 def _fresh(views: dict[str, np.ndarray[Any, Any]]) -> dict[str, np.ndarray[Any, Any]]:
@@ -109,16 +105,15 @@ def _fresh(views: dict[str, np.ndarray[Any, Any]]) -> dict[str, np.ndarray[Any, 
     return out
 
 
-def replay(candidate: tuple[Any, str], calls: list[tuple[Any, ...]],
+def replay(candidate: tuple[Any, int], calls: list[tuple[Any, ...]],
            views: dict[str, np.ndarray[Any, Any]]) -> None:
     import converters._kernels.velodyne as kv
-    lib, simd = candidate
-    os.environ["LIDARSCAN_VELODYNE_SIMD"] = simd
+    lib, kv.SIMD = candidate
     for plan, run, begin, count, column, _ in calls:
         kv.fill(lib, plan, run, begin, count, column, views)
 
 
-def push_many_runner() -> Callable[[tuple[Any, str]], None]:
+def push_many_runner() -> Callable[[tuple[Any, int]], None]:
     """A function that decodes 1 s of the bench's packets with ``push_many`` (one rotation per
     call, a new decoder each time) with a candidate (library, simd flag) as the kernel."""
     import converters._kernels.velodyne as kv
@@ -132,9 +127,8 @@ def push_many_runner() -> Callable[[tuple[Any, str]], None]:
     per, calib = int(round(0.1 / bench.SEQUENCE_S)), bench.calibration()
     installed = kv._library
 
-    def run(candidate: tuple[Any, str]) -> None:
-        lib, simd = candidate
-        os.environ["LIDARSCAN_VELODYNE_SIMD"] = simd
+    def run(candidate: tuple[Any, int]) -> None:
+        lib, kv.SIMD = candidate
         kv._library = _loader.LoadOnce(lambda: lib)        # the decoder's kernel
         try:
             dec = PacketDecoder(calib, as_dataclass=True)
@@ -157,10 +151,11 @@ def main() -> None:
     args = parser.parse_args()
     calls, seconds = capture()
     installed = _bind(None)
-    libs = {"portable (SIMD=0)": (installed, "0"), "default (AVX2)": (installed, "1")}
+    libs = {"portable (SIMD=0)": (installed, 0), "default (AVX2)": (installed, 1)}
     for spec in args.so:
         path, _, simd = spec.partition(":")
-        libs[Path(path).name + (" (SIMD=0)" if simd == "0" else "")] = (_bind(path), simd or "1")
+        libs[Path(path).name + (" (SIMD=0)" if simd == "0" else "")] = (_bind(path),
+                                                                       int(simd != "0"))
     template = dict(calls[0][5])
     warm = {name: _fresh(template) for name in libs}
     reference = None
@@ -170,43 +165,29 @@ def main() -> None:
         reference = reference or got
         print(f"{name}: {'same bytes' if got == reference else 'DIFFERENT BYTES'}")
     push_many = push_many_runner() if args.push_many else None
-    if push_many is not None:
-        for candidate in libs.values():
-            push_many(candidate)                            # warm-up
+    inner = args.inner
+    candidates: dict[str, Callable[[], Any]] = {}        # "mode|name" -> one timed sample
+    for name, lib in libs.items():
+        candidates[f"warm|{name}"] = functools.partial(
+            lambda lib, views: [replay(lib, calls, views) for _ in range(inner)], lib, warm[name])
+        candidates[f"fresh|{name}"] = functools.partial(     # np.zeros: pages faulted in the fill
+            lambda lib: [replay(lib, calls, _fresh(template)) for _ in range(inner)], lib)
+        if push_many is not None:
+            candidates[f"push_many|{name}"] = functools.partial(push_many, lib)   # 1 s of data
     load0 = os.getloadavg()[0]
-    per_second: dict[tuple[str, str], list[float]] = {}     # CPU s per second of data
-    for _ in range(args.rounds):
-        for name, lib in libs.items():
-            start = time.process_time()
-            for _ in range(args.inner):
-                replay(lib, calls, warm[name])
-            per_second.setdefault((name, "warm"), []).append(
-                (time.process_time() - start) / args.inner / seconds)
-            fresh = [_fresh(template) for _ in range(args.inner)]
-            start = time.process_time()
-            for v in fresh:
-                replay(lib, calls, v)
-            per_second.setdefault((name, "fresh"), []).append(
-                (time.process_time() - start) / args.inner / seconds)
-            del fresh
-            if push_many is not None:
-                start = time.process_time()
-                push_many(lib)                              # 1 s of data
-                per_second.setdefault((name, "push_many"), []).append(
-                    time.process_time() - start)
-    os.environ.pop("LIDARSCAN_VELODYNE_SIMD", None)
+    times = interleaved_times(candidates, args.rounds, clock=time.process_time)
     print(f"one rotation = {seconds:.4f} s of data, {sum(c[3] for c in calls)} columns; load "
           f"average {load0:.2f} -> {os.getloadavg()[0]:.2f}; CPU medians of {args.rounds} rounds")
     for mode in ("warm", "fresh", "push_many"):
-        if ("portable (SIMD=0)", mode) not in per_second:
+        if f"{mode}|portable (SIMD=0)" not in times:
             continue
-        base = statistics.median(per_second[("portable (SIMD=0)", mode)])
+        per = 1.0 if mode == "push_many" else inner * seconds      # seconds of data per sample
+        base = statistics.median(times[f"{mode}|portable (SIMD=0)"]) / per
         what = "push_many, 1 s of data" if mode == "push_many" else f"kernel, {mode} views"
         for name in libs:
-            med = statistics.median(per_second[(name, mode)])
+            med = statistics.median(times[f"{mode}|{name}"]) / per
             print(f"  {what:22s} {name:20s} {med * 1e3:7.2f} ms per second of data "
                   f"= {1 / med:5.1f}x real time, {med / base:5.2f}x the portable path")
-
 
 if __name__ == "__main__":
     main()

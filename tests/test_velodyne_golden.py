@@ -207,6 +207,7 @@ def test_c_kernel_rounds_large_rotations_like_the_reference(
     assert len(got) >= 3 and dec._tables is not None
     assert (dec._tables.plan is not None) == (abs(turns) < 1.0)     # the kernel, or numpy
     kernel = digest(got)
+    assert digest(list(decode_packets(packets, calib, as_dataclass=True))) == kernel  # by table
     monkeypatch.setenv("LIDARSCAN_NO_KERNEL", "1")
     assert digest(list(decode_packets(packets, calib, as_dataclass=True))) == kernel
 

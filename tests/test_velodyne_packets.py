@@ -620,6 +620,54 @@ def test_model_and_return_mode_change_make_a_new_info_version() -> None:
         list(decode_packets(synthetic_stream(0x22, 0x37, 2), calib))
 
 
+def test_a_packet_of_another_model_mid_stream_raises_and_is_dropped() -> None:
+    """One decoder per sensor (as converters.hesai): a valid packet of another model in the
+    middle of a VLP-32C stream raises a DecodeError naming both models and is dropped; the
+    rotation in progress is not split (push, decode_packets, push_many with and without an
+    error list, by rows or by a table of the payloads)."""
+    calib = _random_calibration(32, 26)
+    packets = synthetic_stream(0x28, 0x39, 400, deg_per_sequence=1.3)
+    ref = list(decode_packets(packets, calib, as_dataclass=True))
+    mid = 150                                        # the middle of the fourth rotation
+    foreign = {"VLP-16": synthetic_stream(0x22, 0x39, 1, start_deg=100.0)[0][1],
+               "VLS-128": synthetic_stream(0xA1, 0x37, 1, start_deg=100.0)[0][1],
+               "HDL-32E": synthetic_stream(0x21, 0x39, 1, start_deg=100.0)[0][1]}
+    dec = PacketDecoder(calib, as_dataclass=True)
+    out = [r for s, d in packets[:mid] for r in dec.push(s, d)]
+    before = list(out)
+    for name, payload in foreign.items():
+        with pytest.raises(DecodeError, match="product_id") as err:
+            dec.push(packets[mid][0], payload)
+        assert name in str(err.value) and "VLP-32C" in str(err.value)
+    out += [r for s, d in packets[mid:] for r in dec.push(s, d)] + dec.flush()
+    _same_scans(out, ref)
+    stamps = np.array([s for s, _ in packets], np.int64)
+    for name, payload in foreign.items():
+        seq = packets[:mid] + [(packets[mid][0], payload)] + packets[mid:]
+        got: list[Any] = []
+        with pytest.raises(DecodeError, match=name):
+            for result in decode_packets(seq, calib, as_dataclass=True):
+                got.append(result)
+        _same_scans(before, got)
+        rows = np.frombuffer(b"".join(d for _, d in seq), np.uint8).reshape(-1, 1206)
+        times = np.insert(stamps, mid, stamps[mid])
+        with pytest.raises(DecodeError, match=rf"payloads\[{mid}\]: packet.product_id"):
+            PacketDecoder(calib, as_dataclass=True).push_many(times, rows)
+        errors: list[Any] = []
+        dec = PacketDecoder(calib, as_dataclass=True)
+        _same_scans(ref, dec.push_many(times, rows, errors=errors) + dec.flush())
+        assert [i for i, _ in errors] == [mid] and name in str(errors[0][1])
+        # a batch of the foreign packet alone, after the stream's first batch
+        dec = PacketDecoder(calib, as_dataclass=True)
+        got = dec.push_many(stamps[:mid], rows[:mid])
+        with pytest.raises(DecodeError, match=r"payloads\[0\]"):
+            dec.push_many(times[mid:mid + 1], rows[mid:mid + 1])
+        _same_scans(ref, got + dec.push_many(stamps[mid:], rows[mid + 1:]) + dec.flush())
+    # a new decoder takes the model of the first valid packet it sees
+    first = synthetic_stream(0x22, 0x37, 60, deg_per_sequence=2.0)
+    assert list(decode_packets(first, None, as_dataclass=True))
+
+
 def test_long_rotation_gets_a_wider_info_version() -> None:
     calib = _random_calibration(32, 7)
     fast = synthetic_stream(0x28, 0x37, 40, deg_per_sequence=2.0, start_deg=1.0)
@@ -761,10 +809,12 @@ def test_push_many_errors_and_the_numpy_path(monkeypatch: pytest.MonkeyPatch) ->
 
 
 @pytest.mark.parametrize("name", sorted(PRODUCTS))
-def test_c_header_check_finds_the_first_packet_the_numpy_checks_reject(name: str) -> None:
-    """converters._kernels.velodyne.first_bad (one C pass) against PacketDecoder._good_rows
-    (the numpy checks that build the errors): one defect at a time, in a random row."""
+def test_c_header_check_equals_the_numpy_checks(name: str) -> None:
+    """PacketDecoder._good_rows with the C kernel (``converters._kernels.velodyne.good``: one
+    pass per model and mode, over rows, strided rows or a table of separate payloads) against
+    its numpy checks (the decoder without a kernel): one defect at a time, in a random row."""
     from converters._kernels import velodyne as kernel
+    from converters.velodyne.packets import _Table
     lib = kernel.library()
     if lib is None:
         pytest.skip("converters._kernels._velokernel is not built")
@@ -774,15 +824,15 @@ def test_c_header_check_finds_the_first_packet_the_numpy_checks_reject(name: str
         layout = _layout(product, mode)
         rows = np.frombuffer(b"".join(d for _, d in synthetic_stream(product, mode, 40)),
                              np.uint8).reshape(-1, 1206).copy()
-        decoder = PacketDecoder(_random_calibration(MODELS[product].lasers, 3))
-        key = product << 8 | mode
-        assert kernel.first_bad(lib, rows, key, layout.flags) == rows.shape[0]
+        calib = _random_calibration(MODELS[product].lasers, 3)
+        with_c, numpy_only = PacketDecoder(calib), PacketDecoder(calib)
+        numpy_only._lib = None
         used = len(layout.flags)
-        for trial in range(40):
+        for trial in range(41):
             bad = rows.copy()
             row = int(rng.integers(0, bad.shape[0]))
             block = int(rng.integers(0, used))
-            kind = trial % 5
+            kind = trial % 6
             if kind == 0:
                 bad[row, 100 * block] ^= 1 << int(rng.integers(0, 8))   # flag, first byte
             elif kind == 1:
@@ -792,16 +842,30 @@ def test_c_header_check_finds_the_first_packet_the_numpy_checks_reject(name: str
                 bad[row, 100 * block + 2:100 * block + 4] = (value & 0xFF, value >> 8)
             elif kind == 3:
                 bad[row, 1204] = 0x37 if mode != 0x37 else 0x38        # another mode
+            elif kind == 4:
+                bad[row, 1205] = 0x99                                   # unknown product
             else:
                 bad[row, 100 * (used + int(rng.integers(0, 12 - used))) if used < 12
                     else 1200] ^= 0xFF                                  # unchecked bytes
             keys = (bad[:, 1205].astype(np.int64) << 8) | bad[:, 1204]
-            good = decoder._good_rows(bad, keys) & (keys == key)
-            expect = int(np.argmin(good)) if not good.all() else bad.shape[0]
-            assert kernel.first_bad(lib, bad, key, layout.flags) == expect, (mode, trial)
+            expect, got_keys, _ = numpy_only._good_rows(bad, None)
+            assert np.array_equal(got_keys, keys)
+            assert expect.sum() >= bad.shape[0] - 1
+            if kind != 3:                # (another mode: a valid packet, or not: VLS-128)
+                assert expect.all() == (kind == 5), (mode, trial)
+            got, got_keys, _ = with_c._good_rows(bad, None)   # (one int: all valid, alike)
+            assert np.array_equal(np.broadcast_to(got_keys, keys.shape), keys)
+            assert np.array_equal(got, expect), (mode, trial)
             strided = np.zeros((bad.shape[0], 1300), np.uint8)
-            strided[:, :1206] = bad
-            assert kernel.first_bad(lib, strided[:, :1206], key, layout.flags) == expect
+            strided[:, 1:1207] = bad
+            got = with_c._good_rows(strided[:, 1:1207], None)[0]
+            assert np.array_equal(got, expect), (mode, trial)
+            pairs = [(0, r.tobytes()) for r in bad]
+            found = kernel.table(pairs)
+            assert found is not None
+            table = _Table(found[0], pairs, 0, lib)
+            got = with_c._good_rows(table, None)[0]
+            assert np.array_equal(got, expect), (mode, trial)
 
 
 def test_vls128_edges_favour_the_manual_firing_times() -> None:
@@ -872,23 +936,39 @@ def test_azimuth_channel_drives_every_projection() -> None:
 def test_decode_packets_batches_mixed_payload_types(monkeypatch: pytest.MonkeyPatch) -> None:
     """bytes, bytearray, memoryview and 1-D uint8 ndarray payloads in one chunk: the batch path
     (every payload as push() takes it) gives what push() one by one gives, across chunks."""
+    from converters._kernels import velodyne as kernel
     from converters.velodyne import decoder as module
     monkeypatch.setattr(module, "_CHUNK", 64)
     calib = _random_calibration(32, 21)
     packets = synthetic_stream(0x28, 0x39, 300, deg_per_sequence=1.7)
-    kinds = (bytes, bytearray, memoryview, lambda d: np.frombuffer(d, np.uint8))
-    mixed = [(s, kinds[i % 4](d)) for i, (s, d) in enumerate(packets)]
+
+    def strided(d: bytes) -> memoryview:                  # a non-contiguous memoryview
+        return memoryview(np.repeat(np.frombuffer(d, np.uint8), 2))[::2]
+
+    kinds = (bytes, bytearray, memoryview, lambda d: np.frombuffer(d, np.uint8), strided)
+    mixed = [(s, kinds[i % 5](d)) for i, (s, d) in enumerate(packets)]
     one = PacketDecoder(calib, as_dataclass=True)
     expected = [r for s, d in packets for r in one.push(s, d)] + one.flush()
-    pushed = []
-    real = PacketDecoder.push
+    pushed, joined = [], []
+    real, as_rows = PacketDecoder.push, module._as_rows
     monkeypatch.setattr(PacketDecoder, "push", lambda self, s, d: pushed.append(s) or real(self, s, d))
+    monkeypatch.setattr(module, "_as_rows", lambda chunk: joined.append(1) or as_rows(chunk))
     _same_scans(expected, list(decode_packets(mixed, calib, as_dataclass=True)))
     assert pushed == []                                   # every chunk went through the batch
+    assert len(joined) == 5                               # ... joined into one buffer
     # numpy stamps and a stamps/payloads pair type other than tuple
     rows = [[np.int64(s), d] for s, d in packets]
     _same_scans(expected, list(decode_packets(rows, calib, as_dataclass=True)))
-    assert pushed == []
+    assert pushed == [] and len(joined) == 10
+    # (int, bytes) tuples: read in place through a table of addresses (with the C kernel);
+    # one odd payload in a chunk: that chunk joined, the others still by table
+    kernel_built = kernel.library() is not None
+    _same_scans(expected, list(decode_packets(packets, calib, as_dataclass=True)))
+    assert pushed == [] and len(joined) == (10 if kernel_built else 15)
+    one_odd = [(s, bytearray(d) if i == 100 else d) for i, (s, d) in enumerate(packets)]
+    joined.clear()
+    _same_scans(expected, list(decode_packets(one_odd, calib, as_dataclass=True)))
+    assert pushed == [] and len(joined) == (1 if kernel_built else 5)
 
 
 @pytest.mark.parametrize("defect", ["short", "long", "flag", "2-D array", "int8 array",
@@ -923,6 +1003,38 @@ def test_decode_packets_bad_packet_in_a_batch(defect: str, monkeypatch: pytest.M
         for result in decode_packets(stream, calib, as_dataclass=True):
             got.append(result)
     _same_scans(before, got)
+
+
+@pytest.mark.parametrize("defect", ["flag", "azimuth", "product"])
+def test_push_array_of_an_address_table_names_the_bad_packet(defect: str) -> None:
+    """decode_packets' table path (payloads read in place): a malformed packet in the batch
+    raises the DecodeError push() gives, with its index, before anything is consumed; with an
+    error list it is skipped and reported, the others decoded as without it."""
+    from converters._kernels import velodyne as kernel
+    from converters.velodyne.decoder import _as_table
+    lib = kernel.library()
+    if lib is None:
+        pytest.skip("converters._kernels._velokernel is not built")
+    calib = _random_calibration(128, 25)
+    packets = synthetic_stream(0xA1, 0x39, 200, deg_per_sequence=3.0)
+    at = 137
+    stamp, data = packets[at]
+    bad = {"flag": data[:1] + b"\x12" + data[2:], "azimuth": data[:2] + b"\xff\xff" + data[4:],
+           "product": data[:1205] + b"\x99"}[defect]
+    stream = [*packets[:at], (stamp, bad), *packets[at + 1:]]
+    batch = _as_table(stream, lib)
+    assert batch is not None
+    decoder = PacketDecoder(calib, as_dataclass=True)
+    with pytest.raises(DecodeError, match=rf"payloads\[{at}\]") as raised:
+        decoder._push_array(*batch, errors=None, owned=True)
+    with pytest.raises(DecodeError) as one:
+        PacketDecoder(calib).push(stamp, bad)
+    assert str(raised.value).endswith(str(one.value).split(": ", 1)[1])
+    errors: list[Any] = []
+    got = decoder._push_array(*batch, errors=errors, owned=True) + decoder.flush()
+    assert [(i, str(e)) for i, e in errors] == [(at, str(one.value))]
+    skipped = stream[:at] + stream[at + 1:]
+    _same_scans(list(decode_packets(skipped, calib, as_dataclass=True)), got)
 
 
 # ------------------------------------------------------------------ uninitialised scan data

@@ -2,7 +2,8 @@
 
 ``vdk_fill`` takes its AVX2 path (slot-major tiles of 16 packets) for layouts with one firing
 sequence per packet (a dual-return VLS-128) on a CPU with AVX2, and its portable path otherwise
-or when ``LIDARSCAN_VELODYNE_SIMD=0``. Checked here: the golden digests of
+or when ``converters._kernels.velodyne.SIMD`` is 0 (``LIDARSCAN_VELODYNE_SIMD=0`` at import).
+Checked here: the golden digests of
 ``tests/test_velodyne_golden.py`` with the portable path forced, and the kernel called directly
 on random packets (random block azimuths, with and without equal azimuths in a packet; random
 row order and rot_correction; odd begin / count / column; with and without the azimuth channel;
@@ -32,7 +33,7 @@ pytestmark = pytest.mark.skipif(kv.library() is None,
 def test_golden_digests_with_the_portable_path_forced(case: str, tmp_path: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     from test_velodyne_golden import GOLDEN, _compute
-    monkeypatch.setenv("LIDARSCAN_VELODYNE_SIMD", "0")
+    monkeypatch.setattr(kv, "SIMD", 0)
     assert _compute(case, tmp_path) == [GOLDEN[case]] * 3
 
 
@@ -62,7 +63,7 @@ def _views(rows: int, width: int, angles: bool, returns: int = 2) -> dict[str, A
 
 def _fill(plan: Any, rows: np.ndarray[Any, Any], begin: int, count: int, column: int,
           views: dict[str, Any], simd: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("LIDARSCAN_VELODYNE_SIMD", "1" if simd else "0")
+    monkeypatch.setattr(kv, "SIMD", int(simd))
     kv.fill(kv.library(), plan, rows, begin, count, column, views)
 
 
@@ -116,3 +117,71 @@ def test_simd_path_equals_portable_path_with_one_return_slot(
         got.append(views)
     for name in got[0]:
         assert np.array_equal(got[0][name], got[1][name]), name
+
+
+# ------------------------------------------------------------ packets read through addresses
+
+@pytest.mark.parametrize("simd", [1, 0], ids=["default", "portable"])
+@pytest.mark.parametrize("product, mode", [(0xA1, 0x39), (0xA1, 0x37), (0x22, 0x39),
+                                           (0x28, 0x37)])
+def test_fill_through_an_address_table_equals_the_rows(product: int, mode: int, simd: int,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The packets as separate ``bytes`` (their addresses from ``table``, scattered in memory)
+    give the same bytes as the same packets as rows of one array, on both paths; ``words``
+    reads the same header words."""
+    rng = np.random.default_rng(product + mode)
+    layout = vp._layout(product, mode)
+    lasers = layout.model.lasers
+    tables = vp._tables(layout, rng.permutation(lasers), rng.uniform(-3000, 3000, lasers),
+                        kv.library())
+    assert tables.plan is not None
+    rows = _packets(rng, 150)
+    pairs = [(int(i) - 75, rows[i].tobytes()) for i in rng.permutation(150)]
+    order = np.array([s + 75 for s, _ in pairs])
+    rows = rows[order]                                    # the rows in the pairs' order
+    found = kv.table(pairs)
+    assert found is not None
+    addresses, stamps = found
+    assert stamps.tolist() == [s for s, _ in pairs]
+    monkeypatch.setattr(kv, "SIMD", simd)
+    lib = kv.library()
+    width = 150 * layout.sequences + 20
+    for begin, count, column in [(0, 150 * layout.sequences, 0), (7, 131, 3), (1, 17, 19)]:
+        a, b = _views(lasers, width, True, layout.dual + 1), _views(lasers, width, True,
+                                                                   layout.dual + 1)
+        kv.fill(lib, tables.plan, rows, begin, count, column, a)
+        kv.fill(lib, tables.plan, addresses, begin, count, column, b)
+        for name in a:
+            assert np.array_equal(a[name], b[name]), (name, begin, count, column)
+    at = np.array([1, 51, 551, 600, 601, 602])
+    assert np.array_equal(kv.words(lib, addresses, at), rows.view("<u2")[:, at])
+    wide = np.zeros((150, 1300), np.uint8)
+    wide[:, 3:1209] = rows                                # rows at odd addresses, strided
+    assert np.array_equal(kv.words(lib, wide[:, 3:1209], at), rows.view("<u2")[:, at])
+
+
+def test_table_takes_tuples_of_an_int_and_1206_bytes_only() -> None:
+    """``table`` stops at the first pair that is not a 2-tuple of an int within int64 and a
+    1206-byte ``bytes`` (the decoder then joins the chunk as before): its index."""
+    class Sub(bytes):
+        pass
+
+    data = bytes(range(256)) * 4 + bytes(182)
+    fine = (5, data)
+    odd: list[Any] = [(5, bytearray(data)), (5, memoryview(data)), (5, data[:-1]),
+                      (5, data + b"\0"), [5, data], (5, data, 0), (5,), (np.int64(5), data),
+                      (True, data), (2 ** 63, data), (-2 ** 63 - 1, data), (5.0, data),
+                      (5, Sub(data)), (5, np.frombuffer(data, np.uint8)), None]
+    module = kv._module()
+    for item in odd:
+        out, stamps = np.empty(4, np.uintp), np.empty(4, np.int64)
+        assert module.table([fine, fine, item, fine], out, stamps) == 2, item
+        assert kv.table([fine, item]) is None
+    found = kv.table([(2 ** 63 - 1, data), (-2 ** 63, data), (0, data)])
+    assert found is not None
+    assert found[1].tolist() == [2 ** 63 - 1, -2 ** 63, 0]
+    assert kv.table([]) is not None
+    with pytest.raises(TypeError):
+        module.table((fine,), np.empty(1, np.uintp), np.empty(1, np.int64))   # not a list
+    with pytest.raises(ValueError, match="too small"):
+        module.table([fine, fine], np.empty(1, np.uintp), np.empty(2, np.int64))

@@ -33,8 +33,11 @@
  * every value after the subtraction is below 2^22 in magnitude (base < 65536, |term| < 2^17)
  * and the steps after it are exact in float32 (vdk_angles).
  *
- * The Python module part is empty: converters/_kernels/velodyne.py loads this shared object
- * with ctypes (which releases the GIL during the calls).
+ * converters/_kernels/velodyne.py loads this shared object with ctypes (which releases the GIL
+ * during the calls). The kernel reads packets through a table of their addresses (no copy of
+ * separate payloads into one buffer): vdk_good (header checks), vdk_words (header words) and
+ * vdk_fill. The module's one Python function, table(), builds that table from a list of
+ * (stamp, bytes) pairs in one pass (converters.velodyne.decode_packets).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -45,7 +48,7 @@
 #include <string.h>
 
 /* Bump with any change of a function's signature or semantics. */
-#define VDK_ABI 2
+#define VDK_ABI 3
 
 #define VDK_PACKET 1206
 #define VDK_BLOCKS 12
@@ -107,27 +110,41 @@ VDK_INLINE uint32_t vdk_u32(const uint8_t *p)
 }
 
 /*
- * The first of n packets (rows of `stride` bytes) that push() would reject under one layout, or
- * whose factory bytes differ from `key` (product << 8 | return mode); n when every packet passes.
- * A packet passes when each of its first `used` blocks has the flag 0xFF, flags[b] and an azimuth
- * below 36000.
+ * The header checks of PacketDecoder over n packets given by address (pkts[p]: the 1206 bytes of
+ * packet p): good[p] = 1 for each packet whose factory bytes equal `key` (product << 8 | return
+ * mode) and whose first `used` blocks each have the flag 0xFF, flags[b] and an azimuth below
+ * 36000; good[p] of the other packets is left as it is. Returns the number of packets set.
  */
-VDK_EXPORT int64_t vdk_check(const uint8_t *buf, int64_t n, int64_t stride, int32_t key,
-                             const uint8_t *flags, int64_t used)
+VDK_EXPORT int64_t vdk_good(const uint8_t *const *pkts, int64_t n, int32_t key,
+                            const uint8_t *flags, int64_t used, uint8_t *good)
 {
+    int64_t set = 0;
     for (int64_t p = 0; p < n; ++p) {
-        const uint8_t *pkt = buf + p * stride;
-        if (p + VDK_AHEAD < n)                  /* a strided walk: help the prefetcher */
+        const uint8_t *pkt = pkts[p];
+        if (p + VDK_AHEAD < n)                  /* scattered packets: help the prefetcher */
             for (int64_t b = 0; b < used; ++b)
-                VDK_PREFETCH(pkt + VDK_AHEAD * stride + 100 * b);
+                VDK_PREFETCH(pkts[p + VDK_AHEAD] + 100 * b);
         int bad = (((int32_t)pkt[1205] << 8) | pkt[1204]) != key;
         for (int64_t b = 0; b < used; ++b) {
             const uint8_t *head = pkt + 100 * b;
             bad |= (head[0] != 0xFF) | (head[1] != flags[b]) | (vdk_u16(head, 2) >= 36000);
         }
-        if (bad) return p;
+        if (!bad) {
+            good[p] = 1;
+            ++set;
+        }
     }
-    return n;
+    return set;
+}
+
+/* The k little-endian u16 words at[0..k-1] (word w: bytes 2w, 2w + 1) of n packets given by
+ * address, into out (n, k). */
+VDK_EXPORT void vdk_words(const uint8_t *const *pkts, int64_t n, const int64_t *at, int64_t k,
+                          uint16_t *out)
+{
+    for (int64_t p = 0; p < n; ++p, out += k)
+        for (int64_t i = 0; i < k; ++i)
+            out[i] = (uint16_t)vdk_u16(pkts[p], 2 * at[i]);
 }
 
 /* Nebula's block walk of one packet: the float32 base azimuth and gap of its first n_blocks
@@ -179,10 +196,12 @@ VDK_CLONES static void vdk_angles(float base, float gap, int64_t vlp16, const fl
  * in tiles of VDK_TILE; a tile is first gathered column by column into small row-major buffers
  * (L1/L2; the distance and reflectivity of a point as one unaligned 32-bit load, the
  * identical-pair rule applied there), then each of their rows is copied into the views with
- * contiguous stores; the packets a few ahead are prefetched. Returns 0, -1 or -2 as vdk_fill.
+ * contiguous stores; the packets a few ahead are prefetched. Returns 0 or -2 as vdk_fill (which
+ * has checked the shape; count > 0).
  */
-static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
-                              int64_t returns, int64_t seqs, int64_t rows, int64_t width,
+static int64_t vdk_fill_tiles(const uint8_t *const *pkts, int64_t begin, int64_t count,
+                              int64_t column, int64_t returns, int64_t seqs, int64_t rows,
+                              int64_t width,
                               const int32_t *offsets, const int16_t *slots, const float *factor,
                               const double *rotation, int64_t family, int64_t dual,
                               int64_t n_blocks, uint16_t *r0, uint8_t *i0, uint16_t *r1,
@@ -190,8 +209,6 @@ static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, 
 {
     uint16_t angle[VDK_SLOTS] = {0};
     float base[VDK_BLOCKS], gap[VDK_BLOCKS];
-    if (rows > VDK_ROWS || returns < 1 || returns > 2) return -1;
-    if (count <= 0) return 0;
     uint16_t (*tr)[VDK_ROWS][VDK_TILE] = malloc(sizeof(uint16_t[2][VDK_ROWS][VDK_TILE]) * 2 +
                                                 sizeof(uint8_t[2][VDK_ROWS][VDK_TILE]));
     if (!tr) return -2;
@@ -200,15 +217,15 @@ static int64_t vdk_fill_tiles(const uint8_t *buf, int64_t begin, int64_t count, 
     uint16_t *const rv[2] = {r0, r1}, *const av[2] = {a0, a1};
     uint8_t *const iv[2] = {i0, i1};
     int64_t packet = -1;
-    const int64_t end_byte = ((begin + count - 1) / seqs + 1) * VDK_PACKET;
+    const int64_t end = (begin + count - 1) / seqs + 1;     /* packets read: 0 .. end - 1 */
     for (int64_t c0 = 0; c0 < count; c0 += VDK_TILE) {
         const int64_t n = count - c0 < VDK_TILE ? count - c0 : VDK_TILE;
         for (int64_t j = 0; j < n; ++j) {                     /* gather the tile's columns */
             const int64_t q = begin + c0 + j, p = q / seqs, s = q % seqs;
-            const uint8_t *pkt = buf + p * VDK_PACKET;
-            if (p != packet && (p + VDK_AHEAD + 1) * VDK_PACKET <= end_byte)
+            const uint8_t *pkt = pkts[p];
+            if (p != packet && p + VDK_AHEAD < end)
                 for (int64_t b = 0; b < VDK_PACKET; b += 64)  /* the packets ahead */
-                    VDK_PREFETCH(pkt + VDK_AHEAD * VDK_PACKET + b);
+                    VDK_PREFETCH(pkts[p + VDK_AHEAD] + b);
             if (a0 && p != packet) {
                 vdk_blocks(pkt, family, dual, n_blocks, base, gap);
                 for (int64_t b = 0; b < n_blocks; ++b)
@@ -311,12 +328,13 @@ VDK_AVX2_INLINE void vdk_t16(__m128i v[8])
 }
 
 /*
- * Gather one tile of VDK_T packets (one column each) into slot-major rows: D[slot][j] distance,
- * I[slot][j] reflectivity of point slot `slot` (32 * block + k, blocks 0..nb-1) of packet j,
- * and, when `angles`, A[slot][j] its counter-clockwise angle (the arithmetic of vdk_angles,
- * eight packets per vector: the same operations on the same values, so the same integers).
+ * Gather one tile of VDK_T packets (one column each; tile[j]: packet j's bytes) into slot-major
+ * rows: D[slot][j] distance, I[slot][j] reflectivity of point slot `slot` (32 * block + k,
+ * blocks 0..nb-1) of packet j, and, when `angles`, A[slot][j] its counter-clockwise angle (the
+ * arithmetic of vdk_angles, eight packets per vector: the same operations on the same values,
+ * so the same integers).
  */
-VDK_AVX2 static void vdk_tile(const uint8_t *tile, int64_t nb, int angles, int64_t family,
+VDK_AVX2 static void vdk_tile(const uint8_t *const *tile, int64_t nb, int angles, int64_t family,
                               int64_t dual, int64_t n_blocks, const float *factor,
                               const double *rotation, const int64_t *twin,
                               uint16_t (*D)[VDK_T], uint8_t (*I)[VDK_T], uint16_t (*A)[VDK_T])
@@ -324,12 +342,13 @@ VDK_AVX2 static void vdk_tile(const uint8_t *tile, int64_t nb, int angles, int64
     /* 16 bytes at point 4i: distance lo/hi of points 0..3, then their reflectivities */
     const __m128i split = _mm_setr_epi8(0, 1, 3, 4, 6, 7, 9, 10, 2, 5, 8, 11, -1, -1, -1, -1);
     for (int g = 0; g < VDK_T; g += 8) {
-        const uint8_t *pkt = tile + (int64_t)g * VDK_PACKET;
+        const uint8_t *const *pkt = tile + g;
         for (int64_t b = 0; b < nb; ++b)
             for (int k8 = 0; k8 < 32; k8 += 8) {
                 __m128i d[8], r[8];
-                const uint8_t *q = pkt + 100 * b + 4 + 3 * k8;
-                for (int j = 0; j < 8; ++j, q += VDK_PACKET) {
+                const int64_t at = 100 * b + 4 + 3 * k8;
+                for (int j = 0; j < 8; ++j) {
+                    const uint8_t *q = pkt[j] + at;
                     const __m128i lo = _mm_shuffle_epi8(_mm_loadu_si128((const __m128i *)q), split);
                     const __m128i hi =
                         _mm_shuffle_epi8(_mm_loadu_si128((const __m128i *)(q + 12)), split);
@@ -357,7 +376,7 @@ VDK_AVX2 static void vdk_tile(const uint8_t *tile, int64_t nb, int angles, int64
         if (!angles) continue;
         float base[8][VDK_BLOCKS], gap[8][VDK_BLOCKS];
         for (int j = 0; j < 8; ++j)
-            vdk_blocks(pkt + (int64_t)j * VDK_PACKET, family, dual, n_blocks, base[j], gap[j]);
+            vdk_blocks(pkt[j], family, dual, n_blocks, base[j], gap[j]);
         const __m256 zero = _mm256_setzero_ps(), full = _mm256_set1_ps(36000.0f);
         const __m256 half = _mm256_set1_ps(0.5f), scale = _mm256_set1_ps((float)110.592);
         const __m256i mask = _mm256_set1_epi32(0xFFFF), turn = _mm256_set1_epi32(36000);
@@ -413,7 +432,7 @@ VDK_AVX2 static void vdk_tile(const uint8_t *tile, int64_t nb, int angles, int64
  * identical-pair rule as a vector compare and blend. Returns the columns done (a multiple of
  * VDK_T), or 0 when a used slot has no angle (a block beyond n_blocks with angles wanted).
  */
-VDK_AVX2 static int64_t vdk_fill_one(const uint8_t *buf, int64_t begin, int64_t count,
+VDK_AVX2 static int64_t vdk_fill_one(const uint8_t *const *pkts, int64_t begin, int64_t count,
                                      int64_t column, int64_t returns, int64_t rows,
                                      int64_t width, const int16_t *slots, const float *factor,
                                      const double *rotation, int64_t family, int64_t dual,
@@ -441,7 +460,7 @@ VDK_AVX2 static int64_t vdk_fill_one(const uint8_t *buf, int64_t begin, int64_t 
     }
     int64_t c0 = 0;
     for (; c0 + VDK_T <= count; c0 += VDK_T) {
-        vdk_tile(buf + (begin + c0) * VDK_PACKET, nb, a0 != NULL, family, dual, n_blocks,
+        vdk_tile(pkts + begin + c0, nb, a0 != NULL, family, dual, n_blocks,
                  factor, rotation, twin, D, I, A);
         const int64_t col = column + c0;
         for (int64_t h = 0; h < rows; ++h) {
@@ -488,19 +507,24 @@ VDK_AVX2 static int64_t vdk_fill_one(const uint8_t *buf, int64_t begin, int64_t 
     return c0;
 }
 
-/* Whether this CPU runs vdk_fill_one (AVX2). */
+/* Whether this CPU runs vdk_fill_one (AVX2); asked once (0 / 1, -1 before the first call). */
+static int vdk_has_avx2 = -1;
+
 static int vdk_avx2(void)
 {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx2");
+    if (vdk_has_avx2 < 0) {
+        __builtin_cpu_init();
+        vdk_has_avx2 = __builtin_cpu_supports("avx2") ? 1 : 0;
+    }
+    return vdk_has_avx2;
 }
 #endif /* VDK_SIMD */
 
 /*
- * Decode `count` firing sequences, from sequence `begin` of the packets `buf` ((n, 1206) uint8,
- * sequence q = sequence q % S of packet q / S), into columns column .. column + count - 1 of
- * the (H, width) channel views r0 / i0 (uint16 range, uint8 intensity of return slot 0, the
- * strongest or only), r1 / i1 (slot 1, the last return; unused when returns == 1) and, unless
+ * Decode `count` firing sequences, from sequence `begin` of the packets given by address
+ * (pkts[p]: the 1206 bytes of packet p; sequence q = sequence q % S of packet q / S), into
+ * columns column .. column + count - 1 of the (H, width) channel views r0 / i0 (uint16 range,
+ * uint8 intensity of return slot 0, the strongest or only), r1 / i1 (slot 1, the last return; unused when returns == 1) and, unless
  * a0 is NULL, the uint16 angle views a0 / a1 (a1 unused when returns == 1).
  *
  * offsets: (R, S, H) byte offset in a packet of the distance (reflectivity at + 2) of return
@@ -514,8 +538,9 @@ static int vdk_avx2(void)
  * vdk_fill_tiles. Both give the same bytes. Returns 0, -1 for an unsupported shape (more than
  * VDK_ROWS rows, returns not 1 or 2), -2 when the tile buffers cannot be allocated.
  */
-VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, int64_t column,
-                            int64_t returns, int64_t seqs, int64_t rows, int64_t width,
+VDK_EXPORT int64_t vdk_fill(const uint8_t *const *pkts, int64_t begin, int64_t count,
+                            int64_t column, int64_t returns, int64_t seqs, int64_t rows,
+                            int64_t width,
                             const int32_t *offsets, const int16_t *slots, const float *factor,
                             const double *rotation, int64_t family, int64_t dual,
                             int64_t n_blocks, uint16_t *r0, uint8_t *i0, uint16_t *r1,
@@ -526,23 +551,75 @@ VDK_EXPORT int64_t vdk_fill(const uint8_t *buf, int64_t begin, int64_t count, in
     int64_t done = 0;
 #ifdef VDK_SIMD
     if (simd && seqs == 1 && count >= VDK_T && vdk_avx2())
-        done = vdk_fill_one(buf, begin, count, column, returns, rows, width, slots, factor,
+        done = vdk_fill_one(pkts, begin, count, column, returns, rows, width, slots, factor,
                             rotation, family, dual, n_blocks, r0, i0, r1, i1, a0, a1);
 #else
     (void)simd;
 #endif
     if (done == count) return 0;
-    return vdk_fill_tiles(buf, begin + done, count - done, column + done, returns, seqs, rows,
+    return vdk_fill_tiles(pkts, begin + done, count - done, column + done, returns, seqs, rows,
                           width, offsets, slots, factor, rotation, family, dual, n_blocks, r0,
                           i0, r1, i1, a0, a1);
 }
 
-/* ------------------------------------------------------------- (empty) Python module */
+/* ------------------------------------------------------------------------- Python module */
+
+/*
+ * table(pairs, addresses, stamps) -> int: for a list of (stamp_ns, payload) pairs, the address
+ * of each payload's bytes into `addresses` (writable buffer of n uintptr) and its stamp into
+ * `stamps` (writable buffer of n int64), in one pass; returns the index of the first pair that
+ * is not a 2-tuple of an int (within int64) and a 1206-byte `bytes` (then the caller takes the
+ * general path), or n. The payloads are read later through the addresses: the caller keeps
+ * `pairs` alive (bytes are immutable, so the addresses stay valid and the bytes unchanged).
+ */
+static PyObject *vdk_table(PyObject *self, PyObject *args)
+{
+    PyObject *pairs;
+    Py_buffer addr, stamp;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "O!w*w*", &PyList_Type, &pairs, &addr, &stamp)) return NULL;
+    const Py_ssize_t n = PyList_GET_SIZE(pairs);
+    Py_ssize_t p = 0;
+    if (addr.len < n * (Py_ssize_t)sizeof(uintptr_t) ||
+        stamp.len < n * (Py_ssize_t)sizeof(int64_t)) {
+        PyBuffer_Release(&addr);
+        PyBuffer_Release(&stamp);
+        PyErr_SetString(PyExc_ValueError, "table: the output buffers are too small");
+        return NULL;
+    }
+    uintptr_t *out = (uintptr_t *)addr.buf;
+    int64_t *times = (int64_t *)stamp.buf;
+    for (; p < n; ++p) {
+        PyObject *pair = PyList_GET_ITEM(pairs, p);
+        if (!PyTuple_CheckExact(pair) || PyTuple_GET_SIZE(pair) != 2) break;
+        PyObject *t = PyTuple_GET_ITEM(pair, 0), *data = PyTuple_GET_ITEM(pair, 1);
+        if (!PyBytes_CheckExact(data) || PyBytes_GET_SIZE(data) != VDK_PACKET ||
+            !PyLong_CheckExact(t))
+            break;
+        int overflow = 0;
+        const long long value = PyLong_AsLongLongAndOverflow(t, &overflow);
+        if (overflow || (value == -1 && PyErr_Occurred())) {
+            PyErr_Clear();
+            break;
+        }
+        times[p] = (int64_t)value;
+        out[p] = (uintptr_t)PyBytes_AS_STRING(data);
+    }
+    PyBuffer_Release(&addr);
+    PyBuffer_Release(&stamp);
+    return PyLong_FromSsize_t(p);
+}
+
+static PyMethodDef vdk_methods[] = {
+    {"table", vdk_table, METH_VARARGS,
+     "table(pairs, addresses, stamps) -> index of the first odd pair, or len(pairs)"},
+    {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef vdk_module = {
     PyModuleDef_HEAD_INIT, "_velokernel",
-    "Compiled Velodyne packet kernel (loaded with ctypes by converters._kernels.velodyne).",
-    -1, NULL, NULL, NULL, NULL, NULL};
+    "Compiled Velodyne packet kernel (loaded with ctypes by converters._kernels.velodyne; "
+    "table() is its one Python function).",
+    -1, vdk_methods, NULL, NULL, NULL, NULL};
 
 PyMODINIT_FUNC PyInit__velokernel(void)
 {

@@ -28,11 +28,12 @@ from converters.velodyne.packets import (
     _flag_names,
     _flags,
     _Layout,
+    _Table,
     _Tables,
     _layout,
     _nebula_rotation,
     _tables,
-    _words,
+    _words_at,
 )
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError, ValidationError
 from lidarscan.scan import ScanBuffer
@@ -42,6 +43,7 @@ _JUMP_CENTIDEG = 500.0      # an azimuth step this large between two firings is 
 _RATE_CHANGE = 0.01         # a rotation rate this much off the info's makes a new version
 _RATE_COLUMNS = 100         # ... when measured over at least this many columns
 _AZIMUTH_MODELS = ("nebula", "manual")
+_KEY_WORD = np.array([602])   # bytes 1204 (return mode) and 1205 (product) as one u16 word
 
 
 class PacketDecoder:
@@ -104,8 +106,10 @@ class PacketDecoder:
         self._azimuth_model = azimuth_model
         self._as_dataclass = as_dataclass
         self._key: tuple[int, int] | None = None      # (product, mode) of the packets buffered
+        self._model: VelodyneModel | None = None      # the stream's (its first valid packet's)
         self._layout: _Layout | None = None
-        self._packets: list[Any] = []                  # payloads (bytes) or (k, 1206) rows
+        self._packets: list[Any] = []                  # payloads (bytes), (k, 1206) rows
+        #                                                  or _Table (decode_packets)
         self._stamps: list[Any] = []                   # recorded stamps (ns): ints or arrays
         self._rows = 0                                  # packets buffered
         self._first_seq = 0                             # first sequence of _packets[0] to keep
@@ -127,21 +131,23 @@ class PacketDecoder:
     def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
         """Add one packet (1206-byte payload, never modified); return the rotations it completed.
 
-        A packet of another model or return mode ends the current rotation (returned here);
-        the info version changes only when the geometry does (model, calibration, single <->
-        dual, width, rotation rate).
+        A packet of another return mode ends the current rotation (returned here); the info
+        version changes only when the geometry does (single <-> dual, width, rotation rate).
+        The stream's model is that of its first valid packet: one decoder per sensor (its
+        calibration is that sensor's).
 
         Raises:
             DecodeError: malformed packet (size, block flags, azimuth, unknown product or
-                return mode); the packet is skipped and the decoder stays usable.
+                return mode) or a packet of another model than the stream's; the packet is
+                skipped (the rotation in progress goes on) and the decoder stays usable.
             ConfigError / ValidationError: the calibration does not fit the detected model.
         """
         data = packet if isinstance(packet, bytes) else payload_bytes(packet)
         key, layout = self._validate(data)
         out: list[tuple[Any, Any]] = []
-        if key != self._key:                          # a valid packet of another mode/model
+        if key != self._key:                          # a valid packet of another mode
             out.extend(self.flush())
-            self._key, self._layout = key, layout
+            self._key, self._layout, self._model = key, layout, layout.model
         cut = self._cut
         first, last = 2, layout.last_offset
         rel_first = ((data[first] | data[first + 1] << 8) - cut) % 36000
@@ -193,41 +199,36 @@ class PacketDecoder:
         return self._push_array(stamps.astype(np.int64, copy=False), rows, errors=errors,
                                 owned=_immutable(rows))
 
-    def _push_array(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], *,
+    def _push_array(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any] | _Table, *,
                     errors: list[tuple[int, LidarScanError]] | None, owned: bool
                     ) -> list[tuple[Any, Any]]:
-        """push_many() on checked arrays; ``owned``: rows may be kept without a copy."""
+        """push_many() on checked arrays (or a :class:`_Table` of payloads: decode_packets);
+        ``owned``: rows may be kept without a copy."""
         n = rows.shape[0]
         if n == 0:
             return []
         out: list[tuple[Any, Any]] = []
-        key = self._uniform_key(rows)
-        if key is not None:                           # one model and mode, every packet valid
-            if key != self._key:
-                out.extend(self.flush())
-                self._key, self._layout = key, self._check_key(key)
-            out.extend(self._push_rows(stamps, rows))
-            if not owned:
-                self._own(stamps, rows)
-            return out
-        keys = (rows[:, 1205].astype(np.int64) << 8) | rows[:, 1204]
-        good = self._good_rows(rows, keys)
-        if not good.all():
+        good, keys, model = self._good_rows(rows, self._model)
+        if not isinstance(keys, int) and not good.all():
             bad = np.flatnonzero(~good)
             if errors is None:
-                err = self._row_error(rows[bad[0]])
+                err = self._row_error(rows, int(bad[0]), model)
                 raise DecodeError(f"payloads[{int(bad[0])}]: {err.field}", err.value,
                                   err.expected) from err
-            errors.extend((int(i), self._row_error(rows[i])) for i in bad.tolist())
-        starts = np.flatnonzero((keys[1:] != keys[:-1]) | (good[1:] != good[:-1])) + 1
-        bounds = [0, *starts.tolist(), n]
+            errors.extend((int(i), self._row_error(rows, i, model)) for i in bad.tolist())
+        if isinstance(keys, int):                     # one model and mode, every packet valid
+            bounds, keys = [0, n], np.full(1, keys)
+        else:
+            starts = np.flatnonzero((keys[1:] != keys[:-1]) | (good[1:] != good[:-1])) + 1
+            bounds = [0, *starts.tolist(), n]
         for i, j in itertools.pairwise(bounds):
             if not good[i]:
                 continue
             key = (int(keys[i]) >> 8, int(keys[i]) & 0xFF)
-            if key != self._key:                      # another model or mode: end the rotation
+            if key != self._key:                      # another mode: end the rotation
                 out.extend(self.flush())
-                self._key, self._layout = key, self._check_key(key)
+                self._key, self._layout = key, self._check_key(key, model)
+                self._model = model
             out.extend(self._push_rows(stamps[i:j], rows[i:j]))
         if not owned:
             self._own(stamps, rows)
@@ -240,14 +241,15 @@ class PacketDecoder:
         self._stamps = [s.copy() if isinstance(s, np.ndarray)
                         and np.may_share_memory(s, stamps) else s for s in self._stamps]
 
-    def _validate(self, data: bytes) -> tuple[tuple[int, int], _Layout]:
-        """(key, layout) of one payload, or the DecodeError saying what is wrong with it."""
+    def _validate(self, data: bytes, model: VelodyneModel | None = None
+                  ) -> tuple[tuple[int, int], _Layout]:
+        """(key, layout) of one payload, or the DecodeError saying what is wrong with it;
+        ``model``: the stream's (default: the decoder's, if it has seen a valid packet)."""
         if len(data) != PACKET_SIZE:
             raise DecodeError("packet", f"{len(data)} bytes", f"{PACKET_SIZE} bytes (a Velodyne "
                               "data packet payload)")
         key = (data[1205], data[1204])
-        layout = self._layout if key == self._key else self._check_key(key)
-        assert layout is not None
+        layout = self._layout_of(key[0] << 8 | key[1], model)
         used = len(layout.flags) * 100
         if data[0:used:100] != b"\xff" * len(layout.flags) or data[1:used:100] != layout.flags:
             raise DecodeError("packet.blocks[*].flag", _flags(data, used // 100),
@@ -260,59 +262,85 @@ class PacketDecoder:
                                   "0..35999 (hundredths of a degree)")
         return key, layout
 
-    def _uniform_key(self, rows: np.ndarray[Any, Any]) -> tuple[int, int] | None:
-        """The (product, mode) of rows (N >= 1, 1206) when the C kernel finds every packet
-        valid and of the same model and mode in one pass; else None (also without the kernel:
-        then :meth:`_good_rows` judges, and it alone builds the exact errors)."""
-        lib = self._lib
-        if lib is None or rows.strides[1] != 1:
-            return None
-        from converters._kernels.velodyne import first_bad
-        key = (int(rows[0, 1205]), int(rows[0, 1204]))
+    def _row_error(self, rows: np.ndarray[Any, Any] | _Table, i: int,
+                   model: VelodyneModel | None) -> DecodeError:
+        """The DecodeError push() gives for row i of rows (one :meth:`_good_rows` rejects) in
+        a stream of ``model``."""
         try:
-            layout = self._layout if key == self._key else self._check_key(key)
-        except DecodeError:
-            return None
-        assert layout is not None
-        if first_bad(lib, rows, key[0] << 8 | key[1], layout.flags) != rows.shape[0]:
-            return None
-        return key
-
-    def _row_error(self, row: np.ndarray[Any, Any]) -> DecodeError:
-        try:
-            self._validate(row.tobytes())
+            self._validate(rows.row(i) if isinstance(rows, _Table) else rows[i].tobytes(),
+                           model)
         except DecodeError as err:
             return err
         raise AssertionError("a row judged malformed passes the per-packet checks")
 
-    def _good_rows(self, rows: np.ndarray[Any, Any], keys: np.ndarray[Any, Any]
-                   ) -> np.ndarray[Any, Any]:
-        """(N,) bool: the packets push() would accept (the same checks, vectorised)."""
-        good = np.zeros(rows.shape[0], bool)
-        first = int(keys[0])
-        for k in ([first] if np.all(keys == first) else np.unique(keys).tolist()):
-            key = (int(k) >> 8, int(k) & 0xFF)
+    def _good_rows(self, rows: np.ndarray[Any, Any] | _Table, model: VelodyneModel | None
+                   ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | int,
+                              VelodyneModel | None]:
+        """(good, keys, the stream's model) of N packets in a stream of ``model`` (None: not
+        yet known, then the model of the first (product, mode) in order of appearance with a
+        valid packet). ``good`` (N,) bool: the packets push() would accept, by the same checks,
+        vectorised: one C pass per (product, mode) with the kernel, else numpy; ``keys`` (N,)
+        int64 product << 8 | mode of each packet, or one int when all have the same and are
+        valid (the kernel's first pass, with the key of packet 0, found them so: no other
+        read of the packets)."""
+        n = rows.shape[0]
+        good = np.zeros(n, bool)
+        lib = self._lib
+        if lib is not None:
+            from converters._kernels.velodyne import addresses, good as check
+            table = rows.addresses if isinstance(rows, _Table) else addresses(rows)
+            head = rows.row(0) if isinstance(rows, _Table) else rows[0]
+            first = int(head[1205]) << 8 | int(head[1204])
             try:
-                layout = self._layout if key == self._key else self._check_key(key)
+                layout = self._layout_of(first, model)
+            except DecodeError:
+                layout = None
+            if layout is not None and check(lib, table, first, layout.flags, good) == n:
+                return good, first, model or layout.model
+        keys = _words_at(rows, _KEY_WORD)[:, 0].astype(np.int64)   # product << 8 | mode
+        uniform = bool((keys == keys[0]).all())
+        if uniform:
+            found = [int(keys[0])]
+        else:
+            unique, at = np.unique(keys, return_index=True)
+            found = unique[np.argsort(at)].tolist()
+        for k in found:
+            try:
+                layout = self._layout_of(k, model)
             except DecodeError:                        # unknown product or return mode
                 continue
-            assert layout is not None
-            mine = keys == k
-            sub = rows if mine.all() else rows[mine]
-            used = len(layout.flags)
-            # flag (2 bytes) and azimuth (u16) of each used block as one little-endian u32
-            head = sub[:, :100 * used].reshape(-1, used, 100)[:, :, :4].view("<u4")[..., 0]
-            flags = 0xFF | (np.frombuffer(layout.flags, np.uint8).astype(np.uint32) << 8)
-            good[mine] = np.all(((head & 0xFFFF) == flags) & (head < (36000 << 16)), axis=1)
-        return good
+            if lib is not None:
+                some = check(lib, table, k, layout.flags, good) > 0
+            else:
+                assert isinstance(rows, np.ndarray)
+                mine = keys == k
+                sub = rows if uniform else rows[mine]
+                used = len(layout.flags)
+                # flag (2 bytes) and azimuth (u16) of each used block as one little-endian u32
+                head = sub[:, :100 * used].reshape(-1, used, 100)[:, :, :4].view("<u4")[..., 0]
+                flags = 0xFF | (np.frombuffer(layout.flags, np.uint8).astype(np.uint32) << 8)
+                ok = np.all(((head & 0xFFFF) == flags) & (head < (36000 << 16)), axis=1)
+                good[mine] = ok
+                some = bool(ok.any())
+            if model is None and some:
+                model = layout.model
+        return good, keys, model
 
-    def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]
+    def _layout_of(self, key: int, model: VelodyneModel | None) -> _Layout:
+        """:meth:`_check_key` of ``key`` (product << 8 | mode) in a stream of ``model``."""
+        pair = (key >> 8, key & 0xFF)
+        layout = self._layout if pair == self._key else self._check_key(pair, model)
+        assert layout is not None
+        return layout
+
+    def _push_rows(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any] | _Table
                    ) -> list[tuple[Any, Any]]:
-        """Add validated packets (m, 1206) of the current model and mode; cut rotations."""
+        """Add validated packets ((m, 1206) rows or a :class:`_Table`) of the current model
+        and mode; cut rotations."""
         layout = self._layout
         assert layout is not None
         at = layout.azimuth_words
-        rel = _words(rows)[:, at].astype(np.int64).reshape(-1)     # 0..35999 (checked)
+        rel = _words_at(rows, at).astype(np.int64).reshape(-1)     # 0..35999 (checked)
         if self._cut:                                # (rel - cut) % 36000
             rel -= self._cut
             rel += 36000 * (rel < 0)
@@ -330,7 +358,7 @@ class PacketDecoder:
         self._prev_rel = int(rel[-1])
         return out
 
-    def _add(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any]) -> None:
+    def _add(self, stamps: np.ndarray[Any, Any], rows: np.ndarray[Any, Any] | _Table) -> None:
         if rows.shape[0]:
             self._packets.append(rows)
             self._stamps.append(stamps)
@@ -345,12 +373,19 @@ class PacketDecoder:
 
     # ------------------------------------------------------------------------------ internals
 
-    def _check_key(self, key: tuple[int, int]) -> _Layout:
+    def _check_key(self, key: tuple[int, int], stream: VelodyneModel | None = None) -> _Layout:
+        """The layout of packets of ``key`` (product, return mode) in a stream of model
+        ``stream`` (default: the decoder's; None: any), or the error saying why it has none."""
         product, mode = key
         if product not in MODELS:
             raise DecodeError("packet.product_id", hex(product), "a known Velodyne product id "
                               "(0x21 HDL-32E, 0x22 VLP-16/Puck LITE, 0x24 Puck Hi-Res, "
                               "0x28 VLP-32C, 0xA1 VLS-128)")
+        stream = stream or self._model
+        if stream is not None and MODELS[product] is not stream:
+            raise DecodeError("packet.product_id", f"{hex(product)} ({MODELS[product].name})",
+                              f"a {stream.name} packet, the model of this decoder's stream (one "
+                              "decoder per sensor: its calibration is that sensor's)")
         if mode not in _RETURN_MODES:
             raise DecodeError("packet.return_mode", hex(mode),
                               "0x37 strongest, 0x38 last or 0x39 dual")
@@ -395,8 +430,8 @@ class PacketDecoder:
             return []
         runs, stamps = self._buffered()
         at = layout.head_words                   # timestamp (2 words), sequence azimuths
-        head = (_words(runs[0])[:, at] if len(runs) == 1
-                else np.concatenate([_words(r)[:, at] for r in runs]))
+        head = (_words_at(runs[0], at) if len(runs) == 1
+                else np.concatenate([_words_at(r, at) for r in runs]))
         azimuth = head[:, 2:].astype(np.float64)
         toh = head[:, 0].astype(np.int64) | (head[:, 1].astype(np.int64) << 16)
         times, azimuth = _sequence_columns(azimuth, toh, stamps, layout, self._time_source)
@@ -612,14 +647,19 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
     """Decode (stamp_ns, payload) pairs: :meth:`PacketDecoder.push` each, then ``flush``.
 
     Chunks of up to 4096 pairs go through :meth:`PacketDecoder.push_many` when every payload
-    of the chunk is a valid packet (same results). Keyword arguments go to
-    :class:`PacketDecoder`. A malformed packet raises its DecodeError after the rotations
-    before it (use :class:`PacketDecoder` directly to report and continue).
+    of the chunk is a valid packet (same results): with the C kernel, a chunk of (int,
+    1206-byte ``bytes``) tuples is read where it is, through a table of the payloads' addresses
+    (:func:`converters._kernels.velodyne.table`), other chunks are joined into one buffer.
+    Keyword arguments go to :class:`PacketDecoder`. A malformed packet raises its DecodeError
+    after the rotations before it (use :class:`PacketDecoder` directly to report and continue).
     """
     decoder = PacketDecoder(calibration, **kw)
+    lib = decoder._lib
     source = iter(packets)
     while chunk := list(itertools.islice(source, _CHUNK)):
-        batch = _as_rows(chunk)
+        batch = _as_table(chunk, lib) if lib is not None else None
+        if batch is None:
+            batch = _as_rows(chunk)
         done = None
         if batch is not None:
             try:
@@ -632,6 +672,18 @@ def decode_packets(packets: Iterable[tuple[int, Any]], calibration: Any = None,
         else:
             yield from done
     yield from decoder.flush()
+
+
+def _as_table(chunk: list[Any], lib: Any) -> tuple[np.ndarray[Any, Any], _Table] | None:
+    """(stamps (n,) int64 ns, the payloads as a :class:`_Table`) of n (stamp, payload) pairs
+    when each is a tuple of an int and a 1206-byte ``bytes`` (one C pass, no copy); else None
+    (then :func:`_as_rows`)."""
+    from converters._kernels.velodyne import table
+    found = table(chunk)
+    if found is None:
+        return None
+    addresses, stamps = found
+    return stamps, _Table(addresses, chunk, 0, lib)
 
 
 def _as_rows(chunk: list[Any]) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:

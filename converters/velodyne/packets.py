@@ -146,6 +146,55 @@ def _words(rows: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     return (rows if rows.strides[1] == 1 else np.ascontiguousarray(rows)).view("<u2")
 
 
+class _Table:
+    """m packets by address: rows of a batch that were never copied into one buffer (the kernel
+    path of ``decode_packets``); usable where the decoder takes (m, 1206) rows: ``shape``,
+    slices, :func:`_words_at`, :func:`_fill_views`.
+
+    Attributes:
+        addresses: (m,) uintp address of each packet's 1206 bytes.
+        pairs: the list of (stamp, bytes) pairs the packets are in (kept alive with the table:
+            ``bytes`` never change, so the addresses stay valid).
+        start: the index in ``pairs`` of packet 0.
+        lib: the C kernel that reads them (``converters._kernels.velodyne``).
+    """
+
+    __slots__ = ("addresses", "pairs", "start", "lib")
+
+    def __init__(self, addresses: np.ndarray[Any, Any], pairs: list[Any], start: int,
+                 lib: Any) -> None:
+        self.addresses, self.pairs, self.start, self.lib = addresses, pairs, start, lib
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.addresses.shape[0], PACKET_SIZE)
+
+    def __getitem__(self, index: slice) -> _Table:
+        start, _, step = index.indices(self.addresses.shape[0])
+        if step != 1:
+            raise IndexError("a _Table takes slices of step 1")
+        return _Table(self.addresses[index], self.pairs, self.start + start, self.lib)
+
+    def row(self, i: int) -> bytes:
+        """The payload of packet i."""
+        return bytes(self.pairs[self.start + i][1])
+
+    def rows(self) -> np.ndarray[Any, Any]:
+        """The packets as one new (m, 1206) uint8 array (a copy)."""
+        pairs = self.pairs[self.start:self.start + self.addresses.shape[0]]
+        return np.frombuffer(b"".join(p[1] for p in pairs), np.uint8).reshape(-1, PACKET_SIZE)
+
+
+def _words_at(rows: np.ndarray[Any, Any] | _Table, at: np.ndarray[Any, Any]
+              ) -> np.ndarray[Any, Any]:
+    """(m, k) uint16: the little-endian words ``at`` (k word indices) of m packets, (m, 1206)
+    uint8 rows or a :class:`_Table`."""
+    if isinstance(rows, _Table):
+        from converters._kernels.velodyne import words
+        return words(rows.lib, rows.addresses, at)
+    return _words(rows)[:, at]
+
+
 def _blocks_to_sequences(values: np.ndarray[Any, Any], layout: _Layout
                          ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
     """(n, 12, 32) per-block values -> (n, S, L) first/only return and (n, S, L) last return.
@@ -325,12 +374,13 @@ def _tables(layout: _Layout, order: np.ndarray[Any, Any], rotation: np.ndarray[A
     return _Tables(offsets, rotation)
 
 
-def _fill_views(runs: list[np.ndarray[Any, Any]], begin: int, count: int, layout: _Layout,
+def _fill_views(runs: list[Any], begin: int, count: int, layout: _Layout,
                 tables: _Tables, views: Mapping[str, Any]) -> None:
-    """Sequences begin..begin+count-1 of the packet runs into columns 0..count-1 of a
-    ScanBuffer's views (``range``, ``intensity``, [``range2``, ``intensity2``], [``azimuth``,
-    [``azimuth2``]]), by the C kernel when ``tables`` has its plan, else by the numpy
-    references (:func:`_fill_numpy`, :func:`_azimuths_numpy`); identical results."""
+    """Sequences begin..begin+count-1 of the packet runs ((m, 1206) rows, or :class:`_Table`)
+    into columns 0..count-1 of a ScanBuffer's views (``range``, ``intensity``, [``range2``,
+    ``intensity2``], [``azimuth``, [``azimuth2``]]), by the C kernel when ``tables`` has its
+    plan, else by the numpy references (:func:`_fill_numpy`, :func:`_azimuths_numpy`);
+    identical results."""
     lib = tables.lib
     if lib is not None:
         from converters._kernels.velodyne import fill
@@ -347,8 +397,11 @@ def _fill_views(runs: list[np.ndarray[Any, Any]], begin: int, count: int, layout
         if have > 0 and column < count:
             take = min(have, count - column)
             if lib is not None:
-                fill(lib, tables.plan, np.ascontiguousarray(run), first, take, column, views)
+                fill(lib, tables.plan, run.addresses if isinstance(run, _Table) else run,
+                     first, take, column, views)
             else:
+                if isinstance(run, _Table):       # (a plan the kernel cannot take)
+                    run = run.rows()
                 _fill_numpy(run, first, take, offsets,
                             [(g[:, column:], h[:, column:]) for g, h in ((r0, i0), (r1, i1))])
                 if nebula:
