@@ -11,6 +11,7 @@ is a second, independent oracle where installed.
 from __future__ import annotations
 
 import array
+import dataclasses
 import json
 import math
 from typing import Any
@@ -441,6 +442,16 @@ def test_plain_python_inputs_without_ros_types() -> None:
     mapping["header"]["stamp"] = {"seconds": 10}
     with pytest.raises(LidarScanError, match="CameraInfo.header.stamp"):
         from_depth_image(values, mapping, encoding="16UC1", stamp_ns=0, rectified=False)
+    # a mapping stamp gets the Time message's nanosec range check (it used to skip it:
+    # {sec: 10, nanosec: 2e9} silently became 12 s)
+    for nanosec in (2 * 10**9, -1):
+        mapping["header"]["stamp"] = {"sec": 10, "nanosec": nanosec}
+        with pytest.raises(LidarScanError, match=r"CameraInfo.header.stamp.nanosec"):
+            from_depth_image(values, mapping, encoding="16UC1", stamp_ns=0, rectified=False)
+    image = dataclasses.replace(image_msg(values, "16UC1"),      # an image's stamp names it
+                                header=types.Header(types.Time(20, 2 * 10**9), "cam_optical"))
+    with pytest.raises(LidarScanError, match=r"Image.header.stamp.nanosec"):
+        DepthImageConverter(ci, rectified=False).convert(image)
 
 
 def test_lazy_registration() -> None:
