@@ -71,7 +71,7 @@ from converters.cloud_grid import (
 from converters.cloud_layout import read_points
 from lidarscan.datatypes import datatype_of
 from lidarscan.errors import ConfigError, ConversionError, InfoMismatchError, ValidationError
-from lidarscan.scan import as_array, make_info, make_scan, return_channel, return_of
+from lidarscan.scan import as_array, make_info, make_scan, return_channel, return_channels
 from lidarscan.stamps import to_ns
 
 __all__ = ["ReprojectionError", "estimation_error", "from_pointcloud2"]
@@ -412,10 +412,8 @@ def estimation_error(cloud: Any, scan: Any, info: Any, *, time_field: str | None
     from lidarscan.scan import channel_names
 
     proj = _mk(info)
-    channels = channel_names(scan)
-    returns = sorted((number, n) for n in channels
-                     for base, number in [return_of(n, channels)] if base == "range")
-    xyz_returns = [proj.project(scan, info, ch).astype(np.float64) for _, ch in returns]
+    xyz_returns = [proj.project(scan, info, ch).astype(np.float64)
+                   for ch in return_channels("range", channel_names(scan))]
     xyz_scan = xyz_returns[0]
     stamp = to_ns(scan.header.stamp)
     times = proj.pixel_times(scan) + np.int64(stamp)

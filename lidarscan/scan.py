@@ -40,6 +40,7 @@ __all__ = [
     "to_native",
     "RANGE_CHANNELS",
     "return_channel",
+    "return_channels",
     "return_of",
 ]
 
@@ -94,6 +95,15 @@ def return_of(name: str, names: Collection[str]) -> tuple[str, int]:
     if base and digits and digits[0] != "0" and int(digits) >= 2 and base in names:
         return base, int(digits)
     return name, 1
+
+
+def return_channels(base: str, names: Collection[str]) -> list[str]:
+    """The channels among ``names`` that hold the returns of channel ``base``, by return
+    number (:func:`return_of`): ``["range", "range2", "range3"]`` for ``"range"`` of a
+    triple-return scan; [] without ``base``."""
+    found = sorted((number, name) for name in names
+                   for first, number in [return_of(name, names)] if first == base)
+    return [name for _, name in found]
 
 
 def _find(scan: Any, name: str) -> Any:

@@ -12,7 +12,7 @@ import pytest
 
 import lidarscan as ls
 from lidarscan.errors import LidarScanError
-from lidarscan.scan import return_channel, return_of
+from lidarscan.scan import return_channel, return_channels, return_of
 
 
 @pytest.mark.parametrize(("name", "names", "expected"), [
@@ -39,6 +39,13 @@ def test_return_channel_is_the_inverse_of_return_of() -> None:
             assert return_of(name, (base, name)) == (base, number)
     with pytest.raises(LidarScanError, match="return number"):
         return_channel("range", 0)
+
+
+def test_return_channels_lists_a_channels_returns_in_order() -> None:
+    names = ("range3", "intensity", "range", "beam7", "range2", "intensity3", "range1")
+    assert return_channels("range", names) == ["range", "range2", "range3"]
+    assert return_channels("intensity", names) == ["intensity", "intensity3"]
+    assert return_channels("beam", names) == [] and return_channels("ambient", names) == []
 
 
 def _scan(names: tuple[str, ...]) -> tuple[object, object]:

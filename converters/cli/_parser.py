@@ -114,9 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-pending", type=_positive_int, default=64, metavar="N",
                    help="scans held while waiting for their LidarInfo (64)")
     p.add_argument("--compress", action="store_true",
-                   help="(no value) write every LidarScan compressed by lidarscan.codec (MCAP message "
-                        "encoding 'lidarscan.codec', lossless; readable by lidarscan, not by "
-                        "ros2 bag play: convert again without --compress to get CDR back)")
+                   help="(no value) write every LidarScan compressed by lidarscan.codec "
+                        "(MCAP message encoding 'lidarscan.codec', lossless; readable by "
+                        "lidarscan, not by ros2 bag play: convert again without --compress to "
+                        "get CDR back)")
     p.add_argument("--chunk-compression", "--compression", dest="compression",
                    choices=("zstd", "lz4", "none"), default="zstd",
                    help="compression of the output MCAP's chunks (zstd; lz4 is faster to "

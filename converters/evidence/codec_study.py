@@ -115,9 +115,8 @@ def nebula_cloud(scan: Any, info: Any) -> bytes:
     projector = ls.make_projector(info)
     times = np.asarray(scan.column_time_offsets, np.int64)
     parts = []
-    returns = sorted((n, name) for name in names
-                     for base, n in [ls.scan.return_of(name, names)] if base == "range")
-    for k, (number, name) in enumerate(returns):
+    for name in ls.scan.return_channels("range", names):
+        number = ls.scan.return_of(name, names)[1]
         inten_name = ls.scan.return_channel("intensity", number)
         metres = ls.range_m(scan, info, name)
         xyz = projector.project(scan, info, name)
