@@ -148,3 +148,22 @@ def test_an_option_naming_a_topic_that_is_not_there_is_refused(
                          "--slice", "s:0:1", *option], capsys)
     assert status == 2 and "/nope" in lines[-1]
     assert not list(tmp_path.glob("*.mcap*"))
+
+
+@pytest.mark.parametrize(("options", "words"), [
+    (["--zstd-level", "99"], "'99': expected a zstd level from -131072 to 22"),
+    (["--chunk-compression", "gzip"], "invalid choice: 'gzip'"),
+    (["--compress=fast"], "'fast'"),
+    (["--threads", "0"], "invalid choice: 0"),
+])
+def test_a_bad_option_value_is_one_error_line_after_a_short_usage(
+        options: list[str], words: str, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """(argparse printed convert's whole 15-line usage before the error.)"""
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["convert", str(VLP32 / "bag"), str(tmp_path / "o.mcap"), *options])
+    lines = capsys.readouterr().err.splitlines()
+    assert exc.value.code == 2
+    assert lines == ["usage: lidarscan convert [-h] [options] IN OUT", lines[1]], lines
+    assert lines[1].startswith("lidarscan convert: error: ") and words in lines[1]
+    assert not list(tmp_path.iterdir())
