@@ -155,6 +155,11 @@ def _camera(camera_info: Any) -> _Camera:
     roi = _field(camera_info, "roi")
     roi_t = (0, 0, 0, 0) if roi is None else tuple(
         int(_field(roi, f, 0)) for f in ("x_offset", "y_offset", "height", "width"))
+    if any(roi_t) and not (roi_t[2] > 0 and roi_t[3] > 0):
+        raise ValidationError("CameraInfo.roi", dict(zip(("x_offset", "y_offset", "height",
+                                                          "width"), roi_t)),
+                              "height and width > 0 when an offset is set (an all-zero ROI "
+                              "means the full image)")
     header = _field(camera_info, "header")
     return _Camera(
         height=int(_field(camera_info, "height", 0)), width=int(_field(camera_info, "width", 0)),
