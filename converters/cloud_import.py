@@ -71,7 +71,7 @@ from converters.cloud_grid import (
 from converters.cloud_layout import read_points
 from lidarscan.datatypes import datatype_of
 from lidarscan.errors import ConfigError, ConversionError, InfoMismatchError, ValidationError
-from lidarscan.scan import as_array, make_info, make_scan
+from lidarscan.scan import as_array, make_info, make_scan, return_channel, return_channels
 from lidarscan.stamps import to_ns
 
 __all__ = ["ReprojectionError", "estimation_error", "from_pointcloud2"]
@@ -244,7 +244,7 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
     rng = np.where(grid.valid, fit.rho, np.inf).astype(np.float32)
     channels: dict[str, Any] = {}
     for k in range(grid.returns):              # grid columns: return 1, then return 2
-        channels["range" + ("2" if k else "")] = rows(rng[:, k * width:(k + 1) * width])
+        channels[return_channel("range", k + 1)] = rows(rng[:, k * width:(k + 1) * width])
     for name, img in grid.channels.items():
         if name == "range":
             continue
@@ -254,7 +254,7 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
             continue
         img = np.ascontiguousarray(img).astype(img.dtype.newbyteorder("="))
         for k in range(grid.returns):
-            channels[name + ("2" if k else "")] = rows(img[:, k * width:(k + 1) * width])
+            channels[return_channel(name, k + 1)] = rows(img[:, k * width:(k + 1) * width])
     scan = make_scan(info, channels, scan_stamp, frame_id=frame,
                      is_destaggered=bool(np.any(shifts)),
                      column_time_offsets=col_offsets,
@@ -346,7 +346,7 @@ def _import_with_info(cloud: Any, pts: np.ndarray[Any, Any], names: Sequence[str
         sel = keep & (rank == k)
         img = np.full(height * width, np.inf, np.float32)
         img[pix[sel]] = rho[sel]
-        channels["range" + ("2" if k else "")] = img.reshape(height, width)
+        channels[return_channel("range", k + 1)] = img.reshape(height, width)
     skip = set(_SKIP) | set(_RANGE_FIELDS) | {time_name}
     for n in names:
         if n in skip or flat[n].ndim != 1:
@@ -360,7 +360,7 @@ def _import_with_info(cloud: Any, pts: np.ndarray[Any, Any], names: Sequence[str
             sel = keep & (rank == k)
             img = np.zeros(height * width, src.dtype.newbyteorder("="))
             img[pix[sel]] = src[sel]
-            channels[n + ("2" if k else "")] = img.reshape(height, width)
+            channels[return_channel(n, k + 1)] = img.reshape(height, width)
     stamp = header_ns
     col_offsets = None
     if time_name is not None:
@@ -413,7 +413,7 @@ def estimation_error(cloud: Any, scan: Any, info: Any, *, time_field: str | None
 
     proj = _mk(info)
     xyz_returns = [proj.project(scan, info, ch).astype(np.float64)
-                   for ch in ("range", "range2") if ch in channel_names(scan)]
+                   for ch in return_channels("range", channel_names(scan))]
     xyz_scan = xyz_returns[0]
     stamp = to_ns(scan.header.stamp)
     times = proj.pixel_times(scan) + np.int64(stamp)

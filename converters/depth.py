@@ -71,6 +71,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -154,6 +155,11 @@ def _camera(camera_info: Any) -> _Camera:
     roi = _field(camera_info, "roi")
     roi_t = (0, 0, 0, 0) if roi is None else tuple(
         int(_field(roi, f, 0)) for f in ("x_offset", "y_offset", "height", "width"))
+    if any(roi_t) and not (roi_t[2] > 0 and roi_t[3] > 0):
+        raise ValidationError("CameraInfo.roi", dict(zip(("x_offset", "y_offset", "height",
+                                                          "width"), roi_t)),
+                              "height and width > 0 when an offset is set (an all-zero ROI "
+                              "means the full image)")
     header = _field(camera_info, "header")
     return _Camera(
         height=int(_field(camera_info, "height", 0)), width=int(_field(camera_info, "width", 0)),
@@ -166,16 +172,19 @@ def _camera(camera_info: Any) -> _Camera:
         frame_id="" if header is None else str(_field(header, "frame_id", "")))
 
 
-def _stamp_ns(msg: Any) -> int:
+def _stamp_ns(msg: Any, what: str = "CameraInfo") -> int:
+    """int ns of ``msg.header.stamp`` (a Time message or a plain ``{sec, nanosec}`` mapping,
+    checked alike by :func:`lidarscan.stamps.to_ns`); 0 without a header."""
     header = _field(msg, "header")
     stamp = None if header is None else _field(header, "stamp")
+    field = f"{what}.header.stamp"
     if isinstance(stamp, Mapping):                    # a plain mapping: {"sec", "nanosec"}
         try:
-            stamp = int(stamp["sec"]) * 1_000_000_000 + int(stamp.get("nanosec", 0))
+            stamp = SimpleNamespace(sec=int(stamp["sec"]), nanosec=int(stamp.get("nanosec", 0)))
         except (KeyError, TypeError, ValueError) as err:
-            raise ValidationError("CameraInfo.header.stamp", dict(stamp),
+            raise ValidationError(field, dict(stamp),
                                   "{sec, nanosec} integers or a Time message") from err
-    return 0 if stamp is None else to_ns(stamp)
+    return 0 if stamp is None else to_ns(stamp, field=field)
 
 
 # ------------------------------------------------------------------------- distortion math
@@ -596,7 +605,7 @@ class DepthImageConverter:
         if stamp_ns is None:
             if isinstance(image, np.ndarray):
                 raise ConfigError("stamp_ns", None, "the image time in ns for a numpy array")
-            stamp_ns = _stamp_ns(image)
+            stamp_ns = _stamp_ns(image, "Image")
         frame = getattr(getattr(image, "header", None), "frame_id", "") or self.frame_id
         if self._frame_option is None and frame != self.frame_id and self.frame_id:
             raise ValidationError("Image.header.frame_id", frame,

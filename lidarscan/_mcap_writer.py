@@ -14,6 +14,7 @@ from lidarscan._mcap_reader import CODEC_ENCODING, INFO_TYPE, SCAN_TYPE
 from lidarscan.cdr import decode, encode, encode_pieces
 from lidarscan.errors import SchemaError
 from lidarscan.msgdef import normalize_type, schema_text
+from lidarscan.scan import return_of
 from lidarscan.stamps import to_ns
 from lidarscan.types import msgtype_of
 
@@ -48,15 +49,17 @@ def _payload(pieces: list[Any]) -> Any:
 def _local(msg: Any, msgtype: str) -> bool:
     """Whether a message's CDR repeats its bytes only nearby (see
     :meth:`lidarscan._mcapfile.ChunkedMcapWriter.add_message`): a LidarInfo, or a LidarScan
-    without an N-th return channel (``range2``, ``intensity2``, ...: its grid repeats the first
-    return's a whole grid back wherever there is no second return). Encoded bytes: unknown
-    (False)."""
+    without an N-th return channel (``range2``, ``intensity2``, ... by
+    :func:`lidarscan.scan.return_of`: its grid repeats the first return's a whole grid back
+    wherever there is no second return). Encoded bytes: unknown (False)."""
     if isinstance(msg, (bytes, bytearray, memoryview)):
         return False
     if msgtype == INFO_TYPE:
         return True
-    return msgtype == SCAN_TYPE and not any(
-        str(c.name)[-1:].isdigit() for c in msg.channels)
+    if msgtype != SCAN_TYPE:
+        return False
+    names = [str(c.name) for c in msg.channels]
+    return all(return_of(n, names)[1] == 1 for n in names)
 
 
 @contextlib.contextmanager

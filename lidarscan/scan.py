@@ -10,7 +10,7 @@ import array
 import dataclasses
 import itertools
 import math
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import Any
 
 import numpy as np
@@ -39,6 +39,9 @@ __all__ = [
     "validate_info",
     "to_native",
     "RANGE_CHANNELS",
+    "return_channel",
+    "return_channels",
+    "return_of",
 ]
 
 #: Channel names that hold a range (decoded by :func:`range_m`).
@@ -63,6 +66,44 @@ def data_view(scan: Any) -> np.ndarray[Any, np.dtype[np.uint8]]:
 def channel_names(scan: Any) -> list[str]:
     """Names of the scan's channels in descriptor order."""
     return [c.name for c in scan.channels]
+
+
+def return_channel(name: str, number: int) -> str:
+    """The name of the ``number``-th return of channel ``name`` (msgs/README.md: the N-th
+    return appends N): ``name`` itself for the first return, ``range2`` for (``range``, 2).
+
+    Raises:
+        ValidationError: ``number`` below 1.
+    """
+    if int(number) < 1:
+        raise ValidationError("return number", number, "an integer >= 1 (1: the first return)")
+    return name if int(number) == 1 else f"{name}{int(number)}"
+
+
+def return_of(name: str, names: Collection[str]) -> tuple[str, int]:
+    """(first-return channel, N) of channel ``name`` among the scan's channel ``names``: the
+    inverse of :func:`return_channel` (msgs/README.md's rule).
+
+    ``name`` is the N-th return (N >= 2) of ``base`` when it is ``base`` followed by the
+    decimal N (no leading zero) and ``base`` is also one of ``names``: ``range2`` ->
+    (``range``, 2), ``intensity3`` -> (``intensity``, 3). Any other name is a first return of
+    itself, ``(name, 1)``: ``range``, ``near_ir``, ``range1``, ``beam7`` without ``beam``. (A
+    return stored in the same channel, ``count`` = 2, is no separate channel.)
+    """
+    base = name.rstrip("0123456789")
+    digits = name[len(base):]
+    if base and digits and digits[0] != "0" and int(digits) >= 2 and base in names:
+        return base, int(digits)
+    return name, 1
+
+
+def return_channels(base: str, names: Collection[str]) -> list[str]:
+    """The channels among ``names`` that hold the returns of channel ``base``, by return
+    number (:func:`return_of`): ``["range", "range2", "range3"]`` for ``"range"`` of a
+    triple-return scan; [] without ``base``."""
+    found = sorted((number, name) for name in names
+                   for first, number in [return_of(name, names)] if first == base)
+    return [name for _, name in found]
 
 
 def _find(scan: Any, name: str) -> Any:

@@ -11,6 +11,7 @@ is a second, independent oracle where installed.
 from __future__ import annotations
 
 import array
+import dataclasses
 import json
 import math
 from typing import Any
@@ -441,6 +442,16 @@ def test_plain_python_inputs_without_ros_types() -> None:
     mapping["header"]["stamp"] = {"seconds": 10}
     with pytest.raises(LidarScanError, match="CameraInfo.header.stamp"):
         from_depth_image(values, mapping, encoding="16UC1", stamp_ns=0, rectified=False)
+    # a mapping stamp gets the Time message's nanosec range check (it used to skip it:
+    # {sec: 10, nanosec: 2e9} silently became 12 s)
+    for nanosec in (2 * 10**9, -1):
+        mapping["header"]["stamp"] = {"sec": 10, "nanosec": nanosec}
+        with pytest.raises(LidarScanError, match=r"CameraInfo.header.stamp.nanosec"):
+            from_depth_image(values, mapping, encoding="16UC1", stamp_ns=0, rectified=False)
+    image = dataclasses.replace(image_msg(values, "16UC1"),      # an image's stamp names it
+                                header=types.Header(types.Time(20, 2 * 10**9), "cam_optical"))
+    with pytest.raises(LidarScanError, match=r"Image.header.stamp.nanosec"):
+        DepthImageConverter(ci, rectified=False).convert(image)
 
 
 def test_lazy_registration() -> None:
@@ -610,3 +621,17 @@ def test_tilted_camera_slice_sees_the_box_not_the_floor(encoding: str) -> None:
     bearings = amin + inc * np.flatnonzero(finite)
     assert bearings.min() > math.atan2(-0.2, 1.0) - 0.02
     assert bearings.max() < math.atan2(0.3, 1.0) + 0.02
+
+
+def test_an_roi_with_offsets_but_no_size_is_named() -> None:
+    """An ROI with an offset but zero height or width describes no image: the error names the
+    ROI (it used to be an image shape mismatch against (0, 0))."""
+    values, _ = random_depth(np.random.default_rng(8), (48, 64), "16UC1")
+    for roi in ((8, 6, 0, 0), (8, 6, 32, 0), (0, 0, 32, 0)):
+        with pytest.raises(LidarScanError, match=r"CameraInfo.roi.*height and width > 0"):
+            from_depth_image(image_msg(values, "16UC1"), camera_info(d=PLUMB_BOB, roi=roi),
+                             rectified=False)
+    # all zero: the full image
+    scan, _ = from_depth_image(image_msg(values, "16UC1"), camera_info(d=PLUMB_BOB, roi=(0,) * 4),
+                               rectified=False, as_dataclass=True)
+    assert (scan.height, scan.width) == (48, 64)

@@ -42,11 +42,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "exit status 1 if it has problems (bad messages, damaged "
                                    "parts, unlinked scans, conflicting infos, a topic whose "
                                    "frame, shape or type changes).")
-    p.add_argument("file", help="an MCAP file, a rosbag2 directory or a .db3 file")
+    p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 file")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser(
         "convert", help="offline conversion of a recording",
+        usage="lidarscan convert [-h] [options] IN OUT",  # a usage error: two lines, not 15
         description="IN is an MCAP file, a rosbag2 directory or .db3 file, or an Ouster "
                     ".pcap/.osf. LidarScan recording: copy every message and add PointCloud2 "
                     "(<ns>/points), slices (<ns>/slices/NAME) and a merged scan. Driver "
@@ -61,11 +62,13 @@ def build_parser() -> argparse.ArgumentParser:
                     "stderr; every good message is written. OUT is written under a temporary "
                     "name and renamed at the end. Exit status 0 all good, 1 some bad, 2 fatal "
                     "(nothing written), 130 Ctrl-C (OUT stays readable).")
-    p.add_argument("input", help="input recording (.mcap, rosbag2 directory or .db3, "
-                                 ".pcap/.osf with --metadata)")
-    p.add_argument("output", help="output MCAP file")
+    p.add_argument("input", metavar="IN", help="input recording (.mcap, rosbag2 directory or "
+                                               ".db3, .pcap/.osf with --metadata)")
+    p.add_argument("output", metavar="OUT", help="output MCAP file (a new name, not IN)")
     p.add_argument("--pointcloud2", action="store_true", help="add PointCloud2 per scan")
-    p.add_argument("--preset", default="", type=_preset, help="PointCloud2 field preset")
+    p.add_argument("--preset", default="", type=_preset,
+                   help="PointCloud2 field preset: a driver's layout, e.g. ouster, velodyne, "
+                        "hesai (a wrong name lists them all)")
     p.add_argument("--fields", default=(), type=_fields,
                    help="PointCloud2 fields, e.g. x,y,z,intensity")
     p.add_argument("--slice", action="append", default=[], metavar="NAME:ZMIN:ZMAX[:KEY=V]",
@@ -81,13 +84,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--merge", action="store_true", help="merge the slices into one scan")
     p.add_argument("--merge-topic", action="append", default=[], metavar="TOPIC",
                    help="also merge this LaserScan topic of the input (repeatable)")
-    p.add_argument("--merge-out", default="/scan_merged", help="topic of the merged scan")
-    p.add_argument("--merge-increment", type=float, default=0.25,
+    p.add_argument("--merge-out", default="/scan_merged", metavar="TOPIC",
+                   help="topic of the merged scan (/scan_merged)")
+    p.add_argument("--merge-increment", type=float, default=0.25, metavar="DEG",
                    help="merged scan angle increment, degrees (0.25)")
-    p.add_argument("--merge-range-max", type=float, default=100.0,
+    p.add_argument("--merge-range-max", type=float, default=100.0, metavar="M",
                    help="merged scan range_max, metres (100)")
-    p.add_argument("--cloud-topic", action="append", default=[],
-                   help="PointCloud2 input topic(s) to convert (default: all)")
+    p.add_argument("--cloud-topic", action="append", default=[], metavar="TOPIC",
+                   help="PointCloud2 input topic to convert (repeatable; default: all)")
     p.add_argument("--keep-clouds", action="store_true",
                    help="also copy the input PointCloud2 messages")
     p.add_argument("--exclude", action="append", default=[], metavar="TOPIC",
@@ -106,13 +110,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also copy the input packet messages")
     p.add_argument("--progress", action="store_true",
                    help="report progress also when stderr is not a terminal")
-    p.add_argument("--metadata", default=None, help="Ouster metadata JSON for a .pcap")
-    p.add_argument("--max-pending", type=_positive_int, default=64,
+    p.add_argument("--metadata", default=None, metavar="FILE",
+                   help="Ouster metadata JSON for a .pcap")
+    p.add_argument("--max-pending", type=_positive_int, default=64, metavar="N",
                    help="scans held while waiting for their LidarInfo (64)")
     p.add_argument("--compress", action="store_true",
-                   help="write every LidarScan compressed by lidarscan.codec (MCAP message "
-                        "encoding 'lidarscan.codec', lossless; readable by lidarscan, not by "
-                        "ros2 bag play: convert again without --compress to get CDR back)")
+                   help="(no value) write every LidarScan compressed by lidarscan.codec "
+                        "(MCAP message encoding 'lidarscan.codec', lossless; readable by "
+                        "lidarscan, not by ros2 bag play: convert again without --compress to "
+                        "get CDR back)")
     p.add_argument("--chunk-compression", "--compression", dest="compression",
                    choices=("zstd", "lz4", "none"), default="zstd",
                    help="compression of the output MCAP's chunks (zstd; lz4 is faster to "
@@ -134,11 +140,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("view", help="PNG views of a recording (MCAP or rosbag2)",
                        description="Range images of a LidarScan, a top view of the LaserScans "
                                    "(in --frame via the file's TF) and of each PointCloud2.")
-    p.add_argument("file", help="an MCAP file, a rosbag2 directory or a .db3 file")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--index", type=_non_negative_int, default=0,
+    p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 file "
+                                               "(raw packets: convert them first)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--index", type=_non_negative_int, default=0, metavar="K",
                    help="which scan of each topic (0 = first)")
-    p.add_argument("--frame", default="", help="frame of the LaserScan top view")
+    p.add_argument("--frame", default="",
+                   help="frame of the LaserScan top view (default: base_link if known, else "
+                        "the first LaserScan's)")
     p.set_defaults(func=cmd_view)
     return parser
 

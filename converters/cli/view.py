@@ -13,6 +13,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     import numpy as np
 
     from converters import viz
+    from converters.bags import PACKET_TYPES
     from converters.nodes.tf import TransformBuffer, TransformLookupError
     from lidarscan.errors import LidarScanError
     from lidarscan.mcap import BadMessage, read_scans
@@ -45,12 +46,15 @@ def cmd_view(args: argparse.Namespace) -> int:
     lasers: dict[str, Any] = {}
     clouds: dict[str, Any] = {}
     counts: dict[str, int] = {}
+    packets: set[str] = set()  # raw packet topics (nothing to draw before `convert`)
     for item in source.items():
         if isinstance(item, BadMessage):
             note_damage(item)
             continue
         try:
-            if item.msgtype == "tf2_msgs/msg/TFMessage":
+            if item.msgtype in PACKET_TYPES:
+                packets.add(item.topic)
+            elif item.msgtype == "tf2_msgs/msg/TFMessage":
                 tf.add_message(item.decode(), static=item.topic.endswith("_static"))
             elif item.msgtype in ("sensor_msgs/msg/LaserScan", "sensor_msgs/msg/PointCloud2"):
                 k = counts.get(item.topic, 0)
@@ -98,7 +102,9 @@ def cmd_view(args: argparse.Namespace) -> int:
     if not written:
         _err(f"{path} ({source.kind.description}): nothing to draw (no LidarScan with its "
              f"LidarInfo, LaserScan or PointCloud2 at index {args.index}"
-             + (", and the input is damaged" if damage else "") + ")")
+             + (", and the input is damaged" if damage else "") + ")"
+             + (f"; raw packets on {', '.join(sorted(packets))}: `lidarscan convert` them to "
+                "LidarScans first, then view the output" if packets else ""))
         return EXIT_BAD
     for p in written:
         print(p)

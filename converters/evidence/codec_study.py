@@ -115,8 +115,9 @@ def nebula_cloud(scan: Any, info: Any) -> bytes:
     projector = ls.make_projector(info)
     times = np.asarray(scan.column_time_offsets, np.int64)
     parts = []
-    for k, name in enumerate(n for n in ("range", "range2") if n in names):
-        inten_name = "intensity" if k == 0 else "intensity2"
+    for name in ls.scan.return_channels("range", names):
+        number = ls.scan.return_of(name, names)[1]
+        inten_name = ls.scan.return_channel("intensity", number)
         metres = ls.range_m(scan, info, name)
         xyz = projector.project(scan, info, name)
         keep = np.isfinite(metres) & np.isfinite(xyz).all(-1)
@@ -129,7 +130,7 @@ def nebula_cloud(scan: Any, info: Any) -> bytes:
         pt["x"], pt["y"], pt["z"] = p[:, 0], p[:, 1], p[:, 2]
         if inten_name in names:
             pt["intensity"] = np.clip(ls.channel(scan, inten_name)[rows, cols], 0, 255)
-        pt["return_type"] = k + 1
+        pt["return_type"] = number
         pt["channel"] = rows
         dist = np.linalg.norm(p, axis=1)
         pt["azimuth"] = np.mod(np.arctan2(p[:, 1], p[:, 0]), 2 * np.pi)
@@ -146,11 +147,12 @@ def nebula_cloud(scan: Any, info: Any) -> bytes:
 
 def second_return_pairs(scan: Any) -> list[tuple[str, str]]:
     """(first, second) channel name pairs of a dual-return scan (``range``/``range2``,
-    ``signal``/``signal2``, ...: a name ending in 2 whose name without the 2 exists); [] for
-    a single-return scan."""
+    ``signal``/``signal2``, ...: :func:`lidarscan.scan.return_of`); [] for a single-return
+    scan."""
     import lidarscan as ls
     names = ls.scan.channel_names(scan)
-    return [(n[:-1], n) for n in names if n.endswith("2") and n[:-1] in names]
+    return [(base, n) for n in names for base, number in [ls.scan.return_of(n, names)]
+            if number == 2]
 
 
 def second_return_view(scan: Any) -> Any:
@@ -165,13 +167,13 @@ def second_return_view(scan: Any) -> Any:
 
 def first_return_scan(scan: Any, info: Any) -> Any:
     """A new scan with the first-return channels of ``scan`` only (every channel but the
-    second-return ones of :func:`second_return_pairs`; header, stamps and per-column arrays
-    kept): what the first-return cloud carries."""
+    N-th return ones, N >= 2, of :func:`lidarscan.scan.return_of`; header, stamps and
+    per-column arrays kept): what the first-return cloud carries."""
     import dataclasses
 
     import lidarscan as ls
-    second = {b for _, b in second_return_pairs(scan)}
-    keep = {n: ls.channel(scan, n) for n in ls.scan.channel_names(scan) if n not in second}
+    names = ls.scan.channel_names(scan)
+    keep = {n: ls.channel(scan, n) for n in names if ls.scan.return_of(n, names)[1] == 1}
     azimuths = np.asarray(scan.column_azimuth_angles)
     made = ls.make_scan(info, keep, 0, is_destaggered=bool(scan.is_destaggered),
                         column_time_offsets=np.asarray(scan.column_time_offsets),

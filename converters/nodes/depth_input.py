@@ -152,13 +152,14 @@ class DepthInput:
             return
         from lidarscan.stamps import to_ns
 
-        def failed(err: Exception) -> None:
+        def failed(line: str) -> None:
             st.conversion_errors += 1
-            st.count(f"depth: {err}" if isinstance(err, LidarScanError)
-                     else f"internal: {type(err).__name__}")
+            st.count(line)
 
         slices: dict[str, Any] = {}
-        with Guard(self._log, "depth image not converted", bad=failed, key="depth",
+        with Guard(self._log, "depth image not converted", key="depth",
+                   bad=lambda err: failed(f"depth: {err}"),
+                   internal=lambda err: failed(f"internal: {type(err).__name__}"),
                    internal_key="depth internal") as guard:
             self._depth_camera(camera_info)
             scan, info = self.depth_converter.convert(image)
