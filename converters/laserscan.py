@@ -229,7 +229,7 @@ class SliceConverter:
         self._tables: dict[Any, _Tables] = {}
         self._moving_cache: tuple[Any, _Tables] | None = None
         self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] | None
-        self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] | None
+        self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], ...]] | None
         #: moving mount: build the full per-scan tables even with the compiled kernels (the
         #: path before :class:`_MovingRays`; tests compare both)
         self._reference_tables = False
@@ -469,7 +469,7 @@ class SliceConverter:
         if np.all(poses == poses[0]):       # one pose held over the scan
             return self._still_tables(scan, geometry,
                                       track.lookup_many(stamp + relative[:1])[0])
-        d32, o32 = self._sensor_rays(scan, geometry)
+        d32, o32 = self._sensor_rays(scan, geometry, columns=True)
         rays = self._kernel.track_rays(d32, o32, relative, int(stamp), times, poses,
                                        segment_rotvecs(poses[:-1], poses[1:]))
         return _MovingRays(rays, self._tie_keys(geometry[1]), r, self)
@@ -481,17 +481,19 @@ class SliceConverter:
             self._inf_thr = np.full((len(self._grids), n), np.inf, np.float32)
         return self._inf_thr
 
-    def _sensor_rays(self, scan: Any, geometry: tuple[Any, ...]
+    def _sensor_rays(self, scan: Any, geometry: tuple[Any, ...], columns: bool = False
                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan (kept
-        for the next scan of the same geometry)."""
-        if self._rays_cache is not None and self._rays_cache[0] == geometry:
-            return self._rays_cache[1]
-        d32, o32 = self.projector.tables_for(scan, self.range_channel)
-        rays = (np.ascontiguousarray(d32.reshape(-1, 3), np.float32),
-                np.ascontiguousarray(o32.reshape(-1, 3), np.float32))
-        self._rays_cache = (geometry, rays)
-        return rays
+        """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan, or with
+        ``columns`` the same as (3, n) (one row per component; kept for the next scan of the
+        same geometry)."""
+        if self._rays_cache is None or self._rays_cache[0] != geometry:
+            d32, o32 = self.projector.tables_for(scan, self.range_channel)
+            d32 = np.ascontiguousarray(d32.reshape(-1, 3), np.float32)
+            o32 = np.ascontiguousarray(o32.reshape(-1, 3), np.float32)
+            self._rays_cache = (geometry, (d32, o32, np.ascontiguousarray(d32.T),
+                                           np.ascontiguousarray(o32.T)))
+        rays = self._rays_cache[1]
+        return (rays[2], rays[3]) if columns else (rays[0], rays[1])
 
     # ----------------------------------------------------------------------------- convert
     def convert(self, scan: Any, info: Any = None) -> dict[str, Any]:

@@ -296,7 +296,8 @@ class Compiled:
         """The rays moved by a pose track's pose at each ray's own time (:func:`_track_rays`).
 
         Args:
-            d, o: (n, 3) float32 C-contiguous sensor-frame directions and origins.
+            d, o: (3, n) float32 C-contiguous sensor-frame directions and origins (one row
+                per component).
             relative: (n,) int64 ns each ray's time after ``stamp`` (int ns).
             times, poses: (K,) int64 ascending and (K, 4, 4) float64 the track's samples around
                 every ray time (:meth:`converters.transforms.TransformTrack.samples`).
@@ -307,9 +308,8 @@ class Compiled:
             (dx, dy, dz, ox, oy, oz): (n,) float32 each, in the target frame.
         """
         rows = np.ascontiguousarray(np.asarray(poses, np.float64)[:, :3, :].reshape(-1, 12))
-        n = d.shape[0]
-        out = np.empty((6, n), np.float32)
-        self._track(frozen_f32(d.T), frozen_f32(o.T), np.ascontiguousarray(relative, np.int64),
+        out = np.empty((6, d.shape[1]), np.float32)
+        self._track(frozen_f32(d), frozen_f32(o), np.ascontiguousarray(relative, np.int64),
                     np.int64(stamp), np.ascontiguousarray(times, np.int64), rows,
                     np.ascontiguousarray(np.asarray(deltas, np.float64).reshape(-1, 3)), out)
         return tuple(out)
@@ -431,9 +431,10 @@ def _track_rays(d: Any, o: Any, relative: Any, stamp: Any, times: Any, rows: Any
     """
     n = relative.shape[0]
     n_samples = times.shape[0]
-    us = np.empty(n)                  # u, sin(theta)/theta, (1-cos(theta))/theta^2 per ray
-    sa = np.empty(n)
-    sb = np.empty(n)
+    chunk = 1024                      # the longest run (scratch that stays in cache)
+    us = np.empty(chunk)              # u, sin(theta)/theta, (1-cos(theta))/theta^2 per ray
+    sa = np.empty(chunk)
+    sb = np.empty(chunk)
     k = 0
     i = 0
     while i < n:
@@ -446,7 +447,7 @@ def _track_rays(d: Any, o: Any, relative: Any, stamp: Any, times: Any, rows: Any
         # the run: rays from i on inside [lo, hi) (held after the newest sample: [lo, inf))
         hi = times[k + 1] if k + 1 < n_samples else np.iinfo(np.int64).max
         j = i + 1
-        while j < n and lo <= stamp + relative[j] < hi:
+        while j < n and j - i < chunk and lo <= stamp + relative[j] < hi:
             j += 1
         m00, m01, m02, m03 = rows[k, 0], rows[k, 1], rows[k, 2], rows[k, 3]
         m10, m11, m12, m13 = rows[k, 4], rows[k, 5], rows[k, 6], rows[k, 7]
@@ -458,34 +459,41 @@ def _track_rays(d: Any, o: Any, relative: Any, stamp: Any, times: Any, rows: Any
         else:                                   # held: u times zeros, the sample itself
             span = 1.0
             w0 = w1 = w2 = v0 = v1 = v2 = 0.0
+        # views of the run indexed from 0: no negative-index handling in the loops (which
+        # keeps the compiler from vectorising them)
+        rel, uv, av, bv = relative[i:j], us[:j - i], sa[:j - i], sb[:j - i]
+        dx, dy, dz, ex, ey, ez = d[0, i:j], d[1, i:j], d[2, i:j], o[0, i:j], o[1, i:j], o[2, i:j]
+        q0, q1, q2, q3, q4, q5 = (out[0, i:j], out[1, i:j], out[2, i:j], out[3, i:j],
+                                  out[4, i:j], out[5, i:j])
+        base = stamp - lo
         if w0 * w0 + w1 * w1 + w2 * w2 <= 0.25:      # u < 1: every u*w as small
-            for h in range(i, j):
-                u = np.float64(stamp + relative[h] - lo) / span
+            for h in range(j - i):
+                u = np.float64(base + rel[h]) / span
                 p0 = u * w0
                 p1 = u * w1
                 p2 = u * w2
                 th2 = p0 * p0 + p1 * p1 + p2 * p2
                 # the series up to theta^14 (truncation < 1e-19 for theta <= 0.5)
-                us[h] = u
-                sa[h] = 1.0 + th2 * (_SIN_C[1] + th2 * (_SIN_C[2] + th2 * (_SIN_C[3] + th2 * (
+                uv[h] = u
+                av[h] = 1.0 + th2 * (_SIN_C[1] + th2 * (_SIN_C[2] + th2 * (_SIN_C[3] + th2 * (
                     _SIN_C[4] + th2 * (_SIN_C[5] + th2 * (_SIN_C[6] + th2 * _SIN_C[7]))))))
-                sb[h] = 0.5 + th2 * (_COS_C[1] + th2 * (_COS_C[2] + th2 * (_COS_C[3] + th2 * (
+                bv[h] = 0.5 + th2 * (_COS_C[1] + th2 * (_COS_C[2] + th2 * (_COS_C[3] + th2 * (
                     _COS_C[4] + th2 * (_COS_C[5] + th2 * (_COS_C[6] + th2 * _COS_C[7]))))))
         else:
-            for h in range(i, j):
-                u = np.float64(stamp + relative[h] - lo) / span
+            for h in range(j - i):
+                u = np.float64(base + rel[h]) / span
                 p0 = u * w0
                 p1 = u * w1
                 p2 = u * w2
                 th2 = p0 * p0 + p1 * p1 + p2 * p2
                 theta = math.sqrt(th2)
-                us[h] = u
-                sa[h] = math.sin(theta) / theta if theta >= 1e-6 else 1.0 - th2 / 6
-                sb[h] = (1.0 - math.cos(theta)) / th2 if theta >= 1e-6 else 0.5 - th2 / 24
-        for h in range(i, j):
-            u = us[h]
-            a = sa[h]
-            b = sb[h]
+                uv[h] = u
+                av[h] = math.sin(theta) / theta if theta >= 1e-6 else 1.0 - th2 / 6
+                bv[h] = (1.0 - math.cos(theta)) / th2 if theta >= 1e-6 else 0.5 - th2 / 24
+        for h in range(j - i):
+            u = uv[h]
+            a = av[h]
+            b = bv[h]
             # rot = I + a K + b K @ K, K = hat(u w) = [[0, -p2, p1], [p2, 0, -p0], [-p1, p0, 0]]
             k01, k02, k10, k12, k20, k21 = -u * w2, u * w1, u * w2, -u * w0, -u * w1, u * w0
             r00 = 1.0 + b * (k01 * k10 + k02 * k20)
@@ -507,18 +515,18 @@ def _track_rays(d: Any, o: Any, relative: Any, stamp: Any, times: Any, rows: Any
             c20 = m20 * r00 + m21 * r10 + m22 * r20
             c21 = m20 * r01 + m21 * r11 + m22 * r21
             c22 = m20 * r02 + m21 * r12 + m22 * r22
-            x = np.float64(d[0, h])
-            y = np.float64(d[1, h])
-            z = np.float64(d[2, h])
-            e = np.float64(o[0, h])
-            f = np.float64(o[1, h])
-            g = np.float64(o[2, h])
-            out[0, h] = np.float32(c00 * x + c01 * y + c02 * z)
-            out[1, h] = np.float32(c10 * x + c11 * y + c12 * z)
-            out[2, h] = np.float32(c20 * x + c21 * y + c22 * z)
-            out[3, h] = np.float32(c00 * e + c01 * f + c02 * g + (m03 + u * v0))
-            out[4, h] = np.float32(c10 * e + c11 * f + c12 * g + (m13 + u * v1))
-            out[5, h] = np.float32(c20 * e + c21 * f + c22 * g + (m23 + u * v2))
+            x = np.float64(dx[h])
+            y = np.float64(dy[h])
+            z = np.float64(dz[h])
+            e = np.float64(ex[h])
+            f = np.float64(ey[h])
+            g = np.float64(ez[h])
+            q0[h] = np.float32(c00 * x + c01 * y + c02 * z)
+            q1[h] = np.float32(c10 * x + c11 * y + c12 * z)
+            q2[h] = np.float32(c20 * x + c21 * y + c22 * z)
+            q3[h] = np.float32(c00 * e + c01 * f + c02 * g + (m03 + u * v0))
+            q4[h] = np.float32(c10 * e + c11 * f + c12 * g + (m13 + u * v1))
+            q5[h] = np.float32(c20 * e + c21 * f + c22 * g + (m23 + u * v2))
         i = j
 
 
