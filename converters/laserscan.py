@@ -51,11 +51,16 @@ the sensor-frame rays per geometry, the distinct pixel times and each pixel's on
 timing (a scan with a ``t`` channel computes its own). A track computes the poses of the distinct
 times in one batch; a callable is called once per distinct pixel time and its result checked (a
 finite rigid 4x4, else :class:`lidarscan.errors.ValidationError`). With the compiled kernels
-the rays are moved by a compiled loop (the bits of :func:`converters.frames.transform_rays`) and
-fused by the general kernel with atan2 for every in-band point; far-field bins and
-+Inf/NaN/-Inf qualifiers are computed for the pixels without a finite range only
-(:class:`_MovingRays`); the numpy backend builds the full per-scan tables (the reference; the
-same slices bit for bit, tests/test_moving_slices.py). A mount that holds still over a whole
+the rays are moved by a compiled loop (the bits of :func:`converters.frames.transform_rays`;
+with a track and pixel times that vary within a column -- per-beam offsets, a ``t`` channel
+not constant along columns -- each ray's pose is interpolated in that loop instead of one pose
+per distinct time being looked up and stored: the track's poses up to the last float64 bits,
+so a ray component may differ from the per-time path's by one float32 ulp,
+:meth:`converters._kernels.slices_numba.Compiled.track_rays`) and fused by the general
+kernel with atan2 for every in-band point; far-field bins and +Inf/NaN/-Inf qualifiers are
+computed for the pixels without a finite range only (:class:`_MovingRays`); the numpy backend
+builds the full per-scan tables (the reference; the same slices bit for bit,
+tests/test_moving_slices.py). A mount that holds still over a whole
 scan gets the fixed-mount tables at that pose (every kernel), kept for the next scan. A pose
 that cannot be found -- a time outside the track's span
 (:class:`converters.transforms.OutOfSpanError`, the track never extrapolates) or any

@@ -29,18 +29,18 @@ from converters.transforms import (
 )
 from grid_reference import pose
 from test_laserscan import arrays, assert_same, make_sensor
-from test_moving_slices import BAND, MS, STAMP, mount_track, moving_room_scan, sweep_track
+from test_moving_slices import (
+    BAND,
+    MOVING_SPECS,
+    MS,
+    STAMP,
+    mount_track,
+    moving_room_scan,
+    sweep_track,
+)
 
 NUMBA = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
                            reason="numba not installed")
-
-SPECS = {
-    "one": {"s": SliceSpec(*BAND)},
-    "grids": {"a": SliceSpec(*BAND), "b": SliceSpec(0.2, 0.8, angle_increment=0.02),
-              "sector": SliceSpec(0.0, 2.0, angle_min=-1.0, angle_max=1.5, range_max=3.0)},
-    "holes": {"s": SliceSpec(*BAND), "h": SliceSpec(0.2, 0.8, holes=True, floor_height=0.0)},
-}
-
 
 def random_track(rng: np.random.Generator, stamps: np.ndarray, tolerance: int = 0
                  ) -> TransformTrack:
@@ -89,36 +89,39 @@ def test_track_rays_equal_the_per_time_poses_within_one_float32_ulp() -> None:
 
 
 @NUMBA
-@pytest.mark.parametrize("specs", list(SPECS))
-@pytest.mark.parametrize("variant", ["beam_times", "t_channel", "destaggered"])
-def test_per_pixel_poses_give_the_slices_of_the_per_time_path(specs: str, variant: str) -> None:
-    """Slices from poses interpolated per ray equal the per-time path's (compiled) and the
-    numpy reference's, over several scans of one converter (kept pixel times reused)."""
+@pytest.mark.parametrize("specs", list(MOVING_SPECS))
+def test_per_pixel_poses_give_the_slices_of_the_per_time_path(specs: str) -> None:
+    """A destaggered scan with per-beam time offsets: slices from poses interpolated per ray
+    equal the per-time path's (compiled) and the numpy reference's, over scans of one
+    converter (its kept pixel times reused). Beam offsets and a ``t`` channel without
+    destaggering: tests/test_moving_slices.py::test_per_scan_rays_equal_the_full_tables,
+    whose compiled converter takes this path too (asserted here)."""
     from converters._slice_tables import _MovingRays
 
-    fields: dict[str, Any] = {}
-    if variant != "t_channel":
-        fields["beam_time_offsets"] = (np.arange(16) * 23_000).astype(np.int64)
-    info = make_sensor(16, 256, shifts=variant == "destaggered", **fields)
-    track = sweep_track(info, margin=60 * MS, yaw_rate=5.0, nod=0.3, speed=0.5, step=3 * MS)
-    spec = SPECS[specs]
-    fast = SliceConverter(info, spec, extrinsics=track, frame_id="base_link", backend="numba")
-    per_time = SliceConverter(info, spec, extrinsics=track, frame_id="base_link",
-                              backend="numba")
-    per_time._per_pixel = False
-    ref = SliceConverter(info, spec, extrinsics=track, frame_id="base_link", backend="numpy")
+    info = make_sensor(16, 256, shifts=True,
+                       beam_time_offsets=(np.arange(16) * 31_000).astype(np.int64))
+    track = sweep_track(info, margin=60 * MS, yaw_rate=-4.0, nod=0.3, speed=0.8, step=3 * MS)
+    spec = MOVING_SPECS[specs]
+    converters = [SliceConverter(info, spec, extrinsics=track, frame_id="base_link",
+                                 backend=backend) for backend in ("numba", "numba", "numpy")]
+    converters[1]._per_pixel = False
     rng = np.random.default_rng(17)
-    for k in range(3):
-        delays = rng.integers(0, 700_000, (16, 256)) if variant == "t_channel" else None
-        scan = moving_room_scan(info, track, destagger=variant == "destaggered", delays=delays,
-                                rng=rng, stamp=STAMP + k * 10 * MS)
-        r = np.ascontiguousarray(lidarscan.range_m(scan, info)).reshape(-1)
-        assert isinstance(fast._moving_tables(scan, r), _MovingRays)
-        assert fast._pose_times(scan, distinct=False)[1] is None       # a time per pixel
-        got, want, oracle = fast.convert(scan), per_time.convert(scan), ref.convert(scan)
-        for name in spec:
-            assert_same(got[name], arrays(want[name]))
-            assert_same(got[name], arrays(oracle[name]))
+    for stamp in (STAMP, STAMP + 30 * MS):
+        scan = moving_room_scan(info, track, destagger=True, rng=rng, stamp=stamp)
+        flat = np.ascontiguousarray(lidarscan.range_m(scan, info)).reshape(-1)
+        assert converters[0]._pose_times(scan, distinct=False)[1] is None  # a time per pixel
+        assert isinstance(converters[0]._moving_tables(scan, flat), _MovingRays)
+        got, *others = (c.convert(scan) for c in converters)
+        for other in others:
+            for name in spec:
+                assert_same(got[name], arrays(other[name]))
+    # the full-tables test's scenes take the per-pixel path
+    for fields, delays in (({"beam_time_offsets": np.arange(16) * 23_000}, None),
+                           ({}, rng.integers(0, 700_000, (16, 256)))):
+        info = make_sensor(16, 256, **fields)
+        scan = moving_room_scan(info, track, delays=delays)
+        conv = SliceConverter(info, spec, extrinsics=track, frame_id="base_link")
+        assert conv._pose_times(scan, distinct=False)[1] is None
 
 
 @pytest.mark.parametrize("destagger", [False, True])

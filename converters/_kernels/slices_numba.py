@@ -18,9 +18,10 @@ Kernels (drivers in :class:`Compiled`):
   in :mod:`converters._kernels.slices_numba_ordered`, imported here);
 * moving mounts: :func:`_transform_rays` (each ray moved by its pixel's pose, the arithmetic of
   :func:`converters.frames.transform_rays`) or, with a pose per pixel, :func:`_track_rays`
-  (each ray's pose interpolated from a track's samples where it is used), :func:`_special_tables` (far-field bins and
-  qualifiers of the pixels without a finite range: :func:`converters._grid.far_field`'s bin and
-  :func:`converters._grid.qualify`), then the general kernel.
+  (each ray's pose interpolated from a track's samples where it is used),
+  :func:`_special_tables` (far-field bins and qualifiers of the pixels without a finite range:
+  :func:`converters._grid.far_field`'s bin and :func:`converters._grid.qualify`), then the
+  general kernel.
 
 The kernels call each other through module globals (``_J_*``, of this module and of
 :mod:`~converters._kernels.slices_numba_ordered`), compiled by :func:`kernels` before the
@@ -466,28 +467,22 @@ def _track_rays(d: Any, o: Any, relative: Any, stamp: Any, times: Any, rows: Any
         q0, q1, q2, q3, q4, q5 = (out[0, i:j], out[1, i:j], out[2, i:j], out[3, i:j],
                                   out[4, i:j], out[5, i:j])
         base = stamp - lo
+        for h in range(j - i):
+            u = np.float64(base + rel[h]) / span
+            uv[h] = u
+            av[h] = (u * w0) * (u * w0) + (u * w1) * (u * w1) + (u * w2) * (u * w2)   # theta^2
         if w0 * w0 + w1 * w1 + w2 * w2 <= 0.25:      # u < 1: every u*w as small
             for h in range(j - i):
-                u = np.float64(base + rel[h]) / span
-                p0 = u * w0
-                p1 = u * w1
-                p2 = u * w2
-                th2 = p0 * p0 + p1 * p1 + p2 * p2
+                th2 = av[h]
                 # the series up to theta^14 (truncation < 1e-19 for theta <= 0.5)
-                uv[h] = u
                 av[h] = 1.0 + th2 * (_SIN_C[1] + th2 * (_SIN_C[2] + th2 * (_SIN_C[3] + th2 * (
                     _SIN_C[4] + th2 * (_SIN_C[5] + th2 * (_SIN_C[6] + th2 * _SIN_C[7]))))))
                 bv[h] = 0.5 + th2 * (_COS_C[1] + th2 * (_COS_C[2] + th2 * (_COS_C[3] + th2 * (
                     _COS_C[4] + th2 * (_COS_C[5] + th2 * (_COS_C[6] + th2 * _COS_C[7]))))))
         else:
             for h in range(j - i):
-                u = np.float64(base + rel[h]) / span
-                p0 = u * w0
-                p1 = u * w1
-                p2 = u * w2
-                th2 = p0 * p0 + p1 * p1 + p2 * p2
+                th2 = av[h]
                 theta = math.sqrt(th2)
-                uv[h] = u
                 av[h] = math.sin(theta) / theta if theta >= 1e-6 else 1.0 - th2 / 6
                 bv[h] = (1.0 - math.cos(theta)) / th2 if theta >= 1e-6 else 0.5 - th2 / 24
         for h in range(j - i):
