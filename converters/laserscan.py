@@ -233,7 +233,8 @@ class SliceConverter:
         self.range_channel = range_channel
         self._tables: dict[Any, _Tables] = {}
         self._moving_cache: tuple[Any, _Tables] | None = None
-        self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] | None
+        self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any],
+                                           np.ndarray[Any, Any] | None]] | None
         self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], ...]] | None
         #: moving mount: build the full per-scan tables even with the compiled kernels (the
         #: path before :class:`_MovingRays`; tests compare both)
