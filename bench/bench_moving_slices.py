@@ -1,6 +1,7 @@
 """Benchmark: 4 height slices of a 128 x 1024 LidarScan from a moving mount (issue 15).
 
-Run: ``.venv/bin/python bench/bench_moving_slices.py [--repeat N] [--beam-times]``. Prints
+Run: ``.venv/bin/python bench/bench_moving_slices.py [--repeat N] [--beam-times]
+[--t-channel]``. Prints
 medians, minima and ratios of CPU time (``time.process_time``) of candidates interleaved in a
 new random order every round (``bench/_timing.py``), measured in the same run, and the load
 average; no assertions. Target: a moving mount costs no more than ~3x the fixed mount.
@@ -11,6 +12,8 @@ nodding 0.2 rad at 5 Hz, its pose sampled every 5 ms in a
 :class:`converters.TransformTrack` (the ranges are the room seen from the mid-sweep pose: the
 speed does not depend on them). ``--beam-times``: every beam fires 0.2 us after the previous
 one (``beam_time_offsets``), so every pixel has its own time (one pose per pixel).
+``--t-channel``: a per-pixel ``t`` channel of irregular delays (0-50 us, fixed seed, as a
+sensor with irregular pixel timing), a pose per pixel too.
 
 Candidates (all 4 slices, the 4 rclpy LaserScans included):
 
@@ -18,6 +21,11 @@ Candidates (all 4 slices, the 4 rclpy LaserScans included):
   backend: the C kernel or the numba row kernel, tables precomputed once): the baseline of the
   target;
 * ``moving, track``: ``extrinsics=TransformTrack`` (default backend), poses looked up per scan;
+* ``moving, per time (before)``: with a pose per pixel (``--beam-times``, ``--t-channel``),
+  the same converter looking up one pose per distinct pixel time (``np.unique`` of the pixel
+  times, ``TransformTrack.lookup_many``, then the compiled transform) instead of
+  interpolating each ray's pose in the compiled pass: the path before that pass, and its
+  oracle;
 * ``moving, callable``: ``extrinsics=head``, the head's pose as a Python function of the
   stamp (one call per distinct pixel time, each result checked);
 * ``moving, full tables``: the path before issue 15's change, every table of the fixed mount
@@ -78,6 +86,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=40)
     parser.add_argument("--beam-times", action="store_true",
                         help="beam_time_offsets 0.2 us apart: one pose per pixel")
+    parser.add_argument("--t-channel", action="store_true",
+                        help="a per-pixel t channel of irregular delays: one pose per pixel")
     args = parser.parse_args()
 
     info = scene.make_info()
@@ -87,8 +97,10 @@ def main() -> None:
     mid = head(STAMP + 50 * MS)
     r = scene.room_ranges(info, mid)
     rng = np.random.default_rng(1)
-    scan = lidarscan.make_scan(info, {"range": r, "intensity": rng.integers(
-        0, 4000, r.shape).astype(np.uint16)}, STAMP, as_dataclass=True)
+    channels = {"range": r, "intensity": rng.integers(0, 4000, r.shape).astype(np.uint16)}
+    if args.t_channel:
+        channels["t"] = rng.integers(0, 50_000, r.shape).astype(np.uint32)
+    scan = lidarscan.make_scan(info, channels, STAMP, as_dataclass=True)
     track = TransformTrack(name="base_link <- os_sensor")
     for t in range(STAMP - 20 * MS, STAMP + 125 * MS, 5 * MS):
         track.add(t, head(t))
@@ -102,9 +114,20 @@ def main() -> None:
     candidates: dict[str, Any] = {
         "fixed mount": lambda: fixed.convert(scan),
         "moving, track": lambda: moving.convert(scan),
+    }
+    if args.beam_times or args.t_channel:
+        per_time = SliceConverter(info, specs, extrinsics=track, frame_id="base_link")
+        per_time._per_pixel = False
+        candidates["moving, per time (before)"] = lambda: per_time.convert(scan)
+        for name, got in moving.convert(scan).items():     # the same slices (up to rounding)
+            want = per_time.convert(scan)[name]
+            a, b = np.asarray(got.ranges), np.asarray(want.ranges)
+            same = np.mean((a == b) | (np.isnan(a) & np.isnan(b))) * 100
+            print(f"  {name}: {same:.3f} % of the ranges identical to the per-time path")
+    candidates.update({
         "moving, callable": lambda: by_call.convert(scan),
         "moving, full tables (before)": lambda: full.convert(scan),
-    }
+    })
     try:
         import numba
     except ImportError:
@@ -139,7 +162,8 @@ def main() -> None:
         print(f"  {name:30s} median {ms:7.2f} ms   min {low[name]:7.2f} ms   "
               f"{med[name] / med['fixed mount']:5.2f}x the fixed mount (medians), "
               f"{low[name] / low['fixed mount']:5.2f}x (minima)")
-    for base in [k for k in candidates if k.startswith(("per-point", "moving, full"))]:
+    for base in [k for k in candidates if k.startswith(("per-point", "moving, full",
+                                                          "moving, per time"))]:
         print(f"  ratio {base} / moving, track: {med[base] / med['moving, track']:.1f}x "
               f"(medians), {low[base] / low['moving, track']:.1f}x (minima)")
 

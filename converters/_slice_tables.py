@@ -33,7 +33,42 @@ class _Slice:
     holes: HoleOptions | None = None
 
 
-class _Tables:
+class _PixelKeys:
+    """Tie keys of a scan's pixels (measurement order ``u*W + c``; None = the pixel index) and
+    the tables both :class:`_Tables` and :class:`_MovingRays` derive from them."""
+
+    def __init__(self, keys: np.ndarray[Any, Any] | None, n: int) -> None:
+        self.n = n
+        self.keys = keys                     # measurement-order tie key per pixel, None = index
+        self.key_to_pos: np.ndarray[Any, Any] | None = None
+        if keys is not None:
+            self.key_to_pos = np.empty(n, np.int64)
+            self.key_to_pos[keys] = np.arange(n)
+
+    def key(self, index: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """Tie keys of pixel indices."""
+        return index.astype(np.int64) if self.keys is None else self.keys[index]
+
+    def position(self, key: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """Pixel indices of tie keys."""
+        return key if self.key_to_pos is None else self.key_to_pos[key]
+
+    def kernel_keys(self) -> np.ndarray[Any, Any]:
+        """The keys as :class:`converters._kernels.slices_numba.Rays` holds them (int32; empty:
+        key = pixel index)."""
+        return np.zeros(0, np.int32) if self.keys is None else self.keys.astype(np.int32)
+
+
+def _hole_edges(d64: np.ndarray[Any, Any], o64: np.ndarray[Any, Any], slices: list[_Slice]
+                ) -> list[tuple[int, Any]]:
+    """(slice index, :class:`converters._holes.HoleEdges`) of the slices with holes, for rays
+    ``p = r*D + O`` ((n, 3) float64 each, target frame)."""
+    return [(i, _holes.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
+                                  s.options.range_max))
+            for i, s in enumerate(slices) if s.holes is not None]
+
+
+class _Tables(_PixelKeys):
     """Static per-pixel tables of one column order (per LidarInfo version and extrinsics).
 
     Rays ``p = r*D + O`` in the target frame (float32 components, arithmetic in float64); per
@@ -45,16 +80,10 @@ class _Tables:
                  keys: np.ndarray[Any, Any] | None, slices: list[_Slice],
                  grids: list[AngleGrid], slice_grid: list[int], near: float,
                  width: int) -> None:
-        self.n = d.shape[0]
+        super().__init__(keys, d.shape[0])
         self.rays = np.ascontiguousarray(np.concatenate([d, o], axis=1))     # (n, 6) f4
         self.dx, self.dy, self.dz = (np.ascontiguousarray(d[:, k]) for k in range(3))
         self.ox, self.oy, self.oz = (np.ascontiguousarray(o[:, k]) for k in range(3))
-        self.keys = keys                     # measurement-order tie key per pixel, None = index
-        if keys is None:
-            self.key_to_pos: np.ndarray[Any, Any] | None = None
-        else:
-            self.key_to_pos = np.empty(self.n, np.int64)
-            self.key_to_pos[keys] = np.arange(self.n)
         d64, o64 = d.astype(np.float64), o.astype(np.float64)
         self.bin_far: list[np.ndarray[Any, Any]] = []
         self.r_thr: list[np.ndarray[Any, Any]] = []
@@ -71,15 +100,12 @@ class _Tables:
             self.q_far.append(q_far & ok)
             self.q_near.append(q_near & ok)
         #: (slice index, edges) of the slices with holes
-        self.holes = [(i, _holes.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
-                                           s.options.range_max))
-                      for i, s in enumerate(slices) if s.holes is not None]
+        self.holes = _hole_edges(d64, o64, slices)
         self.hole_plan = _holes.HolePlan.create(self.holes, self.key)
         self.k_r_thr = np.ascontiguousarray(np.stack([_grid.round_up_f32(t) for t in self.r_thr]))
         #: the tables as the general compiled kernels take them
         self.kernel_rays = Rays(
-            self.dx, self.dy, self.dz, self.ox, self.oy, self.oz,
-            keys=np.zeros(0, np.int32) if keys is None else keys.astype(np.int32),
+            self.dx, self.dy, self.dz, self.ox, self.oy, self.oz, keys=self.kernel_keys(),
             qual=np.ascontiguousarray(np.stack(
                 [qf.astype(np.uint8) | (qn.astype(np.uint8) << 1)
                  for qf, qn in zip(self.q_far, self.q_near)])),
@@ -90,21 +116,13 @@ class _Tables:
                 {(s.options.range_min, s.options.range_max) for s in slices}) == 1:
             self.sorted = _Sorted(self, grids[0].size, slices, width)
 
-    def key(self, index: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """Tie keys of pixel indices."""
-        return index.astype(np.int64) if self.keys is None else self.keys[index]
-
-    def position(self, key: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """Pixel indices of tie keys."""
-        return key if self.key_to_pos is None else self.key_to_pos[key]
-
     def near_fraction(self, r: np.ndarray[Any, Any], index: int = 0) -> float:
         """Fraction of finite pixels that need atan2 on grid ``index`` (diagnostics)."""
         ok = np.isfinite(r) & (r > 0)
         return float(np.mean(r[ok] < self.r_thr[index][ok])) if ok.any() else 0.0
 
 
-class _MovingRays:
+class _MovingRays(_PixelKeys):
     """One scan's rays seen by a moving mount, as the general compiled kernel takes them
     (:meth:`converters._kernels.slices_numba.Compiled.fuse`), built per scan from the cached
     sensor-frame rays and the per-pixel poses (:meth:`SliceConverter._moving_tables`).
@@ -127,12 +145,8 @@ class _MovingRays:
     def __init__(self, rays: tuple[np.ndarray[Any, Any], ...], keys: np.ndarray[Any, Any] | None,
                  r: np.ndarray[Any, Any], conv: SliceConverter) -> None:
         dx, dy, dz, ox, oy, oz = rays
-        self.n = n = dx.shape[0]
-        self.keys = keys
-        self.key_to_pos: np.ndarray[Any, Any] | None = None
-        if keys is not None:
-            self.key_to_pos = np.empty(n, np.int64)
-            self.key_to_pos[keys] = np.arange(n)
+        super().__init__(keys, dx.shape[0])
+        n = self.n
         with np.errstate(invalid="ignore"):
             special = np.flatnonzero(~((r > 0) & (r < np.inf)))
         n_grids, n_slices = len(conv._grids), len(conv.slices)
@@ -145,21 +159,9 @@ class _MovingRays:
         if conv._holes:
             d64 = np.array([dx, dy, dz], np.float64).T
             o64 = np.array([ox, oy, oz], np.float64).T
-            self.holes = [(i, _holes.hole_edges(d64, o64, s.holes, s.grid, s.options.range_min,
-                                                s.options.range_max))
-                          for i, s in enumerate(conv.slices) if s.holes is not None]
-        self.kernel_rays = Rays(
-            dx, dy, dz, ox, oy, oz,
-            keys=np.zeros(0, np.int32) if keys is None else keys.astype(np.int32),
-            qual=qual, bin_far=bin_far, r_thr=conv._no_thresholds(n))
-
-    def key(self, index: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """Tie keys of pixel indices."""
-        return index.astype(np.int64) if self.keys is None else self.keys[index]
-
-    def position(self, key: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """Pixel indices of tie keys."""
-        return key if self.key_to_pos is None else self.key_to_pos[key]
+            self.holes = _hole_edges(d64, o64, conv.slices)
+        self.kernel_rays = Rays(dx, dy, dz, ox, oy, oz, keys=self.kernel_keys(), qual=qual,
+                                bin_far=bin_far, r_thr=conv._no_thresholds(n))
 
 
 class _Sorted:

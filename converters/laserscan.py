@@ -51,11 +51,16 @@ the sensor-frame rays per geometry, the distinct pixel times and each pixel's on
 timing (a scan with a ``t`` channel computes its own). A track computes the poses of the distinct
 times in one batch; a callable is called once per distinct pixel time and its result checked (a
 finite rigid 4x4, else :class:`lidarscan.errors.ValidationError`). With the compiled kernels
-the rays are moved by a compiled loop (the bits of :func:`converters.frames.transform_rays`) and
-fused by the general kernel with atan2 for every in-band point; far-field bins and
-+Inf/NaN/-Inf qualifiers are computed for the pixels without a finite range only
-(:class:`_MovingRays`); the numpy backend builds the full per-scan tables (the reference; the
-same slices bit for bit, tests/test_moving_slices.py). A mount that holds still over a whole
+the rays are moved by a compiled loop (the bits of :func:`converters.frames.transform_rays`;
+with a track and pixel times that vary within a column -- per-beam offsets, a ``t`` channel
+not constant along columns -- each ray's pose is interpolated in that loop instead of one pose
+per distinct time being looked up and stored: the track's poses up to the last float64 bits,
+so a ray component may differ from the per-time path's by one float32 ulp,
+:meth:`converters._kernels.slices_numba.Compiled.track_rays`) and fused by the general
+kernel with atan2 for every in-band point; far-field bins and +Inf/NaN/-Inf qualifiers are
+computed for the pixels without a finite range only (:class:`_MovingRays`); the numpy backend
+builds the full per-scan tables (the reference; the same slices bit for bit,
+tests/test_moving_slices.py). A mount that holds still over a whole
 scan gets the fixed-mount tables at that pose (every kernel), kept for the next scan. A pose
 that cannot be found -- a time outside the track's span
 (:class:`converters.transforms.OutOfSpanError`, the track never extrapolates) or any
@@ -94,7 +99,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -105,7 +110,7 @@ from converters._grid import AngleGrid, OutputOptions
 from converters._holes import HoleOptions
 from converters.frames import check_extrinsics, check_poses, transform_rays
 from converters.options import IfPresent, resolve_channel
-from converters.transforms import TransformTrack
+from converters.transforms import OutOfSpanError, TransformTrack, segment_rotvecs
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
 from lidarscan.geometry import azimuth_channel, info_key, make_projector
 from lidarscan.scan import as_array, channel, channel_names, range_m
@@ -228,11 +233,16 @@ class SliceConverter:
         self.range_channel = range_channel
         self._tables: dict[Any, _Tables] = {}
         self._moving_cache: tuple[Any, _Tables] | None = None
-        self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] | None
-        self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] | None
+        self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any],
+                                           np.ndarray[Any, Any] | None]] | None
+        self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], ...]] | None
         #: moving mount: build the full per-scan tables even with the compiled kernels (the
         #: path before :class:`_MovingRays`; tests compare both)
         self._reference_tables = False
+        #: track + compiled kernels + pixel times varying within a column: each ray's pose
+        #: interpolated in the kernel (False: one pose per distinct time, the path before;
+        #: the bench and the tests compare both)
+        self._per_pixel = True
         self._set_info(info)
 
     # ------------------------------------------------------------------------- configuration
@@ -339,22 +349,48 @@ class SliceConverter:
             self._tables[key] = tables
         return tables
 
-    def _pose_times(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    def _pose_times(self, scan: Any, distinct: bool = True
+                    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
         """The distinct pixel times of a scan relative to its stamp and each pixel's one.
+
+        When every pixel of a measurement column has its column's time (no per-beam offsets, a
+        ``t`` channel constant along each column: tested exactly) the distinct times are those
+        of the W columns; otherwise those of all pixels (``np.unique`` of H*W times), or, with
+        ``distinct=False``, none are computed.
 
         Returns:
             (times, index): (P,) int64 ns sorted, and (H*W,) int64 the time of each pixel
-            (scan column order, row-major). Kept for the next scan when it has no ``t`` channel
-            (then they depend only on the column times and the column order).
+            (scan column order, row-major); with ``distinct=False`` and times varying within a
+            column, (H*W,) int64 ns every pixel's time and None. Kept for the next scan when it
+            has no ``t`` channel (then they depend only on the column times and the column
+            order).
         """
         key = None
         if not any(c.name == "t" for c in scan.channels):   # pixel_delays(scan) is None
             key = (self.projector.column_times(scan).tobytes(), bool(scan.is_destaggered))
             if self._time_cache is not None and self._time_cache[0] == key:
-                return self._time_cache[1]
-        unique, index = np.unique(self.projector.pixel_times(scan).reshape(-1),
-                                  return_inverse=True)
-        found = (unique, index.reshape(-1).astype(np.int64))
+                kept = self._time_cache[1]
+                if kept[1] is None and distinct:     # kept per pixel: not kept again
+                    unique, index = np.unique(kept[0], return_inverse=True)
+                    return unique, index.reshape(-1).astype(np.int64)
+                return kept
+        times = self.projector.pixel_times(scan)
+        height, width = times.shape
+        # the measurement column of each stored pixel
+        column = (self.projector.destagger_index
+                  if bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
+                  else np.broadcast_to(np.arange(width), (height, width)))
+        per_column = np.empty(width, np.int64)
+        per_column[column[0]] = times[0]
+        found: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]
+        if np.array_equal(times, per_column[column]):       # one time per column
+            unique, index = np.unique(per_column, return_inverse=True)
+            found = (unique, index.reshape(-1)[column].reshape(-1).astype(np.int64))
+        elif distinct:
+            unique, index = np.unique(times.reshape(-1), return_inverse=True)
+            found = (unique, index.reshape(-1).astype(np.int64))
+        else:
+            found = (times.reshape(-1), None)
         self._time_cache = None if key is None else (key, found)
         return found
 
@@ -370,14 +406,18 @@ class SliceConverter:
             TransformLookupError: raised by the callable.
             ValidationError: the callable returned something other than a finite rigid 4x4.
         """
-        stamp = to_ns(scan.header.stamp, field="LidarScan.header.stamp")
-        relative, index = self._pose_times(scan)
-        unique = np.int64(stamp) + relative
+        relative, index = self._pose_times(scan)       # (distinct: index is not None)
+        return self._poses_at(self._stamp(scan) + relative), cast(np.ndarray, index)
+
+    @staticmethod
+    def _stamp(scan: Any) -> np.int64:
+        return np.int64(to_ns(scan.header.stamp, field="LidarScan.header.stamp"))
+
+    def _poses_at(self, stamps: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """(P, 4, 4) float64 poses of the mount at the (P,) int64 ns stamps."""
         if isinstance(self.moving, TransformTrack):
-            poses = self.moving.lookup_many(unique)
-        else:
-            poses = check_poses([self.moving(int(t)) for t in unique], "extrinsics(stamp_ns)")
-        return poses, index
+            return self.moving.lookup_many(stamps)
+        return check_poses([self.moving(int(t)) for t in stamps], "extrinsics(stamp_ns)")
 
     def _moving_tables(self, scan: Any, r: np.ndarray[Any, Any]) -> _Tables | _MovingRays:
         """Tables of one scan seen by a moving mount: every pixel's ray moved by the mount's
@@ -385,22 +425,60 @@ class SliceConverter:
         scan gets fixed-mount tables at that pose (every kernel; kept for the next scan at the
         same pose); else, with the compiled kernels, :class:`_MovingRays` (the rays only, for
         the general kernel), without them the full :class:`_Tables` of the scan (numpy: the
-        reference)."""
-        poses, index = self.mount_poses(scan)
+        reference). With a track, the compiled kernels and pixel times that vary within a
+        column (per-beam offsets, an irregular ``t`` channel: up to one pose per pixel), each
+        ray's pose is interpolated where it is used (:meth:`_track_rays`) instead of
+        looking up and storing one pose per distinct time."""
         geometry = self._geometry_key(scan)
-        still = bool(np.all(poses == poses[0]))
-        key = (geometry, poses[0].tobytes()) if still else None
-        if key is not None and self._moving_cache is not None and self._moving_cache[0] == key:
-            return self._moving_cache[1]
+        compiled = self._kernel is not None and not self._reference_tables
+        per_pixel = compiled and self._per_pixel and isinstance(self.moving, TransformTrack)
+        relative, index = self._pose_times(scan, distinct=not per_pixel)
+        stamp = self._stamp(scan)
+        if index is None:
+            return self._track_rays(scan, r, geometry, stamp, relative)
+        poses = self._poses_at(stamp + relative)
+        if np.all(poses == poses[0]):
+            return self._still_tables(scan, geometry, poses[0])
         d32, o32 = self._sensor_rays(scan, geometry)
-        if key is None and self._kernel is not None and not self._reference_tables:
+        if compiled:
             return _MovingRays(self._kernel.transform_rays(d32, o32, poses, index),
                                self._tie_keys(geometry[1]), r, self)
         d, o = transform_rays(d32, o32, poses, index)
+        return _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
+                       self._slice_grid, self._near, self.projector.width)
+
+    def _still_tables(self, scan: Any, geometry: tuple[Any, ...],
+                      pose: np.ndarray[Any, Any]) -> _Tables:
+        """Fixed-mount tables at ``pose`` (kept for the next scan of this geometry and pose)."""
+        key = (geometry, pose.tobytes())
+        if self._moving_cache is not None and self._moving_cache[0] == key:
+            return self._moving_cache[1]
+        d32, o32 = self._sensor_rays(scan, geometry)
+        d, o = transform_rays(d32, o32, pose[None], np.zeros(d32.shape[0], np.int64))
         tables = _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
                          self._slice_grid, self._near, self.projector.width)
-        self._moving_cache = None if key is None else (key, tables)
+        self._moving_cache = (key, tables)
         return tables
+
+    def _track_rays(self, scan: Any, r: np.ndarray[Any, Any], geometry: tuple[Any, ...],
+                    stamp: np.int64, relative: np.ndarray[Any, Any]) -> _Tables | _MovingRays:
+        """:meth:`_moving_tables` for a track and a time per pixel: the track's samples around
+        the scan, then one compiled pass that interpolates each ray's pose and moves the ray
+        (:meth:`converters._kernels.slices_numba.Compiled.track_rays`: the poses of
+        :meth:`TransformTrack.lookup_many` up to float64 rounding, see there)."""
+        track = self.moving
+        try:
+            times, poses = track.samples(stamp + relative.min(), stamp + relative.max())
+        except OutOfSpanError:
+            self.mount_poses(scan)          # raises what the per-time lookup names
+            raise
+        if np.all(poses == poses[0]):       # one pose held over the scan
+            return self._still_tables(scan, geometry,
+                                      track.lookup_many(stamp + relative[:1])[0])
+        d32, o32 = self._sensor_rays(scan, geometry, columns=True)
+        rays = self._kernel.track_rays(d32, o32, relative, int(stamp), times, poses,
+                                       segment_rotvecs(poses[:-1], poses[1:]))
+        return _MovingRays(rays, self._tie_keys(geometry[1]), r, self)
 
     def _no_thresholds(self, n: int) -> np.ndarray[Any, Any]:
         """(G, n) float32 +inf far-field thresholds (atan2 for every point; read only by the
@@ -409,17 +487,19 @@ class SliceConverter:
             self._inf_thr = np.full((len(self._grids), n), np.inf, np.float32)
         return self._inf_thr
 
-    def _sensor_rays(self, scan: Any, geometry: tuple[Any, ...]
+    def _sensor_rays(self, scan: Any, geometry: tuple[Any, ...], columns: bool = False
                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan (kept
-        for the next scan of the same geometry)."""
-        if self._rays_cache is not None and self._rays_cache[0] == geometry:
-            return self._rays_cache[1]
-        d32, o32 = self.projector.tables_for(scan, self.range_channel)
-        rays = (np.ascontiguousarray(d32.reshape(-1, 3), np.float32),
-                np.ascontiguousarray(o32.reshape(-1, 3), np.float32))
-        self._rays_cache = (geometry, rays)
-        return rays
+        """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan, or with
+        ``columns`` the same as (3, n) (one row per component; kept for the next scan of the
+        same geometry)."""
+        if self._rays_cache is None or self._rays_cache[0] != geometry:
+            d32, o32 = self.projector.tables_for(scan, self.range_channel)
+            d32 = np.ascontiguousarray(d32.reshape(-1, 3), np.float32)
+            o32 = np.ascontiguousarray(o32.reshape(-1, 3), np.float32)
+            self._rays_cache = (geometry, (d32, o32, np.ascontiguousarray(d32.T),
+                                           np.ascontiguousarray(o32.T)))
+        rays = self._rays_cache[1]
+        return (rays[2], rays[3]) if columns else (rays[0], rays[1])
 
     # ----------------------------------------------------------------------------- convert
     def convert(self, scan: Any, info: Any = None) -> dict[str, Any]:

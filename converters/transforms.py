@@ -39,7 +39,7 @@ import numpy as np
 from lidarscan.errors import ConfigError, ConversionError
 
 __all__ = ["OutOfSpanError", "TransformLookupError", "TransformTrack", "interpolate_poses",
-           "pose_matrix", "quaternion_from_matrix"]
+           "pose_matrix", "quaternion_from_matrix", "segment_rotvecs"]
 
 
 class TransformLookupError(ConversionError):
@@ -165,6 +165,35 @@ class TransformTrack:
         """
         return self.lookup_many(np.array([int(stamp_ns)], np.int64))[0]
 
+    def samples(self, first_ns: int, last_ns: int
+                ) -> tuple[np.ndarray[Any, np.dtype[np.int64]],
+                           np.ndarray[Any, np.dtype[np.float64]]]:
+        """The samples that every stamp in ``[first_ns, last_ns]`` is interpolated between (or
+        held at), as one consistent snapshot: from the newest sample at or before ``first_ns``
+        to the oldest at or after ``last_ns`` (the newest sample when ``last_ns`` is held).
+        :meth:`lookup_many` of a stamp in that interval equals :func:`interpolate_poses`
+        between the two samples around it (the sample itself at its own stamp).
+
+        Returns:
+            (times, poses): (K,) int64 ns ascending and (K, 4, 4) float64, K >= 1.
+
+        Raises:
+            OutOfSpanError: ``first_ns`` or ``last_ns`` outside the span (plus ``tolerance_ns``).
+        """
+        first, last = int(first_ns), int(last_ns)
+        with self._lock:
+            times = self._times
+            if not times:
+                raise OutOfSpanError(self.name, first, None)
+            span = (times[0], times[-1])
+            for stamp in (first, last):
+                if stamp < span[0] or stamp > span[1] + self.tolerance_ns:
+                    raise OutOfSpanError(self.name, stamp, span, self.tolerance_ns)
+            i0 = bisect.bisect_right(times, first) - 1
+            i1 = min(bisect.bisect_left(times, last), len(times) - 1)
+            return (np.array(times[i0:i1 + 1], np.int64),
+                    np.stack(self._poses[i0:i1 + 1]))
+
     def lookup_many(self, stamps_ns: Any) -> np.ndarray[Any, np.dtype[np.float64]]:
         """(N, 4, 4) float64 poses at the (N,) int ns stamps (any order).
 
@@ -229,8 +258,7 @@ def interpolate_poses(p0: Any, p1: Any, u: Any, segment: Any = None
     a1 = np.asarray(p1, dtype=np.float64).reshape(-1, 4, 4)
     frac = np.asarray(u, dtype=np.float64).reshape(-1)
     index = np.zeros(frac.size, np.intp) if segment is None else np.asarray(segment)
-    delta = np.stack([_matrix_to_rotvec(a[:3, :3].T @ b[:3, :3])
-                      for a, b in zip(a0, a1)])              # shortest arc, |delta| <= pi
+    delta = segment_rotvecs(a0, a1)
     rot, _ = _so3_exp_and_v(frac[:, None] * delta[index])
     a, b = a0[index], a1[index]
     out = np.zeros((frac.size, 4, 4))
@@ -238,6 +266,14 @@ def interpolate_poses(p0: Any, p1: Any, u: Any, segment: Any = None
     out[:, :3, 3] = a[:, :3, 3] + frac[:, None] * (b[:, :3, 3] - a[:, :3, 3])
     out[:, 3, 3] = 1.0
     return out
+
+
+def segment_rotvecs(p0: Any, p1: Any) -> np.ndarray[Any, np.dtype[np.float64]]:
+    """(K, 3) float64 rotation vectors ``log(R0^T R1)`` (shortest arc, norm <= pi) of K pairs of
+    (K, 4, 4) rigid transforms: the rotation :func:`interpolate_poses` scales by ``u``."""
+    a0 = np.asarray(p0, np.float64).reshape(-1, 4, 4)
+    a1 = np.asarray(p1, np.float64).reshape(-1, 4, 4)
+    return np.stack([_matrix_to_rotvec(a[:3, :3].T @ b[:3, :3]) for a, b in zip(a0, a1)])
 
 
 def quaternion_from_matrix(matrix: Any) -> tuple[float, float, float, float]:

@@ -124,11 +124,18 @@ class CloudSlicePlan:
         inf_value, fill_value: (S,) float32 decoded +Inf and empty-bin values.
         gmin, ginc, gsize, gfull: (G,) the distinct grids.
         size: bins of all slices.
+
+    Raises:
+        RuntimeError: the compiled kernel is not available (:func:`available`).
     """
 
     def __init__(self, *, m: Any, zlo: Any, zhi: Any, rlo: Any, rhi: Any, sgrid: Any,
                  soff: Any, inf_value: Any, fill_value: Any, gmin: Any, ginc: Any,
                  gsize: Any, gfull: Any, size: int) -> None:
+        fn = library()
+        if fn is None:
+            raise RuntimeError("the compiled cloud slices kernel is not available")
+        self._fn = fn                          # fetched once per plan, not per cloud
         f8, i8, f4 = np.float64, np.int64, np.float32
         keep = {"m": np.ascontiguousarray(m, f8), "zlo": np.ascontiguousarray(zlo, f8),
                 "zhi": np.ascontiguousarray(zhi, f8), "rlo": np.ascontiguousarray(rlo, f8),
@@ -168,11 +175,8 @@ class CloudSlicePlan:
         The caller keeps the buffers alive and checks their sizes (the kernel reads
         ``(height - 1) * row_step + width * step`` bytes from each field's address).
         """
-        fn = library()
-        if fn is None:
-            raise RuntimeError("the compiled cloud slices kernel is not available")
         i_addr, i_step, i_row, i_type = (None, 0, 0, 0) if intensity is None else intensity
-        status = fn(self._plan_ref, height, width, xyz[0], xyz[1], xyz[2], step, row_step,
+        status = self._fn(self._plan_ref, height, width, xyz[0], xyz[1], xyz[2], step, row_step,
                     xyz_type, i_addr, i_step, i_row, i_type, best.ctypes.data,
                     None if ranges is None else ranges.ctypes.data,
                     None if ints is None else ints.ctypes.data, SIMD)

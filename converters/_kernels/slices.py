@@ -87,6 +87,9 @@ class SlicePlan:
         lim_lo, lim_hi: planar range limits (metres); g_min, g_inc, g_full: the grid.
         inf_value, fill_value: (S,) float32 decoded values.
         key_to_pos: (H*W,) int64 tie key -> pixel, or None (key = pixel).
+
+    Raises:
+        RuntimeError: the compiled kernel is not available (:func:`available`).
     """
 
     def __init__(self, *, height: int, width: int, n_slices: int,
@@ -100,6 +103,10 @@ class SlicePlan:
                  lim_lo: float, lim_hi: float, g_min: float, g_inc: float, g_full: bool,
                  inf_value: np.ndarray[Any, Any], fill_value: np.ndarray[Any, Any],
                  key_to_pos: np.ndarray[Any, Any] | None) -> None:
+        fn = library()
+        if fn is None:
+            raise RuntimeError("the compiled slicing kernel is not available")
+        self._fn = fn                          # fetched once per plan, not per scan
         n = height * width
         f32 = np.float32
 
@@ -151,9 +158,6 @@ class SlicePlan:
             the winners (0 for an empty bin; empty without ``intensity``); int64 tie keys (-1
             for an empty bin) or None.
         """
-        fn = library()
-        if fn is None:
-            raise RuntimeError("the compiled slicing kernel is not available")
         size = self.n_slices * self.width
         r = np.ascontiguousarray(r, np.float32)
         if r.size != self.plan.height * self.width:
@@ -170,7 +174,7 @@ class SlicePlan:
             if img.size != r.size:
                 raise ValueError(f"{img.size} intensities, expected {r.size}")
             i_addr, i_type = img.ctypes.data, code
-        status = fn(self._plan_ref, r.ctypes.data, i_addr, i_type, ranges.ctypes.data,
+        status = self._fn(self._plan_ref, r.ctypes.data, i_addr, i_type, ranges.ctypes.data,
                     ints.ctypes.data if intensity is not None else None,
                     None if keys is None else keys.ctypes.data, SIMD)
         if status == -1:

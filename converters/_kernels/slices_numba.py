@@ -17,9 +17,11 @@ Kernels (drivers in :class:`Compiled`):
   per-row float32 band intervals, fusion, hole edges and decoding in one call (these two live
   in :mod:`converters._kernels.slices_numba_ordered`, imported here);
 * moving mounts: :func:`_transform_rays` (each ray moved by its pixel's pose, the arithmetic of
-  :func:`converters.frames.transform_rays`), :func:`_special_tables` (far-field bins and
-  qualifiers of the pixels without a finite range: :func:`converters._grid.far_field`'s bin and
-  :func:`converters._grid.qualify`), then the general kernel.
+  :func:`converters.frames.transform_rays`) or, with a pose per pixel, :func:`_track_rays`
+  (each ray's pose interpolated from a track's samples where it is used),
+  :func:`_special_tables` (far-field bins and qualifiers of the pixels without a finite range:
+  :func:`converters._grid.far_field`'s bin and :func:`converters._grid.qualify`), then the
+  general kernel.
 
 The kernels call each other through module globals (``_J_*``, of this module and of
 :mod:`~converters._kernels.slices_numba_ordered`), compiled by :func:`kernels` before the
@@ -38,6 +40,7 @@ from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
 from converters._holes import HolePlan
 from converters._kernels import slices_numba_ordered as _ordered
 from converters._kernels.slices_numba_ordered import (
+    _angle_bin,
     _near_point,
     _row_convert,
     _row_fuse,
@@ -74,11 +77,12 @@ def kernels() -> Compiled | None:
         import numba
     except ImportError:
         return None
-    global _J_BANDS, _J_POINTS, _J_OTHERS, _J_DECODE_SLICES, _J_CODE_VALUE, _J_RHO
+    global _J_BANDS, _J_POINTS, _J_OTHERS, _J_DECODE_SLICES, _J_CODE_VALUE, _J_RHO, _J_BIN
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     inline = numba.njit(nogil=True, error_model="numpy", inline="always")
     # called by the kernels below, so compiled first; inlined into them (a call per point
     # measured ~15 % slower where most points are near, e.g. an offset mount)
+    _J_BIN = _ordered._J_BIN = inline(_angle_bin)   # the binning step, inlined everywhere
     _ordered._J_NEAR = inline(_near_point)
     _ordered._J_VALUE = inline(_value)
     _J_CODE_VALUE = inline(_code_value)
@@ -96,6 +100,7 @@ _J_CODE_VALUE: Any = None
 _J_POINTS: Any = None
 _J_OTHERS: Any = None
 _J_RHO: Any = None
+_J_BIN: Any = None
 
 
 def _fuse_small(r: Any, keep: Any, limits: Any, dx: Any, dy: Any, dz: Any, ox: Any, oy: Any,
@@ -247,6 +252,7 @@ class Compiled:
         self.decode = jit(_decode_kernel)
         self._decode_slices = _J_DECODE_SLICES
         self._transform = jit(_transform_rays)
+        self._track = jit(_track_rays)
         self._special = jit(_special_tables)
 
     def dispatchers(self) -> dict[str, Any]:
@@ -256,7 +262,8 @@ class Compiled:
                 "small": self._small, "sorted": self._sorted, "row_convert": self._row_convert,
                 "row_fuse": _ordered._J_ROW, "decode": self.decode,
                 "decode_slices": self._decode_slices,
-                "transform_rays": self._transform, "special_tables": self._special}
+                "transform_rays": self._transform, "track_rays": self._track,
+                "special_tables": self._special}
 
     def special_tables(self, special: Any, rays: Any, bands: Bands, near: float, bin_far: Any,
                        qual: Any) -> None:
@@ -283,6 +290,29 @@ class Compiled:
         out = np.empty((6, n), np.float32)
         self._transform(frozen_f32(d), frozen_f32(o), rows, np.ascontiguousarray(index, np.int64),
                         out)
+        return tuple(out)
+
+    def track_rays(self, d: Any, o: Any, relative: Any, stamp: int, times: Any, poses: Any,
+                   deltas: Any) -> tuple[Any, ...]:
+        """The rays moved by a pose track's pose at each ray's own time (:func:`_track_rays`).
+
+        Args:
+            d, o: (3, n) float32 C-contiguous sensor-frame directions and origins (one row
+                per component).
+            relative: (n,) int64 ns each ray's time after ``stamp`` (int ns).
+            times, poses: (K,) int64 ascending and (K, 4, 4) float64 the track's samples around
+                every ray time (:meth:`converters.transforms.TransformTrack.samples`).
+            deltas: (K - 1, 3) float64 rotation vector of each pair of consecutive samples
+                (:func:`converters.transforms.segment_rotvecs`).
+
+        Returns:
+            (dx, dy, dz, ox, oy, oz): (n,) float32 each, in the target frame.
+        """
+        rows = np.ascontiguousarray(np.asarray(poses, np.float64)[:, :3, :].reshape(-1, 12))
+        out = np.empty((6, d.shape[1]), np.float32)
+        self._track(frozen_f32(d), frozen_f32(o), np.ascontiguousarray(relative, np.int64),
+                    np.int64(stamp), np.ascontiguousarray(times, np.int64), rows,
+                    np.ascontiguousarray(np.asarray(deltas, np.float64).reshape(-1, 3)), out)
         return tuple(out)
 
     def decode_slices(self, best: Any, offset: Any, size: Any, inf_value: Any, fill_value: Any,
@@ -375,6 +405,126 @@ def _transform_rays(d: Any, o: Any, rows: Any, index: Any,
                                        + m[4 * k + 3])
 
 
+#: (-1)^n / (2n+1)! and (-1)^n / (2n+2)!, n = 0..7: the series of sin(x)/x and (1-cos(x))/x^2
+_SIN_C = tuple((-1) ** n / math.factorial(2 * n + 1) for n in range(8))
+_COS_C = tuple((-1) ** n / math.factorial(2 * n + 2) for n in range(8))
+
+
+def _track_rays(d: Any, o: Any, relative: Any, stamp: Any, times: Any, rows: Any, deltas: Any,
+                out: Any) -> None:  # pragma: no cover - compiled
+    """``out[0:3]`` = directions, ``out[3:6]`` = origins (float32) of the rays ``d``, ``o``
+    ((3, n) float32 each, sensor frame) moved by the pose at ``stamp + relative[i]``,
+    interpolated between the samples ``rows`` (top 3x4 of each pose, row-major) at ``times``:
+    the pose of :meth:`converters.transforms.TransformTrack.lookup_many` at that stamp (the
+    sample at its own stamp or held after the newest one; else
+    :func:`converters.transforms.interpolate_poses`'s formula ``R0 exp(u log(R0^T R1))``,
+    Rodrigues, ``t0 + u (t1 - t0)``), written per element in float64, then the arithmetic of
+    :func:`_transform_rays`. The translation and ``u`` are the reference's bits; the rotation's
+    ``sin(theta)/theta`` and ``(1-cos(theta))/theta^2`` come from their series when every
+    rotation of the segment is at most 0.5 rad (libm's sin and cos above), and its products
+    are written out, so the rotation may differ from numpy's in the last bits of float64
+    (``|dR| <~ 1e-15``): a float32 ray component may round to the neighbouring float32
+    (1 ulp), in the order of one case in 10^7.
+
+    The rays are taken in runs of consecutive rays whose times lie in one segment between two
+    samples (a scan's rows run forward in time): per run the segment's constants, then one
+    branch-free loop over the run that the compiler vectorises; no per-ray matrices in memory.
+    """
+    n = relative.shape[0]
+    n_samples = times.shape[0]
+    chunk = 1024                      # the longest run (scratch that stays in cache)
+    us = np.empty(chunk)              # u, sin(theta)/theta, (1-cos(theta))/theta^2 per ray
+    sa = np.empty(chunk)
+    sb = np.empty(chunk)
+    k = 0
+    i = 0
+    while i < n:
+        t = stamp + relative[i]
+        while k + 1 < n_samples and times[k + 1] <= t:
+            k += 1
+        while k > 0 and times[k] > t:
+            k -= 1
+        lo = times[k]
+        # the run: rays from i on inside [lo, hi) (held after the newest sample: [lo, inf))
+        hi = times[k + 1] if k + 1 < n_samples else np.iinfo(np.int64).max
+        j = i + 1
+        while j < n and j - i < chunk and lo <= stamp + relative[j] < hi:
+            j += 1
+        m00, m01, m02, m03 = rows[k, 0], rows[k, 1], rows[k, 2], rows[k, 3]
+        m10, m11, m12, m13 = rows[k, 4], rows[k, 5], rows[k, 6], rows[k, 7]
+        m20, m21, m22, m23 = rows[k, 8], rows[k, 9], rows[k, 10], rows[k, 11]
+        if k + 1 < n_samples:
+            span = np.float64(hi - lo)
+            w0, w1, w2 = deltas[k, 0], deltas[k, 1], deltas[k, 2]
+            v0, v1, v2 = rows[k + 1, 3] - m03, rows[k + 1, 7] - m13, rows[k + 1, 11] - m23
+        else:                                   # held: u times zeros, the sample itself
+            span = 1.0
+            w0 = w1 = w2 = v0 = v1 = v2 = 0.0
+        # views of the run indexed from 0: no negative-index handling in the loops (which
+        # keeps the compiler from vectorising them)
+        rel, uv, av, bv = relative[i:j], us[:j - i], sa[:j - i], sb[:j - i]
+        dx, dy, dz, ex, ey, ez = d[0, i:j], d[1, i:j], d[2, i:j], o[0, i:j], o[1, i:j], o[2, i:j]
+        q0, q1, q2, q3, q4, q5 = (out[0, i:j], out[1, i:j], out[2, i:j], out[3, i:j],
+                                  out[4, i:j], out[5, i:j])
+        base = stamp - lo
+        for h in range(j - i):
+            u = np.float64(base + rel[h]) / span
+            uv[h] = u
+            av[h] = (u * w0) * (u * w0) + (u * w1) * (u * w1) + (u * w2) * (u * w2)   # theta^2
+        if w0 * w0 + w1 * w1 + w2 * w2 <= 0.25:      # u < 1: every u*w as small
+            for h in range(j - i):
+                th2 = av[h]
+                # the series up to theta^14 (truncation < 1e-19 for theta <= 0.5)
+                av[h] = 1.0 + th2 * (_SIN_C[1] + th2 * (_SIN_C[2] + th2 * (_SIN_C[3] + th2 * (
+                    _SIN_C[4] + th2 * (_SIN_C[5] + th2 * (_SIN_C[6] + th2 * _SIN_C[7]))))))
+                bv[h] = 0.5 + th2 * (_COS_C[1] + th2 * (_COS_C[2] + th2 * (_COS_C[3] + th2 * (
+                    _COS_C[4] + th2 * (_COS_C[5] + th2 * (_COS_C[6] + th2 * _COS_C[7]))))))
+        else:
+            for h in range(j - i):
+                th2 = av[h]
+                theta = math.sqrt(th2)
+                av[h] = math.sin(theta) / theta if theta >= 1e-6 else 1.0 - th2 / 6
+                bv[h] = (1.0 - math.cos(theta)) / th2 if theta >= 1e-6 else 0.5 - th2 / 24
+        for h in range(j - i):
+            u = uv[h]
+            a = av[h]
+            b = bv[h]
+            # rot = I + a K + b K @ K, K = hat(u w) = [[0, -p2, p1], [p2, 0, -p0], [-p1, p0, 0]]
+            k01, k02, k10, k12, k20, k21 = -u * w2, u * w1, u * w2, -u * w0, -u * w1, u * w0
+            r00 = 1.0 + b * (k01 * k10 + k02 * k20)
+            r01 = a * k01 + b * (k02 * k21)
+            r02 = a * k02 + b * (k01 * k12)
+            r10 = a * k10 + b * (k12 * k20)
+            r11 = 1.0 + b * (k10 * k01 + k12 * k21)
+            r12 = a * k12 + b * (k10 * k02)
+            r20 = a * k20 + b * (k21 * k10)
+            r21 = a * k21 + b * (k20 * k01)
+            r22 = 1.0 + b * (k20 * k02 + k21 * k12)
+            # the pose [R0 @ rot, t0 + u (t1 - t0)], row by row
+            c00 = m00 * r00 + m01 * r10 + m02 * r20
+            c01 = m00 * r01 + m01 * r11 + m02 * r21
+            c02 = m00 * r02 + m01 * r12 + m02 * r22
+            c10 = m10 * r00 + m11 * r10 + m12 * r20
+            c11 = m10 * r01 + m11 * r11 + m12 * r21
+            c12 = m10 * r02 + m11 * r12 + m12 * r22
+            c20 = m20 * r00 + m21 * r10 + m22 * r20
+            c21 = m20 * r01 + m21 * r11 + m22 * r21
+            c22 = m20 * r02 + m21 * r12 + m22 * r22
+            x = np.float64(dx[h])
+            y = np.float64(dy[h])
+            z = np.float64(dz[h])
+            e = np.float64(ex[h])
+            f = np.float64(ey[h])
+            g = np.float64(ez[h])
+            q0[h] = np.float32(c00 * x + c01 * y + c02 * z)
+            q1[h] = np.float32(c10 * x + c11 * y + c12 * z)
+            q2[h] = np.float32(c20 * x + c21 * y + c22 * z)
+            q3[h] = np.float32(c00 * e + c01 * f + c02 * g + (m03 + u * v0))
+            q4[h] = np.float32(c10 * e + c11 * f + c12 * g + (m13 + u * v1))
+            q5[h] = np.float32(c20 * e + c21 * f + c22 * g + (m23 + u * v2))
+        i = j
+
+
 def _rho_at(dx: Any, dy: Any, ox: Any, oy: Any, r: Any) -> Any:  # pragma: no cover - compiled
     """:func:`converters._grid._rho` of one ray (float64)."""
     if math.isinf(r):
@@ -395,7 +545,6 @@ def _special_tables(special: Any, fdx: Any, fdy: Any, fdz: Any, fox: Any, foy: A
     the qualifiers of every slice (:func:`converters._grid.qualify`, the same float64
     operations; bits only where the slice's far-field bin exists, as :class:`Rays` holds
     them)."""
-    two_pi = 2.0 * math.pi
     n_grids = g_min.shape[0]
     for h in range(special.shape[0]):
         i = special[h]
@@ -404,16 +553,9 @@ def _special_tables(special: Any, fdx: Any, fdy: Any, fdz: Any, fox: Any, foy: A
         a2 = dx * dx + dy * dy
         theta = math.atan2(dy, dx)
         for g in range(n_grids):
-            b = -1
+            b = np.int64(-1)
             if a2 > 0:
-                d = theta - g_min[g]
-                inc = g_inc[g]
-                if g_full[g]:
-                    b = np.int64(math.ceil(d / inc - 0.5)) % g_size[g]
-                else:
-                    d = d - two_pi * math.floor((d + 0.5 * inc) / two_pi)
-                    k = np.int64(math.ceil(d / inc - 0.5))
-                    b = k if 0 <= k < g_size[g] else -1
+                b = _J_BIN(theta, g_min[g], g_inc[g], g_size[g], g_full[g])
             bin_far[g, i] = b
         r_star = -(dx * ox + dy * oy) / a2 if a2 > 0 else 0.0
         for s in range(zmin.shape[0]):
@@ -527,7 +669,6 @@ def _pass_points(hits: Any, masks: Any, r: Any, dx: Any, dy: Any, ox: Any, oy: A
                  best: Any) -> None:  # pragma: no cover - compiled
     """Pass 2: points inside at least one band. Bins from the far-field tables, or atan2 for
     rays closer than ``r_thr``; codes from the float32 bit pattern of rho."""
-    two_pi = 2.0 * math.pi
     bits = np.empty(1, np.float32)
     bits_i = bits.view(np.int32)
     n_grids = g_min.shape[0]
@@ -546,14 +687,8 @@ def _pass_points(hits: Any, masks: Any, r: Any, dx: Any, dy: Any, ox: Any, oy: A
         key = np.int64(keys[i]) + key_base if use_keys else np.int64(key_base + i)
         for g in range(n_grids):
             if rv < r_thr[g, i]:
-                d = math.atan2(y, x) - g_min[g]
-                inc = g_inc[g]
-                if g_full[g]:
-                    grid_bin[g] = np.int64(math.ceil(d / inc - 0.5)) % g_size[g]
-                else:
-                    d = d - two_pi * math.floor((d + 0.5 * inc) / two_pi)
-                    k = np.int64(math.ceil(d / inc - 0.5))
-                    grid_bin[g] = k if 0 <= k < g_size[g] else -1
+                grid_bin[g] = _J_BIN(math.atan2(y, x), g_min[g], g_inc[g], g_size[g],
+                                     g_full[g])
             else:
                 grid_bin[g] = bin_far[g, i]
         s = 0

@@ -17,6 +17,7 @@ import numpy as np
 from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
 
 _J_NEAR: Any = None      # compiled helpers, set by slices_numba.kernels()
+_J_BIN: Any = None
 _J_VALUE: Any = None
 _J_ROW: Any = None
 _J_DECODE_SLICES: Any = None
@@ -164,6 +165,24 @@ def _value(rv: Any, dx: Any, dy: Any, ox: Any, oy: Any, key: Any, lim_lo: Any,
     return ((code if point else special) << 32) | np.int64(key)
 
 
+def _angle_bin(theta: Any, g_min: Any, g_inc: Any, g_size: Any,
+               g_full: Any) -> Any:  # pragma: no cover - compiled
+    """The bin of angle ``theta`` (radians, float64) on a grid (the rule of
+    :meth:`converters._grid.AngleGrid`: nearest bin, half-bin to the lower index; a full
+    circle wraps, a sector's angle is taken modulo 2*pi around it), or -1 outside a sector.
+    The one binning step of the numba kernels (inlined into them)."""
+    d = theta - g_min
+    if g_full:
+        k = np.int64(math.ceil(d / g_inc - 0.5))
+        if k < 0 or k >= g_size:          # (a modulo only when needed: slow)
+            k %= g_size
+        return k
+    two_pi = 2.0 * math.pi
+    d = d - two_pi * math.floor((d + 0.5 * g_inc) / two_pi)
+    k = np.int64(math.ceil(d / g_inc - 0.5))
+    return k if 0 <= k < g_size else np.int64(-1)
+
+
 def _near_point(rv: Any, dx: Any, dy: Any, ox: Any, oy: Any, key: Any, m: Any, s0: Any,
                 n_slices: Any, lim_lo: Any, lim_hi: Any, g_min: Any, g_inc: Any, g_size: Any,
                 g_full: Any, offset: Any, best: Any) -> None:  # pragma: no cover - compiled
@@ -179,17 +198,9 @@ def _near_point(rv: Any, dx: Any, dy: Any, ox: Any, oy: Any, key: Any, m: Any, s
         code = np.int64(CODE_NEG_INF)
     elif rho > lim_hi:
         code = np.int64(CODE_POS_INF)
-    d = math.atan2(y, x) - g_min
-    if g_full:
-        bn = np.int64(math.ceil(d / g_inc - 0.5))
-        if bn < 0 or bn >= g_size:        # (a modulo only when needed: slow)
-            bn %= g_size
-    else:
-        two_pi = 2.0 * math.pi
-        d = d - two_pi * math.floor((d + 0.5 * g_inc) / two_pi)
-        bn = np.int64(math.ceil(d / g_inc - 0.5))
-        if bn < 0 or bn >= g_size:
-            return
+    bn = _J_BIN(math.atan2(y, x), g_min, g_inc, g_size, g_full)
+    if bn < 0:
+        return
     value = (code << 32) | np.int64(key)
     for t in range(4):
         if (m >> t) & 1 and s0 + t < n_slices:

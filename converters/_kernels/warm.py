@@ -13,6 +13,7 @@ depends on the configuration and the geometry:
 kernel                 runs when
 =====================  ==============================================================
 transform rays         a moving mount (then the general kernel)
+track rays             a moving mount on a track, pixel times varying along a column
 row-ordered            one grid, full circle at the sensor's column resolution, upright
                        mount (the C kernel instead where its AVX-512 path runs)
 bin-ordered            one grid and shared range limits, any other mount
@@ -32,6 +33,7 @@ has (both mask dtypes, every path), as the Makefile's install does.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -127,6 +129,10 @@ def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any]) -
     track = TransformTrack()
     track.add(0, _tilt(0.0))
     track.add(1_000_000_000, _tilt(0.3))
+    SliceConverter(info, specs, extrinsics=track, frame_id="warm_target", **opts).convert(
+        probe_scan(info))
+    # per-beam time offsets: a pose per pixel (the track kernel, then the general kernel)
+    info = dataclasses.replace(info, beam_time_offsets=np.arange(info.height, dtype=np.int64))
     SliceConverter(info, specs, extrinsics=track, frame_id="warm_target", **opts).convert(
         probe_scan(info))
 
