@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import functools
 import heapq
-import itertools
 import os
 import sqlite3
 import struct
@@ -421,44 +420,17 @@ def _register_definitions(con: sqlite3.Connection) -> None:
 def _rows(con: sqlite3.Connection) -> Iterator[Any]:
     """(id, topic_id, timestamp, data) in time order; when the time order cannot be read (a
     damaged or truncated file), in row order, i.e. as recorded, as far as the rows can be read
-    (an error after the first row is raised to the caller).
-
-    A BLOB is read through :meth:`sqlite3.Connection.blobopen` by its rowid: sqlite copies it
-    straight into the bytes object with the GIL let go (a ``SELECT data`` assembles it from its
-    overflow pages and Python copies it again, both holding the GIL: bench_convert, 0.4x the
-    CPU). Any other value (a damaged row) comes as the ``SELECT`` gives it."""
-    blobs = getattr(con, "blobopen", None)
-    try:
-        rows = _ordered(con, "rowid, id, topic_id, timestamp, typeof(data)") \
-            if blobs is not None else None
-    except _SQL_ERRORS:   # no rowid (not a rosbag2 table): the values as the SELECT gives them
-        rows = None
-    if rows is None:
-        yield from _ordered(con, "id, topic_id, timestamp, data")
-        return
-    for rowid, row_id, topic_id, stamp, kind in rows:
-        if kind == "blob":
-            with blobs("messages", "data", rowid, readonly=True) as blob:
-                data = blob.read()
-        else:
-            found = con.execute("SELECT data FROM messages WHERE rowid = ?", (rowid,)).fetchone()
-            if found is None:       # a damaged index: the caller reports the rest as damaged
-                raise sqlite3.DatabaseError(f"messages row {rowid} listed but not found")
-            data = found[0]
-        yield row_id, topic_id, stamp, data
-
-
-def _ordered(con: sqlite3.Connection, columns: str) -> Iterator[Any]:
-    """``SELECT columns FROM messages`` in (timestamp, id) order, else (a damaged index) in id
-    order; raises the error of a query that cannot start."""
-    query = f"SELECT {columns} FROM messages ORDER BY "  # noqa: S608 - fixed column names
+    (an error after the first row is raised to the caller)."""
+    query = "SELECT id, topic_id, timestamp, data FROM messages ORDER BY "
     try:
         cursor = con.execute(query + "timestamp, id")
         first = cursor.fetchone()
     except _SQL_ERRORS:
         cursor = con.execute(query + "id")
         first = cursor.fetchone()
-    return itertools.chain([first] if first is not None else [], cursor)
+    if first is not None:
+        yield first
+        yield from cursor
 
 
 def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | None,

@@ -41,12 +41,12 @@ MAGIC = b"\x89MCAP0\r\n"
 DEFAULT_ZSTD_LEVEL = 2
 #: log2 of the zstd hash table of a chunk whose messages all repeat their bytes only nearby
 #: (``add_message(local=True)``: a single-return LidarScan, a LidarInfo) at the default level:
-#: 2^13 four-byte entries (32 KiB) stay in a core's L1/L2 cache beside the chunk streaming
+#: 2^13 four-byte entries (32 KiB) stay in a core's L2 cache beside the chunk streaming
 #: through, level 2's own 2^16 (256 KiB) do not; repeats between neighbouring pixels and
 #: no-return runs are found all the same (bench/README.md, bench_convert: VLS-128 chunks
-#: ~0.5x level 2's CPU for +0.9 % bytes). Repeats a whole grid back (a second return repeating
-#: the first where there is none, 100-400 KB back) need level 2's own table: chunks with them
-#: keep it.
+#: 0.55-0.7x level 2's CPU for +0.9 % bytes; VLP32 +2 % over 2^14). Repeats a whole grid back
+#: (a second return repeating the first where there is none, 100-400 KB back) need level 2's
+#: own table: chunks with them keep it.
 LOCAL_HASH_LOG = 13
 COMPRESSIONS = ("zstd", "lz4", "none")
 
