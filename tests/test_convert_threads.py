@@ -82,3 +82,26 @@ def test_switch_interval_restored(tmp_path: Path) -> None:
     before = sys.getswitchinterval()
     _convert("velodyne_vls128", tmp_path / "o.mcap")
     assert sys.getswitchinterval() == before
+
+
+def test_second_compressing_thread_takes_only_the_backlog() -> None:
+    """The chunk compressors' pool keeps its first thread busy (one chunk running, one
+    waiting) before a second thread gets a chunk; results come back per job."""
+    import threading
+
+    from lidarscan._mcapfile import _SpillPool
+
+    release = threading.Event()
+    pool = _SpillPool(2)
+    try:
+        def job(k: int) -> tuple[int, str]:
+            release.wait(10)
+            return k, threading.current_thread().name.rsplit("_", 1)[0]
+
+        jobs = [pool.submit(job, k) for k in range(4)]
+        release.set()
+        got = [j.result(10) for j in jobs]
+    finally:
+        pool.shutdown()
+    assert got == [(0, "mcap-compress-0"), (1, "mcap-compress-0"), (2, "mcap-compress-1"),
+                   (3, "mcap-compress-1")]
