@@ -1,9 +1,9 @@
 """Benchmark: the whole ``lidarscan convert`` of a long raw-packet recording, vs real time.
 
 Run: ``.venv/bin/python bench/bench_convert.py [--seconds S] [--repeat N] [--threads N]
-[--base DIR] [--profile N]``. Prints, per recording, the convert time as a multiple of real time
-(sensor seconds / seconds) beside baselines measured in the same run, and optionally the
-cProfile top entries (of ``--threads 1``). No assertions.
+[--base DIR] [--profile N] [--timeline]``. Prints, per recording, the convert time as a
+multiple of real time (sensor seconds / seconds) beside baselines measured in the same run,
+and optionally the cProfile top entries (of ``--threads 1``). No assertions.
 Target (issue "Real sensors in"): >= 20x real time.
 
 Input: the real VLS-128 (single return, 6 250 packets/s) and Pandar64 (dual return) recordings of
@@ -49,7 +49,15 @@ alone (one thread, medians of 3 interleaved rounds): the records of every chunk 
 output compressed with the parameters the writer chose for it (level 2, its hash table smaller
 for chunks of single-return scans) vs level 2's own parameters for every chunk.
 
-The output size is printed beside each convert candidate.
+The output size is printed beside each convert candidate. The last round's output file is
+removed before a candidate's timing starts (freeing 70 MB of page cache is not part of a
+convert; ``--base`` children write a new file too).
+
+With ``--timeline``: one more default ``convert``, its stages timed in whichever thread runs
+them (:data:`_STAGES`: reading the rows, waiting for the reading thread, decoder set-up, decode,
+writing a message, handing a chunk over, packing and writing a chunk, closing): per thread its
+CPU, per stage its wall and CPU; wall above CPU is waiting (a lock, the GIL, the disk, or the
+machine's other processes).
 """
 
 from __future__ import annotations
@@ -330,6 +338,104 @@ def chunk_compression(out: Path, bag: Path, calibration: Path, rounds: int = 3) 
           f"{size['chosen'] / size['level 2']:.3f})")
 
 
+#: (module, attribute, stage) timed by ``--timeline``: where each thread spends its time
+_STAGES = [
+    ("converters.bags.Bag", "messages", "read (sqlite rows)"),
+    ("converters.cli._common._Input", "items", "wait for the reading thread"),
+    ("converters.velodyne.decoder.PacketDecoder", "__init__", "decoder set-up"),
+    ("converters.velodyne.decoder.PacketDecoder", "push_many", "decode"),
+    ("converters.hesai.PacketDecoder", "__init__", "decoder set-up"),
+    ("converters.hesai.PacketDecoder", "push_many", "decode"),
+    ("lidarscan.mcap.McapWriter", "write", "write (serialise, queue)"),
+    ("lidarscan.mcap.McapWriter", "close", "close (drain, summary)"),
+    ("lidarscan._mcapfile.ChunkedMcapWriter", "_finish_chunk", "hand a chunk over"),
+    ("lidarscan._mcapfile.ChunkedMcapWriter", "_pack", "pack (join, CRC, compress)"),
+    ("lidarscan._mcapfile.ChunkedMcapWriter", "_write_chunk", "write a chunk to the file"),
+]
+
+
+def timeline(bag: Path, calibration: Path, out: Path, sensor_s: float) -> None:
+    """One default ``convert`` with the stages of :data:`_STAGES` timed in whichever thread
+    runs them (wall by ``perf_counter``, CPU by ``thread_time``; generators per item): per
+    thread its CPU and per stage its wall and CPU. Wall well above CPU in a stage is waiting
+    (a lock, the GIL, I/O, or this machine's other processes)."""
+    import collections
+    import contextlib
+    import importlib
+    import inspect
+    import threading
+
+    spent: dict[tuple[str, str], list[float]] = collections.defaultdict(lambda: [0, 0.0, 0.0])
+    threads: dict[str, float] = collections.defaultdict(float)
+    lock = threading.Lock()
+
+    def account(stage: str, w0: float, c0: float) -> None:
+        name = threading.current_thread().name.rstrip("0123456789_").removesuffix("-")
+        with lock:
+            entry = spent[(name, stage)]
+            entry[0] += 1
+            entry[1] += time.perf_counter() - w0
+            entry[2] += time.thread_time() - c0
+
+    def timed(fn, stage):  # type: ignore[no-untyped-def]
+        if inspect.isgeneratorfunction(fn):
+            def each(*a, **k):  # type: ignore[no-untyped-def]
+                items = fn(*a, **k)
+                while True:
+                    w0, c0 = time.perf_counter(), time.thread_time()
+                    try:
+                        item = next(items)
+                    except StopIteration:
+                        return
+                    finally:
+                        account(stage, w0, c0)
+                    yield item
+            return each
+
+        def call(*a, **k):  # type: ignore[no-untyped-def]
+            w0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                account(stage, w0, c0)
+        return call
+
+    run = threading.Thread.run
+
+    def counted(self):  # type: ignore[no-untyped-def]
+        c0 = time.thread_time()
+        try:
+            run(self)
+        finally:
+            with lock:
+                threads[self.name.rstrip("0123456789_").removesuffix("-")] += \
+                    time.thread_time() - c0
+
+    with contextlib.ExitStack() as undo:
+        for where, attr, stage in _STAGES:
+            module, _, cls = where.rpartition(".")
+            try:
+                owner = getattr(importlib.import_module(module), cls)
+            except (ImportError, AttributeError):
+                continue
+            original = owner.__dict__[attr]
+            undo.callback(setattr, owner, attr, original)
+            setattr(owner, attr, timed(original, stage))
+        undo.callback(setattr, threading.Thread, "run", run)
+        threading.Thread.run = counted  # type: ignore[method-assign]
+        out.unlink(missing_ok=True)
+        c0, t0, w0 = time.process_time(), time.thread_time(), time.perf_counter()
+        run_convert(bag, calibration, out)
+        cpu, main_cpu, wall = (time.process_time() - c0, time.thread_time() - t0,
+                               time.perf_counter() - w0)
+    print(f"  timeline of one convert (load {os.getloadavg()[0]:.1f}): wall {wall:.3f} s = "
+          f"{sensor_s / wall:.1f}x, CPU {cpu:.3f} s; per thread CPU: MainThread {main_cpu:.3f} s"
+          + "".join(f", {name} {value:.3f} s" for name, value in sorted(threads.items())))
+    for (name, stage), (count, stage_wall, stage_cpu) in sorted(spent.items()):
+        print(f"    {name:18s} {stage:30s} x{count:<5d} wall {stage_wall:6.3f} s, "
+              f"CPU {stage_cpu:6.3f} s")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="sensor time per bag")
@@ -341,6 +447,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, action="append", metavar="N",
                         help="only convert --threads N (repeatable; N = 3 is the default "
                              "'convert'); default: every candidate")
+    parser.add_argument("--timeline", action="store_true",
+                        help="also time the stages of one default convert per thread")
     parser.add_argument("--more", action="store_true",
                         help="also --zstd-level 1 and 3 and --compress")
     parser.add_argument("--base", type=Path, metavar="DIR",
@@ -382,6 +490,7 @@ def main(argv: list[str] | None = None) -> int:
                     sizes["main"] = out.stat().st_size
                 for label, fn in runs:
                     _DECODE_CPU.clear()
+                    out.unlink(missing_ok=True)  # freeing the last output: not timed (as main's)
                     c0, t0, w0 = time.process_time(), time.thread_time(), time.perf_counter()
                     fn()
                     cpu, main_cpu = time.process_time() - c0, time.thread_time() - t0
@@ -422,6 +531,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"{need:.2f} s ({dec / max(need, 1e-9):.1f}x faster)" if need > 0 else
                       "  convert: 20x on 2 free cores is out of reach whatever the decoder")
             chunk_compression(out, bag, cal)
+            if args.timeline:
+                timeline(bag, cal, out, sensor_s)
             if args.profile:
                 prof = cProfile.Profile()
                 prof.runcall(run_convert, bag, cal, out, ["--threads", "1"])

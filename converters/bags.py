@@ -27,6 +27,7 @@ byte order from that header): :func:`velodyne_packets` for ``velodyne_msgs/msg/V
 
 from __future__ import annotations
 
+import functools
 import heapq
 import os
 import sqlite3
@@ -516,10 +517,11 @@ class PacketScan:
     data: Any
     sizes: Any
 
-    @property
+    @functools.cached_property
     def payloads(self) -> Any:
         """(N, size) uint8 view for ``PacketDecoder.push_many`` when every packet has the same
-        size, else None (PandarScan with mixed ``size``)."""
+        size, else None (PandarScan with mixed ``size``). Computed once (``convert`` asks for
+        it in its reading thread: the size test is a numpy loop that lets go of the GIL)."""
         n = len(self.sizes)
         if n == 0 or not bool((self.sizes == self.sizes[0]).all()):
             return None

@@ -121,9 +121,10 @@ class McapWriter:
             :class:`lidarscan.rosbag2.QosProfile`, rosbag2's dict form, or a list of these.
         threads: 1 (default): everything in the caller's thread; 2: the chunks are compressed
             and written by one background thread (overlapping the caller's work on a second
-            core); N > 2: N - 1 threads compress chunks side by side, written in order. Same
-            file bytes for every N; at most a few chunks queued, then :meth:`write` waits; an
-            error of those threads is raised by a later :meth:`write` or by :meth:`close`.
+            core); N > 2: N - 1 threads compress chunks side by side (a further one only when
+            the others fall behind), written in order. Same file bytes for every N; at most a
+            few chunks queued, then :meth:`write` waits; an error of those threads is raised by
+            a later :meth:`write` or by :meth:`close`.
         crc: compute each chunk's CRC-32 (default); False writes 0 ("not computed" in MCAP:
             readers skip the check).
         file_name: the storage file name the rosbag2 metadata record lists (default: the

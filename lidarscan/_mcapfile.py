@@ -41,12 +41,13 @@ MAGIC = b"\x89MCAP0\r\n"
 DEFAULT_ZSTD_LEVEL = 2
 #: log2 of the zstd hash table of a chunk whose messages all repeat their bytes only nearby
 #: (``add_message(local=True)``: a single-return LidarScan, a LidarInfo) at the default level:
-#: 2^14 four-byte entries (64 KiB) stay in a core's cache beside the chunk streaming through,
-#: level 2's own 2^16 (256 KiB) hardly do; repeats between neighbouring pixels and no-return
-#: runs are found all the same (bench/README.md, bench_convert: VLS-128 chunks ~0.65x the CPU
-#: for +0.4 % bytes). Repeats a whole grid back (a second return repeating the first where
-#: there is none, 100-400 KB back) need level 2's own table: chunks with them keep it.
-LOCAL_HASH_LOG = 14
+#: 2^13 four-byte entries (32 KiB) stay in a core's L2 cache beside the chunk streaming
+#: through, level 2's own 2^16 (256 KiB) do not; repeats between neighbouring pixels and
+#: no-return runs are found all the same (bench/README.md, bench_convert: VLS-128 chunks
+#: 0.55-0.7x level 2's CPU for +0.9 % bytes; VLP32 +2 % over 2^14). Repeats a whole grid back
+#: (a second return repeating the first where there is none, 100-400 KB back) need level 2's
+#: own table: chunks with them keep it.
+LOCAL_HASH_LOG = 13
 COMPRESSIONS = ("zstd", "lz4", "none")
 
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
@@ -124,6 +125,34 @@ class _Background:
         return self._error is not None
 
 
+class _SpillPool:
+    """``workers`` compressing threads, the first kept busy before the others are given work:
+    a job goes to the first thread with fewer than 2 jobs in hand (one running, one waiting),
+    else to the one with fewest. Each thread that joins in costs CPU in every thread (caches
+    shared with the converting thread: bench/README.md, bench_convert), so a second one only
+    takes the chunks the first cannot keep up with."""
+
+    def __init__(self, workers: int) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pools = [ThreadPoolExecutor(1, thread_name_prefix=f"mcap-compress-{k}")
+                       for k in range(workers)]
+        self._jobs: list[list[Any]] = [[] for _ in self._pools]
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
+        for jobs in self._jobs:
+            jobs[:] = [job for job in jobs if not job.done()]
+        k = next((k for k, jobs in enumerate(self._jobs) if len(jobs) < 2),
+                 min(range(len(self._jobs)), key=lambda k: len(self._jobs[k])))
+        job = self._pools[k].submit(fn, *args)
+        self._jobs[k].append(job)
+        return job
+
+    def shutdown(self) -> None:
+        for pool in self._pools:
+            pool.shutdown()
+
+
 def _compressor(compression: str, level: int | None, local: bool = False
                 ) -> tuple[str, Callable[[bytes], bytes]]:
     """(the Chunk record's compression name, compress(records) -> frame); ``local``: the
@@ -165,7 +194,8 @@ class ChunkedMcapWriter:
         threads: 1: everything in the caller's thread; 2: the chunks are compressed and
             written by one writer thread (zstd, lz4, CRC-32 and file writes release the GIL:
             they overlap the caller's work on another core); N > 2: N - 1 threads compress
-            chunks side by side and the writer thread writes them in order. The file's bytes
+            chunks side by side (the first kept busy before the next is given chunks:
+            :class:`_SpillPool`) and the writer thread writes them in order. The file's bytes
             are the same for every N. At most ``queue_chunks`` closed chunks (at least 2 per
             compressing thread) wait for the threads, then :meth:`add_message` blocks (memory
             stays bounded); an error of a thread is raised by the next call here (at the
@@ -207,8 +237,7 @@ class ChunkedMcapWriter:
             if threads > 1 else None
         self._pool: Any = None
         if threads > 2:
-            from concurrent.futures import ThreadPoolExecutor
-            self._pool = ThreadPoolExecutor(threads - 1, thread_name_prefix="mcap-compress")
+            self._pool = _SpillPool(threads - 1)
 
     def _write(self, data: Any) -> None:
         self._stream.write(data)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,12 @@ from converters.cli.convert_pipeline import ConvertReport, _Plan
 
 
 _TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+#: the interpreter's GIL switch interval (s) while ``convert`` runs with threads (Python's
+#: default is 5 ms): the reading and output threads take the GIL for short moments between
+#: their sqlite reads, zstd and file writes, and the converting thread gives it up in every
+#: ctypes call and numpy loop; a thread that asks for it back waits up to one interval
+#: (bench/README.md, bench_convert: the converting thread's waits)
+GIL_SWITCH_S = 0.001
 
 
 def parse_slice(text: str) -> Any:
@@ -193,6 +200,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
     progress = Progress(size, f"converting {src.name}",
                         enabled=True if args.progress else (None if not args.quiet else False))
     interrupted = finished = False
+    switch = sys.getswitchinterval()
+    if args.threads > 1:    # see GIL_SWITCH_S
+        sys.setswitchinterval(min(switch, GIL_SWITCH_S))
     try:
         try:
             if mode == "ouster":
@@ -210,7 +220,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
             interrupted = True
         finally:
             progress.close()
-            writer.close()
+            try:
+                writer.close()
+            finally:
+                sys.setswitchinterval(switch)
         if not interrupted and report.read == 0 and report.bad:
             raise McapFormatError(f"IN {src}", f"{len(report.bad)} damaged part(s), listed above",
                                   "at least one readable message; nothing written")

@@ -220,7 +220,11 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
                 report.converted += 1
 
     def parse(item: Any) -> Any:    # in the reading thread
-        return PACKET_TYPES[item.msgtype][1](item.payload) if item.topic in decoders else None
+        if item.topic not in decoders:
+            return None
+        packets = PACKET_TYPES[item.msgtype][1](item.payload)
+        packets.payloads  # noqa: B018 - computed (and kept) here, not in the converting thread
+        return packets
 
     last: dict[str, tuple[int, int]] = {}
     for item, packets in report.good(source.items(progress, prepare=parse), emit):
