@@ -112,7 +112,7 @@ from lidarscan.errors import (
     ValidationError,
 )
 from lidarscan.geometry import azimuth_channel, info_key, make_projector, pixel_delays
-from lidarscan.scan import as_array, channel
+from lidarscan.scan import as_array, channel, return_channel, return_of
 from lidarscan.stamps import split_ns, to_ns
 
 __all__ = [
@@ -185,7 +185,9 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
         time_reference: "stamp", "first" or "last" (see the module docstring); default: the
             preset's ("stamp" without preset).
         motion: default motion for deskew (:func:`converters.deskew.as_motion` forms), or None.
-        range_channel: the channel holding the ranges ("range", "range2", ...).
+        range_channel: the channel holding the ranges ("range", "range2", ...). For the N-th
+            return's range, channel fields read that return's channel (``intensity2``) where
+            the scan has one, else the shared channel (``ambient``).
         frame_id: header.frame_id of the clouds; default the scan's.
         threads: split the rows over this many threads (numpy and the kernel release the
             GIL); 1 = no thread pool.
@@ -580,10 +582,18 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
     def _images(self, scan: Any, specs: Sequence[FieldSpec]) -> dict[str, Any]:
         """The scan channel (view) feeding each channel field; None: zero-fill (presets)."""
         images: dict[str, Any] = {}
+        names = [d.name for d in scan.channels]
+        number = return_of(self.range_channel, names)[1]
         for spec in specs:
             if spec.source != "channel":
                 continue
-            desc = find_channel(scan, spec.channels)
+            # a field of the N-th return's cloud reads that return's channel (intensity2 beside
+            # range2) where the scan has one; a channel measured once per pixel (ambient) is
+            # shared by every return
+            desc = None if number == 1 else find_channel(
+                scan, [return_channel(name, number) for name in spec.channels])
+            if desc is None:
+                desc = find_channel(scan, spec.channels)
             if desc is None:
                 if self.preset is None:
                     raise UnknownChannelError("fields", spec.name,

@@ -260,6 +260,25 @@ def test_integer_range_channel_and_uint32_mm_field(tiny: tuple[Any, Any]) -> Non
     assert np.all(pts["ambient"] == 0)               # preset channel missing -> zero-filled
 
 
+def test_second_return_cloud_reads_the_second_returns_channels(tiny: tuple[Any, Any]) -> None:
+    """range_channel="range2": intensity comes from intensity2 (the same return), a channel
+    measured once per pixel (ambient) is shared; each field checked against its source."""
+    info, scan = tiny
+    rng_m = np.asarray(lidarscan.channel(scan, "range"))
+    inten = np.asarray(lidarscan.channel(scan, "intensity"), dtype=np.float32)
+    ambient = np.arange(inten.size, dtype=np.uint16).reshape(inten.shape)
+    chans = {"range": rng_m, "intensity": inten, "range2": rng_m * 1.5,
+             "intensity2": inten + 1000.0, "ambient": ambient}
+    dual = lidarscan.make_scan(info, chans, 5_000_000_123,
+                               column_time_offsets=scan.column_time_offsets)
+    proj = lidarscan.make_projector(info)
+    for name, want in (("range", inten), ("range2", inten + 1000.0)):
+        pts = pc.read_points(pc.to_pointcloud2(dual, info, range_channel=name,
+                                               fields=("x", "y", "z", "intensity", "ambient")))
+        np.testing.assert_array_equal(pts["intensity"], proj.destagger(want))
+        np.testing.assert_array_equal(pts["ambient"], proj.destagger(ambient))
+
+
 def test_measured_column_azimuths_are_used(tiny: tuple[Any, Any]) -> None:
     info, scan = tiny
     az = np.asarray(info.horizontal_angles) + np.linspace(0, 0.01, 12)
