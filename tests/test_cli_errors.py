@@ -137,9 +137,6 @@ def test_a_hesai_calibration_of_another_model_is_refused_up_front(
     assert not list(tmp_path.glob("*.mcap*"))
 
 
-@pytest.mark.xfail(strict=True, reason="for the lead (converters/cli/convert*.py): an option "
-                   "naming an input topic that does not exist is ignored (exit 0), though the "
-                   "CLI's docstring says such options exit 2 with nothing written")
 @pytest.mark.parametrize("option", [["--cloud-topic", "/nope"],
                                     ["--merge-topic", "/nope", "--merge"]])
 def test_an_option_naming_a_topic_that_is_not_there_is_refused(
@@ -167,3 +164,15 @@ def test_a_bad_option_value_is_one_error_line_after_a_short_usage(
     assert lines == ["usage: lidarscan convert [-h] [options] IN OUT", lines[1]], lines
     assert lines[1].startswith("lidarscan convert: error: ") and words in lines[1]
     assert not list(tmp_path.iterdir())
+
+
+def test_an_output_a_recording_without_lidar_cannot_make_is_refused(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--pointcloud2 / --slice on a recording of LaserScans only: nothing to make them from."""
+    laser = next((Path(__file__).parent / "data" / "laserscan").glob("*.mcap"))
+    for option in (["--pointcloud2"], ["--slice", "s:0:1"]):
+        status, lines = run(["convert", str(laser), str(tmp_path / "o.mcap"), "-q", *option],
+                            capsys)
+        assert status == 2, (option, lines)
+        one_error(lines, "convert", option[0], "sensor_msgs/msg/LaserScan")
+    assert not list(tmp_path.glob("*.mcap*"))

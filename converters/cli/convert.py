@@ -95,6 +95,25 @@ def _prefixes(inputs: Sequence[str]) -> dict[str, str]:
     return {t: _namespace(t) if shared[_namespace(t)] == 1 else t for t in inputs}
 
 
+def _listing(topics: dict[str, str]) -> str:
+    return ", ".join(f"{t} ({k})" for t, k in sorted(topics.items())) or "no topics"
+
+
+def _check_input_topics(topics: dict[str, str], args: argparse.Namespace) -> None:
+    """Refuses (exit 2) an input-topic option naming a topic IN does not have with that type."""
+    from lidarscan.errors import ConfigError
+
+    for option, wanted, names in (("--cloud-topic", "sensor_msgs/msg/PointCloud2",
+                                   args.cloud_topic),
+                                  ("--merge-topic", "sensor_msgs/msg/LaserScan",
+                                   args.merge_topic)):
+        for name in names or ():
+            if topics.get(name) != wanted:
+                have = sorted(t for t, k in topics.items() if k == wanted)
+                raise ConfigError(option, name, f"a {wanted} topic of IN (it has "
+                                  f"{', '.join(have) or 'none'})")
+
+
 def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any],
           mode: str) -> _Plan:
     """The output topics; refuses (exit 2) an output topic the input already has unless it is
@@ -104,6 +123,8 @@ def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any
     from lidarscan.mcap import SCAN_TYPE
 
     plan = _Plan(excluded=set(args.exclude))
+    if mode != "ouster":
+        _check_input_topics(topics, args)
     if mode == "packets":
         sources = [t for t, k in topics.items() if k in PACKET_TYPES]
         plan.prefix = {t: t for t in sources}
@@ -119,6 +140,10 @@ def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any
         per = []
     per += (["points"] if args.pointcloud2 and mode != "clouds" else []) + \
         [f"slices/{s.name}" for s in slices]
+    if mode == "scans" and not sources and per:
+        asked = "--pointcloud2" if args.pointcloud2 else "--slice"
+        raise ConfigError(asked, True, "a recording with LidarScan, lidar packet or "
+                          f"PointCloud2 topics to make it from (IN has {_listing(topics)})")
     for topic in sources:
         for name in per:
             plan.outputs[f"{plan.prefix[topic]}/{name}"] = topic
