@@ -37,6 +37,10 @@ class _Stream:
     packet_size: int
     last_firing_at: int       # byte offset of the last firing's first block from block 0
     state: int = -1           # 128 series: the tail's operational state; -1: none
+    #: 128 series with a firetime file: ((4, 2, rows) int64 ns after the block's start by
+    #: azimuth state, [far, near], row; near/far distance in m), else None
+    pixel_firetimes: tuple[np.ndarray[Any, Any], float] | None = dataclasses.field(
+        default=None, compare=False, repr=False)
 
     @functools.cached_property
     def first_channel_ns(self) -> int:
@@ -60,7 +64,7 @@ class _Stream:
         names = _channel_names(_block_kinds(self.fmt, self.mode))
         specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
                  for k, name in enumerate(pair)}
-        if self.fmt.pixel_tables:
+        if self.fmt.pixel_tables or self.pixel_firetimes is not None:
             specs["t"] = np.int32
         return names, {k: specs[k] for k in sorted(specs, key=_channel_rank)}
 
@@ -124,6 +128,9 @@ def _packet_dtype(fmt: HesaiFormat, size: int) -> np.dtype[Any]:
     offsets = [fmt.body, fmt.timestamp_at, fmt.datetime_at]
     if fmt.mode_flag_at is not None:
         names, formats, offsets = names + ["flag"], formats + ["u1"], offsets + [fmt.mode_flag_at]
+    if fmt.state_at is not None:            # 128 series: the tail's azimuth state (u16)
+        names, formats, offsets = (names + ["azimuth_state"], formats + ["<u2"],
+                                   offsets + [fmt.state_at - 2])
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": size})
 
 
@@ -145,6 +152,32 @@ def _pixel_times(fmt: HesaiFormat, states: np.ndarray[Any, Any], order: np.ndarr
     channels that do not fire in a firing get 0."""
     table = np.asarray(fmt.pixel_tables, np.int32)[:, order]        # (states, H)
     out[:, :states.size] = np.maximum(table[states].T, 0)
+
+
+def _azimuth_states(stream: _Stream, recs: list[np.ndarray[Any, Any]]
+                    ) -> np.ndarray[Any, Any]:
+    """(F,) azimuth state (0..3) of every buffered firing of a 128-series stream: the tail's
+    azimuth state bits of the block holding the firing's ``range`` return (bits 15:14 block
+    1, 13:12 block 2)."""
+    names, _ = stream.channels
+    primary = names.index(("range", "intensity"))
+    blocks = np.arange(stream.firings) * stream.returns + primary
+    states = np.concatenate([rec["azimuth_state"] for rec in recs]).astype(np.int64)
+    return ((states[:, None] >> (14 - 2 * blocks)[None, :]) & 3).reshape(-1)
+
+
+def _firetime_pixels(stream: _Stream, flags: np.ndarray[Any, Any], ranges: np.ndarray[Any, Any],
+                     out: np.ndarray[Any, Any]) -> None:
+    """Write the per-pixel firing times of a 128-series rotation with a firetime file into the
+    first C columns of ``out`` (H, W) int32: the delay after its block's start of each row's
+    channel in each column's azimuth state ``flags`` (C,), the near-field one where the
+    ``ranges`` (H, W) raw distance is below the file's near/far distance (a no-return pixel,
+    raw 0, counts as near)."""
+    assert stream.pixel_firetimes is not None
+    table, near_m = stream.pixel_firetimes
+    c = flags.size
+    near = ranges[:, :c] * stream.dis_unit_m < near_m
+    out[:, :c] = np.where(near, table[flags, 1].T, table[flags, 0].T)
 
 
 def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, Any]:
