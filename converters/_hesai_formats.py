@@ -58,15 +58,30 @@ Channel", from page 76 on, has the same values where both could be read): a chan
 1, 13:12 block 2; 0-3 in high performance, 0-1 otherwise) and far/near-field firing (distance >
 2.85 m or not). So a pixel's delay depends on its firing (flag) and its own distance, which
 neither ``beam_time_offsets`` nor a per-firing table can express; only a per-pixel ``t`` channel
-could. Only the rows of channels 41-51 of that table could be read for this module (the stored
-copies of the manual's pages are cut after ~12 rows); they show delays of 7.7-27.4 us in high
-performance mode and 12.7-55.2 us in standard mode, the flags shifting them by 0.35-0.7 us and
-near-field firing by up to 16.7 us. Without the other 117 rows, and since the packet does not
-say whether it is a 128E3X or a 128E4X/OT128 (whose tables are not the same), these delays are
-not applied: ``beam_time_offsets`` are 0 and a pixel's time is its block's start, early by up to
-the firing period (55.6 us). The OT128 (128E4X) manual was not available either: its block times
-are taken to be the 128E3X's (same protocol 1.4 packet). ``vendor_metadata``'s
-``channel_timing`` and ``operational_state`` say which case a scan is.
+could. Only the rows of channels 41-51 of that table could be read in the manual (the stored copies
+of its pages are cut after ~12 rows); they show delays of 7.7-27.4 us in high performance mode
+and 12.7-55.2 us in standard mode, the flags shifting them by 0.35-0.7 us and near-field firing
+by up to 16.7 us, and equal the same rows of the vendor's "Firetime Correction File" for the
+Pandar128E3X (Hesai's SDK, HesaiLidar_SDK_2.0, ``correction/firetime_correction``), which holds
+the whole table. Since the packet does not say whether it is a 128E3X or a 128E4X/OT128
+(whose tables are not the same), the table is not built in: given the sensor's firetime file
+(:func:`load_firetimes`), each pixel gets its time in a ``t`` channel (:mod:`converters.hesai`,
+"Firetime files"); without it, ``beam_time_offsets`` are 0 and a pixel's time is its block's
+start, early by up to the firing period (55.6 us). The OT128 (128E4X) manual was not available
+either: its block times are taken to be the 128E3X's (same protocol 1.4 packet).
+``vendor_metadata``'s ``channel_timing`` and ``operational_state`` say which case a scan is.
+
+Firetime files (vendor data; the SDK's files and the manual's tables, read to learn the
+format): per-channel files ``Channel,fire time(us)`` (Pandar40P, Pandar64: negative times
+before the block's end, equal to the built-in tables; PandarXT/XT-16/XT-32M2X: after the
+firing's nominal time, the built-in table + 5.632 us; PandarQT: the built-in table - 10 us);
+the Pandar128E3X table (integer ns after the block's start per operational state 0/2/3,
+azimuth state and far/near field: ``distance>=A1`` / ``distance<A1``, A1 = the section distance
+in metres in the first cell, 2.85; the SDK's parser picks column (state, azimuth state) and
+far/near the same way); the OT128 table (``Operational State`` 0/2 and ``Azimuth State``
+lines, microseconds after the block's start, ``-`` = not fired, no near/far). In high
+performance mode each azimuth state fires 96 of the 128 channels (the file's 0 or ``-``
+elsewhere).
 
 Dual-return block order (what blocks 1 and 2 of a firing hold): Pandar40P and Pandar64 0x39: last,
 strongest (manuals; confirmed on the Pandar64 recording: block 1 is never nearer than block 2);

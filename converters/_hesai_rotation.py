@@ -5,7 +5,8 @@ the stream's geometry and time model (``_Stream``: firing period and block start
 scan's channels), the tail's date-time in POSIX seconds, zero-copy structured views of payload
 rows (``_records``), the copy of the units into the scan's grids (``_units``: the compiled
 kernel of :mod:`converters._kernels.hesai`, with :func:`_units_numpy` as its reference), the
-QT128 per-pixel firing times and the process-wide LidarInfo templates. Conventions (axes, rows,
+QT128 and (with a firetime file) 128-series per-pixel firing times and the process-wide
+LidarInfo templates. Conventions (axes, rows,
 columns, time): the module docstring of :mod:`converters.hesai`; formats:
 :mod:`converters._hesai_formats`. Nothing here is public API.
 """

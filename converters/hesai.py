@@ -92,9 +92,31 @@ Conventions
   most, float32 rounding (tests/test_hesai.py); for the XT16, XT32M and QT128 (Nebula's test
   recordings, checked outside the test suite, which does not ship them) 11 um at most, every
   ground-truth point matched. Not expressible in LidarInfo: the QT128/128-series per-firing
-  channel delays (QT128: the ``t`` channel; 128 series: not applied, stated in
-  vendor_metadata, because the manual's per-pixel table could not be obtained whole; its block
-  times and high-resolution mode: :mod:`converters._hesai_formats`).
+  channel delays (QT128: the ``t`` channel; 128 series: the ``t`` channel when the sensor's
+  firetime correction file is given, see below; without it they are not applied, as
+  vendor_metadata states; its block times and high-resolution mode:
+  :mod:`converters._hesai_formats`).
+* Firetime files (``firetimes=``, ``lidarscan convert --firetimes FILE``; optional vendor
+  data like the angle-correction CSV; formats and sources:
+  :func:`converters._hesai_formats.load_firetimes`). 128 series (Pandar128E3X table or
+  OT128/128E4X table; the packets do not say which sensor it is, the file does): scans get
+  an INT32 ``t`` channel = the pixel's delay after its column's time (its block's start), the
+  file's value for the packet's operational state (energy saving and shutdown: standard's
+  columns when the file has none of their own), the azimuth state of the block holding the
+  ``range`` return (tail bits 15:14 block 1, 13:12 block 2; a state the file has no column
+  for gives 0) and, for the Pandar128E3X table, near field where the ``range`` return is
+  nearer than the file's section distance (2.85 m; no return, raw 0, counts as near; a
+  dual-return ``range2`` pixel shares its firing's ``t``); 0 where the channel does not fire
+  in that state. A file without columns for the packets' operational state raises a
+  DecodeError. Models with one time per channel (Pandar40P/64, PandarXT family, PandarQT64):
+  the file's times replace the built-in table, shifted so that the earliest channel keeps
+  the built-in absolute time (each vendor file has its own zero; the SDK's files for these
+  models agree with the built-in tables to < 0.5 ns after that shift, so the scans are
+  unchanged, ``tests/test_hesai_firetimes.py``). The PandarQT128 takes no file (its loops
+  are built in). A file of another model (channel count, or a per-channel file for the 128
+  series and the reverse) raises a DecodeError at the stream's first packet;
+  ``vendor_metadata`` then carries ``"firetimes"`` (``"per pixel (state table)"`` or
+  ``"per channel"``) and, for the 128 series, a ``channel_timing`` saying how ``t`` is made.
 
 * Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
   (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
@@ -110,7 +132,7 @@ beam_time_offsets (firing table), column_time_increment (firing period), beam_id
 range_multiplier (dis unit), range_min/range_max (the model's limits or the options),
 horizontal_angles (nominal pi/2 - 2 pi c / W'; scans carry the measured ones), vendor "Hesai",
 model, vendor_metadata (a JSON line with the detected format, return mode and rpm; the 128
-series also its operational state).
+series also its operational state; with a firetime file, ``firetimes``).
 """
 
 from __future__ import annotations

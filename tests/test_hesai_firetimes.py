@@ -331,3 +331,34 @@ def test_without_a_file_nothing_changes() -> None:
     assert "t" not in [c.name for c in scan.channels]
     assert "firetimes" not in json.loads(info.vendor_metadata)
     assert DATE and MODELS                                    # shared layout constants
+
+
+# ------------------------------------------------------------------------------------ CLI
+def test_convert_takes_firetimes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`lidarscan convert --firetimes FILE`: the decoder gets the file (the Pandar64 vendor
+    file agrees with the built-in table: same scans, the info says so); a file that cannot
+    be read or packets whose decoder takes none: exit 2 naming the problem."""
+    from converters import cli
+    from lidarscan.mcap import read_scans
+
+    bag, calib = NEBULA / "hesai_pandar64" / "bag", NEBULA / "hesai_pandar64" / "Pandar64.csv"
+    outs = {}
+    for key, extra in (("plain", []), ("timed", ["--firetimes", str(_file("Pandar64"))])):
+        outs[key] = tmp_path / f"{key}.mcap"
+        status = cli.main(["convert", str(bag), str(outs[key]), "--calibration", str(calib),
+                           "-q", *extra])
+        assert status == 0, capsys.readouterr().err
+    plain, timed = (list(read_scans(outs[k])) for k in ("plain", "timed"))
+    assert len(plain) == len(timed) > 0
+    for (a, ia), (b, ib) in zip(plain, timed):
+        assert bytes(a.data) == bytes(b.data)
+        assert "firetimes" in json.loads(ib.vendor_metadata)
+    status = cli.main(["convert", str(bag), str(tmp_path / "bad.mcap"), "--calibration",
+                       str(calib), "-q", "--firetimes", str(tmp_path / "missing.csv")])
+    err = capsys.readouterr().err
+    assert status == 2 and "firetimes" in err and not (tmp_path / "bad.mcap").exists(), err
+    vlp = NEBULA / "velodyne_vlp32"
+    status = cli.main(["convert", str(vlp / "bag"), str(tmp_path / "v.mcap"), "--calibration",
+                       str(vlp / "VLP32.yaml"), "-q", "--firetimes", str(_file("Pandar64"))])
+    err = capsys.readouterr().err
+    assert status == 2 and "--firetimes" in err and not (tmp_path / "v.mcap").exists(), err
