@@ -17,6 +17,11 @@ functional safety 17 bytes; tail: QT128 5 reserved, mode flag, 6 reserved; 128 s
 reserved, azimuth state u16, operational state; then both: return mode, motor speed, date-time,
 timestamp, factory info, UDP sequence, (128: IMU 22 bytes), CRC u32; then the 32-byte signature.
 No "fine azimuth" byte exists in these formats (that is the AT128's, not decoded here).
+Pandar128 (protocol 1.3, older firmware; its user manual, 3.2.2 "UDP Data"): 12-byte header
+whose last byte only says whether the UDP sequence is sent; body = 2 blocks of an azimuth and
+128 3-byte units, no CRC; 24-byte tail: 6 reserved, high-temperature flag, 3 reserved, motor
+speed, timestamp, return mode, factory, date-time; then the UDP sequence. No operational or
+azimuth state, so no firetime table applies (its timing: ``_pandar128_v13``).
 
 Sources of the timing tables: Pandar40P, its manual's Table II.4 (time of each laser before its
 block's end) and block end times; Pandar64, its manual's block end times (t0 - 42.58 us - 55.56 us
@@ -351,8 +356,33 @@ FORMATS["PandarXT32M"] = _xt_format(
     "PandarXT32M", 32, 6, tuple(368.0 + 2888.0 * (k % 16) for k in range(32)), (0.5, 300.0),
     _ORDERS_12B + ((0x3D, ("first", "last", "strongest")),))
 
+
+
+def _pandar128_v13() -> HesaiFormat:
+    """The Pandar128's older firmware (protocol 1.3; the Pandar128 user manual, 3.2.2 "UDP
+    Data" and Appendix II.1): 12-byte header (its last byte: UDP sequence on/off), body of 2
+    blocks of an azimuth and 128 3-byte units (distance, reflectivity) = 772 bytes, no CRC;
+    24-byte tail: 6 reserved, high-temperature flag, 3 reserved, motor speed u16 (+10),
+    timestamp u32 (+12), return mode (+16), factory (+17), date-time (+18); then the optional
+    4-byte UDP sequence. t0 is the trigger of block 2's firing (single return; both blocks'
+    firing in dual return, block 1 last, block 2 strongest); block 1 fires one period earlier,
+    55.556 us as the 128E3X's standard mode (the 1.3 manual's block-time table could not be
+    read); its channel delays are not applied (no table)."""
+    tail = 12 + 2 * (2 + 3 * 128)
+    why = "the Pandar128 (protocol 1.3) manual's per-channel table could not be read"
+    return HesaiFormat(
+        model="Pandar128", lasers=128, blocks=2, body=12, block_size=2 + 3 * 128, azimuth_at=0,
+        unit_size=3, size=tail + 24, return_mode_at=tail + 16, motor_speed_at=tail + 10,
+        timestamp_at=tail + 12, datetime_at=tail + 18, firing_period_ns=55556.0,
+        block_base_ns=0.0, block_ref_last=True, channel_ns=(0.0,) * 128, dis_unit_at=9,
+        range_limits=(0.3, 200.0), dual_orders=((0x39, ("last", "strongest")),),
+        channel_timing=_NOT_PER_BEAM.format(why))
+
+
+FORMATS["Pandar128"] = _pandar128_v13()
+
 _SUPPORTED = ("supported: Pandar40P, Pandar64, PandarXT16/XT32/XT32M (protocol 6.1), PandarQT64 "
-              "(3.1), PandarQT128 (3.2), Pandar128E3X/E4X/OT128 (1.4)")
+              "(3.1), PandarQT128 (3.2), Pandar128E3X/E4X/OT128 (1.4), Pandar128 (1.3)")
 
 
 def detect_format(packet: bytes) -> HesaiFormat:
@@ -390,7 +420,8 @@ def detect_format(packet: bytes) -> HesaiFormat:
             names = {(6, 1): "PandarXT (6.1): 16 or 32 lasers, 8 blocks; 32 lasers, 6 blocks",
                      (3, 1): "PandarQT64 (3.1): 64 lasers, 4 blocks",
                      (3, 2): "PandarQT128 (3.2): 128 lasers, 2 blocks",
-                     (1, 4): "Pandar128E3X/E4X/OT128 (1.4): 128 lasers, 2 blocks"}
+                     (1, 4): "Pandar128E3X/E4X/OT128 (1.4): 128 lasers, 2 blocks",
+                     (1, 3): "Pandar128 (1.3): 128 lasers, 2 blocks"}
             expected = names.get((major, minor))
             raise DecodeError("hesai header (protocol major.minor, laser num, block num)",
                               f"{major}.{minor}, {lasers}, {blocks}",
@@ -407,14 +438,17 @@ def detect_format(packet: bytes) -> HesaiFormat:
     if n not in sizes:
         raise DecodeError("hesai packet size", n, " or ".join(map(str, sizes))
                           + f" bytes for a {fmt.model} packet" + (
-                              f" with header flags {packet[11]:#04x}" if fmt.sizes else ""))
+                              f" with header flags {packet[11]:#04x}" if fmt.sizes else
+                          f" (header {packet[2]}.{packet[3]}, 128, 2)" if fmt.model ==
+                          "Pandar128" else ""))
     return fmt
 
 
 #: (protocol major, minor, laser num, block num) of the 12-byte header -> model
 _MODELS_12B = {(6, 1, 32, 8): "PandarXT32", (6, 1, 16, 8): "PandarXT16",
                (6, 1, 32, 6): "PandarXT32M", (3, 1, 64, 4): "PandarQT64",
-               (3, 2, 128, 2): "PandarQT128", (1, 4, 128, 2): "Pandar128E3X/E4X"}
+               (3, 2, 128, 2): "PandarQT128", (1, 4, 128, 2): "Pandar128E3X/E4X",
+               (1, 3, 128, 2): "Pandar128"}
 
 
 # ------------------------------------------------------------------------------- calibration

@@ -22,6 +22,8 @@ PandarQT128    protocol 3.2, laser num 128, 2 blocks   128     2       from the 
 Pandar128E3X,  protocol 1.4, laser num 128, 2 blocks   128     2       from the Flags byte
 Pandar128E4X                                                           (861 with UDP seq,
 (OT128)                                                                FS, IMU; +32 signed)
+Pandar128      protocol 1.3 (older firmware), laser    128     2       808 (+4 UDP seq)
+               num 128, 2 blocks
 =============  ======================================  ======  ======  ====================
 
 The model is detected from the packet's own bytes (pre-header, protocol version major.minor,
