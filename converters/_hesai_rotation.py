@@ -16,6 +16,7 @@ from __future__ import annotations
 import calendar
 import dataclasses
 import functools
+import math
 import struct
 from dataclasses import dataclass
 from typing import Any
@@ -38,9 +39,10 @@ class _Stream:
     packet_size: int
     last_firing_at: int       # byte offset of the last firing's first block from block 0
     state: int = -1           # 128 series: the tail's operational state; -1: none
-    #: 128 series with a firetime file: ((4, 2, rows) int64 ns after the block's start by
-    #: azimuth state, [far, near], row; near/far distance in m), else None
-    pixel_firetimes: tuple[np.ndarray[Any, Any], float] | None = dataclasses.field(
+    #: 128 series with a firetime file: ((rows, 8) int32 ns after the block's start of each
+    #: row's channel, column 2 * azimuth state + near; the smallest raw distance that is far
+    #: field), else None
+    pixel_firetimes: tuple[np.ndarray[Any, Any], int] | None = dataclasses.field(
         default=None, compare=False, repr=False)
 
     @functools.cached_property
@@ -172,13 +174,22 @@ def _firetime_pixels(stream: _Stream, flags: np.ndarray[Any, Any], ranges: np.nd
     """Write the per-pixel firing times of a 128-series rotation with a firetime file into the
     first C columns of ``out`` (H, W) int32: the delay after its block's start of each row's
     channel in each column's azimuth state ``flags`` (C,), the near-field one where the
-    ``ranges`` (H, W) raw distance is below the file's near/far distance (a no-return pixel,
-    raw 0, counts as near)."""
+    ``ranges`` (H, W) uint16 raw distance is nearer than the file's near/far distance (a
+    no-return pixel, raw 0, counts as near)."""
     assert stream.pixel_firetimes is not None
-    table, near_m = stream.pixel_firetimes
+    table, first_far = stream.pixel_firetimes
     c = flags.size
-    near = ranges[:, :c] * stream.dis_unit_m < near_m
-    out[:, :c] = np.where(near, table[flags, 1].T, table[flags, 0].T)
+    column = (ranges[:, :c] < first_far).view(np.uint8) + (2 * flags).astype(np.uint8)
+    out[:, :c] = np.take_along_axis(table, column, axis=1)
+
+
+def first_far_raw(near_m: float, dis_unit_m: float) -> int:
+    """The smallest raw distance ``r`` with ``r * dis_unit_m >= near_m`` (float64, as the
+    module docstring's rule "near: distance < near_m" computes it), at most 65536."""
+    r = max(0, math.ceil(near_m / dis_unit_m) - 2)
+    while r * dis_unit_m < near_m and r < 65536:
+        r += 1
+    return r
 
 
 def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, Any]:

@@ -155,7 +155,7 @@ from converters._hesai_formats import (  # noqa: F401 (the tables are re-exporte
     hires_format, load_calibration, load_firetimes)
 from converters._hesai_rotation import (  # noqa: F401 (_kernel, _units_numpy: tests, bench)
     _INFO_TEMPLATES, _U16, _azimuth_states, _date_seconds, _first_last, _firetime_pixels,
-    _firing_states, _kernel, _pixel_times, _records, _restamped, _Stream, _units, _units_numpy)
+    _firing_states, first_far_raw, _kernel, _pixel_times, _records, _restamped, _Stream, _units, _units_numpy)
 from converters._packets import payload_bytes
 
 __all__ = [
@@ -344,15 +344,16 @@ class PacketDecoder:
                 fmt = hires_format(fmt)
         pixels = None
         if self.firetimes is not None:
-            fmt, pixels = self._with_firetimes(fmt, state)
+            fmt, pixels = self._with_firetimes(fmt, state, dis * 1e-3)
         return _Stream(fmt, mode, returns, dis * 1e-3, rpm, len(data),
                        (fmt.blocks - returns) * fmt.block_size, state, pixels)
 
-    def _with_firetimes(self, fmt: HesaiFormat, state: int
-                        ) -> tuple[HesaiFormat, tuple[np.ndarray[Any, Any], float] | None]:
-        """The format with the firetime file's times (one per channel), or the format and
-        the file's (4, 2, rows) ns table of operational state ``state`` (128 series; rows in
-        row order) with its near/far distance (m)."""
+    def _with_firetimes(self, fmt: HesaiFormat, state: int, dis_unit_m: float
+                        ) -> tuple[HesaiFormat, tuple[np.ndarray[Any, Any], int] | None]:
+        """The format with the firetime file's times (one per channel), or (128 series) the
+        format and ``_Stream.pixel_firetimes``: the file's times of operational state
+        ``state`` as a (rows, 8) int32 table (column 2 * azimuth state + near, rows in row
+        order) and the smallest raw distance (unit ``dis_unit_m``) that is far field."""
         ft = self.firetimes
         assert ft is not None
         if fmt.pixel_tables:
@@ -375,8 +376,9 @@ class PacketDecoder:
                                       OPERATIONAL_STATES[op] for op in sorted(
                                           {op for op, _ in ft.states})))
             timing = _FIRETIME_PIXELS.format(ft.near_m)
+            rows = table[:, :, self._order].transpose(2, 0, 1).reshape(fmt.lasers, 8)
             return (dataclasses.replace(fmt, channel_timing=timing),
-                    (np.ascontiguousarray(table[:, :, self._order]), ft.near_m))
+                    (np.ascontiguousarray(rows, np.int32), first_far_raw(ft.near_m, dis_unit_m)))
         if ft.kind != "channel":
             raise DecodeError("firetimes", "a state table (Pandar128E3X/OT128 file)",
                               f"one time per channel for a {fmt.model}")
