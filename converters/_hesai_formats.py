@@ -664,9 +664,9 @@ def load_firetimes(source: Any) -> Firetimes:
     if isinstance(source, Firetimes):
         return source
     text = _read_text(source, "firetimes", "Hesai firetime correction CSV")
-    lines = [(i + 1, _cells(line)) for i, line in enumerate(io.StringIO(text))]
-    lines = [(n, [c for c in cells]) for n, cells in lines if any(cells)]
-    for n, cells in lines:                    # trailing empty cells (e.g. "1,2.31,")
+    lines = [(i + 1, cells) for i, line in enumerate(io.StringIO(text))
+             if any(cells := _cells(line))]
+    for _, cells in lines:                    # trailing empty cells (e.g. "1,2.31,")
         while cells and not cells[-1]:
             cells.pop()
     if not lines:

@@ -6,9 +6,8 @@ scan's channels), the tail's date-time in POSIX seconds, zero-copy structured vi
 rows (``_records``), the copy of the units into the scan's grids (``_units``: the compiled
 kernel of :mod:`converters._kernels.hesai`, with :func:`_units_numpy` as its reference), the
 QT128 and (with a firetime file) 128-series per-pixel firing times and the process-wide
-LidarInfo templates. Conventions (axes, rows,
-columns, time): the module docstring of :mod:`converters.hesai`; formats:
-:mod:`converters._hesai_formats`. Nothing here is public API.
+LidarInfo templates. Conventions (axes, rows, columns, time): the module docstring of
+:mod:`converters.hesai`; formats: :mod:`converters._hesai_formats`. Nothing here is public API.
 """
 
 from __future__ import annotations

@@ -155,7 +155,8 @@ from converters._hesai_formats import (  # noqa: F401 (the tables are re-exporte
     hires_format, load_calibration, load_firetimes)
 from converters._hesai_rotation import (  # noqa: F401 (_kernel, _units_numpy: tests, bench)
     _INFO_TEMPLATES, _U16, _azimuth_states, _date_seconds, _first_last, _firetime_pixels,
-    _firing_states, first_far_raw, _kernel, _pixel_times, _records, _restamped, _Stream, _units, _units_numpy)
+    _firing_states, _kernel, _pixel_times, _records, _restamped, _Stream, _units, _units_numpy,
+    first_far_raw)
 from converters._packets import payload_bytes
 
 __all__ = [
