@@ -17,6 +17,11 @@ functional safety 17 bytes; tail: QT128 5 reserved, mode flag, 6 reserved; 128 s
 reserved, azimuth state u16, operational state; then both: return mode, motor speed, date-time,
 timestamp, factory info, UDP sequence, (128: IMU 22 bytes), CRC u32; then the 32-byte signature.
 No "fine azimuth" byte exists in these formats (that is the AT128's, not decoded here).
+Pandar128 (protocol 1.3, older firmware; its user manual, 3.2.2 "UDP Data"): 12-byte header
+whose last byte only says whether the UDP sequence is sent; body = 2 blocks of an azimuth and
+128 3-byte units, no CRC; 24-byte tail: 6 reserved, high-temperature flag, 3 reserved, motor
+speed, timestamp, return mode, factory, date-time; then the UDP sequence. No operational or
+azimuth state, so no firetime table applies (its timing: ``_pandar128_v13``).
 
 Sources of the timing tables: Pandar40P, its manual's Table II.4 (time of each laser before its
 block's end) and block end times; Pandar64, its manual's block end times (t0 - 42.58 us - 55.56 us
@@ -58,15 +63,30 @@ Channel", from page 76 on, has the same values where both could be read): a chan
 1, 13:12 block 2; 0-3 in high performance, 0-1 otherwise) and far/near-field firing (distance >
 2.85 m or not). So a pixel's delay depends on its firing (flag) and its own distance, which
 neither ``beam_time_offsets`` nor a per-firing table can express; only a per-pixel ``t`` channel
-could. Only the rows of channels 41-51 of that table could be read for this module (the stored
-copies of the manual's pages are cut after ~12 rows); they show delays of 7.7-27.4 us in high
-performance mode and 12.7-55.2 us in standard mode, the flags shifting them by 0.35-0.7 us and
-near-field firing by up to 16.7 us. Without the other 117 rows, and since the packet does not
-say whether it is a 128E3X or a 128E4X/OT128 (whose tables are not the same), these delays are
-not applied: ``beam_time_offsets`` are 0 and a pixel's time is its block's start, early by up to
-the firing period (55.6 us). The OT128 (128E4X) manual was not available either: its block times
-are taken to be the 128E3X's (same protocol 1.4 packet). ``vendor_metadata``'s
-``channel_timing`` and ``operational_state`` say which case a scan is.
+could. Only the rows of channels 41-51 of that table could be read in the manual (the stored copies
+of its pages are cut after ~12 rows); they show delays of 7.7-27.4 us in high performance mode
+and 12.7-55.2 us in standard mode, the flags shifting them by 0.35-0.7 us and near-field firing
+by up to 16.7 us, and equal the same rows of the vendor's "Firetime Correction File" for the
+Pandar128E3X (Hesai's SDK, HesaiLidar_SDK_2.0, ``correction/firetime_correction``), which holds
+the whole table. Since the packet does not say whether it is a 128E3X or a 128E4X/OT128
+(whose tables are not the same), the table is not built in: given the sensor's firetime file
+(:func:`load_firetimes`), each pixel gets its time in a ``t`` channel (:mod:`converters.hesai`,
+"Firetime files"); without it, ``beam_time_offsets`` are 0 and a pixel's time is its block's
+start, early by up to the firing period (55.6 us). The OT128 (128E4X) manual was not available
+either: its block times are taken to be the 128E3X's (same protocol 1.4 packet).
+``vendor_metadata``'s ``channel_timing`` and ``operational_state`` say which case a scan is.
+
+Firetime files (vendor data; the SDK's files and the manual's tables, read to learn the
+format): per-channel files ``Channel,fire time(us)`` (Pandar40P, Pandar64: negative times
+before the block's end, equal to the built-in tables; PandarXT/XT-16/XT-32M2X: after the
+firing's nominal time, the built-in table + 5.632 us; PandarQT: the built-in table - 10 us);
+the Pandar128E3X table (integer ns after the block's start per operational state 0/2/3,
+azimuth state and far/near field: ``distance>=A1`` / ``distance<A1``, A1 = the section distance
+in metres in the first cell, 2.85; the SDK's parser picks column (state, azimuth state) and
+far/near the same way); the OT128 table (``Operational State`` 0/2 and ``Azimuth State``
+lines, microseconds after the block's start, ``-`` = not fired, no near/far). In high
+performance mode each azimuth state fires 96 of the 128 channels (the file's 0 or ``-``
+elsewhere).
 
 Dual-return block order (what blocks 1 and 2 of a firing hold): Pandar40P and Pandar64 0x39: last,
 strongest (manuals; confirmed on the Pandar64 recording: block 1 is never nearer than block 2);
@@ -87,6 +107,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import io
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -335,8 +356,33 @@ FORMATS["PandarXT32M"] = _xt_format(
     "PandarXT32M", 32, 6, tuple(368.0 + 2888.0 * (k % 16) for k in range(32)), (0.5, 300.0),
     _ORDERS_12B + ((0x3D, ("first", "last", "strongest")),))
 
+
+
+def _pandar128_v13() -> HesaiFormat:
+    """The Pandar128's older firmware (protocol 1.3; the Pandar128 user manual, 3.2.2 "UDP
+    Data" and Appendix II.1): 12-byte header (its last byte: UDP sequence on/off), body of 2
+    blocks of an azimuth and 128 3-byte units (distance, reflectivity) = 772 bytes, no CRC;
+    24-byte tail: 6 reserved, high-temperature flag, 3 reserved, motor speed u16 (+10),
+    timestamp u32 (+12), return mode (+16), factory (+17), date-time (+18); then the optional
+    4-byte UDP sequence. t0 is the trigger of block 2's firing (single return; both blocks'
+    firing in dual return, block 1 last, block 2 strongest); block 1 fires one period earlier,
+    55.556 us as the 128E3X's standard mode (the 1.3 manual's block-time table could not be
+    read); its channel delays are not applied (no table)."""
+    tail = 12 + 2 * (2 + 3 * 128)
+    why = "the Pandar128 (protocol 1.3) manual's per-channel table could not be read"
+    return HesaiFormat(
+        model="Pandar128", lasers=128, blocks=2, body=12, block_size=2 + 3 * 128, azimuth_at=0,
+        unit_size=3, size=tail + 24, return_mode_at=tail + 16, motor_speed_at=tail + 10,
+        timestamp_at=tail + 12, datetime_at=tail + 18, firing_period_ns=55556.0,
+        block_base_ns=0.0, block_ref_last=True, channel_ns=(0.0,) * 128, dis_unit_at=9,
+        range_limits=(0.3, 200.0), dual_orders=((0x39, ("last", "strongest")),),
+        channel_timing=_NOT_PER_BEAM.format(why))
+
+
+FORMATS["Pandar128"] = _pandar128_v13()
+
 _SUPPORTED = ("supported: Pandar40P, Pandar64, PandarXT16/XT32/XT32M (protocol 6.1), PandarQT64 "
-              "(3.1), PandarQT128 (3.2), Pandar128E3X/E4X/OT128 (1.4)")
+              "(3.1), PandarQT128 (3.2), Pandar128E3X/E4X/OT128 (1.4), Pandar128 (1.3)")
 
 
 def detect_format(packet: bytes) -> HesaiFormat:
@@ -374,7 +420,8 @@ def detect_format(packet: bytes) -> HesaiFormat:
             names = {(6, 1): "PandarXT (6.1): 16 or 32 lasers, 8 blocks; 32 lasers, 6 blocks",
                      (3, 1): "PandarQT64 (3.1): 64 lasers, 4 blocks",
                      (3, 2): "PandarQT128 (3.2): 128 lasers, 2 blocks",
-                     (1, 4): "Pandar128E3X/E4X/OT128 (1.4): 128 lasers, 2 blocks"}
+                     (1, 4): "Pandar128E3X/E4X/OT128 (1.4): 128 lasers, 2 blocks",
+                     (1, 3): "Pandar128 (1.3): 128 lasers, 2 blocks"}
             expected = names.get((major, minor))
             raise DecodeError("hesai header (protocol major.minor, laser num, block num)",
                               f"{major}.{minor}, {lasers}, {blocks}",
@@ -391,14 +438,17 @@ def detect_format(packet: bytes) -> HesaiFormat:
     if n not in sizes:
         raise DecodeError("hesai packet size", n, " or ".join(map(str, sizes))
                           + f" bytes for a {fmt.model} packet" + (
-                              f" with header flags {packet[11]:#04x}" if fmt.sizes else ""))
+                              f" with header flags {packet[11]:#04x}" if fmt.sizes else
+                          f" (header {packet[2]}.{packet[3]}, 128, 2)" if fmt.model ==
+                          "Pandar128" else ""))
     return fmt
 
 
 #: (protocol major, minor, laser num, block num) of the 12-byte header -> model
 _MODELS_12B = {(6, 1, 32, 8): "PandarXT32", (6, 1, 16, 8): "PandarXT16",
                (6, 1, 32, 6): "PandarXT32M", (3, 1, 64, 4): "PandarQT64",
-               (3, 2, 128, 2): "PandarQT128", (1, 4, 128, 2): "Pandar128E3X/E4X"}
+               (3, 2, 128, 2): "PandarQT128", (1, 4, 128, 2): "Pandar128E3X/E4X",
+               (1, 3, 128, 2): "Pandar128"}
 
 
 # ------------------------------------------------------------------------------- calibration
@@ -443,27 +493,8 @@ def load_calibration(calib: Any) -> _Calibration:
                               ) from err
         text = ""
     else:
-        if isinstance(calib, (bytes, bytearray, memoryview)):
-            calib = bytes(calib)
-            if b"\n" in calib:
-                try:
-                    calib = calib.decode("utf-8-sig")
-                except UnicodeDecodeError as err:
-                    raise DecodeError("calibration", calib[:16], "UTF-8 text of a Hesai "
-                                      "angle-correction CSV (Laser id,Elevation,Azimuth)") from err
-        if isinstance(calib, str) and "\n" in calib:
-            text = calib.removeprefix("\ufeff")
-        else:
-            try:
-                path = Path(os.fsdecode(calib))
-            except TypeError as err:
-                raise DecodeError("calibration", type(calib).__name__, "a path, the CSV text "
-                                  "(str or bytes), a mapping or a parsed calibration") from err
-            try:
-                text = path.read_text(encoding="utf-8-sig")
-            except (OSError, UnicodeDecodeError) as err:
-                raise DecodeError("calibration", str(path), "a readable Hesai angle-correction "
-                                  "CSV (Laser id,Elevation,Azimuth)") from err
+        text = _read_text(calib, "calibration", "Hesai angle-correction CSV (Laser id,"
+                          "Elevation,Azimuth)")
         for i, line in enumerate(io.StringIO(text)):
             cells = [c.strip().strip('"').strip() for c in line.strip().split(",")]
             if not cells or not cells[0] or not (cells[0][0].isdigit() or cells[0][0] == "-"):
@@ -482,6 +513,30 @@ def load_calibration(calib: Any) -> _Calibration:
     if not (np.all(np.isfinite(elev)) and np.all(np.isfinite(azim))):
         raise DecodeError("calibration angles", "non-finite", "finite degrees")
     return _Calibration(ids, elev, azim, text)
+
+
+def _read_text(source: Any, field: str, what: str) -> str:
+    """The text of a vendor CSV given as a path, or as text (str, or UTF-8 bytes containing a
+    newline); a UTF-8 byte-order mark is dropped."""
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        source = bytes(source)
+        if b"\n" in source:
+            try:
+                source = source.decode("utf-8-sig")
+            except UnicodeDecodeError as err:
+                raise DecodeError(field, source[:16], f"UTF-8 text of a {what}") from err
+    if isinstance(source, str) and "\n" in source:
+        return source.removeprefix("\ufeff")
+    try:
+        path = Path(os.fsdecode(source))
+    except TypeError as err:
+        raise DecodeError(field, type(source).__name__, "a path, the CSV text (str or bytes), "
+                          "a mapping or a parsed calibration" if field == "calibration" else
+                          "a path, the CSV text (str or bytes) or a parsed Firetimes") from err
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as err:
+        raise DecodeError(field, str(path), f"a readable {what}") from err
 
 
 def _block_kinds(fmt: HesaiFormat, mode: int) -> tuple[str, ...]:
@@ -523,3 +578,217 @@ def _channel_rank(name: str) -> tuple[int, int]:
     if name.startswith("range"):
         return (int(name[5:] or 1), 0)
     return (int(name[9:] or 1), 1)
+
+
+# ------------------------------------------------------------------------ firetime files
+
+@dataclass(frozen=True)
+class Firetimes:
+    """A Hesai "Firetime Correction File" (vendor data; formats: :func:`load_firetimes`).
+
+    ``kind`` "channel": one firing time per channel, ``channel_ns`` (L,) float64 ns (relative to
+    a reference the file does not state; only differences between channels are used).
+    ``kind`` "state": ``table`` (S, 2, L) int64 ns after the block's start, per column state
+    ``states[s]`` = (operational state, azimuth state), [far, near]; 0 also where a channel
+    does not fire in that state; near = measured distance < ``near_m`` metres.
+    """
+
+    kind: str
+    lasers: int
+    channel_ns: np.ndarray[Any, Any] | None = None
+    states: tuple[tuple[int, int], ...] = ()
+    table: np.ndarray[Any, Any] | None = None
+    near_m: float = 0.0
+    text: str = ""
+
+    def state_table(self, op_state: int) -> np.ndarray[Any, Any] | None:
+        """(4, 2, L) int64 ns of operational state ``op_state`` by azimuth state 0..3 (zeros
+        for azimuth states the file does not list), or None if the file has no column of it
+        (energy saving and shutdown then use standard's columns, 2)."""
+        assert self.table is not None
+        for state in (op_state, 2) if op_state in (1, 3) else (op_state,):
+            cols = [(az, s) for s, (op, az) in enumerate(self.states) if op == state]
+            if cols:
+                out = np.zeros((4, 2, self.lasers), np.int64)
+                for az, s in cols:
+                    if 0 <= az < 4:
+                        out[az] = self.table[s]
+                return out
+        return None
+
+
+def _cells(line: str) -> list[str]:
+    return [c.strip().strip('"').strip() for c in line.strip().split(",")]
+
+
+def _firetime_value(cell: str, where: str, unit_ns: float, allow_dash: bool,
+                    allow_negative: bool) -> float:
+    """One time cell in ns (``-``: the channel does not fire, 0)."""
+    if allow_dash and cell == "-":
+        return 0.0
+    try:
+        value = float(cell)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or (value < 0 and not allow_negative):
+        raise DecodeError(f"firetimes {where}", cell, "a finite firing time" + (
+            "" if allow_negative else " >= 0") + (" or '-' (not fired)" if allow_dash else ""))
+    return value * unit_ns
+
+
+def load_firetimes(source: Any) -> Firetimes:
+    """Parse a Hesai "Firetime Correction File" CSV (vendor data shipped with the sensor or
+    in the vendor's SDK, directory ``correction/firetime_correction``).
+
+    Three forms (the first line tells them apart):
+
+    * one time per channel, header ``Channel,fire time(us)`` (or ``channel,firetime/us``):
+      Pandar40P, Pandar64, PandarXT/XT-16/XT-32/XT-32M2X, PandarQT; rows ``channel,us``.
+    * the Pandar128E3X table: line 1 the near/far section distance in metres then, per
+      column, ``distance>=A1`` (far) or ``distance<A1`` (near); line 2 ``operation mode``
+      and line 3 ``angle state`` per column; then one row per channel of integer ns after
+      the block's start (0: the channel does not fire in that state).
+    * the OT128 (Pandar128E4X) table: ``Operational State`` and ``Azimuth State`` lines, then
+      one row per channel of microseconds after the block's start, ``-`` where the channel
+      does not fire; no near/far distinction.
+
+    Args:
+        source: a path, the CSV text (str or UTF-8 bytes containing a newline) or an
+            already parsed :class:`Firetimes`. A UTF-8 byte-order mark, CRLF line ends,
+            quoted cells and blank lines are accepted; empty trailing cells are ignored.
+
+    Raises:
+        DecodeError: unreadable file, unknown header, a malformed row or cell (the message
+            names the line and column, 1-based), channels not 1..L.
+    """
+    if isinstance(source, Firetimes):
+        return source
+    text = _read_text(source, "firetimes", "Hesai firetime correction CSV")
+    lines = [(i + 1, cells) for i, line in enumerate(io.StringIO(text))
+             if any(cells := _cells(line))]
+    for _, cells in lines:                    # trailing empty cells (e.g. "1,2.31,")
+        while cells and not cells[-1]:
+            cells.pop()
+    if not lines:
+        raise DecodeError("firetimes", "empty", "a Hesai firetime correction CSV")
+    n1, head = lines[0]
+    first = head[0].lower()
+    if first == "operational state":
+        return _state_table(lines, text, near=False)
+    if _is_number(first) and len(head) > 1 and head[1].lower().startswith("distance"):
+        return _state_table(lines, text, near=True)
+    if not _is_number(first) and len(head) == 2 and ("fire" in head[1].lower()):
+        unit = head[1].lower().replace("μ", "u").replace("µ", "u")
+        if "us" not in unit:
+            raise DecodeError(f"firetimes line {n1} column 2", head[1], "a time unit of "
+                              "microseconds ('fire time(us)' or 'firetime/us')")
+        rows = []
+        for n, cells in lines[1:]:
+            if len(cells) != 2:
+                raise DecodeError(f"firetimes line {n}", ",".join(cells), "channel,time_us")
+            rows.append((_channel_id(cells[0], n), _firetime_value(
+                cells[1], f"line {n} column 2", 1000.0, False, True)))
+        ids = _check_ids([r[0] for r in rows])
+        times = np.zeros(ids, np.float64)
+        for ch, t in rows:
+            times[ch - 1] = t
+        return Firetimes("channel", ids, channel_ns=times, text=text)
+    raise DecodeError(f"firetimes line {n1}", ",".join(head)[:80], "a Hesai firetime header: "
+                      "'Channel,fire time(us)', '<distance m>,distance>=A1,...' (Pandar128E3X) "
+                      "or 'Operational State,...' (OT128)")
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _channel_id(cell: str, n: int) -> int:
+    try:
+        ch = int(cell)
+    except ValueError:
+        ch = 0
+    if ch < 1:
+        raise DecodeError(f"firetimes line {n} column 1", cell, "a channel number >= 1")
+    return ch
+
+
+def _check_ids(ids: list[int]) -> int:
+    """L, checking that ``ids`` are each of 1..L exactly once."""
+    if not ids or sorted(ids) != list(range(1, len(ids) + 1)):
+        dup = sorted({i for i in ids if ids.count(i) > 1})[:8]
+        raise DecodeError("firetimes channels", f"{len(ids)} rows" + (
+            f", repeated {dup}" if dup else ""), "each of 1..L exactly once")
+    return len(ids)
+
+
+def _state_table(lines: list[tuple[int, list[str]]], text: str, near: bool) -> Firetimes:
+    """The Pandar128E3X (``near``: a near/far line first) or OT128 state table."""
+    names = ("operation mode", "angle state") if near else ("operational state",
+                                                            "azimuth state")
+    heads = lines[1:3] if near else lines[0:2]
+    for (n, cells), name in zip(heads, names):
+        if not cells or cells[0].lower() != name:
+            raise DecodeError(f"firetimes line {n} column 1", cells[0] if cells else "",
+                              f"'{name}'")
+    width = len(lines[0][1])
+    for n, cells in heads:
+        if len(cells) != width:
+            raise DecodeError(f"firetimes line {n}", f"{len(cells)} columns",
+                              f"{width} (as line {lines[0][0]})")
+    keys = []
+    for j in range(1, width):
+        try:
+            op, az = int(heads[0][1][j]), int(heads[1][1][j])
+        except ValueError as err:
+            raise DecodeError(f"firetimes lines {heads[0][0]}-{heads[1][0]} column {j + 1}",
+                              f"{heads[0][1][j]}, {heads[1][1][j]}",
+                              "integer operational and azimuth states") from err
+        if op not in OPERATIONAL_STATES or not 0 <= az < 4:
+            raise DecodeError(f"firetimes lines {heads[0][0]}-{heads[1][0]} column {j + 1}",
+                              f"{op}, {az}", "operational state 0..3, azimuth state 0..3")
+        side = 0
+        if near:
+            label = lines[0][1][j].replace(" ", "").lower()
+            if label not in ("distance>=a1", "distance<a1"):
+                raise DecodeError(f"firetimes line {lines[0][0]} column {j + 1}",
+                                  lines[0][1][j], "'distance>=A1' (far) or 'distance<A1' "
+                                  "(near)")
+            side = 1 if label == "distance<a1" else 0
+        keys.append((op, az, side))
+    states = sorted({(op, az) for op, az, _ in keys})
+    sides = {1, 0} if near else {0}
+    for op, az in states:
+        got = {s for o, a, s in keys if (o, a) == (op, az)}
+        if got != sides or sum(1 for o, a, _ in keys if (o, a) == (op, az)) != len(sides):
+            raise DecodeError("firetimes columns", f"operational state {op}, azimuth state "
+                              f"{az}", "one far and one near column" if near else
+                              "one column")
+    body = lines[3:] if near else lines[2:]
+    unit = 1.0 if near else 1000.0
+    rows = []
+    for n, cells in body:
+        if len(cells) != width:
+            raise DecodeError(f"firetimes line {n}", f"{len(cells)} columns",
+                              f"{width} (channel, then one time per state column)")
+        rows.append((_channel_id(cells[0], n), [
+            _firetime_value(cells[j], f"line {n} column {j + 1}", unit, not near, False)
+            for j in range(1, width)]))
+    ids = _check_ids([r[0] for r in rows])
+    table = np.zeros((len(states), 2, ids), np.int64)
+    index = {s: i for i, s in enumerate(states)}
+    for ch, values in rows:
+        for (op, az, side), v in zip(keys, values):
+            table[index[(op, az)], side, ch - 1] = int(round(v))
+            if not near:
+                table[index[(op, az)], 1, ch - 1] = int(round(v))
+    near_m = 0.0
+    if near:
+        near_m = float(lines[0][1][0])
+        if not (math.isfinite(near_m) and near_m >= 0):
+            raise DecodeError(f"firetimes line {lines[0][0]} column 1", lines[0][1][0],
+                              "the near/far section distance in metres (>= 0)")
+    return Firetimes("state", ids, states=tuple(states), table=table, near_m=near_m, text=text)

@@ -5,9 +5,9 @@ the stream's geometry and time model (``_Stream``: firing period and block start
 scan's channels), the tail's date-time in POSIX seconds, zero-copy structured views of payload
 rows (``_records``), the copy of the units into the scan's grids (``_units``: the compiled
 kernel of :mod:`converters._kernels.hesai`, with :func:`_units_numpy` as its reference), the
-QT128 per-pixel firing times and the process-wide LidarInfo templates. Conventions (axes, rows,
-columns, time): the module docstring of :mod:`converters.hesai`; formats:
-:mod:`converters._hesai_formats`. Nothing here is public API.
+QT128 and (with a firetime file) 128-series per-pixel firing times and the process-wide
+LidarInfo templates. Conventions (axes, rows, columns, time): the module docstring of
+:mod:`converters.hesai`; formats: :mod:`converters._hesai_formats`. Nothing here is public API.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from __future__ import annotations
 import calendar
 import dataclasses
 import functools
+import math
 import struct
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +38,11 @@ class _Stream:
     packet_size: int
     last_firing_at: int       # byte offset of the last firing's first block from block 0
     state: int = -1           # 128 series: the tail's operational state; -1: none
+    #: 128 series with a firetime file: ((rows, 8) int32 ns after the block's start of each
+    #: row's channel, column 2 * azimuth state + near; the smallest raw distance that is far
+    #: field), else None
+    pixel_firetimes: tuple[np.ndarray[Any, Any], int] | None = dataclasses.field(
+        default=None, compare=False, repr=False)
 
     @functools.cached_property
     def first_channel_ns(self) -> int:
@@ -60,7 +66,7 @@ class _Stream:
         names = _channel_names(_block_kinds(self.fmt, self.mode))
         specs = {name: np.uint16 if k == 0 else np.uint8 for pair in names
                  for k, name in enumerate(pair)}
-        if self.fmt.pixel_tables:
+        if self.fmt.pixel_tables or self.pixel_firetimes is not None:
             specs["t"] = np.int32
         return names, {k: specs[k] for k in sorted(specs, key=_channel_rank)}
 
@@ -124,6 +130,9 @@ def _packet_dtype(fmt: HesaiFormat, size: int) -> np.dtype[Any]:
     offsets = [fmt.body, fmt.timestamp_at, fmt.datetime_at]
     if fmt.mode_flag_at is not None:
         names, formats, offsets = names + ["flag"], formats + ["u1"], offsets + [fmt.mode_flag_at]
+    if fmt.state_at is not None:            # 128 series: the tail's azimuth state (u16)
+        names, formats, offsets = (names + ["azimuth_state"], formats + ["<u2"],
+                                   offsets + [fmt.state_at - 2])
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": size})
 
 
@@ -145,6 +154,41 @@ def _pixel_times(fmt: HesaiFormat, states: np.ndarray[Any, Any], order: np.ndarr
     channels that do not fire in a firing get 0."""
     table = np.asarray(fmt.pixel_tables, np.int32)[:, order]        # (states, H)
     out[:, :states.size] = np.maximum(table[states].T, 0)
+
+
+def _azimuth_states(stream: _Stream, recs: list[np.ndarray[Any, Any]]
+                    ) -> np.ndarray[Any, Any]:
+    """(F,) azimuth state (0..3) of every buffered firing of a 128-series stream: the tail's
+    azimuth state bits of the block holding the firing's ``range`` return (bits 15:14 block
+    1, 13:12 block 2)."""
+    names, _ = stream.channels
+    primary = names.index(("range", "intensity"))
+    blocks = np.arange(stream.firings) * stream.returns + primary
+    states = np.concatenate([rec["azimuth_state"] for rec in recs]).astype(np.int64)
+    return ((states[:, None] >> (14 - 2 * blocks)[None, :]) & 3).reshape(-1)
+
+
+def _firetime_pixels(stream: _Stream, flags: np.ndarray[Any, Any], ranges: np.ndarray[Any, Any],
+                     out: np.ndarray[Any, Any]) -> None:
+    """Write the per-pixel firing times of a 128-series rotation with a firetime file into the
+    first C columns of ``out`` (H, W) int32: the delay after its block's start of each row's
+    channel in each column's azimuth state ``flags`` (C,), the near-field one where the
+    ``ranges`` (H, W) uint16 raw distance is nearer than the file's near/far distance (a
+    no-return pixel, raw 0, counts as near)."""
+    assert stream.pixel_firetimes is not None
+    table, first_far = stream.pixel_firetimes
+    c = flags.size
+    column = (ranges[:, :c] < first_far).view(np.uint8) + (2 * flags).astype(np.uint8)
+    out[:, :c] = np.take_along_axis(table, column, axis=1)
+
+
+def first_far_raw(near_m: float, dis_unit_m: float) -> int:
+    """The smallest raw distance ``r`` with ``r * dis_unit_m >= near_m`` (float64, as the
+    module docstring's rule "near: distance < near_m" computes it), at most 65536."""
+    r = max(0, math.ceil(near_m / dis_unit_m) - 2)
+    while r * dis_unit_m < near_m and r < 65536:
+        r += 1
+    return r
 
 
 def _records(rows: np.ndarray[Any, Any], fmt: HesaiFormat) -> np.ndarray[Any, Any]:

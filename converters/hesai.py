@@ -22,6 +22,8 @@ PandarQT128    protocol 3.2, laser num 128, 2 blocks   128     2       from the 
 Pandar128E3X,  protocol 1.4, laser num 128, 2 blocks   128     2       from the Flags byte
 Pandar128E4X                                                           (861 with UDP seq,
 (OT128)                                                                FS, IMU; +32 signed)
+Pandar128      protocol 1.3 (older firmware), laser    128     2       808 (+4 UDP seq)
+               num 128, 2 blocks
 =============  ======================================  ======  ======  ====================
 
 The model is detected from the packet's own bytes (pre-header, protocol version major.minor,
@@ -92,9 +94,31 @@ Conventions
   most, float32 rounding (tests/test_hesai.py); for the XT16, XT32M and QT128 (Nebula's test
   recordings, checked outside the test suite, which does not ship them) 11 um at most, every
   ground-truth point matched. Not expressible in LidarInfo: the QT128/128-series per-firing
-  channel delays (QT128: the ``t`` channel; 128 series: not applied, stated in
-  vendor_metadata, because the manual's per-pixel table could not be obtained whole; its block
-  times and high-resolution mode: :mod:`converters._hesai_formats`).
+  channel delays (QT128: the ``t`` channel; 128 series: the ``t`` channel when the sensor's
+  firetime correction file is given, see below; without it they are not applied, as
+  vendor_metadata states; its block times and high-resolution mode:
+  :mod:`converters._hesai_formats`).
+* Firetime files (``firetimes=``, ``lidarscan convert --firetimes FILE``; optional vendor
+  data like the angle-correction CSV; formats and sources:
+  :func:`converters._hesai_formats.load_firetimes`). 128 series (Pandar128E3X table or
+  OT128/128E4X table; the packets do not say which sensor it is, the file does): scans get
+  an INT32 ``t`` channel = the pixel's delay after its column's time (its block's start), the
+  file's value for the packet's operational state (energy saving and shutdown: standard's
+  columns when the file has none of their own), the azimuth state of the block holding the
+  ``range`` return (tail bits 15:14 block 1, 13:12 block 2; a state the file has no column
+  for gives 0) and, for the Pandar128E3X table, near field where the ``range`` return is
+  nearer than the file's section distance (2.85 m; no return, raw 0, counts as near; a
+  dual-return ``range2`` pixel shares its firing's ``t``); 0 where the channel does not fire
+  in that state. A file without columns for the packets' operational state raises a
+  DecodeError. Models with one time per channel (Pandar40P/64, PandarXT family, PandarQT64):
+  the file's times replace the built-in table, shifted so that the earliest channel keeps
+  the built-in absolute time (each vendor file has its own zero; the SDK's files for these
+  models agree with the built-in tables to < 0.5 ns after that shift, so the scans are
+  unchanged, ``tests/test_hesai_firetimes.py``). The PandarQT128 takes no file (its loops
+  are built in). A file of another model (channel count, or a per-channel file for the 128
+  series and the reverse) raises a DecodeError at the stream's first packet;
+  ``vendor_metadata`` then carries ``"firetimes"`` (``"per pixel (state table)"`` or
+  ``"per channel"``) and, for the 128 series, a ``channel_timing`` saying how ``t`` is made.
 
 * Batches: ``PacketDecoder.push_many`` takes the (N, size) rows of N payloads of one size
   (e.g. a PandarScan message's packet array) and gives exactly the scans and infos of push()
@@ -110,11 +134,12 @@ beam_time_offsets (firing table), column_time_increment (firing period), beam_id
 range_multiplier (dis unit), range_min/range_max (the model's limits or the options),
 horizontal_angles (nominal pi/2 - 2 pi c / W'; scans carry the measured ones), vendor "Hesai",
 model, vendor_metadata (a JSON line with the detected format, return mode and rpm; the 128
-series also its operational state).
+series also its operational state; with a firetime file, ``firetimes``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Iterable, Iterator
@@ -126,24 +151,33 @@ from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from lidarscan.scan import ScanBuffer, make_info
 from converters._hesai_formats import (  # noqa: F401 (the tables are re-exported for tests)
     _P40P_BEFORE_END_US, _P64_BEFORE_END_NS, _QT64_AFTER_START_NS, _QT128_LOOPS, FORMATS,
-    OPERATIONAL_STATES, RETURN_MODES, HesaiFormat, _block_kinds, detect_format, hires_format,
-    load_calibration)
+    OPERATIONAL_STATES, RETURN_MODES, Firetimes, HesaiFormat, _block_kinds, detect_format,
+    hires_format, load_calibration, load_firetimes)
 from converters._hesai_rotation import (  # noqa: F401 (_kernel, _units_numpy: tests, bench)
-    _INFO_TEMPLATES, _U16, _date_seconds, _first_last, _firing_states, _kernel, _pixel_times,
-    _records, _restamped, _Stream, _units, _units_numpy)
+    _INFO_TEMPLATES, _U16, _azimuth_states, _date_seconds, _first_last, _firetime_pixels,
+    _firing_states, _kernel, _pixel_times, _records, _restamped, _Stream, _units, _units_numpy,
+    first_far_raw)
 from converters._packets import payload_bytes
 
 __all__ = [
     "FORMATS",
     "RETURN_MODES",
+    "Firetimes",
     "HesaiFormat",
     "PacketDecoder",
     "decode_packets",
     "detect_format",
     "load_calibration",
+    "load_firetimes",
 ]
 
 # ----------------------------------------------------------------------------------- decoder
+
+#: vendor_metadata channel_timing of a 128-series stream decoded with a firetime file
+_FIRETIME_PIXELS = ("per pixel: channel 't' (INT32 ns) = the pixel's firing time after its "
+                    "column's time (its block's start), from the firetime file by operational "
+                    "state, the block's azimuth state and near/far field of the 'range' "
+                    "return (near: distance < {} m); beam_time_offsets are 0")
 
 #: a decrease of the block azimuth (0.01 deg) larger than this ends a rotation: the wrap past
 #: 360 deg, or the jump back to the start of a limited azimuth FOV (of any width above 10 deg)
@@ -164,12 +198,18 @@ class PacketDecoder:
             beam_azimuth_offsets (default False: the manuals' formula).
         range_min, range_max: LidarInfo valid interval (m); default the model's limits.
         as_dataclass: build :mod:`lidarscan.types` dataclasses instead of rclpy messages.
+        firetimes: the sensor model's "Firetime Correction File" (path, text or parsed,
+            :func:`load_firetimes`), optional. 128 series: scans get a per-pixel ``t``
+            channel from its state table; models with one time per channel: its times
+            replace the built-in table (anchored at the built-in earliest channel); a file
+            of another model raises a DecodeError when the first packet is seen. Default:
+            the built-in tables (128 series: channel delays not applied).
     """
 
     def __init__(self, calibration: Any = None, *, frame_id: str = "lidar",
                  time_source: str = "sensor", firing_rotation: bool = False,
                  range_min: float | None = None, range_max: float | None = None,
-                 as_dataclass: bool = False) -> None:
+                 as_dataclass: bool = False, firetimes: Any = None) -> None:
         if calibration is None:
             raise ConfigError("calibration", None, "the sensor's angle-correction CSV "
                               "(Laser id,Elevation,Azimuth; e.g. PandarXT32.csv): Hesai "
@@ -187,6 +227,11 @@ class PacketDecoder:
         self.firing_rotation = bool(firing_rotation)
         self.range_limits = (range_min, range_max)
         self.as_dataclass = as_dataclass
+        self.firetimes = ft = None if firetimes is None else load_firetimes(firetimes)
+        self._firetimes_key = None if ft is None else (
+            ft.kind, ft.states, ft.near_m,
+            (ft.channel_ns if ft.channel_ns is not None else ft.table).tobytes())
+        self._beam_formats: dict[HesaiFormat, HesaiFormat] = {}
         self._stream: _Stream | None = None
         self._key = b""
         # packets of the rotation being collected, in arrival order: first the 2-D blocks of
@@ -298,8 +343,53 @@ class PacketDecoder:
                                   "resolution), 1 (shutdown), 2 (standard), 3 (energy saving)")
             if state == 0:
                 fmt = hires_format(fmt)
+        pixels = None
+        if self.firetimes is not None:
+            fmt, pixels = self._with_firetimes(fmt, state, dis * 1e-3)
         return _Stream(fmt, mode, returns, dis * 1e-3, rpm, len(data),
-                       (fmt.blocks - returns) * fmt.block_size, state)
+                       (fmt.blocks - returns) * fmt.block_size, state, pixels)
+
+    def _with_firetimes(self, fmt: HesaiFormat, state: int, dis_unit_m: float
+                        ) -> tuple[HesaiFormat, tuple[np.ndarray[Any, Any], int] | None]:
+        """The format with the firetime file's times (one per channel), or (128 series) the
+        format and ``_Stream.pixel_firetimes``: the file's times of operational state
+        ``state`` as a (rows, 8) int32 table (column 2 * azimuth state + near, rows in row
+        order) and the smallest raw distance (unit ``dis_unit_m``) that is far field."""
+        ft = self.firetimes
+        assert ft is not None
+        if fmt.pixel_tables:
+            raise DecodeError("firetimes", f"a file for a {fmt.model} stream", "no firetime "
+                              f"file: the {fmt.model}'s firing loops are built in")
+        if ft.lasers != fmt.lasers:
+            raise DecodeError("firetimes channels", ft.lasers, f"{fmt.lasers} (the "
+                              f"{fmt.model} packets' laser count): a firetime file of "
+                              "another model")
+        if fmt.state_at is not None:
+            if ft.kind != "state":
+                raise DecodeError("firetimes", "one time per channel", "the state table of "
+                                  f"a {fmt.model} (Pandar128E3X or OT128 firetime file): "
+                                  "its channels' times depend on the operational and "
+                                  "azimuth states")
+            table = ft.state_table(state)
+            if table is None:
+                raise DecodeError("firetimes operational state", OPERATIONAL_STATES[state],
+                                  "a state the file has columns for: " + ", ".join(
+                                      OPERATIONAL_STATES[op] for op in sorted(
+                                          {op for op, _ in ft.states})))
+            timing = _FIRETIME_PIXELS.format(ft.near_m)
+            rows = table[:, :, self._order].transpose(2, 0, 1).reshape(fmt.lasers, 8)
+            return (dataclasses.replace(fmt, channel_timing=timing),
+                    (np.ascontiguousarray(rows, np.int32), first_far_raw(ft.near_m, dis_unit_m)))
+        if ft.kind != "channel":
+            raise DecodeError("firetimes", "a state table (Pandar128E3X/OT128 file)",
+                              f"one time per channel for a {fmt.model}")
+        beam = self._beam_formats.get(fmt)
+        if beam is None:
+            assert ft.channel_ns is not None
+            ns = ft.channel_ns - ft.channel_ns.min() + min(fmt.channel_ns)
+            beam = dataclasses.replace(fmt, channel_ns=tuple(float(v) for v in ns))
+            self._beam_formats[fmt] = beam
+        return beam, None
 
     # ------------------------------------------------------------------------------ batches
     def push_many(self, stamps_ns: Any, payloads: Any,
@@ -462,6 +552,8 @@ class PacketDecoder:
                 "t0": t0, "stamp": np.concatenate([seg[0] for seg in self._segs])}
         if fmt.pixel_tables:
             cols["state"] = _firing_states(fmt, stream.returns, recs)
+        if stream.pixel_firetimes is not None:
+            cols["azimuth_state"] = _azimuth_states(stream, recs)
         return cols
 
     def _emit(self, final: bool, limit: int | None = None) -> list[tuple[Any, Any]]:
@@ -530,6 +622,9 @@ class PacketDecoder:
         _units(pieces, stream, self._rows, grids)
         if fmt.pixel_tables:
             _pixel_times(fmt, cols["state"][lo:hi], self._order, buf.views["t"])
+        elif stream.pixel_firetimes is not None:
+            _firetime_pixels(stream, cols["azimuth_state"][lo:hi], buf.views["range"],
+                             buf.views["t"])
         angles = np.pi / 2 - np.deg2rad(az * 0.01)
         return buf.build(stamp, column_time_offsets=times - stamp,
                          column_azimuth_angles=angles), info
@@ -544,7 +639,7 @@ class PacketDecoder:
         # a version already built (and validated) by a decoder of this process with the same
         # geometry: the same frozen dataclass fields under a new header stamp
         cache_key = (self._calib_key, key, self.frame_id, self.firing_rotation,
-                     self.range_limits)
+                     self.range_limits, self._firetimes_key)
         template = _INFO_TEMPLATES.get(cache_key) if self.as_dataclass else None
         if template is not None:
             info = _restamped(template, stamp)
@@ -575,6 +670,9 @@ class PacketDecoder:
                 "channel_timing": fmt.channel_timing}
         if stream.state >= 0:
             meta["operational_state"] = OPERATIONAL_STATES[stream.state]
+        if self.firetimes is not None:
+            meta["firetimes"] = ("per pixel (state table)" if self.firetimes.kind == "state"
+                                 else "per channel")
         info = make_info(
             stamp_ns=stamp, frame_id=self.frame_id,
             vertical_angles=np.deg2rad(calib.elevation_deg[order]),

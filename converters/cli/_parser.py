@@ -101,6 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="sensor calibration for raw packets (Velodyne YAML, Hesai CSV); "
                         "default: the model's nominal one where it exists")
+    p.add_argument("--firetimes", default=None, metavar="FILE",
+                   help="Hesai raw packets: the sensor model's firetime correction CSV "
+                        "(per-pixel times on the 128 series); default: built-in tables")
     p.add_argument("--cut-angle", type=float, default=None, metavar="DEG",
                    help="raw Velodyne packets: packet azimuth (degrees, clockwise, the packets' "
                         "own convention) where a rotation starts; default 0. Put it in the "

@@ -241,7 +241,8 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
             if decoder is None:  # built on first use: the frame comes from the messages
                 decoder = decoders[item.topic](args.calibration,
                                                frame_id=packets.frame_id or "lidar",
-                                               **_dataclass_option(decoders[item.topic]))
+                                               **_dataclass_option(decoders[item.topic]),
+                                               **_firetimes_option(decoders[item.topic], args))
                 active[item.topic] = decoder
             payloads = packets.payloads
             if payloads is not None and hasattr(decoder, "push_many"):
@@ -282,6 +283,26 @@ def _dataclass_option(decoder: Any) -> dict[str, Any]:
     except (TypeError, ValueError):
         takes = False
     return {"as_dataclass": True} if takes else {}
+
+
+def _firetimes_option(decoder: Any, args: argparse.Namespace) -> dict[str, Any]:
+    """``firetimes=`` (``--firetimes``) for a decoder that takes it (Hesai); a ConfigError for
+    one that does not."""
+    firetimes = getattr(args, "firetimes", None)
+    if firetimes is None:
+        return {}
+    import inspect
+
+    from lidarscan.errors import ConfigError
+
+    try:
+        takes = "firetimes" in inspect.signature(decoder).parameters
+    except (TypeError, ValueError):
+        takes = False
+    if not takes:
+        raise ConfigError("--firetimes", firetimes, "packets whose decoder takes a firetime "
+                          "correction file (Hesai)")
+    return {"firetimes": firetimes}
 
 
 def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
