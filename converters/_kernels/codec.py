@@ -601,8 +601,10 @@ def _load() -> Any:
     def symbols_of(z: Any, table: Any) -> Any:  # table: the reference's, not needed
         return symbols(np.ascontiguousarray(z, np.uint32))
 
+    from converters._kernels import codec3
     return ResidualCoder("numba", symbols_of, pack_low, low_counts_of, residuals_of, costs_of,
-                         decode_of, quantise_of, dequantise_of, roll_of)
+                         decode_of, quantise_of, dequantise_of, roll_of,
+                         *(codec3.kernels() or ()))
 
 
 _COMPILED = LoadOnce(_load)
