@@ -44,9 +44,12 @@ uses the knee 80 and fits gain[b] as the median of f / s over the pixels of bin 
 the knee, then row_gain[y] as the median ratio of f to that prediction in row y (the beams
 differ by a few per cent), then gain again with the row gains, and comp[k] as the median f over
 the pixels of u bin k (all on every n-th column, about 16 384 pixels); it keeps the gains below
-2**24 (no wrapping), and keeps XPREDICT only when it is smaller than the block's version 2
-coding. Version 3 buffers start with version byte 3; a version 3 decoder reads versions 1 and 2
-unchanged.
+2**24 (no wrapping). It then estimates both codings of the block, XPREDICT and version 2 (the
+residual bits of each one's best predictor on a band of up to 32 rows, scaled to the grid, plus
+XPREDICT's tables): XPREDICT alone when its estimate is below 0.8 times version 2's, version 2
+alone above 1.25 times, else both, the smaller kept; a large XPREDICT residual (at least
+65 536 pixels) with at least a quarter zeros is coded with its zeros masked only. Version 3
+buffers start with version byte 3; a version 3 decoder reads versions 1 and 2 unchanged.
 
 Code layout: the functions here are the numpy reference (and test oracle) of the fit and of the
 prediction; a :class:`lidarscan._codec_bits.ResidualCoder` may carry compiled ones (fields

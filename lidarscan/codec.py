@@ -8,13 +8,13 @@ compression does) because it knows the channel layout: every channel block is co
 integer blocks by prediction, float32 blocks in metres through the integer grid they come from.
 
 Byte format, version 2 (every integer little-endian; version 1 is the same container with
-methods 0..4 only: this module still decodes it, and writes version 2 by default). Version 3
-(``compress_scan(..., version=3)``, an option; bench/bench_compression.py measures its cost)
-is the same container with version byte 3 and one more method, 7 XPREDICT: an integer block
-predicted from two earlier blocks (Ouster reflectivity from signal and range), its byte
-format in :mod:`lidarscan._codec_v3`::
+methods 0..4 only: this module still decodes it). Version 3, written by default
+(``compress_scan(..., version=2)`` still writes version 2), is the same container with version
+byte 3 and one more method, 7 XPREDICT: an integer block predicted from two earlier blocks
+(Ouster reflectivity from signal and range), its byte format in :mod:`lidarscan._codec_v3`;
+a scan without such blocks is coded as in version 2, with version byte 3::
 
-    "LSCZ"  u8 version=2  u8 flags=0  u16 n_segments
+    "LSCZ"  u8 version=2 (3)  u8 flags=0  u16 n_segments
     u32 skeleton_len  skeleton          zstd frame of the CDR (lidarscan.encode) of the scan with
                                         empty ``data`` and empty per-column arrays: header, info
                                         stamp, sizes, byte order, stagger flag, channel
@@ -145,7 +145,7 @@ __all__ = [
 ]
 
 MAGIC = b"LSCZ"
-VERSION = 2
+VERSION = 3  # written by default; versions 1 and 2 decode
 RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2, XPREDICT = 0, 1, 2, 3, 4, 5, 6, 7
 _METHOD_NAMES = {RAW: "raw", ZSTD: "zstd", SHUFFLE: "shuffle", PREDICT: "predict",
                  QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2", XPREDICT: "xpredict"}
@@ -473,10 +473,10 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
         u = np.frombuffer(block, np.dtype((">" if big else "<") + f"u{size}")).reshape(shape)
         u = coder.roll(_as_unsigned(u), shifts, 1)
         same = {off: g for off, g in refs.items() if g.dtype == u.dtype and g.shape == u.shape}
-        ref_offset = None
-        if same:  # the earlier grid closest to this one (a second return's first return)
+        ref_offset = None  # the earlier grid closest to this one (a second return's first
+        if same:  # return; the only one needs no comparison)
             ref_offset = min(same, key=lambda off: _bits_cost(
-                zigzag(residual(u[::8], REF, same[off][::8]))))
+                zigzag(residual(u[::8], REF, same[off][::8])))) if len(same) > 1 else [*same][0]
         refs[int(desc.offset)] = u
         ref = None if ref_offset is None else same[ref_offset]
         cross = None
@@ -531,9 +531,10 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
         coder: the residual coding's implementation (:class:`ResidualCoder`): None = the numpy
             reference; converters pass the compiled one (``converters._kernels.select("codec")``).
             Every coder writes the same bytes.
-        version: the format version written: 2 (the default) or 3 (version 2 plus the
-            cross-channel prediction of :mod:`lidarscan._codec_v3`: smaller on Ouster scans,
-            whose reflectivity it predicts from signal and range; slower to encode).
+        version: the format version written: 3 (the default: version 2 plus the
+            cross-channel prediction of :mod:`lidarscan._codec_v3`, smaller on Ouster scans,
+            whose reflectivity it predicts from signal and range) or 2 (for readers of this
+            library's versions before 3 was written by default).
 
     Returns:
         The compressed bytes; :func:`decompress_scan` restores the scan bit for bit.

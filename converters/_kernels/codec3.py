@@ -266,15 +266,27 @@ def _load() -> Any:
     _medians = numba_jit(_medians, boundscheck=False)
     residual = numba_jit(_residual, boundscheck=False)
     fit_tables = numba_jit(_fit, boundscheck=False)
-    from lidarscan._codec_v3 import XParams, fit_step
+    from lidarscan._codec_v3 import _KNEE, XParams, fit_step
 
-    def native(a: Any) -> Any:  # C-contiguous, aligned, native order (a copy if needed)
-        return np.require(a, a.dtype.newbyteorder("="), ("C", "A"))
+    def native(a: Any, keep: tuple[str, ...] = ("u1", "u2", "u4"), other: Any = None) -> Any:
+        """a C-contiguous, aligned, native-order (a copy if needed), read-only view; a dtype
+        not in ``keep`` converted to ``other`` (same values: a signed signal to int64, an
+        integer range other than uint32 to float32, as the kernels convert it): the kernels
+        compile once per kept dtype, not per writeable flag or rare dtype"""
+        dtype = a.dtype.newbyteorder("=")
+        if a.dtype.str[1:] not in keep and other is not None:
+            dtype = np.dtype(other)
+        view = np.require(a, dtype, ("C", "A")).view()
+        view.flags.writeable = False
+        return view
+
+    def sources(s: Any, r: Any) -> tuple[Any, Any]:
+        return native(s, other=np.int64), native(r, ("f4", "u4"), np.float32)
 
     def xfit(f: Any, s: Any, r: Any, signal: tuple[int, int], rng: tuple[int, int],
-             knee: int) -> Any:
+             knee: int = _KNEE) -> Any:
         found, bin0, gain, row_gain, ubin0, comp = fit_tables(
-            native(f), native(s), native(r), fit_step(f.size), knee)
+            native(f), *sources(s, r), fit_step(f.size), knee)
         if not found:
             return None
         return XParams(signal[0], signal[1], rng[0], rng[1], bin0, gain, row_gain, knee, ubin0,
@@ -285,8 +297,8 @@ def _load() -> Any:
         x = native(x).reshape(h, w)
         out = np.empty((h, w), x.dtype)
         rows = np.zeros(h, np.int64) if shifts is None else np.asarray(shifts, np.int64)
-        residual(x, native(s), native(r), p.gain, p.row_gain, p.bin0, p.knee, p.ubin0, p.comp,
-                 rows, sign, out)
+        residual(x, *sources(s, r), p.gain, p.row_gain, p.bin0, p.knee, p.ubin0, p.comp, rows,
+                 sign, out)
         return out
 
     return xfit, xpredict
