@@ -292,9 +292,8 @@ def encode_block(block: Any, desc: Any, scan: Any, level: int,
     clearly smaller. ``u``, ``ref``: the block's rolled unsigned (H, W, 1) grid and the
     reference grid of its version 2 coding (None: no estimate, XPREDICT is coded); sure: the
     estimate says that XPREDICT is clearly smaller (the caller then skips the version 2
-    coding). ``coder``: a
-    :class:`lidarscan._codec_bits.ResidualCoder` (its ``xfit`` and ``xpredict`` when
-    present, else this module's reference)."""
+    coding). ``coder``: a :class:`lidarscan._codec_bits.ResidualCoder` (its ``xfit`` and
+    ``xpredict`` when present, else this module's reference)."""
     from lidarscan.scan import channel, channel_names
     found = source_names(str(desc.name), channel_names(scan))
     if found is None or int(desc.count) != 1:
