@@ -6,25 +6,31 @@ find), five canonical channels (range float32 m, intensity, reflectivity, ambien
 flags), staggered as published; the codec gets the info (destaggered prediction).
 
 Baselines, same run, one thread: zstd-3 and zstd-1 of the whole ``data`` buffer (what MCAP's
-chunk compression does) and lz4. The codec runs twice: with the numpy reference coder and with
-the compiled one converters pass (``converters._kernels.select("codec")``, numba; absent without
-it); both must write the same bytes. Printed: bytes and ratio to zstd-3's bytes; median encode /
-decode CPU milliseconds (``time.process_time`` of interleaved rounds, so the load of a shared
-machine costs less), ratio to zstd-3's time, frames per second; and the load average. Targets
-(issue): encode and decode >= 50 Hz on one core at 128 x 2048 (the compiled coder); bytes
-below zstd-3's. Exits 1 when one is missed.
+chunk compression does) and lz4. The codec runs its default format version
+(``lidarscan.codec.VERSION``) with the compiled coder converters pass
+(``converters._kernels.select("codec")``, numba and the compiled fit and prediction of version
+3; absent without numba) and with the numpy reference (both must write the same bytes), and
+the other version it writes with the compiled coder (version 2 when 3 is the default); the
+ratios of version 3's encode / decode time to version 2's in the same run are printed. Printed:
+bytes and ratio to zstd-3's bytes; median encode / decode CPU milliseconds
+(``time.process_time`` of interleaved rounds, so the load of a shared machine costs less),
+ratio to zstd-3's time, frames per second; and the load average. Targets (issue): encode and
+decode >= 50 Hz on one core at 128 x 2048 (the default version, compiled coder); bytes below
+zstd-3's. Exits 1 when one is missed.
 
-``--baseline FILE``: also time the compiled coder of another revision, FILE being a copy of its
+``--baseline FILE``: also time another revision, FILE being a copy of its
 ``converters/_kernels/codec.py`` (e.g. ``git show main:converters/_kernels/codec.py >
-/tmp/main_codec.py``), interleaved with the others; it must write the same bytes, and the
-ratios of this revision's encode / decode time to it are printed (the before/after of a change,
-measured in one run). ``--baseline-core FILE``: with ``--baseline``, the baseline also runs
-that revision's encoder and decoder, FILE being a copy of its ``lidarscan/codec.py``
-(``git show main:lidarscan/codec.py > /tmp/main_core.py``): the before/after of a change to
-both.
+/tmp/main_codec.py``), interleaved with the others, writing its default version; the ratios
+of the encode / decode time of this revision's run of that version to it are printed, and
+whether the bytes are the same (the before/after of a change, measured in one run).
+``--baseline-core FILE``: with ``--baseline``, the baseline also runs that revision's encoder
+and decoder, FILE being a copy of its ``lidarscan/codec.py``; ``--baseline-v3 FILE``: with
+``--baseline-core``, its ``lidarscan/_codec_v3.py`` too (the core's imports of
+``lidarscan._codec_v3`` then load it). ``--baseline-version N [N ...]``: the format versions
+the baseline writes, each a candidate of its own (default: its own default).
 
 Usage: ``.venv/bin/python bench/bench_compression.py [--rounds N] [--baseline FILE
-[--baseline-core FILE]]``.
+[--baseline-core FILE [--baseline-v3 FILE]] [--baseline-version N [N ...]]]``.
 """
 
 from __future__ import annotations
@@ -69,13 +75,17 @@ def make_scan() -> tuple[Any, Any]:
     return out, SimpleNamespace(pixel_shift_by_row=np.asarray(info.pixel_shift_by_row) * 2)
 
 
-def _load_module(name: str, path: Path) -> Any:
-    """The Python file ``path`` imported as module ``name`` (another revision's copy)."""
+def _load_module(name: str, path: Path, renames: dict[str, str] | None = None) -> Any:
+    """The Python file ``path`` imported as module ``name`` (another revision's copy), with
+    the import statements of ``renames`` (old text -> new text) rewritten."""
     import importlib.util
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # numba's on-disk cache finds the module by name
-    spec.loader.exec_module(module)
+    source = path.read_text(encoding="utf-8")
+    for old, new in (renames or {}).items():
+        source = source.replace(old, new)
+    exec(compile(source, str(path), "exec"), module.__dict__)  # noqa: S102 - a revision's file
     return module
 
 
@@ -86,6 +96,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="a copy of another revision's converters/_kernels/codec.py")
     parser.add_argument("--baseline-core", type=Path, default=None,
                         help="with --baseline: a copy of that revision's lidarscan/codec.py")
+    parser.add_argument("--baseline-v3", type=Path, default=None,
+                        help="with --baseline-core: a copy of its lidarscan/_codec_v3.py")
+    parser.add_argument("--baseline-version", type=int, nargs="+", default=[None],
+                        help="the format version(s) the baseline writes (default: its default)")
     args = parser.parse_args(argv)
 
     import lz4.frame
@@ -98,13 +112,28 @@ def main(argv: list[str] | None = None) -> int:
     raw = scan.data.tobytes()
     z3, z1 = zstandard.ZstdCompressor(level=3), zstandard.ZstdCompressor(level=1)
     dz = zstandard.ZstdDecompressor()
-    coders = {"lidarscan.codec": compiled} if compiled is not None else {}
-    coders["codec (numpy)"] = None
-    cores = {}  # coder name -> the codec module that runs it (default: this revision's)
+    default = codec.VERSION
+    other = 2 if default == 3 else 3
+    # name -> (codec module, coder, version written; None: the module's default)
+    runs: dict[str, tuple[Any, Any, int | None]] = {}
+    if compiled is not None:
+        runs["lidarscan.codec"] = (codec, compiled, default)
+    runs["codec (numpy)"] = (codec, None, default)
+    if compiled is not None:
+        runs[f"codec v{other}"] = (codec, compiled, other)
     if args.baseline is not None and compiled is not None:
-        coders["codec (baseline)"] = _load_module("baseline_codec", args.baseline).coder()
+        core = codec
         if args.baseline_core is not None:
-            cores["codec (baseline)"] = _load_module("baseline_core", args.baseline_core)
+            renames = {}
+            if args.baseline_v3 is not None:
+                _load_module("baseline_v3", args.baseline_v3)
+                renames = {"from lidarscan import _codec_v3": "import baseline_v3 as _codec_v3",
+                           "from lidarscan._codec_v3 import": "from baseline_v3 import"}
+            core = _load_module("baseline_core", args.baseline_core, renames)
+        base_coder = _load_module("baseline_codec", args.baseline).coder()
+        for version in args.baseline_version:
+            name = "codec (baseline)" if version is None else f"codec (baseline v{version})"
+            runs[name] = (core, base_coder, version)
     packed = {"zstd-3 (buffer)": z3.compress(raw), "zstd-1 (buffer)": z1.compress(raw),
               "lz4 (buffer)": lz4.frame.compress(raw)}
     enc = {"zstd-3 (buffer)": lambda: z3.compress(raw), "zstd-1 (buffer)": lambda: z1.compress(raw),
@@ -112,19 +141,17 @@ def main(argv: list[str] | None = None) -> int:
     dec = {"zstd-3 (buffer)": lambda: dz.decompress(packed["zstd-3 (buffer)"]),
            "zstd-1 (buffer)": lambda: dz.decompress(packed["zstd-1 (buffer)"]),
            "lz4 (buffer)": lambda: lz4.frame.decompress(packed["lz4 (buffer)"])}
-    for name, coder in coders.items():
-        core = cores.get(name, codec)
-        packed[name] = core.compress_scan(scan, info, coder=coder)
+    for name, (core, coder, version) in runs.items():
+        options = {} if version is None else {"version": version}
+        packed[name] = core.compress_scan(scan, info, coder=coder, **options)
         back = core.decompress_scan(packed[name], coder=coder)
         assert ls.encode(back) == ls.encode(scan), name
-        enc[name] = lambda c=coder, m=core: m.compress_scan(scan, info, coder=c)
+        enc[name] = lambda c=coder, m=core, o=options: m.compress_scan(scan, info, coder=c, **o)
         dec[name] = lambda n=name, c=coder, m=core: m.decompress_scan(packed[n], coder=c)
-    assert len({packed[name] for name in coders}) == 1, "the coders wrote different bytes"
-    if compiled is not None:  # format version 3 (an option: lidarscan._codec_v3), compiled coder
-        packed["codec v3"] = codec.compress_scan(scan, info, coder=compiled, version=3)
-        assert ls.encode(codec.decompress_scan(packed["codec v3"])) == ls.encode(scan)
-        enc["codec v3"] = lambda: codec.compress_scan(scan, info, coder=compiled, version=3)
-        dec["codec v3"] = lambda: codec.decompress_scan(packed["codec v3"], coder=compiled)
+    by_version: dict[int, bytes] = {}
+    for name in runs:  # every coder of this revision writes the same bytes of a version
+        if not name.startswith("codec (baseline"):
+            assert by_version.setdefault(packed[name][4], packed[name]) == packed[name], name
     load = os.getloadavg()[0]
     cpu = time.process_time
     te = {k: statistics.median(v) for k, v in interleaved_times(enc, args.rounds, 0, cpu).items()}
@@ -134,18 +161,24 @@ def main(argv: list[str] | None = None) -> int:
     print(f"LidarScan {scan.height}x{scan.width}, {len(scan.channels)} channels, "
           f"{len(raw) / 1e6:.2f} MB raw; CPU-time medians of {args.rounds} interleaved rounds; "
           f"load average {load:.1f} -> {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"  {'coding':<18s} {'bytes':>10s} {'÷zstd-3':>8s} {'enc ms':>8s} {'÷zstd-3':>8s} "
+    print(f"  {'coding':<21s} {'bytes':>10s} {'÷zstd-3':>8s} {'enc ms':>8s} {'÷zstd-3':>8s} "
           f"{'dec ms':>8s} {'÷zstd-3':>8s} {'enc Hz':>7s} {'dec Hz':>7s}")
     for name in packed:
         size = len(packed[name])
-        print(f"  {name:<18s} {size:>10d} {size / base_b:>8.3f} {te[name] * 1e3:>8.2f} "
+        print(f"  {name:<21s} {size:>10d} {size / base_b:>8.3f} {te[name] * 1e3:>8.2f} "
               f"{te[name] / base_e:>8.2f} {td[name] * 1e3:>8.2f} {td[name] / base_d:>8.2f} "
               f"{1 / te[name]:>7.0f} {1 / td[name]:>7.0f}")
-    ours = next(iter(coders))
-    if "codec (baseline)" in coders:
-        base = "codec (baseline)"
-        print(f"  {ours} / baseline: encode {te[ours] / te[base]:.3f}x, "
-              f"decode {td[ours] / td[base]:.3f}x")
+    ours = next(iter(runs))
+    if f"codec v{other}" in runs:
+        v3, v2 = (ours, f"codec v{other}") if default == 3 else (f"codec v{other}", ours)
+        print(f"  format version 3 / version 2 (compiled, same run): encode "
+              f"{te[v3] / te[v2]:.3f}x, decode {td[v3] / td[v2]:.3f}x")
+    for base in [n for n in runs if n.startswith("codec (baseline")]:
+        same = next(n for n in runs if not n.startswith("codec (baseline")
+                    and packed[n][4] == packed[base][4])
+        print(f"  {same} / {base} (version {packed[base][4]}): encode "
+              f"{te[same] / te[base]:.3f}x, decode {td[same] / td[base]:.3f}x; "
+              f"{'the same bytes' if packed[same] == packed[base] else 'other bytes'}")
     checks = [("bytes below zstd-3 of the buffer", len(packed[ours]) < base_b),
               ("encode >= 50 Hz", 1 / te[ours] >= 50), ("decode >= 50 Hz", 1 / td[ours] >= 50)]
     for label, ok in checks:

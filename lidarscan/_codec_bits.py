@@ -53,6 +53,10 @@ class ResidualCoder(NamedTuple):
             where float32(float64(q) * step) has v's bits, else an exception and q = 0.
         dequantise: ``(q int32 (n,), step) -> float32``: float32(float64(q) * step).
         roll: ``(x (H, W, C), shifts int64[H] or None, sign) -> x rolled``: :func:`roll`.
+        xfit: format version 3's table fit, ``lidarscan._codec_v3.fit``'s arguments and
+            result, or None: that reference.
+        xpredict: format version 3's prediction and its residual, in one pass,
+            ``lidarscan._codec_v3.residual``'s arguments and result, or None: that reference.
     """
 
     name: str
@@ -65,6 +69,8 @@ class ResidualCoder(NamedTuple):
     quantise: Callable[..., Any]
     dequantise: Callable[..., Any]
     roll: Callable[..., Any]
+    xfit: Callable[..., Any] | None = None
+    xpredict: Callable[..., Any] | None = None
 
 
 # ------------------------------------------------------------------ prediction

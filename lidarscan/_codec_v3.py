@@ -40,13 +40,21 @@ PREDICT2) before its neighbour prediction, and the decoder rolls it back before 
 
 Every step is integer or exact IEEE float32 conversion, so encoder and decoder agree bit for bit
 on any machine. The tables are the encoder's choice (any tables decode losslessly); the encoder
-fits gain[b] as the median of f / s over the pixels of bin b with f below the knee, then
-row_gain[y] as the median ratio of f to that prediction in row y (the beams differ by a few
-per cent), then gain again with the row gains, and comp[k] as the median f over the pixels of
-u bin k (all on every n-th column, about 65 536 pixels); it keeps the gains below 2**24 (no
-wrapping), and keeps XPREDICT only when it is smaller than the
-block's version 2 coding. Version 3 buffers start with version byte 3; a version 3 decoder reads
-versions 1 and 2 unchanged.
+uses the knee 80 and fits gain[b] as the median of f / s over the pixels of bin b with f below
+the knee, then row_gain[y] as the median ratio of f to that prediction in row y (the beams
+differ by a few per cent), then gain again with the row gains, and comp[k] as the median f over
+the pixels of u bin k (all on every n-th column, about 16 384 pixels); it keeps the gains below
+2**24 (no wrapping). It then estimates both codings of the block, XPREDICT and version 2 (the
+residual bits of each one's best predictor on a band of up to 32 rows, scaled to the grid, plus
+XPREDICT's tables): XPREDICT alone when its estimate is below 0.8 times version 2's, version 2
+alone above 1.25 times, else both, the smaller kept; a large XPREDICT residual (at least
+65 536 pixels) with at least a quarter zeros is coded with its zeros masked only. Version 3
+buffers start with version byte 3; a version 3 decoder reads versions 1 and 2 unchanged.
+
+Code layout: the functions here are the numpy reference (and test oracle) of the fit and of the
+prediction; a :class:`lidarscan._codec_bits.ResidualCoder` may carry compiled ones (fields
+``xfit`` and ``xpredict``: ``converters._kernels.codec3``, same values), which the block coding
+below calls when present.
 """
 
 from __future__ import annotations
@@ -56,17 +64,29 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan.codec import (_FLOAT32, _GRID2, _INT_CODES, _SIZES, _decode_int2,
-                             _encode_int2, _shift_params)
+from lidarscan._codec_bits import roll
+from lidarscan.codec import (_FLOAT32, _GRID2, _INT_CODES, _SIZES, XPREDICT, _choose_masked,
+                             _decode_int2, _encode_int2, _read_grid2, _shift_params)
 from lidarscan.errors import DecodeError
+from lidarscan.scan import _find
 
-__all__ = ["XParams", "decode_block", "encode_block", "fit", "pack_params", "predict",
-           "source_names", "unpack_params"]
+__all__ = ["XParams", "decode_block", "encode_block", "fit", "fit_step", "pack_params", "predict",
+           "residual", "source_names", "unpack_params"]
 
 _SRC = struct.Struct("<IBIBiH")   # signal offset, signal datatype, range offset, range datatype,
                                   # bin0, n_gain
 _COMP = struct.Struct("<IiH")     # knee, ubin0, n_comp
-_FIT_PIXELS = 1 << 16  # the encoder fits its tables on about this many pixels
+_FIT_PIXELS = 1 << 14  # the encoder fits its tables on about this many pixels
+_KNEE = 80  # the encoder's knee: reflectivity is linear in the signal below about 100
+#: the encoder's choice between XPREDICT and the version 2 coding of a block by an estimate of
+#: their bytes (:func:`encode_block`): XPREDICT only below _SURE times the version 2 estimate,
+#: version 2 only above _SKIP times it, both coded in between (the smaller wins)
+_SURE, _SKIP = 0.8, 1.25
+#: XPREDICT's residual grid of at least _LARGE pixels is coded with its zeros masked only
+#: (not also unmasked, the smaller kept) from the fraction _MASKED_ONLY of zeros: real Ouster
+#: frames have half or more, and the masked coding is 7-19 % smaller (the mask's frame is
+#: a fixed cost only on small grids, which are cheap to code twice)
+_MASKED_ONLY, _LARGE = 0.25, 1 << 16
 #: (target channel prefix, signal channel names, range channel prefix): the encoder's search;
 #: a suffix (e.g. "2" of a second return) is carried over to the sources.
 TARGETS = (("reflectivity", ("signal", "intensity"), "range"),)
@@ -167,6 +187,20 @@ def predict(s: np.ndarray[Any, Any], r: np.ndarray[Any, Any], p: XParams,
     return u.astype(dtype)
 
 
+def residual(x: np.ndarray[Any, Any], s: np.ndarray[Any, Any], r: np.ndarray[Any, Any],
+             p: XParams, shifts: np.ndarray[Any, Any] | None, sign: int
+             ) -> np.ndarray[Any, Any]:
+    """sign 1 (encoding): the residual ``(x - P) mod 2**bits`` of the target grid x, rolled
+    right by the row shifts (None: not rolled); sign -1 (decoding): the target grid ``(x
+    rolled back + P) mod 2**bits`` of the rolled residual grid x. x: native unsigned (H, W)
+    (returned likewise); s, r: the native signal and range grids."""
+    h, w = s.shape
+    if sign > 0:
+        return roll((x - predict(s, r, p, x.dtype)).reshape(h, w, 1), shifts, 1).reshape(h, w)
+    back = roll(x.reshape(h, w, 1), shifts, -1).reshape(h, w)
+    return (back + predict(s, r, p, x.dtype)).astype(x.dtype)  # wrapping
+
+
 def _medians(keys: np.ndarray[Any, Any], values: np.ndarray[Any, Any], n: int
              ) -> np.ndarray[Any, Any]:
     """Median of ``values`` per key 0..n-1 (the mean of the two middle values of an even
@@ -175,9 +209,7 @@ def _medians(keys: np.ndarray[Any, Any], values: np.ndarray[Any, Any], n: int
     out = np.ones(n, np.float64)
     if not keys.size:
         return out
-    # one sort by key, then value: values scaled into [0, 0.5) added to the integer keys
-    top = float(np.abs(values).max()) or 1.0
-    order = np.argsort(keys + 0.25 * (values / top + 1.0))
+    order = np.lexsort((values, keys))  # by key, then value
     keys, values = keys[order], values[order]
     starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
     counts = np.diff(np.r_[starts, keys.size])
@@ -190,12 +222,19 @@ def _medians(keys: np.ndarray[Any, Any], values: np.ndarray[Any, Any], n: int
     return out[pick]
 
 
+def fit_step(size: int) -> int:
+    """The encoder fits on every step-th column of a grid of ``size`` pixels (about
+    16 384 pixels: the tables travel, a subsample is nearly as good)."""
+    return max(1, size // _FIT_PIXELS)
+
+
 def fit(f: np.ndarray[Any, Any], s: np.ndarray[Any, Any], r: np.ndarray[Any, Any],
-        signal: tuple[int, int], rng: tuple[int, int], knee: int) -> XParams | None:
+        signal: tuple[int, int], rng: tuple[int, int], knee: int = _KNEE) -> XParams | None:
     """Tables of :func:`predict` fitted to a target grid f (native unsigned, (H, W)) from its
-    signal s and range r (native (H, W) grids); ``signal`` / ``rng``: (offset, datatype) of
-    the sources. None when no pixel has a range and a positive signal."""
-    step = max(1, f.size // _FIT_PIXELS)  # fit on every step-th column: the tables travel
+    signal s and range r (native (H, W) grids) on every :func:`fit_step`-th column;
+    ``signal`` / ``rng``: (offset, datatype) of the sources. None when no pixel has a range
+    and a positive signal."""
+    step = fit_step(f.size)
     f, s, r = f[:, ::step], s[:, ::step], r[:, ::step]
     bins, valid = _range_bins(r)
     sig = s.astype(np.int64)
@@ -243,28 +282,27 @@ def source_names(target: str, names: list[str]) -> tuple[str, str] | None:
 
 # ------------------------------------------------------------------ the block coding
 
-def _desc_of(scan: Any, name: str) -> Any:
-    return next(d for d in scan.channels if d.name == name)
-
-
 def encode_block(block: Any, desc: Any, scan: Any, level: int,
                  shifts: np.ndarray[Any, Any] | None, coder: Any,
-                 knees: tuple[int, ...] = (80,)) -> tuple[bytes, bytes] | None:
-    """(params, payload) of the XPREDICT coding of an integer channel block, or None when the
-    block has no sources (:func:`source_names`, earlier blocks of the same grid, count 1).
-    ``knees``: the knee values tried (the smallest coding wins)."""
+                 u: np.ndarray[Any, Any] | None = None, ref: np.ndarray[Any, Any] | None = None
+                 ) -> tuple[bytes, bytes, bool] | None:
+    """(params, payload, sure) of the XPREDICT coding of an integer channel block, or None
+    when the block has no sources (:func:`source_names`, earlier blocks of the same grid,
+    count 1) or no pixel to fit, or when an estimate says that its version 2 coding is
+    clearly smaller. ``u``, ``ref``: the block's rolled unsigned (H, W, 1) grid and the
+    reference grid of its version 2 coding (None: no estimate, XPREDICT is coded); sure: the
+    estimate says that XPREDICT is clearly smaller (the caller then skips the version 2
+    coding). ``coder``: a :class:`lidarscan._codec_bits.ResidualCoder` (its ``xfit`` and
+    ``xpredict`` when present, else this module's reference)."""
     from lidarscan.scan import channel, channel_names
-    names = channel_names(scan)
-    found = source_names(str(desc.name), names)
+    found = source_names(str(desc.name), channel_names(scan))
     if found is None or int(desc.count) != 1:
         return None
     height, width = int(scan.height), int(scan.width)
-    sources = [_desc_of(scan, n) for n in found]
-    for src in sources:
-        size = _SIZES.get(int(src.datatype), 0)
-        end = int(src.offset) + height * width * size
-        if (int(src.count) != 1 or end > int(desc.offset) or int(src.datatype) not in
-                (_INT_CODES.keys() if src is sources[0] else (*_INT_CODES, _FLOAT32))):
+    sources = [_find(scan, name) for name in found]
+    for src, types in zip(sources, (_INT_CODES.keys(), (*_INT_CODES, _FLOAT32)), strict=True):
+        end = int(src.offset) + height * width * _SIZES.get(int(src.datatype), 0)
+        if int(src.count) != 1 or end > int(desc.offset) or int(src.datatype) not in types:
             return None
     big = bool(scan.is_bigendian)
     size = _SIZES[int(desc.datatype)]
@@ -272,23 +310,27 @@ def encode_block(block: Any, desc: Any, scan: Any, level: int,
         height, width).astype(f"u{size}")
     s = np.asarray(channel(scan, found[0], native=True)).reshape(height, width)
     r = np.asarray(channel(scan, found[1], native=True)).reshape(height, width)
-    best: tuple[bytes, bytes] | None = None
-    for knee in knees:
-        p = fit(f, s, r, (int(sources[0].offset), int(sources[0].datatype)),
-                (int(sources[1].offset), int(sources[1].datatype)), knee)
-        if p is None:
+    p = (coder.xfit or fit)(f, s, r, (int(sources[0].offset), int(sources[0].datatype)),
+                            (int(sources[1].offset), int(sources[1].datatype)), _KNEE)
+    if p is None:
+        return None
+    d = (coder.xpredict or residual)(f, s, r, p, shifts, 1).reshape(height, width, 1)
+    tables = _shift_params(shifts) + pack_params(p)
+    if _GRID2.size + len(tables) >= 2**16:  # the container's u16 params length
+        return None
+    sure = False
+    if u is not None:  # estimates of both codings' bytes: the residual bits of their best
+        rows = min(height, 32)  # predictor on a band of rows, scaled, plus XPREDICT's tables
+        ours = _choose_masked(d, None, None, coder)[1] * height / rows / 8 + len(tables)
+        theirs = _choose_masked(u, None, ref, coder)[1] * height / rows / 8
+        if ours > _SKIP * theirs:
             return None
-        d = (f - predict(s, r, p, f.dtype)).reshape(height, width, 1)
-        d = coder.roll(d, shifts, 1)
-        predictor, extra, masked, payload = _encode_int2(d, level, None, coder)
-        params = (_GRID2.pack(int(desc.datatype), big, height, width, 1, predictor,
-                                shifts is not None, extra, masked)
-                  + _shift_params(shifts) + pack_params(p))
-        if len(params) >= 2**16:  # the container's u16 params length
-            continue
-        if best is None or len(params) + len(payload) < len(best[0]) + len(best[1]):
-            best = (params, payload)
-    return best
+        sure = ours < _SURE * theirs
+    predictor, extra, masked, payload = _encode_int2(
+        d, level, None, coder, _MASKED_ONLY if d.size >= _LARGE else 1.0)
+    params = _GRID2.pack(int(desc.datatype), big, height, width, 1, predictor,
+                         shifts is not None, extra, masked) + tables
+    return params, payload, sure
 
 
 def _source(data: np.ndarray[Any, Any], offset: int, datatype: int, shape: tuple[int, int],
@@ -300,33 +342,22 @@ def _source(data: np.ndarray[Any, Any], offset: int, datatype: int, shape: tuple
         raise DecodeError(f"{what} source offset", offset,
                           f"a block of {n} bytes decoded before offset {before}")
     code = "f4" if datatype == _FLOAT32 else _INT_CODES[datatype]
-    raw = np.frombuffer(data[offset:offset + n].tobytes(), (">" if big else "<") + code)
-    return raw.astype(code).reshape(shape)
+    raw = data[offset:offset + n].view((">" if big else "<") + code)  # decoded: not rewritten
+    return raw.astype(code, copy=False).reshape(shape)
 
 
 def decode_block(what: str, offset: int, length: int, params: bytes, payload: bytes,
                  data: np.ndarray[Any, Any], coder: Any) -> np.ndarray[Any, Any]:
     """The bytes (uint8 array) of an XPREDICT segment; ``data``: the scan's data decoded up to
-    ``offset``."""
-    if len(params) < _GRID2.size:
-        raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
-    datatype, big, h, w, count, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
-    size = _SIZES.get(datatype, 0)
-    if (datatype not in _INT_CODES or count != 1 or predictor > 3 or extra > 2 or masked > 1
-            or h * w * size != length):
-        raise DecodeError(f"{what} params", (datatype, h, w, count, predictor, extra, masked),
-                          f"an integer grid of {length} bytes, count 1, predictor 0..3")
-    base = _GRID2.size + (4 * h if rolled else 0)
-    if len(params) < base:
-        raise DecodeError(f"{what} params", len(params), f"at least {base} bytes")
-    shifts = np.frombuffer(params, "<i4", h, _GRID2.size).astype(np.int64) if rolled else None
-    p = unpack_params(params[base:], what)
+    ``offset``; ``coder`` as for :func:`encode_block`."""
+    datatype, big, (h, w, _), predictor, extra, masked, shifts, end = _read_grid2(
+        what, XPREDICT, length, params)
+    p = unpack_params(params[end:], what)
     if p.row_gain.size != h:
         raise DecodeError(f"{what} params", p.row_gain.size, f"{h} row gains (one per row)")
-    s = _source(data, p.signal_offset, p.signal_datatype, (h, w), bool(big), offset, what)
-    r = _source(data, p.range_offset, p.range_datatype, (h, w), bool(big), offset, what)
-    d = _decode_int2(payload, (h, w, 1), size, predictor, extra, bool(masked), what, None,
-                       coder)
-    d = coder.roll(d, shifts, -1).reshape(h, w)
-    f = (d + predict(s, r, p, d.dtype)).astype(d.dtype)  # wrapping
+    s = _source(data, p.signal_offset, p.signal_datatype, (h, w), big, offset, what)
+    r = _source(data, p.range_offset, p.range_datatype, (h, w), big, offset, what)
+    size = _SIZES[datatype]
+    d = _decode_int2(payload, (h, w, 1), size, predictor, extra, masked, what, None, coder)
+    f = (coder.xpredict or residual)(d.reshape(h, w), s, r, p, shifts, -1)
     return f.astype(f.dtype.newbyteorder(">" if big else "<")).reshape(-1).view(np.uint8)

@@ -8,13 +8,13 @@ compression does) because it knows the channel layout: every channel block is co
 integer blocks by prediction, float32 blocks in metres through the integer grid they come from.
 
 Byte format, version 2 (every integer little-endian; version 1 is the same container with
-methods 0..4 only: this module still decodes it, and writes version 2 by default). Version 3
-(``compress_scan(..., version=3)``, an option; bench/bench_compression.py measures its cost)
-is the same container with version byte 3 and one more method, 7 XPREDICT: an integer block
-predicted from two earlier blocks (Ouster reflectivity from signal and range), its byte
-format in :mod:`lidarscan._codec_v3`::
+methods 0..4 only: this module still decodes it). Version 3, written by default
+(``compress_scan(..., version=2)`` still writes version 2), is the same container with version
+byte 3 and one more method, 7 XPREDICT: an integer block predicted from two earlier blocks
+(Ouster reflectivity from signal and range), its byte format in :mod:`lidarscan._codec_v3`;
+a scan without such blocks is coded as in version 2, with version byte 3::
 
-    "LSCZ"  u8 version=2  u8 flags=0  u16 n_segments
+    "LSCZ"  u8 version=2 (3)  u8 flags=0  u16 n_segments
     u32 skeleton_len  skeleton          zstd frame of the CDR (lidarscan.encode) of the scan with
                                         empty ``data`` and empty per-column arrays: header, info
                                         stamp, sizes, byte order, stagger flag, channel
@@ -145,7 +145,7 @@ __all__ = [
 ]
 
 MAGIC = b"LSCZ"
-VERSION = 2
+VERSION = 3  # written by default; versions 1 and 2 decode
 RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2, XPREDICT = 0, 1, 2, 3, 4, 5, 6, 7
 _METHOD_NAMES = {RAW: "raw", ZSTD: "zstd", SHUFFLE: "shuffle", PREDICT: "predict",
                  QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2", XPREDICT: "xpredict"}
@@ -353,13 +353,19 @@ def _unmask_frame(frame: bytes, n: int, what: str) -> np.ndarray[Any, Any]:
 
 
 def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None,
-                 coder: ResidualCoder = NUMPY) -> tuple[int, int, bool, bytes]:
+                 coder: ResidualCoder = NUMPY, masked_only: float = 1.0
+                 ) -> tuple[int, int, bool, bytes]:
     """(predictor, extra, masked, payload) of an unsigned (H, W, C) grid (ref: an earlier
     channel's grid REF may predict from). With at least 2 % zero values the grid is also
-    coded with the zeros masked (not coded); the smaller coding wins."""
+    coded with the zeros masked (not coded); the smaller coding wins. With at least the
+    fraction ``masked_only`` of zero values (and a non-zero value) it is coded masked only."""
+    zeros = int(np.count_nonzero(u == 0))
+    if masked_only * u.size <= zeros < u.size:
+        valid = u != 0
+        predictor, extra, parts = _code_grid(u, valid, level, None, ref, coder)
+        return predictor, extra, True, _parts(_mask_frame(valid, level), *parts)
     predictor, extra, parts = _code_grid(u, None, level, None, ref, coder)
     best = (predictor, extra, False, _parts(*parts))
-    zeros = int(np.count_nonzero(u == 0))
     if 0.02 * u.size <= zeros < u.size:
         valid = u != 0
         predictor, extra, parts = _code_grid(u, valid, level, None, ref, coder)
@@ -467,21 +473,24 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
         u = np.frombuffer(block, np.dtype((">" if big else "<") + f"u{size}")).reshape(shape)
         u = coder.roll(_as_unsigned(u), shifts, 1)
         same = {off: g for off, g in refs.items() if g.dtype == u.dtype and g.shape == u.shape}
-        ref_offset = None
-        if same:  # the earlier grid closest to this one (a second return's first return)
+        ref_offset = None  # the earlier grid closest to this one (a second return's first
+        if same:  # return; the only one needs no comparison)
             ref_offset = min(same, key=lambda off: _bits_cost(
-                zigzag(residual(u[::8], REF, same[off][::8]))))
+                zigzag(residual(u[::8], REF, same[off][::8])))) if len(same) > 1 else [*same][0]
         refs[int(desc.offset)] = u
-        predictor, extra, masked, payload = _encode_int2(
-            u, level, None if ref_offset is None else same[ref_offset], coder)
+        ref = None if ref_offset is None else same[ref_offset]
+        cross = None
+        if version >= 3:
+            from lidarscan import _codec_v3
+            cross = _codec_v3.encode_block(block, desc, scan, level, shifts, coder, u, ref)
+            if cross is not None and cross[2]:  # clearly smaller: no version 2 coding
+                return XPREDICT, cross[0], cross[1]
+        predictor, extra, masked, payload = _encode_int2(u, level, ref, coder)
         ref_param = struct.pack("<I", ref_offset) if predictor == REF else b""
         params = (_GRID2.pack(datatype, big, *shape, predictor, rolled, extra, masked)
                   + ref_param + _shift_params(shifts))
-        if version >= 3:
-            from lidarscan import _codec_v3
-            cross = _codec_v3.encode_block(block, desc, scan, level, shifts, coder)
-            if cross is not None and len(cross[0]) + len(cross[1]) < len(params) + len(payload):
-                return (XPREDICT, *cross)
+        if cross is not None and len(cross[0]) + len(cross[1]) < len(params) + len(payload):
+            return XPREDICT, cross[0], cross[1]
         return PREDICT2, params, payload
     if datatype == _FLOAT32 and float_step:
         raw = np.frombuffer(block, ">f4" if big else "<f4").reshape(shape)
@@ -522,9 +531,10 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
         coder: the residual coding's implementation (:class:`ResidualCoder`): None = the numpy
             reference; converters pass the compiled one (``converters._kernels.select("codec")``).
             Every coder writes the same bytes.
-        version: the format version written: 2 (the default) or 3 (version 2 plus the
-            cross-channel prediction of :mod:`lidarscan._codec_v3`: smaller on Ouster scans,
-            whose reflectivity it predicts from signal and range; slower to encode).
+        version: the format version written: 3 (the default: version 2 plus the
+            cross-channel prediction of :mod:`lidarscan._codec_v3`, smaller on Ouster scans,
+            whose reflectivity it predicts from signal and range) or 2 (for readers of this
+            library's versions before 3 was written by default).
 
     Returns:
         The compressed bytes; :func:`decompress_scan` restores the scan bit for bit.
@@ -706,22 +716,36 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
     return out
 
 
-def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
-               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
+def _read_grid2(what: str, method: int, length: int, params: bytes
+                ) -> tuple[int, bool, tuple[int, int, int], int, int, bool,
+                           np.ndarray[Any, Any] | None, int]:
+    """(datatype, bigendian, (H, W, C), predictor, extra, masked, row shifts or None, end) of
+    the grid params of a PREDICT2, QUANT2 or XPREDICT segment of ``length`` bytes, checked
+    (DecodeError); ``end``: where the row shifts end (XPREDICT's tables follow; the other
+    methods' params end there)."""
     if len(params) < _GRID2.size:
         raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
     datatype, big, h, w, c, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
-    base = _GRID2.size + (8 if method == QUANT2 else 0) + (4 if predictor == REF else 0)
-    want = base + (4 * h if rolled else 0)
-    if len(params) != want:
-        raise DecodeError(f"{what} params", len(params), f"{want} bytes")
-    ok_type = datatype in _INT_CODES if method == PREDICT2 else datatype == _FLOAT32
+    ok_type = datatype == _FLOAT32 if method == QUANT2 else datatype in _INT_CODES
     top = REF if method == PREDICT2 else PLANAR
     if (not ok_type or predictor > top or extra > 2 or masked > 1
+            or (method == XPREDICT and c != 1)
             or h * w * c * _SIZES.get(datatype, 0) != length):
         raise DecodeError(f"{what} params", (datatype, h, w, c, predictor, extra, masked),
-                          f"a grid of {length} bytes with a known datatype and predictor")
+                          f"a grid of {length} bytes with a known datatype and predictor"
+                          + (", count 1" if method == XPREDICT else ""))
+    base = _GRID2.size + (8 if method == QUANT2 else 0) + (4 if predictor == REF else 0)
+    end = base + (4 * h if rolled else 0)
+    if len(params) < end or (method != XPREDICT and len(params) != end):
+        raise DecodeError(f"{what} params", len(params), f"{end} bytes")
     shifts = np.frombuffer(params, "<i4", h, base).astype(np.int64) if rolled else None
+    return datatype, bool(big), (h, w, c), predictor, extra, bool(masked), shifts, end
+
+
+def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
+               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
+    datatype, big, (h, w, c), predictor, extra, masked, shifts, _ = _read_grid2(
+        what, method, length, params)
     if method == PREDICT2:
         size = _SIZES[datatype]
         ref = None
@@ -733,14 +757,12 @@ def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, 
             grid = np.frombuffer(data[ref_offset:ref_offset + length].tobytes(),
                                  (">" if big else "<") + f"u{size}").reshape(h, w, c)
             ref = coder.roll(_as_unsigned(grid), shifts, 1)
-        u = _decode_int2(payload, (h, w, c), size, predictor, extra, bool(masked), what, ref,
-                         coder)
+        u = _decode_int2(payload, (h, w, c), size, predictor, extra, masked, what, ref, coder)
         u = coder.roll(u, shifts, -1)
         return u.astype(u.dtype.newbyteorder(">" if big else "<"), copy=False).reshape(
             -1).view(np.uint8)
     (step,) = struct.unpack_from("<d", params, _GRID2.size)
-    bits = _decode_quant2(payload, (h, w, c), predictor, extra, bool(masked), step, bool(big),
-                          what, coder)
+    bits = _decode_quant2(payload, (h, w, c), predictor, extra, masked, step, big, what, coder)
     return coder.roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).reshape(
         -1).view(np.uint8)
 

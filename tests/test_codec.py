@@ -160,7 +160,7 @@ def test_second_returns_are_predicted_from_the_first_and_roundtrip(
 @pytest.mark.parametrize("coder", ["numpy", "compiled"])
 def test_golden_bytes_are_what_the_encoder_writes(coder: str) -> None:
     import zstandard
-    out = codec.compress_scan(_golden_scan_v2(), level=3, coder=_coder(coder))
+    out = codec.compress_scan(_golden_scan_v2(), level=3, coder=_coder(coder), version=2)
     _same(codec.decompress_scan(out, coder=_coder(coder)), _golden_scan_v2())
     assert out[:8] == GOLDEN_V2[:8]
     assert [(s["offset"], s["length"], s["method"], s["params"]) for s in codec.segments(out)] \
@@ -493,12 +493,13 @@ def test_real_frames_roundtrip_and_beat_zstd_of_the_buffer(range_encoding: str,
         buf = codec.compress_scan(scan, ouster_info(meta))
         _same(codec.decompress_scan(buf), scan)
         rolled = [s["params"][15] for s in codec.segments(buf)
-                  if s["method"] in ("predict2", "quant2")]
+                  if s["method"] in ("predict2", "quant2", "xpredict")]
         assert set(rolled) == {int(not destagger)}  # staggered scans predicted destaggered
         whole = zstandard.ZstdCompressor(level=3).compress(scan.data.tobytes())
         assert len(buf) < 0.8 * len(whole), meta.name
         methods = {s["method"] for s in codec.segments(buf) if s["length"]}
-        assert methods <= {"predict2", "quant2", "zstd"}
+        assert methods <= {"predict2", "quant2", "xpredict", "zstd"}
+        assert "xpredict" in methods  # format version 3 (the default): reflectivity
         assert ("quant2" in methods) == (range_encoding == "float32")
 
 

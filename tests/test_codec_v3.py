@@ -5,9 +5,12 @@ with), a loop-based oracle of the prediction P (the module docstring's formula, 
 with Python integers and IEEE float32 words) against the numpy reference, the params' byte
 round trip, round trips of hypothesis scans built for XPREDICT (shapes, signal / target
 datatypes, float32 or integer ranges with NaN, +-Inf, -0 and negative values, no-return pixels,
-both byte orders, rolled rows) and of generic scans written as version 3, the real Ouster
-frames (smaller than version 2, same bytes with the compiled residual coder), and damaged
-buffers.
+both byte orders, rolled rows) and of generic scans written as version 3 (the default), the
+compiled fit and prediction (``converters._kernels.codec3``, in the compiled coder) against the
+numpy reference on hypothesis inputs (signal, range and target dtypes, byte orders, NaN, +-Inf,
+no-return pixels, rolled rows, the medians) and scan by scan (same bytes, also where no block
+has XPREDICT's sources), the real Ouster frames (smaller than version 2, same bytes with the
+compiled coder), and damaged buffers.
 """
 
 from __future__ import annotations
@@ -89,20 +92,23 @@ def test_golden_v3_layout_version_methods_and_params() -> None:
     assert p.row_gain.size == 4 and p.knee == 80
 
 
-def test_golden_v3_bytes_are_what_the_encoder_writes() -> None:
+@pytest.mark.parametrize("compiled", [False, True])
+def test_golden_v3_bytes_are_what_the_encoder_writes(compiled: bool) -> None:
     import zstandard
-    out = codec.compress_scan(_golden_scan_v3(), level=3, version=3)
+    coder = _compiled_x() if compiled else None
+    out = codec.compress_scan(_golden_scan_v3(), level=3, version=3, coder=coder)
     assert [(s["offset"], s["method"], s["params"]) for s in codec.segments(out)] == [
         (s["offset"], s["method"], s["params"]) for s in codec.segments(GOLDEN_V3)]
     if zstandard.backend_features is not None and zstandard.__version__ == "0.25.0":
         assert out == GOLDEN_V3
 
 
-def test_version_2_stays_the_default_and_other_versions_are_refused() -> None:
+def test_version_3_is_the_default_2_is_written_on_request_and_others_are_refused() -> None:
     scan = _golden_scan_v3()
-    assert codec.compress_scan(scan)[4] == 2
-    assert {s["method"] for s in codec.segments(codec.compress_scan(scan))} <= {
-        "quant2", "predict2"}
+    assert codec.VERSION == 3 and codec.compress_scan(scan)[4] == 3
+    v2 = codec.compress_scan(scan, version=2)
+    assert v2[4] == 2 and {s["method"] for s in codec.segments(v2)} <= {"quant2", "predict2"}
+    _same(codec.decompress_scan(v2), scan)
     for bad in (1, 4, True):
         with pytest.raises(EncodeError, match="version"):
             codec.compress_scan(scan, version=bad)
@@ -200,6 +206,109 @@ def test_source_names_follow_the_return_suffix() -> None:
     assert v3.source_names("near_ir", names) is None
 
 
+# ------------------------------------------------------- the compiled fit and prediction
+
+def _compiled_x() -> Any:
+    """The compiled coder (``test_codec._compiled``, not imported here: its module's @given
+    tests would nest in this module's)."""
+    pytest.importorskip("numba")
+    from converters._kernels import select
+    coder = select("codec").numba
+    if coder is None:
+        pytest.skip("numba disabled (LIDARSCAN_NUMBA=0)")
+    assert coder.xfit is not None and coder.xpredict is not None
+    return coder
+
+
+def _order(a: np.ndarray[Any, Any], big: bool) -> np.ndarray[Any, Any]:
+    """a with the same values in big-endian (non-native) order when ``big``."""
+    return a.astype(a.dtype.newbyteorder(">")) if big and a.dtype.itemsize > 1 else a
+
+
+@settings(max_examples=80, deadline=None)
+@given(_sources(), st.sampled_from([np.uint8, np.uint16, np.uint32]), st.booleans(),
+       st.lists(st.integers(-40, 40), min_size=5, max_size=5), st.integers(0, 2**32 - 1))
+def test_compiled_prediction_matches_the_reference(src: Any, dtype: Any, big: bool,
+                                                   shifts: list[int], seed: int) -> None:
+    s, r, p = src
+    x = np.random.default_rng(seed).integers(0, np.iinfo(dtype).max, s.shape,
+                                             dtype=np.int64, endpoint=True).astype(dtype)
+    rows = None if shifts[0] % 2 else np.array(shifts[:s.shape[0]], np.int64)  # any sign
+    coder = _compiled_x()
+    for sign in (1, -1):
+        want = v3.residual(x, s, r, p, rows, sign)
+        got = coder.xpredict(_order(x, big), _order(s, big), _order(r, big), p, rows, sign)
+        assert got.dtype == want.dtype and got.dtype.isnative
+        np.testing.assert_array_equal(got, want)
+    d = coder.xpredict(x, s, r, p, rows, 1)
+    np.testing.assert_array_equal(coder.xpredict(d, s, r, p, rows, -1), x)  # inverse
+
+
+@st.composite
+def _fit_inputs(draw: Any) -> tuple[np.ndarray[Any, Any], ...]:
+    """(f, s, r): a target roughly signal x a range gain (some arbitrary pixels), any
+    signal type (negative values included), float32 ranges with NaN, +-Inf, -0 and
+    no-return zeros, or integer ranges."""
+    h, w = draw(st.integers(1, 6)), draw(st.integers(1, 40))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    sig_type = draw(st.sampled_from(["u1", "i1", "u2", "i2", "u4", "i4"]))
+    info = np.iinfo(sig_type)
+    s = rng.integers(max(info.min, -3), min(info.max, draw(st.sampled_from([255, 2000]))),
+                     (h, w), endpoint=True).astype(sig_type)
+    if draw(st.booleans()):
+        r = rng.uniform(0.1, draw(st.sampled_from([2.0, 80.0, 300.0])), (h, w)).astype(
+            np.float32)
+        special = rng.random(h * w) < 0.2
+        r.reshape(-1)[special] = rng.choice(np.array(_RANGE_SPECIALS, np.float32),
+                                             int(special.sum()))
+    else:  # integer units of any type (negative values of a signed one: no prediction)
+        range_type = draw(st.sampled_from(["u2", "i4", "u4"]))
+        top = min(np.iinfo(range_type).max, draw(st.sampled_from([100, 2**20, 2**32 - 1])))
+        r = rng.integers(-5 if range_type == "i4" else 0, top, (h, w), dtype=np.int64,
+                         endpoint=True).astype(range_type)
+    tgt = draw(st.sampled_from([np.uint8, np.uint16]))
+    gain = 0.2 + 0.3 * rng.random()
+    f = np.clip(np.rint(np.maximum(s, 0) * gain), 0, np.iinfo(tgt).max).astype(tgt)
+    f.reshape(-1)[rng.random(h * w) < 0.1] = rng.integers(0, 256)
+    return f, s, r
+
+
+@settings(max_examples=80, deadline=None)
+@given(_fit_inputs(), st.sampled_from([0, 80, 300]))
+def test_compiled_fit_matches_the_reference(grids: Any, knee: int) -> None:
+    f, s, r = grids
+    want = v3.fit(f, s, r, (8, 4), (0, 7), knee)
+    got = _compiled_x().xfit(f, s, r, (8, 4), (0, 7), knee)
+    assert (got is None) == (want is None)
+    if want is not None:
+        assert v3.pack_params(got) == v3.pack_params(want)
+
+
+def test_compiled_fit_on_a_subsample_matches_the_reference() -> None:
+    rng = np.random.default_rng(7)
+    h, w = 64, 1031  # several columns per fitted one, a width that the step does not divide
+    s = rng.integers(0, 3000, (h, w)).astype(np.uint16)
+    r = rng.uniform(0.3, 120, (h, w)).astype(np.float32)
+    f = np.clip(np.rint(s * (0.1 + r / 400)), 0, 255).astype(np.uint8)
+    r[rng.random((h, w)) < 0.1] = np.inf
+    assert v3.fit_step(f.size) > 1
+    for big in (False, True):
+        got = _compiled_x().xfit(_order(f, big), _order(s, big), _order(r, big), (0, 4), (0, 7))
+        assert v3.pack_params(got) == v3.pack_params(v3.fit(f, s, r, (0, 4), (0, 7)))
+
+
+@given(st.lists(st.tuples(st.integers(0, 9), st.integers(0, 12)), max_size=80),
+       st.integers(1, 12), st.integers(1, 5))
+def test_compiled_medians_match_the_reference(pairs: list[tuple[int, int]], n: int,
+                                              scale: int) -> None:
+    from converters._kernels import codec3
+    _compiled_x()
+    keys = np.array([k % n for k, _ in pairs], np.int64)
+    values = np.array([v / scale for _, v in pairs], np.float64)
+    np.testing.assert_array_equal(codec3._medians(keys, values, n),
+                                  v3._medians(keys, values, n))
+
+
 # ------------------------------------------------------------------------ round trips
 
 _INT = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
@@ -269,6 +378,10 @@ def test_roundtrip_of_xpredict_scans_is_bit_exact(scan: Any, shifts: list[int]) 
     back = codec.decompress_scan(buf)
     _same(back, scan)
     assert back.data.tobytes() == scan.data.tobytes()
+    coder = _compiled_x()  # the compiled fit and prediction: the same bytes
+    assert codec.compress_scan(scan, info if len(shifts) > 1 else None, version=3,
+                               coder=coder) == buf
+    assert codec.decompress_scan(buf, coder=coder).data.tobytes() == scan.data.tobytes()
 
 
 @settings(max_examples=40, deadline=None)
@@ -287,13 +400,41 @@ def test_roundtrip_of_arbitrary_bytes_written_as_version_3(h: int, w: int, raw: 
     assert back.data.tobytes() == data.tobytes()
 
 
-def test_real_ouster_frames_are_smaller_in_version_3_and_roundtrip() -> None:
-    from test_codec import _compiled
+@pytest.mark.parametrize("case", ["no reflectivity", "float reflectivity", "sources after",
+                                  "count 2", "no signal"])
+def test_blocks_without_xpredict_sources_are_coded_as_version_2(case: str) -> None:
+    rng = np.random.default_rng(5)
+    h, w = 8, 300
+    rng_m = rng.uniform(1, 50, (h, w)).astype(np.float32)
+    signal = rng.integers(0, 500, (h, w)).astype(np.uint16)
+    refl = np.clip(signal // 4, 0, 255).astype(np.uint8)
+    chans: dict[str, Any] = {"range": rng_m, "signal": signal, "reflectivity": refl}
+    if case == "no reflectivity":
+        del chans["reflectivity"]
+    elif case == "float reflectivity":
+        chans["reflectivity"] = refl.astype(np.float32)
+    elif case == "sources after":
+        chans = {"reflectivity": refl, "range": rng_m, "signal": signal}
+    elif case == "count 2":
+        chans["reflectivity"] = np.stack([refl, refl], axis=-1)
+    else:
+        del chans["signal"]
+    info = ls.make_info(stamp_ns=1, frame_id="lidar",
+                        vertical_angles=np.radians(np.linspace(5, -5, h)),
+                        horizontal_angles=2 * np.pi * (1 - np.arange(w) / w), as_dataclass=True)
+    scan = ls.make_scan(info, chans, 2, as_dataclass=True)
+    buf = codec.compress_scan(scan, version=3)
+    assert "xpredict" not in {s["method"] for s in codec.segments(buf)}
+    coder = _compiled_x()
+    assert codec.compress_scan(scan, version=3, coder=coder) == buf
+    _same(codec.decompress_scan(buf, coder=coder), scan)
 
+
+def test_real_ouster_frames_are_smaller_in_version_3_and_roundtrip() -> None:
     from converters.evidence.compression import real_scans
-    coder = _compiled()
+    coder = _compiled_x()
     for label, info, scan, _ in real_scans():
-        v2 = codec.compress_scan(scan, info, coder=coder)
+        v2 = codec.compress_scan(scan, info, coder=coder, version=2)
         out = codec.compress_scan(scan, info, coder=coder, version=3)
         assert codec.compress_scan(scan, info, version=3) == out  # numpy reference: same bytes
         assert "xpredict" in {s["method"] for s in codec.segments(out)}, label

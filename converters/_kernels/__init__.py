@@ -30,8 +30,9 @@ numba       :mod:`.slices_numba`            ``pip install numba``    slices (row
 numba       :mod:`.hesai`                   ``pip install numba``    Hesai packets -> grids
                                             (extra ``fast``)         (converters.hesai)
 numba       :mod:`.codec`                   ``pip install numba``    residual coding of
-                                            (extra ``fast``)         lidarscan.codec (passed as
-                                                                     its ``coder=``)
+            (:mod:`.codec3`: format         (extra ``fast``)         lidarscan.codec (passed as
+            version 3's fit and                                      its ``coder=``)
+            prediction, in that coder)
 numpy       the converters themselves       --                       everything (the reference)
 ==========  ==============================  =======================  ============================
 

@@ -19,8 +19,9 @@ thread (:func:`_scratch`). Loops that must vectorise (or merely run without a br
 access) index row views from 0 or use unsigned indices: a signed index numba cannot prove
 non-negative (``x[i - c]``) gets a negative-index wraparound check, which keeps a loop scalar.
 
-:func:`coder` bundles them as a :class:`lidarscan.codec.ResidualCoder` (the fields and their
-arguments are documented there); ``compress_scan`` / ``decompress_scan`` take it as
+:func:`coder` bundles them, with format version 3's fit and prediction
+(:mod:`converters._kernels.codec3`), as a :class:`lidarscan.codec.ResidualCoder` (the fields and
+their arguments are documented there); ``compress_scan`` / ``decompress_scan`` take it as
 ``coder=``. It is chosen by :func:`converters._kernels.select` (``"codec"``), which reads the
 switches. The core package never imports this module (layering): converters-level entry
 points (the evidence, the bench, ``McapWriter(codec_coder=...)`` from the CLI) pass it.
@@ -601,8 +602,10 @@ def _load() -> Any:
     def symbols_of(z: Any, table: Any) -> Any:  # table: the reference's, not needed
         return symbols(np.ascontiguousarray(z, np.uint32))
 
+    from converters._kernels import codec3
     return ResidualCoder("numba", symbols_of, pack_low, low_counts_of, residuals_of, costs_of,
-                         decode_of, quantise_of, dequantise_of, roll_of)
+                         decode_of, quantise_of, dequantise_of, roll_of,
+                         *(codec3.kernels() or ()))
 
 
 _COMPILED = LoadOnce(_load)

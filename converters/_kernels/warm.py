@@ -165,6 +165,16 @@ def _warm_codec() -> None:
     if coder is not None:
         scan = probe_scan(probe_info(8, 64))
         codec.decompress_scan(codec.compress_scan(scan, coder=coder), coder=coder)
+        # format version 3's XPREDICT (converters._kernels.codec3) on Ouster's channel types:
+        # reflectivity uint8 from intensity uint16 and range float32 m or uint32 mm
+        import lidarscan
+        for range_dtype in (np.float32, np.uint32):
+            probe = probe_scan(probe_info(8, 64), range_dtype=range_dtype)
+            chans = {name: lidarscan.channel(probe, name) for name in ("range", "intensity")}
+            chans["reflectivity"] = (chans["intensity"] // 4).astype(np.uint8)
+            scan = lidarscan.make_scan(probe_info(8, 64), chans, 2, as_dataclass=True)
+            codec.decompress_scan(codec.compress_scan(scan, coder=coder, version=3),
+                                  coder=coder)
 
 
 def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = None,

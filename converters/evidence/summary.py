@@ -277,11 +277,12 @@ def _codec() -> list[str]:
         rng = ("" if f["range_ratio"] is None else
                f"; its lossless range is {f['range_ratio']:.3f}× Draco's lossy 1 mm x,y,z "
                f"(goal ≤ {GOALS['range']}×: {'met' if f['range_met'] else 'not met'})")
-        out.append(f"**Compressed vs compressed, {f['label']} (§1).** `lidarscan.codec` codes all "
-                   f"channels in {fmt_int(f['codec'])} B = {f['all_ratio']:.3f}× the best "
+        out.append(f"**Compressed vs compressed, {f['label']} (§1).** `lidarscan.codec` format "
+                   f"version 2 codes all channels in {fmt_int(f['codec'])} B = "
+                   f"{f['all_ratio']:.3f}× the best "
                    f"lossless coding of the driver's cloud(s) of every return "
                    f"({f['best_cloud_name']}; goal ≤ {GOALS['all']}×: "
-                   f"{'met' if f['all_met'] else 'not met'}; format version 3, an option: "
+                   f"{'met' if f['all_met'] else 'not met'}; format version 3, the default: "
                    f"{f['all_ratio_v3']:.3f}×){rng}; under the "
                    f"same zstd-3 the LidarScan is {f['zstd_ratio']:.2f}× the cloud.")
     return out
