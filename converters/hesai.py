@@ -258,6 +258,8 @@ class PacketDecoder:
 
         Raises:
             DecodeError: malformed or unsupported packet (the decoder stays usable).
+            ConfigError: the calibration (or firetime file) is another sensor model's (laser
+                count, kind of table): no packet of the stream can be decoded with it.
         """
         data = packet if type(packet) is bytes else payload_bytes(packet)
         fast = self._fast
@@ -333,7 +335,7 @@ class PacketDecoder:
         rpm_raw = _U16.unpack_from(data, fmt.motor_speed_at)[0]
         rpm = max(60, int(round(rpm_raw / 60.0)) * 60)
         if self.calibration.laser_ids.size != fmt.lasers:
-            raise DecodeError("calibration lasers", self.calibration.laser_ids.size,
+            raise ConfigError("calibration lasers", self.calibration.laser_ids.size,
                               f"{fmt.lasers} (the {fmt.model} packets' laser count)")
         state = -1
         if fmt.state_at is not None:
@@ -358,15 +360,15 @@ class PacketDecoder:
         ft = self.firetimes
         assert ft is not None
         if fmt.pixel_tables:
-            raise DecodeError("firetimes", f"a file for a {fmt.model} stream", "no firetime "
+            raise ConfigError("firetimes", f"a file for a {fmt.model} stream", "no firetime "
                               f"file: the {fmt.model}'s firing loops are built in")
         if ft.lasers != fmt.lasers:
-            raise DecodeError("firetimes channels", ft.lasers, f"{fmt.lasers} (the "
+            raise ConfigError("firetimes channels", ft.lasers, f"{fmt.lasers} (the "
                               f"{fmt.model} packets' laser count): a firetime file of "
                               "another model")
         if fmt.state_at is not None:
             if ft.kind != "state":
-                raise DecodeError("firetimes", "one time per channel", "the state table of "
+                raise ConfigError("firetimes", "one time per channel", "the state table of "
                                   f"a {fmt.model} (Pandar128E3X or OT128 firetime file): "
                                   "its channels' times depend on the operational and "
                                   "azimuth states")
@@ -381,7 +383,7 @@ class PacketDecoder:
             return (dataclasses.replace(fmt, channel_timing=timing),
                     (np.ascontiguousarray(rows, np.int32), first_far_raw(ft.near_m, dis_unit_m)))
         if ft.kind != "channel":
-            raise DecodeError("firetimes", "a state table (Pandar128E3X/OT128 file)",
+            raise ConfigError("firetimes", "a state table (Pandar128E3X/OT128 file)",
                               f"one time per channel for a {fmt.model}")
         beam = self._beam_formats.get(fmt)
         if beam is None:
@@ -418,6 +420,7 @@ class PacketDecoder:
                 call ``push_many(stamps_ns[i + 1:], payloads[i + 1:])`` to go on. A batch
                 whose arrays are themselves wrong (shape, dtype) raises with ``index`` -1
                 before consuming anything.
+            ConfigError: as :meth:`push` (also with ``errors``: it is no packet's fault).
 
         With a list as ``errors`` (the same contract as :meth:`converters.velodyne.
         PacketDecoder.push_many`), malformed packets are skipped instead: each is recorded as

@@ -126,14 +126,12 @@ def test_a_calibration_of_another_sensor_is_refused_before_anything_is_written(
     assert not list(tmp_path.glob("*.mcap*"))
 
 
-@pytest.mark.xfail(strict=True, reason="for the lead (converters/hesai*.py, convert*.py): a "
-                   "Hesai calibration of another laser count is reported per packet (2000 "
-                   "lines, exit 1) and an empty OUT is written; Velodyne refuses it up front")
 def test_a_hesai_calibration_of_another_model_is_refused_up_front(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     status, lines = run(["convert", str(XT32 / "bag"), str(tmp_path / "o.mcap"),
                          "--calibration", str(DATA / "hesai_qt64" / "PandarQT64.csv")], capsys)
     assert status == 2 and len(lines) == 1, (status, len(lines))
+    one_error(lines, "convert", "calibration lasers=64", "32")
     assert not list(tmp_path.glob("*.mcap*"))
 
 

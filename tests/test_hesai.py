@@ -517,7 +517,7 @@ def test_malformed_packets_raise_and_the_decoder_continues() -> None:
                     dec.push(t, junk)
     out += dec.flush()
     assert _decoded(out) == ref
-    with pytest.raises(DecodeError, match="calibration lasers"):
+    with pytest.raises(ConfigError, match="calibration lasers"):
         hesai.PacketDecoder(_calibration_csv(64)).push(0, good)
 
 

@@ -23,7 +23,7 @@ import pytest
 
 import lidarscan
 from converters import hesai
-from lidarscan.errors import DecodeError, LidarScanError
+from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from test_hesai import (DATA as NEBULA, RECORDINGS, _calibration_csv, _compare, _decoded,
                         _packets, _rows, _same)
 from test_hesai_models import MODELS, US, _firing_ns, _modes, build_packet, oracle
@@ -309,7 +309,7 @@ def test_a_file_of_another_model_raises(stream: str, file: str, match: str) -> N
     from test_hesai_models import _stream
     packets = _stream(stream, 0x37, packets=4)
     lasers = MODELS[stream]["lasers"]
-    with pytest.raises(DecodeError, match=match):
+    with pytest.raises(ConfigError, match=match):
         list(hesai.decode_packets(packets, _calibration_csv(lasers), firetimes=source))
 
 

@@ -29,7 +29,7 @@ import pytest
 
 import lidarscan
 from converters import hesai
-from lidarscan.errors import DecodeError
+from lidarscan.errors import ConfigError, DecodeError
 import test_hesai as old
 import test_hesai_models as new
 
@@ -315,7 +315,7 @@ def test_calibration_with_the_wrong_channel_count_names_both() -> None:
     stamps, rows, _ = _stream("PandarXT32", 0x37, rotations=0.05)
     for lasers in (16, 64):
         dec = hesai.PacketDecoder(old._calibration_csv(lasers), as_dataclass=True)
-        with pytest.raises(DecodeError, match=f"calibration lasers.*{lasers}.*32"):
+        with pytest.raises(ConfigError, match=f"calibration lasers.*{lasers}.*32"):
             dec.push(int(stamps[0]), rows[0].tobytes())
     for bad in ("Laser id,Elevation,Azimuth\n1,2,3\n3,4,5\n",          # id 2 missing
                 "Laser id,Elevation,Azimuth\n1,2,3\n1,4,5\n",          # id 1 twice

@@ -189,10 +189,11 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
     """Raw sensor packets (VelodyneScan / PandarScan) -> per packet topic a latched
     ``<topic>/lidar_info`` (each version written once, before its first scan) and
     ``<topic>/lidar_scan`` (+ the requested outputs); other messages are copied, the packets
-    only with ``--keep-packets``."""
+    only with ``--keep-packets``. A ConfigError of a decoder (a calibration of another
+    model: no packet can be decoded with it) stops the run (exit 2, nothing written)."""
     from converters.bags import PACKET_TYPES, register_packet_types
     from converters.nodes.tf import TransformBuffer
-    from lidarscan.errors import LidarScanError
+    from lidarscan.errors import ConfigError, LidarScanError
     from lidarscan.stamps import to_ns
 
     register_packet_types()
@@ -257,6 +258,8 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
                 for k, (stamp, payload) in enumerate(packets.packets):
                     try:
                         done = decoder.push(stamp, payload)
+                    except ConfigError:
+                        raise
                     except LidarScanError as err:
                         report.report_bad(item.index, item.topic, item.log_time_ns,
                                           f"packet {k} of {len(packets.stamps)}: {err}", emit)
