@@ -215,12 +215,12 @@ def _compression() -> list[str]:
             f"**{f['label']}.** Uncompressed, the driver's cloud of the codec study (every "
             "return: both ouster-ros clouds of a dual frame) is "
             f"{f['raw_ratio']:.2f}× the LidarScan's; under the same zstd-3 the LidarScan is "
-            f"{f['zstd_ratio']:.2f}× the cloud. `lidarscan.codec` format version 2 (all "
-            "channels, lossless): "
+            f"{f['zstd_ratio']:.2f}× the cloud. `lidarscan.codec` (format version 3, the "
+            "default; all channels, lossless): "
             f"{fmt_int(f['codec'])} B = {f['all_ratio']:.3f}× the best lossless coding of the "
             f"cloud ({f['best_cloud_name']}, {fmt_int(f['best_cloud'])} B; goal ≤ "
-            f"{goals['all']}×: {'met' if f['all_met'] else '**not met**'}; format version 3, "
-            f"the default: {f['all_ratio_v3']:.3f}×) and "
+            f"{goals['all']}×: {'met' if f['all_met'] else '**not met**'}; format version 2: "
+            f"{f['all_ratio_v2']:.3f}×) and "
             f"{f['codec_vs_zstd']:.2f}× zstd-3 of the LidarScan buffer.{rng}")
     missed = [f"all channels ≤ {goals['all']}× the best lossless cloud on {f['label']}"
               for f in facts if not f["all_met"]] + \
