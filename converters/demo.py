@@ -231,8 +231,23 @@ class DemoResult:
             lines.append("  images:")
             lines.extend(f"    {p}" for p in self.images)
         lines.append(f"  total {self.total_s:.1f} s. Open {self.mcap_path.name} in Foxglove, or "
-                     f"run: lidarscan info {self.mcap_path}")
+                     f"run: {_lidarscan_command()} info {self.mcap_path}")
         return "\n".join(lines)
+
+
+def _lidarscan_command() -> str:
+    """``lidarscan`` as the user can run it: the script beside this interpreter (a venv's
+    ``.venv/bin/lidarscan``, not on PATH unless the venv is active), else the bare name."""
+    import shutil
+    import sys
+
+    beside = Path(sys.executable).parent / "lidarscan"
+    if beside.is_file() and shutil.which("lidarscan") != str(beside):
+        try:
+            return str(beside.relative_to(Path.cwd()))
+        except ValueError:
+            return str(beside)
+    return "lidarscan"
 
 
 def _info(stamp_ns: int) -> Any:

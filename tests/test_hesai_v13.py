@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from converters import hesai
-from lidarscan.errors import DecodeError
+from lidarscan.errors import ConfigError, DecodeError
 from test_hesai import _calibration_csv, _compare, _decoded, _rows, _same
 
 DATE = (124, 11, 25, 12, 30, 15)
@@ -118,7 +118,7 @@ def test_protocol_13_bad_packets_raise() -> None:
     bad[12 + 772 + 16] = 0x3B                       # a dual mode whose block order is unknown
     with pytest.raises(DecodeError, match="0x3b"):
         list(hesai.decode_packets([(0, bytes(bad))], _calibration_csv(128)))
-    with pytest.raises(DecodeError, match="one time per channel"):
+    with pytest.raises(ConfigError, match="one time per channel"):
         list(hesai.decode_packets([(0, good)], _calibration_csv(128), firetimes=(
             "Operational State,2\nAzimuth State,0\n" + "".join(f"{k},1\n"
                                                              for k in range(1, 129)))))
