@@ -132,8 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "negative for faster and larger")
     p.add_argument("--threads", type=int, choices=range(1, 17), default=3, metavar="N",
                    help="threads of the run (same output bytes for every N): 3 (default): "
-                        "decoding in one, the output's chunks compressed by two "
-                        "others side by side (and written in order); 2: one thread compresses "
+                        "decoding in one, the output's chunks compressed by a second "
+                        "(a third takes the backlog; written in order); 2: one thread compresses "
                         "and writes; with 2 or more, one more reads the input a few messages "
                         "ahead; 1: everything in one thread (reproducible CPU measurements)")
     p.add_argument("-q", "--quiet", action="store_true",
