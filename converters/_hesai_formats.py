@@ -493,10 +493,11 @@ def load_calibration(calib: Any) -> _Calibration:
                               ) from err
         text = ""
     else:
-        text = _read_text(calib, "calibration", "Hesai angle-correction CSV (Laser id,"
-                          "Elevation,Azimuth)")
+        text = _read_text(calib, "calibration",
+                          "Hesai angle-correction CSV (Laser id,Elevation,Azimuth)",
+                          "a path, the CSV text (str or bytes), a mapping or a parsed calibration")
         for i, line in enumerate(io.StringIO(text)):
-            cells = [c.strip().strip('"').strip() for c in line.strip().split(",")]
+            cells = _cells(line)
             if not cells or not cells[0] or not (cells[0][0].isdigit() or cells[0][0] == "-"):
                 continue                      # header or blank line
             try:
@@ -515,9 +516,10 @@ def load_calibration(calib: Any) -> _Calibration:
     return _Calibration(ids, elev, azim, text)
 
 
-def _read_text(source: Any, field: str, what: str) -> str:
+def _read_text(source: Any, field: str, what: str, accepts: str) -> str:
     """The text of a vendor CSV given as a path, or as text (str, or UTF-8 bytes containing a
-    newline); a UTF-8 byte-order mark is dropped."""
+    newline); a UTF-8 byte-order mark is dropped. ``accepts``: the caller's accepted forms, for
+    the error on any other type."""
     if isinstance(source, (bytes, bytearray, memoryview)):
         source = bytes(source)
         if b"\n" in source:
@@ -530,9 +532,7 @@ def _read_text(source: Any, field: str, what: str) -> str:
     try:
         path = Path(os.fsdecode(source))
     except TypeError as err:
-        raise DecodeError(field, type(source).__name__, "a path, the CSV text (str or bytes), "
-                          "a mapping or a parsed calibration" if field == "calibration" else
-                          "a path, the CSV text (str or bytes) or a parsed Firetimes") from err
+        raise DecodeError(field, type(source).__name__, accepts) from err
     try:
         return path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as err:
@@ -663,7 +663,8 @@ def load_firetimes(source: Any) -> Firetimes:
     """
     if isinstance(source, Firetimes):
         return source
-    text = _read_text(source, "firetimes", "Hesai firetime correction CSV")
+    text = _read_text(source, "firetimes", "Hesai firetime correction CSV",
+                      "a path, the CSV text (str or bytes) or a parsed Firetimes")
     lines = [(i + 1, cells) for i, line in enumerate(io.StringIO(text))
              if any(cells := _cells(line))]
     for _, cells in lines:                    # trailing empty cells (e.g. "1,2.31,")
