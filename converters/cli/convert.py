@@ -26,6 +26,7 @@ from converters.cli.convert_inputs import (
     _convert_ouster,
     _convert_packets,
     _convert_scans,
+    _takes,
 )
 from converters.cli.convert_pipeline import ConvertReport, _Plan
 
@@ -277,7 +278,6 @@ def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict
     against every decoder that will get them (before anything is written)."""
     if args.cut_angle is None:
         return {}
-    import inspect
     import math
 
     from lidarscan.errors import ConfigError
@@ -285,7 +285,7 @@ def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict
     if not decoders:
         raise ConfigError("--cut-angle", args.cut_angle, "a recording of raw packets")
     for topic, decoder in sorted(decoders.items()):
-        if "cut_angle_deg" not in inspect.signature(decoder).parameters:
+        if not _takes(decoder, "cut_angle_deg"):
             raise ConfigError("--cut-angle", args.cut_angle,
                               f"packets whose decoder takes a cut angle (Velodyne); topic "
                               f"{topic} is decoded by {decoder.__module__}, which has none")

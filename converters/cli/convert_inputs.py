@@ -275,17 +275,21 @@ def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan
     pipeline.finish()
 
 
+def _takes(decoder: Any, keyword: str) -> bool:
+    """Whether the decoder class (or partial) ``decoder`` takes the keyword argument."""
+    import inspect
+
+    try:
+        return keyword in inspect.signature(decoder).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 def _dataclass_option(decoder: Any) -> dict[str, Any]:
     """``as_dataclass=True`` for a decoder that takes it: its scans are then
     :mod:`lidarscan.types` dataclasses over the decoder's read-only data block, which the
     writer serialises without building an rclpy message or copying the block."""
-    import inspect
-
-    try:
-        takes = "as_dataclass" in inspect.signature(decoder).parameters
-    except (TypeError, ValueError):
-        takes = False
-    return {"as_dataclass": True} if takes else {}
+    return {"as_dataclass": True} if _takes(decoder, "as_dataclass") else {}
 
 
 def _firetimes_option(decoder: Any, args: argparse.Namespace) -> dict[str, Any]:
@@ -294,15 +298,9 @@ def _firetimes_option(decoder: Any, args: argparse.Namespace) -> dict[str, Any]:
     firetimes = getattr(args, "firetimes", None)
     if firetimes is None:
         return {}
-    import inspect
-
     from lidarscan.errors import ConfigError
 
-    try:
-        takes = "firetimes" in inspect.signature(decoder).parameters
-    except (TypeError, ValueError):
-        takes = False
-    if not takes:
+    if not _takes(decoder, "firetimes"):
         raise ConfigError("--firetimes", firetimes, "packets whose decoder takes a firetime "
                           "correction file (Hesai)")
     return {"firetimes": firetimes}
