@@ -112,7 +112,7 @@ from lidarscan.errors import (
     ValidationError,
 )
 from lidarscan.geometry import azimuth_channel, info_key, make_projector, pixel_delays
-from lidarscan.scan import as_array, channel, return_channel, return_of
+from lidarscan.scan import as_array, channel, channel_names, return_channel, return_of
 from lidarscan.stamps import split_ns, to_ns
 
 __all__ = [
@@ -582,8 +582,7 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
     def _images(self, scan: Any, specs: Sequence[FieldSpec]) -> dict[str, Any]:
         """The scan channel (view) feeding each channel field; None: zero-fill (presets)."""
         images: dict[str, Any] = {}
-        names = [d.name for d in scan.channels]
-        number = return_of(self.range_channel, names)[1]
+        number = return_of(self.range_channel, channel_names(scan))[1]
         for spec in specs:
             if spec.source != "channel":
                 continue
