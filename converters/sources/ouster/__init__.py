@@ -1,0 +1,1 @@
+"""Ouster sensors: metadata JSON -> LidarInfo, frames and lidar packets -> LidarScan."""
