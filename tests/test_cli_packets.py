@@ -196,7 +196,7 @@ def test_a_failing_output_stops_the_threads_and_leaves_no_file(
     with --threads 1): exit 2 naming the error, no output or temporary file, no thread left."""
     import threading
 
-    from lidarscan import _mcapfile
+    from lidarscan.mcap import _file as _mcapfile
 
     real = _mcapfile.ChunkedMcapWriter._write_chunk
     calls = {"n": 0}

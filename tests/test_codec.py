@@ -21,7 +21,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import lidarscan as ls
-from lidarscan import _codec_bits as cbits
+from lidarscan.codec import _bits as cbits
 from lidarscan import codec
 from lidarscan.errors import DecodeError
 from lidarscan.types import LidarChannel, LidarScan
@@ -352,7 +352,7 @@ def _compiled() -> Any:
 
 @given(st.lists(st.integers(0, 2**32 - 1) | st.integers(0, 300) | st.just(0), max_size=300))
 def test_compiled_coder_matches_the_numpy_reference(values: list[int]) -> None:
-    from lidarscan._codec_bits import NUMPY, bitlen_table
+    from lidarscan.codec._bits import NUMPY, bitlen_table
     coder = _compiled()
     z = np.array(values, np.uint32)
     ref = NUMPY.symbols(z, bitlen_table())
@@ -378,7 +378,7 @@ def test_compiled_coder_matches_the_numpy_reference(values: list[int]) -> None:
 def test_compiled_prediction_matches_the_numpy_reference(h: int, w: int, c: int, dtype: str,
                                                          predictor: int, masked: bool,
                                                          seed: int) -> None:
-    from lidarscan._codec_bits import NUMPY
+    from lidarscan.codec._bits import NUMPY
     coder = _compiled()
     rng = np.random.default_rng(seed)
     x = rng.integers(0, np.iinfo(dtype).max, (h, w, c), dtype=dtype, endpoint=True)
@@ -419,7 +419,7 @@ _SPECIAL_WORDS = [0x7FC00000, 0xFFC00001, 0x7F800000, 0xFF800000, 0x80000000, 0,
        st.sampled_from([0.001, 0.004, 1.0, 1e-7]))
 def test_compiled_quantisation_matches_the_numpy_reference(words: list[int], step: float
                                                            ) -> None:
-    from lidarscan._codec_bits import NUMPY
+    from lidarscan.codec._bits import NUMPY
     coder = _compiled()
     v = np.array(words, np.uint32).view(np.float32)
     q, exc = NUMPY.quantise(v, step)

@@ -24,7 +24,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan as ls
-from lidarscan import _codec_v3 as v3
+from lidarscan.codec import _v3 as v3
 from lidarscan import codec
 from lidarscan.errors import DecodeError, EncodeError
 from lidarscan.types import LidarChannel, LidarScan
@@ -301,7 +301,7 @@ def test_compiled_fit_on_a_subsample_matches_the_reference() -> None:
        st.integers(1, 12), st.integers(1, 5))
 def test_compiled_medians_match_the_reference(pairs: list[tuple[int, int]], n: int,
                                               scale: int) -> None:
-    from converters._kernels import codec3
+    from lidarscan.codec import _compiled_v3 as codec3
     _compiled_x()
     keys = np.array([k % n for k, _ in pairs], np.int64)
     values = np.array([v / scale for _, v in pairs], np.float64)
@@ -361,7 +361,7 @@ def _xscans(draw: Any) -> LidarScan:
 def test_roundtrip_of_xpredict_scans_is_bit_exact(scan: Any, shifts: list[int]) -> None:
     from types import SimpleNamespace
 
-    from lidarscan._codec_bits import NUMPY
+    from lidarscan.codec._bits import NUMPY
     desc = scan.channels[2]
     size = {1: 1, 2: 1, 4: 2, 6: 4}[int(desc.datatype)]
     block = memoryview(scan.data)[desc.offset:desc.offset + scan.height * scan.width * size]

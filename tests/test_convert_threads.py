@@ -89,7 +89,7 @@ def test_second_compressing_thread_takes_only_the_backlog() -> None:
     waiting) before a second thread gets a chunk; results come back per job."""
     import threading
 
-    from lidarscan._mcapfile import _SpillPool
+    from lidarscan.mcap._file import _SpillPool
 
     release = threading.Event()
     pool = _SpillPool(2)

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from lidarscan._mcapfile import ChunkedMcapWriter
+from lidarscan.mcap._file import ChunkedMcapWriter
 from lidarscan.errors import ConfigError
 from lidarscan.mcap import McapWriter, read_messages
 
@@ -311,7 +311,7 @@ def _grid_scan(names: tuple[str, ...], stamp: int, rows: int = 32, cols: int = 5
 
 
 def test_local_messages_are_lidar_infos_and_scans_without_a_second_return() -> None:
-    from lidarscan._mcap_writer import _local
+    from lidarscan.mcap._writer import _local
     from lidarscan.mcap import INFO_TYPE, SCAN_TYPE
 
     assert _local(_grid_scan(("range", "intensity"), 1), SCAN_TYPE)
@@ -332,7 +332,7 @@ def test_each_chunk_is_compressed_with_the_parameters_its_messages_call_for(
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader
 
-    from lidarscan._mcapfile import _compressor
+    from lidarscan.mcap._file import _compressor
 
     single, dual = ("range", "intensity"), ("range", "intensity", "range2", "intensity2")
     plan = [("/s", single), ("/s", single), ("/d", dual), ("/s", single), ("/d", dual)]

@@ -62,7 +62,7 @@ def _scan(names: tuple[str, ...]) -> tuple[object, object]:
 def test_the_mcap_writer_counts_only_return_channels() -> None:
     """A channel whose name merely ends in a digit is no second return: its scan's repeats
     stay local (the writer used to take any trailing digit for a return)."""
-    from lidarscan._mcap_writer import _local
+    from lidarscan.mcap._writer import _local
     from lidarscan.mcap import SCAN_TYPE
 
     assert _local(_scan(("range", "intensity", "beam7"))[0], SCAN_TYPE)

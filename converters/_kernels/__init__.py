@@ -29,14 +29,16 @@ numba       :mod:`.slices_numba`            ``pip install numba``    slices (row
                                                                      kernels) and the merger
 numba       :mod:`.hesai`                   ``pip install numba``    Hesai packets -> grids
                                             (extra ``fast``)         (converters.hesai)
-numba       :mod:`.codec`                   ``pip install numba``    residual coding of
-            (:mod:`.codec3`: format         (extra ``fast``)         lidarscan.codec (passed as
-            version 3's fit and                                      its ``coder=``)
-            prediction, in that coder)
+numba       ``lidarscan.codec._compiled``   ``pip install numba``    residual coding of
+            (in the core: the codec's       (extra ``fast``)         lidarscan.codec (its
+            default coder;                                           default ``coder="auto"``;
+            ``_compiled_v3``: version 3's                            ``"codec"`` here returns it)
+            fit and prediction)
 numpy       the converters themselves       --                       everything (the reference)
 ==========  ==============================  =======================  ============================
 
-Switches, read here and nowhere else (at the first use of a backend in the process):
+Switches, read by :mod:`lidarscan._backends` (the lowest layer, so that the core's codec honours
+them too) and asked here (at the first use of a backend in the process):
 ``LIDARSCAN_NO_KERNEL`` set to anything but "" / "0" disables the C kernels (the Velodyne one
 is re-checked at each ``select``, the others at their first use);
 ``LIDARSCAN_NUMBA=0`` disables numba. Per object, ``kernel=`` (PointCloud2: None = when built,
@@ -55,23 +57,13 @@ nodes call it before they report ready, and ``python -m converters._kernels.warm
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Any
 
+from lidarscan._backends import c_enabled, numba_enabled
 from lidarscan.errors import ConfigError
 
 __all__ = ["Backends", "c_enabled", "numba_enabled", "select", "warm_up"]
-
-
-def c_enabled() -> bool:
-    """Whether the C kernels may be loaded (``LIDARSCAN_NO_KERNEL`` unset, "" or "0")."""
-    return os.environ.get("LIDARSCAN_NO_KERNEL", "") in ("", "0")
-
-
-def numba_enabled() -> bool:
-    """Whether the numba kernels may be compiled (``LIDARSCAN_NUMBA`` not "0")."""
-    return os.environ.get("LIDARSCAN_NUMBA", "1") != "0"
 
 
 @dataclass(frozen=True)
@@ -97,8 +89,9 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
         task: ``"cloud"`` (PointCloud2, chosen by ``kernel``), ``"slices"``, ``"merger"`` or
             ``"cloud_slices"`` (chosen by ``backend``), ``"hesai"`` (packet decoding: numba
             when enabled), ``"velodyne"`` (packet decoding: the C kernel, ``c``, when built and
-            enabled), ``"codec"`` (the :class:`lidarscan.codec.ResidualCoder`
-            to pass to ``compress_scan`` / ``decompress_scan``: numba when enabled).
+            enabled), ``"codec"`` (the compiled :class:`lidarscan.codec.ResidualCoder`,
+            ``numba``, when enabled: what ``compress_scan`` / ``decompress_scan`` run by
+            default, :func:`lidarscan.codec.residual_coder`).
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy; cloud slices: the C kernel, else
             numpy); ``"numba"``: numba only (an error when it is missing, and for the cloud
@@ -125,8 +118,9 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
         from converters._kernels import velodyne
         return Backends(c=velodyne.library())
     if task == "codec":
-        from converters._kernels import codec
-        return Backends(numba=codec.coder() if numba_enabled() else None)
+        from lidarscan.codec import NUMPY, residual_coder
+        coder = residual_coder("auto")
+        return Backends(numba=None if coder is NUMPY else coder)
     if task not in ("slices", "merger", "cloud_slices"):
         raise ConfigError("task", task, "'cloud', 'slices', 'merger', 'cloud_slices', 'hesai', "
                           "'velodyne' or 'codec'")

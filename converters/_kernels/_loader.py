@@ -4,23 +4,25 @@ Each kernel is built by ``pip install [-e] .`` when a C compiler is available (s
 an importable, otherwise empty, extension module whose shared object exports plain C functions.
 A kernel is not used when it was not built, when its ABI number differs from the one the
 Python side was written for (a stale build), or when the C kernels are switched off
-(:func:`converters._kernels.c_enabled`).
+(:func:`lidarscan._backends.c_enabled`). :class:`LoadOnce` and :func:`numba_jit` live in
+:mod:`lidarscan._backends` (the core's compiled codec uses them too) and are re-exported here.
 """
 
 from __future__ import annotations
 
 import ctypes
 import importlib
-import threading
-from collections.abc import Callable
 from typing import Any
+
+from lidarscan._backends import LoadOnce, c_enabled, numba_jit
+
+__all__ = ["TYPE_CODES", "LoadOnce", "load_library", "load_planned", "numba_jit", "type_code"]
 
 
 def load_library(module: str, abi_symbol: str, abi: int) -> ctypes.CDLL | None:
     """The shared object of extension ``module`` (e.g. ``"converters._kernels._slicekernel"``)
     if it is built, enabled and both its module constant ``ABI`` and its C function
     ``abi_symbol()`` equal ``abi``; else None."""
-    from converters._kernels import c_enabled
     if not c_enabled():
         return None
     try:
@@ -50,32 +52,6 @@ def load_planned(module: str, prefix: str, abi: int, plan: type[ctypes.Structure
     if size() != ctypes.sizeof(plan):
         return None
     return lib, bool(vectorised())
-
-
-class LoadOnce:
-    """The result of ``loader()``, computed at the first :meth:`get` (thread-safe) and kept."""
-
-    def __init__(self, loader: Callable[[], Any]) -> None:
-        self._loader = loader
-        self._lock = threading.Lock()
-        self._value: list[Any] = []
-
-    def get(self) -> Any:
-        with self._lock:
-            if not self._value:
-                self._value.append(self._loader())
-            return self._value[0]
-
-
-def numba_jit(fn: Callable[..., Any], **options: Any) -> Any:
-    """``fn`` compiled by ``numba.njit(cache=True, nogil=True, **options)`` (compiled at its
-    first call, cached on disk), or None without numba. The switch ``LIDARSCAN_NUMBA`` is read
-    by :func:`converters._kernels.select`, not here."""
-    try:
-        import numba
-    except ImportError:
-        return None
-    return numba.njit(cache=True, nogil=True, **options)(fn)
 
 
 #: Element type codes shared by the C kernels (native byte order only: the converters convert

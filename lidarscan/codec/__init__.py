@@ -11,7 +11,7 @@ Byte format, version 2 (every integer little-endian; version 1 is the same conta
 methods 0..4 only: this module still decodes it). Version 3, written by default
 (``compress_scan(..., version=2)`` still writes version 2), is the same container with version
 byte 3 and one more method, 7 XPREDICT: an integer block predicted from two earlier blocks
-(Ouster reflectivity from signal and range), its byte format in :mod:`lidarscan._codec_v3`;
+(Ouster reflectivity from signal and range), its byte format in :mod:`lidarscan.codec._v3`;
 a scan without such blocks is coded as in version 2, with version byte 3::
 
     "LSCZ"  u8 version=2 (3)  u8 flags=0  u16 n_segments
@@ -61,7 +61,7 @@ id    name       params / payload
                  (the decode rule of :func:`lidarscan.range_m`); every other value (NaN,
                  +-Inf, -0, off-grid) is an exception: masked = 1, mask bit 0, its original 4
                  bytes in the zstd frame of exception words (row-major order).
-7     XPREDICT   (version 3) see :mod:`lidarscan._codec_v3`
+7     XPREDICT   (version 3) see :mod:`lidarscan.codec._v3`
 ====  =========  ==========================================================================
 
 Predictors (on the (H, W, C) array, per count index): 0 none, 1 left (x[r, c-1]), 2 up
@@ -91,11 +91,18 @@ ascending (pixel order inside a group), each value's k bits most significant fir
 most significant bit first, the last byte padded with zeros. The sizes of the symbols are
 what zstd's entropy coder sees; the low bits are close to uniform and cost about k bits.
 
-Code layout: this module holds the container and the encoder's choices; the numpy reference of
-the prediction and of the residual coding (the test oracle) is :mod:`lidarscan._codec_bits`,
-whose hot steps a :class:`ResidualCoder` bundles (``coder=``: converters pass the compiled one,
-``converters._kernels.select("codec")``; every coder writes the same bytes); the version 1
-methods decode in :mod:`lidarscan._codec_v1`.
+Code layout (each module imports only those above it in this list): the numpy reference of the
+prediction and of the residual coding (the test oracle), :mod:`lidarscan.codec._bits`, whose hot
+steps a :class:`ResidualCoder` bundles; the format primitives, :mod:`lidarscan.codec._format`;
+the versions: version 1's decoding :mod:`lidarscan.codec._v1`, version 2's methods and
+per-column arrays :mod:`lidarscan.codec._v2`, version 3's XPREDICT :mod:`lidarscan.codec._v3`;
+the compiled coder (numba, optional: the same bytes, :mod:`lidarscan.codec._compiled` with
+version 3's fit and prediction in :mod:`lidarscan.codec._compiled_v3`); and this module, the
+container and the encoder's choices. ``coder=`` chooses the residual coder
+(:func:`residual_coder`): by default the compiled one when numba is installed and enabled
+(``LIDARSCAN_NUMBA``, read by :mod:`lidarscan._backends`), else the numpy reference; numba is
+imported and the kernels compiled or loaded from numba's on-disk cache at the first call that
+needs them, never at import.
 
 ``decompress_scan`` returns a :class:`lidarscan.types.LidarScan` whose CDR (``lidarscan.encode``)
 is byte-identical to the input's (any version). Errors: :class:`lidarscan.errors.EncodeError` (a scan that does
@@ -106,25 +113,51 @@ from __future__ import annotations
 
 import dataclasses
 import struct
-import threading
 from typing import Any
 
 import numpy as np
 
-from lidarscan._codec_bits import (
-    LEFT,
-    NONE,
-    NUMPY,
-    PLANAR,
-    REF,
-    UP,
-    ResidualCoder,
-    bitlen_table,
-    residual,
-    unzigzag,
-    zigzag,
+from lidarscan._backends import numba_enabled
+from lidarscan.codec import _v3
+from lidarscan.codec._bits import NUMPY, REF, ResidualCoder, residual, zigzag
+from lidarscan.codec._format import (
+    _FLOAT32,
+    _GRID2,
+    _HEAD,
+    _INT_CODES,
+    _METHOD_NAMES,
+    _SEG,
+    _SIZES,
+    MAGIC,
+    PREDICT,
+    PREDICT2,
+    QUANT,
+    QUANT2,
+    RAW,
+    SHUFFLE,
+    VERSION,
+    XPREDICT,
+    ZSTD,
+    _as_unsigned,
+    _planes,
+    _shift_params,
+    _unplanes,
+    _zc,
+    _zd,
 )
-from lidarscan.errors import DecodeError, EncodeError
+from lidarscan.codec._v1 import decode_v1
+from lidarscan.codec._v2 import (  # the three "as": addressed through this module by tests
+    _bits_cost,
+    _decode_columns,
+    _decode_v2,
+    _encode_columns,
+    _encode_int2,
+    _encode_quant2,
+    _pack_residuals as _pack_residuals,
+    _quantise as _quantise,
+    _unpack_residuals as _unpack_residuals,
+)
+from lidarscan.errors import ConfigError, DecodeError, EncodeError
 
 __all__ = [
     "MAGIC",
@@ -138,301 +171,13 @@ __all__ = [
     "QUANT2",
     "XPREDICT",
     "REF",
+    "NUMPY",
     "ResidualCoder",
+    "residual_coder",
     "compress_scan",
     "decompress_scan",
     "segments",
 ]
-
-MAGIC = b"LSCZ"
-VERSION = 3  # written by default; versions 1 and 2 decode
-RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2, XPREDICT = 0, 1, 2, 3, 4, 5, 6, 7
-_METHOD_NAMES = {RAW: "raw", ZSTD: "zstd", SHUFFLE: "shuffle", PREDICT: "predict",
-                 QUANT: "quant", PREDICT2: "predict2", QUANT2: "quant2", XPREDICT: "xpredict"}
-
-_INT_CODES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4"}
-_FLOAT32, _FLOAT64 = 7, 8
-_SIZES = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 8: 8}
-_GRID = struct.Struct("<BBIIIBB")  # datatype, bigendian, H, W, count, predictor, rolled
-_GRID2 = struct.Struct("<BBIIIBBBB")  # ... + extra (symbol bits), masked
-_SEG = struct.Struct("<IIBH")       # offset, length, method, params_len
-_HEAD = struct.Struct("<4sBBH")
-
-
-# ----------------------------------------------------------------------------- zstd
-
-_LOCAL = threading.local()
-
-
-def _zc(level: int) -> Any:
-    """This thread's zstd compressor of ``level`` (content checksums on), made once: its
-    context is reused from frame to frame."""
-    made = getattr(_LOCAL, "compressors", None)
-    if made is None:
-        made = _LOCAL.compressors = {}
-    if level not in made:
-        import zstandard
-        made[level] = zstandard.ZstdCompressor(level=level, write_checksum=True)
-    return made[level]
-
-
-def _zd(frame: bytes, limit: int, what: str) -> bytes:
-    import zstandard
-    made = getattr(_LOCAL, "decompressor", None)
-    if made is None:
-        made = _LOCAL.decompressor = zstandard.ZstdDecompressor()
-    try:
-        out = made.decompress(frame, max_output_size=limit)
-    except zstandard.ZstdError as err:
-        raise DecodeError(what, len(frame), f"a zstd frame ({err})") from None
-    return out
-
-
-# ------------------------------------------------------------------------ transforms
-
-def _planes(arr: np.ndarray[Any, Any]) -> bytes:
-    """Byte planes of a numeric array's values: all least significant bytes, then all second
-    bytes, ... (the value's little-endian bytes, whatever the array's byte order)."""
-    size = arr.dtype.itemsize
-    little = np.ascontiguousarray(arr).astype(arr.dtype.newbyteorder("<"), copy=False)
-    raw = little.reshape(-1).view(np.uint8).reshape(-1, size)
-    return np.ascontiguousarray(raw.T).tobytes()
-
-
-def _unplanes(buf: bytes, itemsize: int, n: int, what: str) -> np.ndarray[Any, Any]:
-    if len(buf) != itemsize * n:
-        raise DecodeError(what, len(buf), f"{itemsize * n} bytes of byte planes")
-    planes = np.frombuffer(buf, np.uint8).reshape(itemsize, n)
-    out = planes[0].astype(f"<u{itemsize}")
-    for k in range(1, itemsize):
-        out |= planes[k].astype(out.dtype) << out.dtype.type(8 * k)
-    return out.view(np.uint8)
-
-
-def _as_unsigned(arr: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Native-order unsigned view/copy of an integer or float array (same bytes per value)."""
-    native = arr.astype(arr.dtype.newbyteorder("="), copy=False)
-    return native.view(f"u{arr.dtype.itemsize}")
-
-
-def _shift_params(shifts: np.ndarray[Any, Any] | None) -> bytes:
-    return b"" if shifts is None else shifts.astype("<i4").tobytes()
-
-
-# --------------------------------------------------------------------------- QUANT
-
-def _quantise(v: np.ndarray[Any, Any], step: float, coder: ResidualCoder = NUMPY
-              ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None:
-    """(int32 grid q, 0 at exceptions; exception mask) or None when no value is on the grid.
-    v: native float32 (H, W, C)."""
-    q, exc = coder.quantise(np.ascontiguousarray(v, np.float32).reshape(-1), step)
-    if exc.all() and v.size:
-        return None
-    return q.reshape(v.shape), exc.reshape(v.shape)
-
-
-def _float_bits(q: np.ndarray[Any, Any], step: float, bigendian: bool,
-                exc: np.ndarray[Any, Any] | None, words_frame: bytes, what: str,
-                coder: ResidualCoder = NUMPY) -> bytes:
-    """The float32 bytes of the int32 grid q (value ``float32(float64(q) * step)``) with the
-    exception pixels (mask ``exc``) replaced by the words of the zstd frame ``words_frame``."""
-    out = coder.dequantise(np.ascontiguousarray(q).reshape(-1), step)
-    if bigendian:
-        out = out.astype(">f4")
-    if exc is None:
-        return out.tobytes()
-    exc = exc.reshape(-1)
-    words = np.frombuffer(_zd(words_frame, 4 * exc.size, what), np.uint32)
-    if words.size != int(exc.sum()):
-        raise DecodeError(what, words.size, f"{int(exc.sum())} exception words")
-    bits = out.view(np.uint32).copy()
-    bits[exc] = words
-    return bits.tobytes()
-
-
-# ------------------------------------------------------------ version 2: bit-length coding
-
-def _bits_cost(z: np.ndarray[Any, Any]) -> int:
-    """Size proxy of zigzag residuals for the bit-length coding: the sum of bit lengths
-    (through float32 exponents: exact below 2**24, a bit more above; a proxy only)."""
-    return int(np.frexp(z.astype(np.float32))[1].sum(dtype=np.int64))
-
-
-def _pack_residuals(z: np.ndarray[Any, Any], level: int, coder: ResidualCoder = NUMPY
-                    ) -> tuple[int, bytes, bytes]:
-    """(extra, zstd frame of the symbols, zstd frame of the low bits) of zigzag residuals
-    ``z`` (1-D unsigned, at most 32 bits); extra 1 or 2, whichever is smaller (the coding:
-    :mod:`lidarscan._codec_bits`). Both symbol streams are compressed: an order-0 entropy
-    estimate from their histograms picked the larger one on real range grids (bench/README.md)."""
-    z = np.ascontiguousarray(z, np.uint32)
-    sym1, k1, sym2, k2, bits1, bits2 = coder.symbols(z, bitlen_table())
-    options = []
-    for extra, sym, k, bits in ((1, sym1, k1, bits1), (2, sym2, k2, bits2)):
-        frame = _zc(level).compress(sym)
-        options.append((len(frame) + (int(bits) + 7) // 8, extra, frame, k, int(bits)))
-    _, extra, frame, k, bits = min(options, key=lambda option: option[0])
-    low = coder.pack_low(z, k) if bits else b""  # no low bits (e.g. a constant grid)
-    return extra, frame, _zc(level).compress(low)
-
-
-def _unpack_residuals(frame: bytes, raw: bytes, n: int, itemsize: int, extra: int,
-                      what: str, coder: ResidualCoder = NUMPY
-                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """(symbols, values per low-bit count, low-bit stream) of :func:`_pack_residuals`'s parts
-    for n zigzag residuals of at most ``8 * itemsize`` bits, checked (``coder.decode`` takes
-    them)."""
-    symbols = np.frombuffer(_zd(frame, n, what), np.uint8)
-    if symbols.size != n:
-        raise DecodeError(what, symbols.size, f"{n} residual symbols")
-    if n and int(symbols.max()) >> extra > 8 * itemsize:
-        raise DecodeError(what, int(symbols.max()) >> extra,
-                          f"bit lengths of at most {8 * itemsize}")
-    counts = coder.low_counts(symbols, extra)
-    total = int((counts * np.arange(counts.size)).sum())
-    low = _zd(raw, (total + 7) // 8, what)
-    if len(low) != (total + 7) // 8:
-        raise DecodeError(what, len(low), f"{(total + 7) // 8} bytes of low bits")
-    return symbols, counts, np.frombuffer(low, np.uint8)
-
-
-def _choose_masked(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None,
-                   ref: np.ndarray[Any, Any] | None = None, coder: ResidualCoder = NUMPY
-                   ) -> tuple[int, int]:
-    """(predictor, its residual bits) with the fewest residual bits on a band of up to 32
-    rows (bits: the sum of the residuals' bit lengths on the band); REF only with a ref."""
-    start = max(0, x.shape[0] // 2 - 16)
-    band = x[start:start + 32]
-    vband = None if valid is None else valid[start:start + 32]
-    rband = None if ref is None else ref[start:start + 32]
-    bits = coder.costs(band, vband, rband)
-    costs = {p: int(bits[p]) for p in (UP, LEFT, PLANAR, NONE) + ((REF,) if ref is not None
-                                                                   else ())}
-    best = min(costs, key=lambda p: costs[p])
-    return best, costs[best]
-
-
-def _parts(*parts: bytes) -> bytes:
-    return b"".join(struct.pack("<I", len(p)) + p for p in parts)
-
-
-def _split(payload: bytes, count: int, what: str) -> list[bytes]:
-    out, pos = [], 0
-    for _ in range(count):
-        if pos + 4 > len(payload):
-            raise DecodeError(what, len(payload), f"{count} length-prefixed parts")
-        (k,) = struct.unpack_from("<I", payload, pos)
-        if pos + 4 + k > len(payload):
-            raise DecodeError(what, k, f"at most {len(payload) - pos - 4} bytes")
-        out.append(payload[pos + 4:pos + 4 + k])
-        pos += 4 + k
-    if pos != len(payload):
-        raise DecodeError(what, len(payload), f"{pos} bytes ({count} parts)")
-    return out
-
-
-def _code_grid(x: np.ndarray[Any, Any], valid: np.ndarray[Any, Any] | None, level: int,
-               predictor: int | None = None, ref: np.ndarray[Any, Any] | None = None,
-               coder: ResidualCoder = NUMPY) -> tuple[int, int, list[bytes]]:
-    """(predictor, extra, [symbols frame, low bits]) of the valid pixels of grid x."""
-    if predictor is None:
-        predictor = _choose_masked(x, valid, ref, coder)[0]
-    extra, frame, low = _pack_residuals(coder.residuals(x, valid, predictor, ref), level,
-                                        coder)
-    return predictor, extra, [frame, low]
-
-
-def _mask_frame(valid: np.ndarray[Any, Any], level: int) -> bytes:
-    return _zc(level).compress(np.packbits(valid.reshape(-1)).tobytes())
-
-
-def _unmask_frame(frame: bytes, n: int, what: str) -> np.ndarray[Any, Any]:
-    packed = _zd(frame, (n + 7) // 8, what)
-    if len(packed) != (n + 7) // 8:
-        raise DecodeError(what, len(packed), f"{(n + 7) // 8} bytes of pixel mask")
-    return np.unpackbits(np.frombuffer(packed, np.uint8), count=n).astype(bool)
-
-
-def _encode_int2(u: np.ndarray[Any, Any], level: int, ref: np.ndarray[Any, Any] | None = None,
-                 coder: ResidualCoder = NUMPY, masked_only: float = 1.0
-                 ) -> tuple[int, int, bool, bytes]:
-    """(predictor, extra, masked, payload) of an unsigned (H, W, C) grid (ref: an earlier
-    channel's grid REF may predict from). With at least 2 % zero values the grid is also
-    coded with the zeros masked (not coded); the smaller coding wins. With at least the
-    fraction ``masked_only`` of zero values (and a non-zero value) it is coded masked only."""
-    zeros = int(np.count_nonzero(u == 0))
-    if masked_only * u.size <= zeros < u.size:
-        valid = u != 0
-        predictor, extra, parts = _code_grid(u, valid, level, None, ref, coder)
-        return predictor, extra, True, _parts(_mask_frame(valid, level), *parts)
-    predictor, extra, parts = _code_grid(u, None, level, None, ref, coder)
-    best = (predictor, extra, False, _parts(*parts))
-    if 0.02 * u.size <= zeros < u.size:
-        valid = u != 0
-        predictor, extra, parts = _code_grid(u, valid, level, None, ref, coder)
-        masked = _parts(_mask_frame(valid, level), *parts)
-        if len(masked) < len(best[3]):
-            best = (predictor, extra, True, masked)
-    return best
-
-
-def _decode_int2(payload: bytes, shape: tuple[int, int, int], itemsize: int, predictor: int,
-                 extra: int, masked: bool, what: str, ref: np.ndarray[Any, Any] | None = None,
-                 coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
-    n = shape[0] * shape[1] * shape[2]
-    parts = _split(payload, 3 if masked else 2, what)
-    valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
-    count = n if valid is None else int(valid.sum())
-    symbols, counts, low = _unpack_residuals(parts[-2], parts[-1], count, itemsize, extra, what,
-                                             coder)
-    f = coder.decode(symbols, extra, counts, low, valid, predictor, ref,
-                     np.empty(shape, f"u{itemsize}"))
-    return f if valid is None else np.where(valid, f, f.dtype.type(0))
-
-
-def _encode_quant2(v: np.ndarray[Any, Any], raw_words: np.ndarray[Any, Any], step: float,
-                   level: int, coder: ResidualCoder = NUMPY
-                   ) -> tuple[int, int, bool, float, bytes] | None:
-    """(predictor, extra, masked, step, payload) of a native float32 (H, W, C) grid, or None
-    when it does not fit the int32 grid; exceptions are masked and kept bit for bit. The step
-    is ``step`` times the greatest common divisor of the grid values when that coarser grid
-    has no more exceptions."""
-    got = _quantise(v, step, coder)
-    if got is None:
-        return None
-    q, exc = got
-    common = 0  # gcd of the grid values; exceptions are 0 (gcd(0, a) = a)
-    flat = q.reshape(-1)
-    for stop in (8192, flat.size):  # the gcd of all divides that of the first ones: 1 there
-        common = int(np.gcd.reduce(np.abs(flat[:stop].astype(np.int64))))  # is 1 overall
-        if common == 1:
-            break
-    if common > 1:  # e.g. 4 mm units in metres: the coarser grid, if it is as exact
-        coarse = _quantise(v, step * common, coder)
-        if coarse is not None and int(coarse[1].sum()) <= int(exc.sum()):
-            step, (q, exc) = step * common, coarse
-    u = q.view(np.uint32)
-    if not exc.any():
-        predictor, extra, parts = _code_grid(u, None, level, coder=coder)
-        return predictor, extra, False, step, _parts(*parts)
-    valid = ~exc
-    predictor, extra, parts = _code_grid(u, valid, level, coder=coder)
-    words = _zc(level).compress(raw_words[exc].tobytes())
-    return predictor, extra, True, step, _parts(_mask_frame(valid, level), *parts, words)
-
-
-def _decode_quant2(payload: bytes, shape: tuple[int, int, int], predictor: int, extra: int,
-                   masked: bool, step: float, bigendian: bool, what: str,
-                   coder: ResidualCoder = NUMPY) -> bytes:
-    n = shape[0] * shape[1] * shape[2]
-    parts = _split(payload, 4 if masked else 2, what)
-    valid = _unmask_frame(parts[0], n, what).reshape(shape) if masked else None
-    count = n if valid is None else int(valid.sum())
-    sym, low = (parts[1], parts[2]) if masked else (parts[0], parts[1])
-    symbols, counts, bits = _unpack_residuals(sym, low, count, 4, extra, what, coder)
-    q = coder.decode(symbols, extra, counts, bits, valid, predictor, None,
-                     np.empty(shape, np.uint32)).view(np.int32)
-    return _float_bits(q, step, bigendian, None if valid is None else ~valid,
-                       parts[3] if masked else b"", what, coder)
 
 
 # --------------------------------------------------------------------- segmentation
@@ -462,7 +207,7 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
                   refs: dict[int, np.ndarray[Any, Any]], coder: ResidualCoder = NUMPY,
                   version: int = VERSION) -> tuple[int, bytes, bytes]:
     """(method, params, payload) of one channel block (the version 2 methods; version 3 also
-    tries XPREDICT on integer blocks, :mod:`lidarscan._codec_v3`). ``refs``:
+    tries XPREDICT on integer blocks, :mod:`lidarscan.codec._v3`). ``refs``:
     offset -> rolled unsigned grid of the earlier integer blocks; this block's grid is added
     when it is an integer block."""
     datatype, big = int(desc.datatype), bool(scan.is_bigendian)
@@ -481,8 +226,7 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
         ref = None if ref_offset is None else same[ref_offset]
         cross = None
         if version >= 3:
-            from lidarscan import _codec_v3
-            cross = _codec_v3.encode_block(block, desc, scan, level, shifts, coder, u, ref)
+            cross = _v3.encode_block(block, desc, scan, level, shifts, coder, u, ref)
             if cross is not None and cross[2]:  # clearly smaller: no version 2 coding
                 return XPREDICT, cross[0], cross[1]
         predictor, extra, masked, payload = _encode_int2(u, level, ref, coder)
@@ -512,8 +256,41 @@ def _encode_block(block: memoryview, desc: Any, scan: Any, level: int, float_ste
         np.frombuffer(block, f"<u{size}")))
 
 
+def residual_coder(backend: str | ResidualCoder | None = "auto") -> ResidualCoder:
+    """The residual coder that ``coder=backend`` of :func:`compress_scan` /
+    :func:`decompress_scan` runs (every coder writes and reads the same bytes).
+
+    Args:
+        backend: ``"auto"`` (the default of every entry point): the compiled coder (numba) when
+            numba is installed and not switched off (``LIDARSCAN_NUMBA=0``), else the numpy
+            reference; ``"numba"``: the compiled coder, or an error; ``"numpy"`` or None: the
+            numpy reference (:data:`NUMPY`, the test oracle); a :class:`ResidualCoder`: itself.
+            The compiled coder is compiled, or loaded from numba's on-disk cache, at the first
+            call that needs it in the process (a large part of a second from the cache).
+
+    Raises:
+        ConfigError: an unknown backend, or ``"numba"`` without numba (or switched off).
+    """
+    if isinstance(backend, ResidualCoder):
+        return backend
+    if backend is None or backend == "numpy":
+        return NUMPY
+    if backend not in ("auto", "numba"):
+        raise ConfigError("coder", backend, "'auto', 'numba', 'numpy', None (numpy) or a "
+                          "ResidualCoder")
+    compiled = None
+    if numba_enabled():
+        from lidarscan.codec import _compiled
+        compiled = _compiled.coder()
+    if compiled is None and backend == "numba":
+        raise ConfigError("coder", backend, "numba installed (pip install numba) and "
+                          "LIDARSCAN_NUMBA not 0")
+    return compiled or NUMPY
+
+
 def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
-                  float_step: float | None = 0.001, coder: ResidualCoder | None = None,
+                  float_step: float | None = 0.001,
+                  coder: str | ResidualCoder | None = "auto",
                   version: int = VERSION) -> bytes:
     """Compress a LidarScan losslessly (format above).
 
@@ -528,11 +305,12 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
         float_step: grid of float32 channels in their unit (0.001: metres from millimetres;
             a multiple of it when every value is on that coarser grid, e.g. 0.004 for 4 mm
             units); None codes float32 channels by byte shuffle only.
-        coder: the residual coding's implementation (:class:`ResidualCoder`): None = the numpy
-            reference; converters pass the compiled one (``converters._kernels.select("codec")``).
+        coder: the residual coding's implementation (:func:`residual_coder`): ``"auto"``
+            (default) the compiled one when numba is installed, else the numpy reference;
+            ``"numba"``; ``"numpy"`` or None the numpy reference; or a :class:`ResidualCoder`.
             Every coder writes the same bytes.
         version: the format version written: 3 (the default: version 2 plus the
-            cross-channel prediction of :mod:`lidarscan._codec_v3`, smaller on Ouster scans,
+            cross-channel prediction of :mod:`lidarscan.codec._v3`, smaller on Ouster scans,
             whose reflectivity it predicts from signal and range) or 2 (for readers of this
             library's versions before 3 was written by default).
 
@@ -541,11 +319,12 @@ def compress_scan(scan: Any, info: Any = None, *, level: int = 1,
 
     Raises:
         EncodeError: the scan does not encode as CDR, or a size exceeds the format's u32 fields.
+        ConfigError: an unknown ``coder``, or ``"numba"`` without numba.
     """
     from lidarscan.cdr import encode
     from lidarscan.scan import data_view
     from lidarscan.types import LidarScan as ScanDC
-    coder = coder or NUMPY
+    coder = residual_coder(coder)
     if version not in (2, 3):
         raise EncodeError("version", version, "2 or 3 (the format versions this library writes)")
 
@@ -662,29 +441,6 @@ def _parse(buf: bytes) -> tuple[bytes, int, list[tuple[int, int, int, bytes, byt
     return skeleton, columns, data_len, segs
 
 
-def _encode_columns(times: np.ndarray[Any, Any], azimuths: np.ndarray[Any, Any], level: int
-                    ) -> bytes:
-    """The version 2 per-column part (format above)."""
-    def delta(words: np.ndarray[Any, Any]) -> bytes:
-        r = words.copy()
-        r[1:] -= words[:-1]
-        return _zc(level).compress(_planes(zigzag(r)))
-    head = struct.pack("<II", times.size, azimuths.size)
-    return head + _parts(delta(times.view(np.uint64)), delta(azimuths.view(np.uint64)))
-
-
-def _decode_columns(buf: bytes) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """(column_time_offsets int64, column_azimuth_angles float64) of the per-column part."""
-    if len(buf) < 8:
-        raise DecodeError("columns", len(buf), "at least 8 bytes")
-    n_time, n_az = struct.unpack_from("<II", buf)
-    out = []
-    for n, part in zip((n_time, n_az), _split(buf[8:], 2, "columns"), strict=True):
-        z = _unplanes(_zd(part, 8 * n, "columns"), 8, n, "columns").view(np.uint64)
-        out.append(np.cumsum(unzigzag(z), dtype=np.uint64))
-    return out[0].view(np.int64), out[1].view(np.float64)
-
-
 def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes,
                     payload: bytes, data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY
                     ) -> bytes | np.ndarray[Any, Any]:
@@ -701,13 +457,11 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
         size = params[0]
         out = _unplanes(_zd(payload, length, what), size, length // size, what)
     elif method in (PREDICT, QUANT):
-        from lidarscan._codec_v1 import decode_v1
         out = decode_v1(what, length, method, params, payload)
     elif method in (PREDICT2, QUANT2):
         out = _decode_v2(what, offset, length, method, params, payload, data, coder)
     elif method == XPREDICT:
-        from lidarscan._codec_v3 import decode_block
-        out = decode_block(what, offset, length, params, payload, data, coder)
+        out = _v3.decode_block(what, offset, length, params, payload, data, coder)
     else:
         raise DecodeError(f"{what} method", method,
                           "0..7 (RAW, ZSTD, SHUFFLE, PREDICT, QUANT, PREDICT2, QUANT2, XPREDICT)")
@@ -716,70 +470,21 @@ def _decode_segment(i: int, offset: int, length: int, method: int, params: bytes
     return out
 
 
-def _read_grid2(what: str, method: int, length: int, params: bytes
-                ) -> tuple[int, bool, tuple[int, int, int], int, int, bool,
-                           np.ndarray[Any, Any] | None, int]:
-    """(datatype, bigendian, (H, W, C), predictor, extra, masked, row shifts or None, end) of
-    the grid params of a PREDICT2, QUANT2 or XPREDICT segment of ``length`` bytes, checked
-    (DecodeError); ``end``: where the row shifts end (XPREDICT's tables follow; the other
-    methods' params end there)."""
-    if len(params) < _GRID2.size:
-        raise DecodeError(f"{what} params", len(params), f"at least {_GRID2.size} bytes")
-    datatype, big, h, w, c, predictor, rolled, extra, masked = _GRID2.unpack_from(params)
-    ok_type = datatype == _FLOAT32 if method == QUANT2 else datatype in _INT_CODES
-    top = REF if method == PREDICT2 else PLANAR
-    if (not ok_type or predictor > top or extra > 2 or masked > 1
-            or (method == XPREDICT and c != 1)
-            or h * w * c * _SIZES.get(datatype, 0) != length):
-        raise DecodeError(f"{what} params", (datatype, h, w, c, predictor, extra, masked),
-                          f"a grid of {length} bytes with a known datatype and predictor"
-                          + (", count 1" if method == XPREDICT else ""))
-    base = _GRID2.size + (8 if method == QUANT2 else 0) + (4 if predictor == REF else 0)
-    end = base + (4 * h if rolled else 0)
-    if len(params) < end or (method != XPREDICT and len(params) != end):
-        raise DecodeError(f"{what} params", len(params), f"{end} bytes")
-    shifts = np.frombuffer(params, "<i4", h, base).astype(np.int64) if rolled else None
-    return datatype, bool(big), (h, w, c), predictor, extra, bool(masked), shifts, end
-
-
-def _decode_v2(what: str, offset: int, length: int, method: int, params: bytes, payload: bytes,
-               data: np.ndarray[Any, Any], coder: ResidualCoder = NUMPY) -> np.ndarray[Any, Any]:
-    datatype, big, (h, w, c), predictor, extra, masked, shifts, _ = _read_grid2(
-        what, method, length, params)
-    if method == PREDICT2:
-        size = _SIZES[datatype]
-        ref = None
-        if predictor == REF:
-            (ref_offset,) = struct.unpack_from("<I", params, _GRID2.size)
-            if ref_offset + length > offset:
-                raise DecodeError(f"{what} reference offset", ref_offset,
-                                  f"a block of {length} bytes decoded before offset {offset}")
-            grid = np.frombuffer(data[ref_offset:ref_offset + length].tobytes(),
-                                 (">" if big else "<") + f"u{size}").reshape(h, w, c)
-            ref = coder.roll(_as_unsigned(grid), shifts, 1)
-        u = _decode_int2(payload, (h, w, c), size, predictor, extra, masked, what, ref, coder)
-        u = coder.roll(u, shifts, -1)
-        return u.astype(u.dtype.newbyteorder(">" if big else "<"), copy=False).reshape(
-            -1).view(np.uint8)
-    (step,) = struct.unpack_from("<d", params, _GRID2.size)
-    bits = _decode_quant2(payload, (h, w, c), predictor, extra, masked, step, big, what, coder)
-    return coder.roll(np.frombuffer(bits, np.uint32).reshape(h, w, c), shifts, -1).reshape(
-        -1).view(np.uint8)
-
-
-def decompress_scan(buf: bytes, *, coder: ResidualCoder | None = None) -> Any:
+def decompress_scan(buf: bytes, *, coder: str | ResidualCoder | None = "auto") -> Any:
     """The LidarScan of :func:`compress_scan`'s bytes, as a :class:`lidarscan.types.LidarScan`
     (``data`` a read-only uint8 array) whose CDR equals the original's byte for byte.
 
     Args:
         buf: the compressed bytes.
-        coder: as for :func:`compress_scan` (None: the numpy reference); same result.
+        coder: as for :func:`compress_scan` (default ``"auto"``: the compiled coder when numba
+            is installed; ``"numpy"`` or None: the numpy reference); the same result.
 
     Raises:
         DecodeError: not this format, another version, or a damaged buffer.
+        ConfigError: an unknown ``coder``, or ``"numba"`` without numba.
     """
     from lidarscan.cdr import decode_scan
-    coder = coder or NUMPY
+    coder = residual_coder(coder)
     skeleton, columns, data_len, segs = _parse(buf)
     try:
         skel = decode_scan(_zd(skeleton, 1 << 30, "skeleton"))

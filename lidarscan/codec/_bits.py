@@ -9,10 +9,9 @@ low bits of all values forming one stream grouped by k ascending (value order in
 each value's bits most significant first, packed most significant bit first.
 
 The hot steps are the fields of a :class:`ResidualCoder`; :data:`NUMPY` holds the functions
-below. A compiled coder (``converters._kernels.codec``, chosen by
-:func:`converters._kernels.select`) has the same signatures and gives the same bytes; the core
-never imports it: callers pass it to ``compress_scan`` / ``decompress_scan``. All arrays are
-native byte order.
+below. The compiled coder (:mod:`lidarscan.codec._compiled`, chosen by
+:func:`lidarscan.codec.residual_coder`) has the same signatures and gives the same bytes. All
+arrays are native byte order.
 """
 
 from __future__ import annotations
@@ -53,10 +52,10 @@ class ResidualCoder(NamedTuple):
             where float32(float64(q) * step) has v's bits, else an exception and q = 0.
         dequantise: ``(q int32 (n,), step) -> float32``: float32(float64(q) * step).
         roll: ``(x (H, W, C), shifts int64[H] or None, sign) -> x rolled``: :func:`roll`.
-        xfit: format version 3's table fit, ``lidarscan._codec_v3.fit``'s arguments and
+        xfit: format version 3's table fit, ``lidarscan.codec._v3.fit``'s arguments and
             result, or None: that reference.
         xpredict: format version 3's prediction and its residual, in one pass,
-            ``lidarscan._codec_v3.residual``'s arguments and result, or None: that reference.
+            ``lidarscan.codec._v3.residual``'s arguments and result, or None: that reference.
     """
 
     name: str

@@ -3,7 +3,7 @@
 The format's version 2 residual coding (methods PREDICT2 and QUANT2, spec in the header of
 :mod:`lidarscan.codec`) predicts every pixel of a channel grid, turns the zigzag residuals into
 one symbol byte per value plus a bit stream of low bits grouped by their width; float32
-channels go through an int32 grid first. Its numpy reference (:mod:`lidarscan._codec_bits`,
+channels go through an int32 grid first. Its numpy reference (:mod:`lidarscan.codec._bits`,
 the test oracle) makes one pass per predictor step and per bit width; the kernels here make
 one pass over the values and give the same bytes (integer arithmetic, and the same float64
 products and float32 roundings for the float grid: bit-identical by construction, and tested
@@ -20,11 +20,12 @@ access) index row views from 0 or use unsigned indices: a signed index numba can
 non-negative (``x[i - c]``) gets a negative-index wraparound check, which keeps a loop scalar.
 
 :func:`coder` bundles them, with format version 3's fit and prediction
-(:mod:`converters._kernels.codec3`), as a :class:`lidarscan.codec.ResidualCoder` (the fields and
-their arguments are documented there); ``compress_scan`` / ``decompress_scan`` take it as
-``coder=``. It is chosen by :func:`converters._kernels.select` (``"codec"``), which reads the
-switches. The core package never imports this module (layering): converters-level entry
-points (the evidence, the bench, ``McapWriter(codec_coder=...)`` from the CLI) pass it.
+(:mod:`lidarscan.codec._compiled_v3`), as a :class:`lidarscan.codec.ResidualCoder` (the fields
+and their arguments are documented there): the default coder of ``compress_scan`` /
+``decompress_scan`` when numba is installed, chosen by :func:`lidarscan.codec.residual_coder`,
+which honours the switch ``LIDARSCAN_NUMBA`` (:mod:`lidarscan._backends`). Importing this
+module imports no numba: :func:`coder` compiles the kernels (or loads them from numba's
+on-disk cache) at its first call.
 
 The grid kernels take flattened C-order arrays plus the shape (H, W, C); the wrappers in
 :func:`_load` flatten, pad the low-bit stream by 5 bytes (the 40-bit read window) and stand in
@@ -38,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from converters._kernels._loader import LoadOnce, numba_jit
+from lidarscan._backends import LoadOnce, numba_jit
 
 _SCRATCH = threading.local()
 
@@ -515,7 +516,7 @@ def _residuals_plain(x: Any, z: Any, predictor: int, ref: Any, h: int, w: int, c
 def _roll_rows(x: Any, shifts: Any, sign: int, c: int, out: Any
                ) -> None:  # pragma: no cover - compiled
     """Row r of x (H, W * C: rows of W cells of C values) rotated right by sign * shifts[r]
-    cells into out (as ``lidarscan._codec_bits.roll``)."""
+    cells into out (as ``lidarscan.codec._bits.roll``)."""
     h, n = x.shape
     cells = n // c
     for r in range(h):
@@ -539,7 +540,7 @@ def _load() -> Any:
     fns = [numba_jit(fn, boundscheck=False) for fn in (
         _symbols, _pack_low, _low_counts, _grid, _costs, _costs_plain, _unpack_grid, _quantise,
         _dequantise, _residuals_plain, _roll_rows, _unpredict)]
-    from lidarscan._codec_bits import ResidualCoder, roll, symbol_tables
+    from lidarscan.codec._bits import ResidualCoder, roll, symbol_tables
     (symbols, pack_low, low_counts, grid, costs, costs_plain, unpack_grid, quantise,
      dequantise, residuals_plain, roll_rows, unpredict) = fns
 
@@ -602,10 +603,10 @@ def _load() -> Any:
     def symbols_of(z: Any, table: Any) -> Any:  # table: the reference's, not needed
         return symbols(np.ascontiguousarray(z, np.uint32))
 
-    from converters._kernels import codec3
+    from lidarscan.codec import _compiled_v3
     return ResidualCoder("numba", symbols_of, pack_low, low_counts_of, residuals_of, costs_of,
                          decode_of, quantise_of, dequantise_of, roll_of,
-                         *(codec3.kernels() or ()))
+                         *(_compiled_v3.kernels() or ()))
 
 
 _COMPILED = LoadOnce(_load)
@@ -613,6 +614,5 @@ _COMPILED = LoadOnce(_load)
 
 def coder() -> Any:
     """The compiled :class:`lidarscan.codec.ResidualCoder`, or None without numba. Callers go
-    through :func:`converters._kernels.select` (``"codec"``), which honours
-    ``LIDARSCAN_NUMBA``."""
+    through :func:`lidarscan.codec.residual_coder`, which honours ``LIDARSCAN_NUMBA``."""
     return _COMPILED.get()

@@ -1,6 +1,6 @@
-"""Optional compiled (numba) path of :mod:`lidarscan._codec_v3`: the XPREDICT fit and prediction.
+"""Optional compiled (numba) path of :mod:`lidarscan.codec._v3`: the XPREDICT fit and prediction.
 
-Format version 3's method XPREDICT (spec in the header of :mod:`lidarscan._codec_v3`, which
+Format version 3's method XPREDICT (spec in the header of :mod:`lidarscan.codec._v3`, which
 holds the numpy reference and test oracle) predicts an integer block (Ouster reflectivity) from
 a signal and a range block with integer tables; the residual grid is then coded as a PREDICT2
 payload by the v2 coder. The kernels here give the same values as the reference, bit for bit:
@@ -18,9 +18,9 @@ payload by the v2 coder. The kernels here give the same values as the reference,
 The float32 word of a value comes from one LLVM bitcast (:func:`_make_f32_bits`). Integer
 values of at most 2**33 convert to float32 with one rounding in numpy and numba alike.
 
-:func:`kernels` returns the pair ``(xfit, xpredict)`` that :func:`converters._kernels.codec.coder`
-puts into its :class:`lidarscan._codec_bits.ResidualCoder` (fields ``xfit`` and ``xpredict``,
-documented there); the core never imports this module.
+:func:`kernels` returns the pair ``(xfit, xpredict)`` that :func:`lidarscan.codec._compiled.coder`
+puts into its :class:`lidarscan.codec._bits.ResidualCoder` (fields ``xfit`` and ``xpredict``,
+documented there); nothing else imports this module.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from converters._kernels._loader import LoadOnce, numba_jit
+from lidarscan._backends import LoadOnce, numba_jit
 
 #: the IEEE-754 word (int64, 0 .. 2**32 - 1) of a float32 value, an LLVM bitcast set by
 #: :func:`_load` before any kernel compiles
@@ -130,7 +130,7 @@ def _select(a: Any, k: int) -> float:  # pragma: no cover - compiled
 
 
 def _medians(keys: Any, values: Any, n: int) -> Any:  # pragma: no cover - compiled
-    """``lidarscan._codec_v3._medians``: the median of ``values`` per key 0 .. n-1 (the mean
+    """``lidarscan.codec._v3._medians``: the median of ``values`` per key 0 .. n-1 (the mean
     of the two middle values of an even count), a key without values taking the nearest
     key's median (the lower on a tie), all 1.0 without values."""
     out = np.ones(n, np.float64)
@@ -176,7 +176,7 @@ def _medians(keys: Any, values: Any, n: int) -> Any:  # pragma: no cover - compi
 
 
 def _fit(f: Any, s: Any, r: Any, step: int, knee: int) -> Any:  # pragma: no cover - compiled
-    """``lidarscan._codec_v3.fit``'s tables on every step-th column: (found, bin0, gain
+    """``lidarscan.codec._v3.fit``'s tables on every step-th column: (found, bin0, gain
     uint32, row_gain uint16, ubin0, comp uint16); found False when no pixel has a range and a
     positive signal."""
     h = f.shape[0]
@@ -266,7 +266,7 @@ def _load() -> Any:
     _medians = numba_jit(_medians, boundscheck=False)
     residual = numba_jit(_residual, boundscheck=False)
     fit_tables = numba_jit(_fit, boundscheck=False)
-    from lidarscan._codec_v3 import _KNEE, XParams, fit_step
+    from lidarscan.codec._v3 import _KNEE, XParams, fit_step
 
     def native(a: Any, keep: tuple[str, ...] = ("u1", "u2", "u4"), other: Any = None) -> Any:
         """a C-contiguous, aligned, native-order (a copy if needed), read-only view; a dtype
@@ -308,6 +308,6 @@ _COMPILED = LoadOnce(_load)
 
 
 def kernels() -> Any:
-    """``(xfit, xpredict)``, the compiled fields of :class:`lidarscan._codec_bits.ResidualCoder`
+    """``(xfit, xpredict)``, the compiled fields of :class:`lidarscan.codec._bits.ResidualCoder`
     (arguments documented there), or None without numba."""
     return _COMPILED.get()

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan._codec_bits import PLANAR, roll, unresidual, unzigzag
-from lidarscan.codec import (
+from lidarscan.codec._bits import PLANAR, roll, unresidual, unzigzag
+from lidarscan.codec._format import (
     _FLOAT32,
     _GRID,
     _INT_CODES,

@@ -52,8 +52,8 @@ alone above 1.25 times, else both, the smaller kept; a large XPREDICT residual (
 buffers start with version byte 3; a version 3 decoder reads versions 1 and 2 unchanged.
 
 Code layout: the functions here are the numpy reference (and test oracle) of the fit and of the
-prediction; a :class:`lidarscan._codec_bits.ResidualCoder` may carry compiled ones (fields
-``xfit`` and ``xpredict``: ``converters._kernels.codec3``, same values), which the block coding
+prediction; a :class:`lidarscan.codec._bits.ResidualCoder` may carry compiled ones (fields
+``xfit`` and ``xpredict``: :mod:`lidarscan.codec._compiled_v3`, same values), which the block coding
 below calls when present.
 """
 
@@ -64,9 +64,9 @@ from typing import Any
 
 import numpy as np
 
-from lidarscan._codec_bits import roll
-from lidarscan.codec import (_FLOAT32, _GRID2, _INT_CODES, _SIZES, XPREDICT, _choose_masked,
-                             _decode_int2, _encode_int2, _read_grid2, _shift_params)
+from lidarscan.codec._bits import roll
+from lidarscan.codec._format import _FLOAT32, _GRID2, _INT_CODES, _SIZES, XPREDICT, _shift_params
+from lidarscan.codec._v2 import _choose_masked, _decode_int2, _encode_int2, _read_grid2
 from lidarscan.errors import DecodeError
 from lidarscan.scan import _find
 
@@ -292,7 +292,7 @@ def encode_block(block: Any, desc: Any, scan: Any, level: int,
     clearly smaller. ``u``, ``ref``: the block's rolled unsigned (H, W, 1) grid and the
     reference grid of its version 2 coding (None: no estimate, XPREDICT is coded); sure: the
     estimate says that XPREDICT is clearly smaller (the caller then skips the version 2
-    coding). ``coder``: a :class:`lidarscan._codec_bits.ResidualCoder` (its ``xfit`` and
+    coding). ``coder``: a :class:`lidarscan.codec._bits.ResidualCoder` (its ``xfit`` and
     ``xpredict`` when present, else this module's reference)."""
     from lidarscan.scan import channel, channel_names
     found = source_names(str(desc.name), channel_names(scan))

@@ -11,24 +11,26 @@ record length or a missing/damaged summary is recovered from by scanning the dat
 the next chunk; a file cut short (e.g. a writer interrupted by Ctrl-C) yields every message
 before the cut and then one :class:`BadMessage` describing the truncation.
 
-Writing is in :mod:`lidarscan._mcap_writer` (with the record-level writer
-:mod:`lidarscan._mcapfile`), reading in :mod:`lidarscan._mcap_reader`; this module is the public
-face of both.
+Layers (each module imports only those below it): the file layer, :mod:`lidarscan.mcap._records`
+(message records, names, opcodes, the field reader, chunk decompression) and
+:mod:`lidarscan.mcap._file` (the record-level writer: chunks, indexes, CRCs, summary); the
+rosbag2 metadata, :mod:`lidarscan.mcap._rosbag2` (re-exported by :mod:`lidarscan.rosbag2`);
+reading, :mod:`lidarscan.mcap._reader`, and writing, :mod:`lidarscan.mcap._writer`; this module,
+the public face of both. :class:`lidarscan.rosbag2.BagWriter` builds on it.
 """
 
 from __future__ import annotations
 
-from lidarscan._mcap_reader import (
+from lidarscan.mcap._reader import read_messages, read_scans
+from lidarscan.mcap._records import (
     CODEC_ENCODING,
     INFO_TYPE,
     SCAN_TYPE,
     BadMessage,
     McapMessage,
     describe_bytes,
-    read_messages,
-    read_scans,
 )
-from lidarscan._mcap_writer import McapWriter
+from lidarscan.mcap._writer import McapWriter
 
 __all__ = [
     "McapWriter",

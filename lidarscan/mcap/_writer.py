@@ -1,5 +1,6 @@
 """MCAP writing (see :mod:`lidarscan.mcap`, which re-exports :class:`McapWriter`): ROS 2 messages
-to a rosbag2-compatible MCAP file through :class:`lidarscan._mcapfile.ChunkedMcapWriter`."""
+to a rosbag2-compatible MCAP file through :class:`lidarscan.mcap._file.ChunkedMcapWriter`, with
+the rosbag2 metadata of :mod:`lidarscan.mcap._rosbag2`."""
 
 from __future__ import annotations
 
@@ -10,9 +11,19 @@ import threading
 from collections.abc import Iterator
 from typing import IO, Any
 
-from lidarscan._mcap_reader import CODEC_ENCODING, INFO_TYPE, SCAN_TYPE
 from lidarscan.cdr import decode, encode, encode_pieces
-from lidarscan.errors import SchemaError
+from lidarscan.errors import ConfigError, SchemaError
+from lidarscan.mcap._file import COMPRESSIONS, ChunkedMcapWriter
+from lidarscan.mcap._records import CODEC_ENCODING, INFO_TYPE, SCAN_TYPE
+from lidarscan.mcap._rosbag2 import (
+    TopicRecord,
+    bag_metadata,
+    default_qos,
+    dump_qos,
+    metadata_yaml,
+    parse_qos,
+    qos_profile,
+)
 from lidarscan.msgdef import normalize_type, schema_text
 from lidarscan.scan import return_of
 from lidarscan.stamps import to_ns
@@ -48,7 +59,7 @@ def _payload(pieces: list[Any]) -> Any:
 
 def _local(msg: Any, msgtype: str) -> bool:
     """Whether a message's CDR repeats its bytes only nearby (see
-    :meth:`lidarscan._mcapfile.ChunkedMcapWriter.add_message`): a LidarInfo, or a LidarScan
+    :meth:`lidarscan.mcap._file.ChunkedMcapWriter.add_message`): a LidarInfo, or a LidarScan
     without an N-th return channel (``range2``, ``intensity2``, ... by
     :func:`lidarscan.scan.return_of`: its grid repeats the first return's a whole grid back
     wherever there is no second return). Encoded bytes: unknown (False)."""
@@ -102,9 +113,9 @@ class McapWriter:
     Args:
         output: path or binary stream.
         compression: "zstd" (default), "lz4" or "none" (of the chunks).
-        level: zstd level of the chunks; default :data:`lidarscan._mcapfile.DEFAULT_ZSTD_LEVEL`
+        level: zstd level of the chunks; default :data:`lidarscan.mcap._file.DEFAULT_ZSTD_LEVEL`
             (2: fast, see bench/README.md; chunks of LidarInfos and scans without a second
-            return with a smaller hash table, :data:`lidarscan._mcapfile.LOCAL_HASH_LOG`); up
+            return with a smaller hash table, :data:`lidarscan.mcap._file.LOCAL_HASH_LOG`); up
             to 22 for smaller files, negative for faster.
         chunk_size: bytes per chunk; a smaller chunk loses less when a run is interrupted.
         scan_encoding: message encoding of the LidarScan channels: "cdr" (default) or
@@ -113,9 +124,10 @@ class McapWriter:
             was written before it; channel metadata ``lidarscan.codec.version``). Scans given
             in the other encoding are converted; ``ros2 bag play`` and CDR-only readers cannot
             read a :data:`CODEC_ENCODING` channel (``lidarscan convert`` back to CDR first).
-        codec_coder: the :class:`lidarscan.codec.ResidualCoder` of that compression (None:
-            the numpy reference; converters pass ``converters._kernels.select("codec").numba``,
-            which writes the same bytes faster).
+        codec_coder: the residual coder of that compression, as ``coder=`` of
+            :func:`lidarscan.codec.compress_scan`: "auto" (default: the compiled coder when
+            numba is installed, else the numpy reference), "numba", "numpy" or None (the
+            numpy reference), or a :class:`lidarscan.codec.ResidualCoder`; the same bytes.
         qos: recorded QoS per topic: a name of :data:`lidarscan.rosbag2.QOS_PROFILES`
             ("sensor_data", "best_effort", "reliable", "latched"), a
             :class:`lidarscan.rosbag2.QosProfile`, rosbag2's dict form, or a list of these.
@@ -138,15 +150,11 @@ class McapWriter:
     def __init__(self, output: str | os.PathLike[str] | IO[bytes], *, compression: str = "zstd",
                  chunk_size: int = 4 * 1024 * 1024, qos: dict[str, Any] | None = None,
                  scan_encoding: str = "cdr", level: int | None = None,
-                 codec_coder: Any = None, threads: int = 1, crc: bool = True,
+                 codec_coder: Any = "auto", threads: int = 1, crc: bool = True,
                  file_name: str | None = None) -> None:
-        from lidarscan._mcapfile import COMPRESSIONS, ChunkedMcapWriter
-        from lidarscan.rosbag2 import qos_profile
-
         self._qos = {topic: tuple(qos_profile(p) for p in (
             value if isinstance(value, (list, tuple)) else [value]))
             for topic, value in (qos or {}).items()}
-        from lidarscan.errors import ConfigError
         if compression not in COMPRESSIONS:
             raise ConfigError("compression", compression, "one of 'zstd', 'lz4', 'none'")
         if level is not None and not (isinstance(level, int) and -131072 <= level <= 22):
@@ -178,8 +186,6 @@ class McapWriter:
                  encoding: str = "cdr") -> int:
         key = (topic, msgtype, encoding)
         if key not in self._channels:
-            from lidarscan.rosbag2 import default_qos, dump_qos, parse_qos
-
             if msgtype not in self._schemas:
                 self._schemas[msgtype] = self._writer.register_schema(
                     name=msgtype, encoding="ros2msg", data=schema_text(msgtype).encode())
@@ -259,8 +265,6 @@ class McapWriter:
 
     def bag_metadata(self) -> dict[str, Any]:
         """The rosbag2 metadata of what was written so far (see :mod:`lidarscan.rosbag2`)."""
-        from lidarscan.rosbag2 import TopicRecord, bag_metadata
-
         name = self._file_name if self._file_name is not None else \
             getattr(self._stream, "name", "")
         topics = [TopicRecord(topic, msgtype, offered, self._sequence.get(channel_id, 0),
@@ -276,8 +280,6 @@ class McapWriter:
         if self._closed:
             return
         self._closed = True
-        from lidarscan.rosbag2 import metadata_yaml
-
         try:
             with _interrupts_deferred():
                 try:
