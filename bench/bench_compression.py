@@ -7,27 +7,32 @@ flags), staggered as published; the codec gets the info (destaggered prediction)
 
 Baselines, same run, one thread: zstd-3 and zstd-1 of the whole ``data`` buffer (what MCAP's
 chunk compression does) and lz4. The codec runs its default format version
-(``lidarscan.codec.VERSION``) with the compiled coder converters pass
-(``converters._kernels.select("codec")``, numba and the compiled fit and prediction of version
-3; absent without numba) and with the numpy reference (both must write the same bytes), and
-the other version it writes with the compiled coder (version 2 when 3 is the default); the
-ratios of version 3's encode / decode time to version 2's in the same run are printed. Printed:
+(``lidarscan.codec.VERSION``) called as a user calls it, ``compress_scan(scan, info)`` /
+``decompress_scan(buf)`` with no coder argument (``coder="auto"``: the compiled coder,
+:mod:`lidarscan.codec._compiled`, numba with the compiled fit and prediction of version 3, when
+numba is installed; the coder it chose is printed), and with the numpy reference
+(``coder="numpy"``; both must write the same bytes), and the other version it writes with
+the compiled coder (version 2 when 3 is the default); the ratios of version 3's encode /
+decode time to version 2's in the same run are printed. Printed:
 bytes and ratio to zstd-3's bytes; median encode / decode CPU milliseconds
 (``time.process_time`` of interleaved rounds, so the load of a shared machine costs less),
 ratio to zstd-3's time, frames per second; and the load average. Targets (issue): encode and
-decode >= 50 Hz on one core at 128 x 2048 (the default version, compiled coder); bytes below
-zstd-3's. Exits 1 when one is missed.
+decode >= 50 Hz on one core at 128 x 2048 (the default version, called without a coder
+argument); bytes below zstd-3's. Exits 1 when one is missed.
 
-``--baseline FILE``: also time another revision, FILE being a copy of its
-``converters/_kernels/codec.py`` (e.g. ``git show main:converters/_kernels/codec.py >
-/tmp/main_codec.py``), interleaved with the others, writing its default version; the ratios
-of the encode / decode time of this revision's run of that version to it are printed, and
+``--baseline FILE``: also time another revision, FILE being a copy of its compiled coder
+``lidarscan/codec/_compiled.py`` (``converters/_kernels/codec.py`` before the codec moved into
+the core: its imports are redirected), e.g. ``git show main:lidarscan/codec/_compiled.py >
+/tmp/main_codec.py``, interleaved with the others, writing its default version; the ratios of
+the encode / decode time of this revision's run of that version to it are printed, and
 whether the bytes are the same (the before/after of a change, measured in one run).
-``--baseline-core FILE``: with ``--baseline``, the baseline also runs that revision's encoder
-and decoder, FILE being a copy of its ``lidarscan/codec.py``; ``--baseline-v3 FILE``: with
-``--baseline-core``, its ``lidarscan/_codec_v3.py`` too (the core's imports of
-``lidarscan._codec_v3`` then load it). ``--baseline-version N [N ...]``: the format versions
-the baseline writes, each a candidate of its own (default: its own default).
+``--baseline-core FILE``: with ``--baseline``, the baseline also runs that revision's
+container (encoder's choices and decoder), FILE being a copy of its
+``lidarscan/codec/__init__.py`` (the primitives and versions are this revision's);
+``--baseline-v3 FILE``: with ``--baseline-core``, its ``lidarscan/codec/_v3.py`` too (the
+container's imports of ``lidarscan.codec._v3`` then load it). ``--baseline-version N [N
+...]``: the format versions the baseline writes, each a candidate of its own (default: its
+own default).
 
 Usage: ``.venv/bin/python bench/bench_compression.py [--rounds N] [--baseline FILE
 [--baseline-core FILE [--baseline-v3 FILE]] [--baseline-version N [N ...]]]``.
@@ -75,6 +80,15 @@ def make_scan() -> tuple[Any, Any]:
     return out, SimpleNamespace(pixel_shift_by_row=np.asarray(info.pixel_shift_by_row) * 2)
 
 
+#: no coder argument (the default of compress_scan / decompress_scan)
+DEFAULT = object()
+#: imports of a compiled coder copied from a revision before the codec moved into the core
+_OLD_LAYOUT = {"from converters._kernels._loader import": "from lidarscan._backends import",
+               "from lidarscan._codec_bits import": "from lidarscan.codec._bits import",
+               "from converters._kernels import codec3":
+                   "from lidarscan.codec import _compiled_v3 as codec3"}
+
+
 def _load_module(name: str, path: Path, renames: dict[str, str] | None = None) -> Any:
     """The Python file ``path`` imported as module ``name`` (another revision's copy), with
     the import statements of ``renames`` (old text -> new text) rewritten."""
@@ -93,11 +107,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=15, help="timed rounds")
     parser.add_argument("--baseline", type=Path, default=None,
-                        help="a copy of another revision's converters/_kernels/codec.py")
+                        help="a copy of another revision's lidarscan/codec/_compiled.py")
     parser.add_argument("--baseline-core", type=Path, default=None,
-                        help="with --baseline: a copy of that revision's lidarscan/codec.py")
+                        help="with --baseline: a copy of its lidarscan/codec/__init__.py")
     parser.add_argument("--baseline-v3", type=Path, default=None,
-                        help="with --baseline-core: a copy of its lidarscan/_codec_v3.py")
+                        help="with --baseline-core: a copy of its lidarscan/codec/_v3.py")
     parser.add_argument("--baseline-version", type=int, nargs="+", default=[None],
                         help="the format version(s) the baseline writes (default: its default)")
     args = parser.parse_args(argv)
@@ -105,20 +119,19 @@ def main(argv: list[str] | None = None) -> int:
     import lz4.frame
     import zstandard
 
-    from converters._kernels import select
-
-    compiled = select("codec").numba
+    compiled = codec.residual_coder("auto")
+    compiled = None if compiled is codec.NUMPY else compiled
     scan, info = make_scan()
     raw = scan.data.tobytes()
     z3, z1 = zstandard.ZstdCompressor(level=3), zstandard.ZstdCompressor(level=1)
     dz = zstandard.ZstdDecompressor()
     default = codec.VERSION
     other = 2 if default == 3 else 3
-    # name -> (codec module, coder, version written; None: the module's default)
+    # name -> (codec module, coder (DEFAULT: no coder argument), version written; None: the
+    # module's default)
     runs: dict[str, tuple[Any, Any, int | None]] = {}
-    if compiled is not None:
-        runs["lidarscan.codec"] = (codec, compiled, default)
-    runs["codec (numpy)"] = (codec, None, default)
+    runs["lidarscan.codec"] = (codec, DEFAULT, None)
+    runs["codec (numpy)"] = (codec, "numpy", default)
     if compiled is not None:
         runs[f"codec v{other}"] = (codec, compiled, other)
     if args.baseline is not None and compiled is not None:
@@ -127,10 +140,9 @@ def main(argv: list[str] | None = None) -> int:
             renames = {}
             if args.baseline_v3 is not None:
                 _load_module("baseline_v3", args.baseline_v3)
-                renames = {"from lidarscan import _codec_v3": "import baseline_v3 as _codec_v3",
-                           "from lidarscan._codec_v3 import": "from baseline_v3 import"}
+                renames = {"from lidarscan.codec import _v3": "import baseline_v3 as _v3"}
             core = _load_module("baseline_core", args.baseline_core, renames)
-        base_coder = _load_module("baseline_codec", args.baseline).coder()
+        base_coder = _load_module("baseline_codec", args.baseline, _OLD_LAYOUT).coder()
         for version in args.baseline_version:
             name = "codec (baseline)" if version is None else f"codec (baseline v{version})"
             runs[name] = (core, base_coder, version)
@@ -143,11 +155,12 @@ def main(argv: list[str] | None = None) -> int:
            "lz4 (buffer)": lambda: lz4.frame.decompress(packed["lz4 (buffer)"])}
     for name, (core, coder, version) in runs.items():
         options = {} if version is None else {"version": version}
-        packed[name] = core.compress_scan(scan, info, coder=coder, **options)
-        back = core.decompress_scan(packed[name], coder=coder)
+        given = {} if coder is DEFAULT else {"coder": coder}
+        packed[name] = core.compress_scan(scan, info, **given, **options)
+        back = core.decompress_scan(packed[name], **given)
         assert ls.encode(back) == ls.encode(scan), name
-        enc[name] = lambda c=coder, m=core, o=options: m.compress_scan(scan, info, coder=c, **o)
-        dec[name] = lambda n=name, c=coder, m=core: m.decompress_scan(packed[n], coder=c)
+        enc[name] = lambda g=given, m=core, o=options: m.compress_scan(scan, info, **g, **o)
+        dec[name] = lambda n=name, g=given, m=core: m.decompress_scan(packed[n], **g)
     by_version: dict[int, bytes] = {}
     for name in runs:  # every coder of this revision writes the same bytes of a version
         if not name.startswith("codec (baseline"):
@@ -160,7 +173,9 @@ def main(argv: list[str] | None = None) -> int:
                               td["zstd-3 (buffer)"])
     print(f"LidarScan {scan.height}x{scan.width}, {len(scan.channels)} channels, "
           f"{len(raw) / 1e6:.2f} MB raw; CPU-time medians of {args.rounds} interleaved rounds; "
-          f"load average {load:.1f} -> {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+          f"load average {load:.1f} -> {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; "
+          f"lidarscan.codec without a coder argument runs the {codec.residual_coder().name} "
+          f"coder")
     print(f"  {'coding':<21s} {'bytes':>10s} {'÷zstd-3':>8s} {'enc ms':>8s} {'÷zstd-3':>8s} "
           f"{'dec ms':>8s} {'÷zstd-3':>8s} {'enc Hz':>7s} {'dec Hz':>7s}")
     for name in packed:

@@ -313,7 +313,7 @@ def chunk_compression(out: Path, bag: Path, calibration: Path, rounds: int = 3) 
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader
 
-    from lidarscan._mcapfile import _compressor
+    from lidarscan.mcap._file import _compressor
 
     run_convert(bag, calibration, out)
     with open(out, "rb") as stream:
@@ -348,9 +348,9 @@ _STAGES = [
     ("converters.hesai.PacketDecoder", "push_many", "decode"),
     ("lidarscan.mcap.McapWriter", "write", "write (serialise, queue)"),
     ("lidarscan.mcap.McapWriter", "close", "close (drain, summary)"),
-    ("lidarscan._mcapfile.ChunkedMcapWriter", "_finish_chunk", "hand a chunk over"),
-    ("lidarscan._mcapfile.ChunkedMcapWriter", "_pack", "pack (join, CRC, compress)"),
-    ("lidarscan._mcapfile.ChunkedMcapWriter", "_write_chunk", "write a chunk to the file"),
+    ("lidarscan.mcap._file.ChunkedMcapWriter", "_finish_chunk", "hand a chunk over"),
+    ("lidarscan.mcap._file.ChunkedMcapWriter", "_pack", "pack (join, CRC, compress)"),
+    ("lidarscan.mcap._file.ChunkedMcapWriter", "_write_chunk", "write a chunk to the file"),
 ]
 
 

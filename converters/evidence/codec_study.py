@@ -17,7 +17,7 @@ Hesai integer range units, every return of a dual sensor in its own channel) are
 * LidarScan: raw, lz4 / zstd-3 / zstd-19 of the whole ``data`` buffer (what an MCAP chunk
   compressor does), byte shuffle + zstd-3 per block, the project's codec
   (:mod:`lidarscan.codec`, its defaults but format version 2 (:data:`V2`), and its
-  default format version 3 (:data:`V3`, :mod:`lidarscan._codec_v3`), with the compiled coder
+  default format version 3 (:data:`V3`, :mod:`lidarscan.codec._v3`), with the compiled coder
   when numba is there), and the image
   codecs of ``imagecodecs``: 16-bit PNG
   and lossless JPEG-XL of every 8/16-bit channel and of the range in integer millimetres (split
