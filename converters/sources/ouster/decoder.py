@@ -36,7 +36,7 @@ from lidarscan.errors import DecodeError, InfoMismatchError, LidarScanError
 
 __all__ = ["PacketDecoder", "decode_packets"]
 
-_WORD = {1: "u1", 2: "<u2", 4: "<u4"}
+_WORD = {1: "u1", 2: "<u2", 4: "<u4", 8: "<u8"}
 
 
 class PacketDecoder:
@@ -70,6 +70,9 @@ class PacketDecoder:
         self.info = _meta.info_from_metadata(text, frame_id=frame_id,
                                              use_lidar_to_sensor=use_lidar_to_sensor,
                                              as_dataclass=as_dataclass)
+        if range_encoding not in ("float32", "uint32_mm"):
+            from lidarscan.errors import ValidationError
+            raise ValidationError("range_encoding", range_encoding, '"float32" or "uint32_mm"')
         self.range_encoding = range_encoding
         self.destagger = destagger
         self.as_dataclass = as_dataclass
@@ -77,12 +80,13 @@ class PacketDecoder:
         self._size = lay.packet_bytes
         self._window = lay.window_mask()
         self._expected = int(self._window.sum())
-        self._mid_at = lay.header_bytes + 8 + np.arange(lay.columns_per_packet) * lay.column_bytes
-        self._rows: list[np.ndarray[Any, Any]] = []    # packets of the frame being gathered
+        # packets of a complete frame: those holding a window column (whole packets)
+        self._full = -(-self._expected // lay.columns_per_packet)
+        self._buf = np.empty((0, self._size), np.uint8)     # packets of the frame gathered
+        self._mids = self._buf[:, :0]
+        self._n = 0
         self._frame: int | None = None
         self._last: int | None = None                  # frame id last emitted
-        self._seen = np.zeros(lay.width, bool)
-        self._count = 0
         self.stats = {"packets": 0, "frames": 0, "late_packets": 0, "missing_columns": 0,
                       "invalid_columns": 0}
 
@@ -140,7 +144,7 @@ class PacketDecoder:
 
     def flush(self) -> list[tuple[Any, Any]]:
         """The frame being gathered (complete or not), if any; the decoder is then empty."""
-        out = self._emit() if self._rows else []
+        out = self._emit() if self._n else []
         self._last = None
         return out
 
@@ -155,107 +159,184 @@ class PacketDecoder:
                 f"init_id {lay.init_id}, serial {lay.serial} of the metadata (a packet of "
                 "another sensor, or of a re-initialised sensor: use its metadata)")
 
-    def _accept(self, frame: int, row: np.ndarray[Any, Any]) -> list[tuple[Any, Any]]:
+    def _accept(self, frame: int, row: Any) -> list[tuple[Any, Any]]:
         self.stats["packets"] += 1
         out: list[tuple[Any, Any]] = []
         if frame != self._frame:
-            if frame == self._last and not self._rows:
+            if self._n:
+                out = self._emit()
+            if frame == self._last:                   # late packet of the frame just out
                 self.stats["late_packets"] += 1
                 return out
-            if self._rows:
-                out = self._emit()
-                if frame == self._last:                   # late packet of the frame just out
-                    self.stats["late_packets"] += 1
-                    return out
             self._frame = frame
-        self._rows.append(row)
-        mids = row[self._mid_at].astype(np.int64) | (row[self._mid_at + 1].astype(np.int64) << 8)
-        mids = mids[mids < self.layout.width]
-        new = mids[~self._seen[mids]]
-        self._seen[new] = True
-        self._count += int(np.count_nonzero(self._window[new]))
-        if self._count >= self._expected:
+        if self._n == self._buf.shape[0]:
+            self._grow()
+        self._buf[self._n] = row
+        self._n += 1
+        if self._n >= self._full and self._complete():
             out += self._emit()
         return out
 
+    def _grow(self) -> None:
+        lay = self.layout
+        cap = max(2 * self._buf.shape[0], self._full + 2)
+        buf = np.empty((cap, self._size), np.uint8)
+        buf[:self._n] = self._buf[:self._n]
+        self._buf = buf
+        self._mids = np.ndarray((cap, lay.columns_per_packet), "<u2", buf,
+                                lay.header_bytes + 8, (self._size, lay.column_bytes))
+
+    def _complete(self) -> bool:
+        """Whether every column of the window has arrived."""
+        mids = self._mids[:self._n].reshape(-1)
+        seen = np.zeros(self.layout.width + 1, bool)
+        seen[np.minimum(mids, self.layout.width)] = True
+        return bool(seen[:-1][self._window].all())
+
     def _emit(self) -> list[tuple[Any, Any]]:
-        rows = self._rows
-        self._rows, self._last, self._frame = [], self._frame, None
-        self._seen[:] = False
-        self._count = 0
-        frame = frame_arrays(self.layout, np.stack(rows) if len(rows) > 1 else rows[0][None])
+        rows = self._buf[:self._n]
+        self._last, self._frame, self._n = self._frame, None, 0
         self.stats["frames"] += 1
-        self.stats["invalid_columns"] += frame.pop("invalid_columns")
-        received = frame.pop("received")
-        self.stats["missing_columns"] += int(np.count_nonzero(self._window & ~received))
-        if not (frame["status"] & 1).any():
+        cols = _Columns(self.layout, rows)
+        self.stats["invalid_columns"] += cols.invalid
+        self.stats["missing_columns"] += int(np.count_nonzero(self._window & ~cols.received))
+        if not cols.valid.any():
             return []                       # no valid column: nothing to make a scan of
-        scan = _meta.scan_from_frame(frame, self.info, range_encoding=self.range_encoding,
-                                     destagger=self.destagger, as_dataclass=self.as_dataclass)
+        if self.destagger:
+            scan = _meta.scan_from_frame(frame_arrays(self.layout, rows), self.info,
+                                         range_encoding=self.range_encoding, destagger=True,
+                                         as_dataclass=self.as_dataclass)
+        else:
+            scan = _scan(self.layout, cols, self.info, self.range_encoding, self.as_dataclass)
         return [(scan, self.info)]
 
 
+#: frame key -> LidarScan channel name, in the order of converters.ouster.scan_from_frame
+_CHANNEL_OF = {"range_mm": "range", "signal": "intensity", "reflectivity": "reflectivity",
+               "near_ir": "ambient", "flags": "flags", "range2_mm": "range2",
+               "signal2": "intensity2", "reflectivity2": "reflectivity2", "flags2": "flags2"}
+
+
+class _Columns:
+    """The measurement columns of N packets of one frame, put in column order.
+
+    Attributes:
+        data: (P, C, column bytes) uint8 with P * C = W: column c's bytes at [c // C, c % C]
+            (a strided view of the packets when they hold columns 0..W-1 in order, else the
+            columns gathered, C = 1; columns not received valid hold arbitrary bytes).
+        valid: (W,) bool, the columns received with a valid status.
+        received: (W,) bool, the columns in some packet.
+        invalid: columns received whose status is not valid (or measurement id >= W).
+    """
+
+    def __init__(self, layout: PacketLayout, rows: np.ndarray[Any, Any]) -> None:
+        w, cpp, csize = layout.width, layout.columns_per_packet, layout.column_bytes
+        cols = np.lib.stride_tricks.as_strided(
+            rows[:, layout.header_bytes:], (rows.shape[0], cpp, csize),
+            (rows.strides[0], csize, 1), writeable=False)
+        mids = _word(cols, 8, 2)
+        status = _word(cols, layout.status_offset, 4 if layout.legacy else 2)
+        inside = mids < w
+        ok = ((status & 1) != 0) & inside
+        self.invalid = int(np.count_nonzero(~ok))
+        self.received = np.zeros(w, bool)
+        self.received[mids[inside]] = True
+        self.valid = np.zeros(w, bool)
+        self.valid[mids[ok]] = True
+        if mids.size == w and bool(ok.all()) and bool((mids == np.arange(w)).all()):
+            self.data = cols
+        else:
+            source = np.zeros(w, np.int64)
+            source[mids[ok]] = np.flatnonzero(ok)      # the last valid copy of each column
+            self.data = cols.reshape(-1, csize)[source][:, None, :]
+
+
+def _word(cols: np.ndarray[Any, Any], at: int, size: int) -> np.ndarray[Any, Any]:
+    """The little-endian unsigned word of ``size`` bytes at byte ``at`` of every column of
+    ``cols`` ((..., column bytes) uint8), flattened to (columns,)."""
+    return np.ascontiguousarray(cols[..., at:at + size]).view(_WORD[size]).reshape(-1)
+
+
+def _scan(layout: PacketLayout, cols: _Columns, info: Any, range_encoding: str,
+          as_dataclass: bool) -> Any:
+    """The LidarScan of :func:`converters.ouster.scan_from_frame` (staggered) written straight
+    into the scan's data block: per field one pass that reads the packet bytes and writes the
+    (H, W) image (the tests check both give the same scan)."""
+    from lidarscan.scan import ScanBuffer
+
+    h, w = layout.height, layout.width
+    hdr, pix = layout.column_header_bytes, layout.pixel_bytes
+    packets, per = cols.data.shape[:2]
+    pixels = cols.data[:, :, hdr:hdr + h * pix].reshape(packets, per, h, pix)
+    floats = range_encoding == "float32"
+    specs = {_CHANNEL_OF[f.key]: (np.float32 if floats and f.key.startswith("range")
+                                  else np.dtype(f.dtype)) for f in layout.fields}
+    order = [name for name in _CHANNEL_OF.values() if name in specs]
+    buffer = ScanBuffer(info, {name: specs[name] for name in order}, as_dataclass=as_dataclass,
+                        zeroed=False)
+    gaps = ~cols.valid
+    for f in layout.fields:
+        name = _CHANNEL_OF[f.key]
+        # (H, P, C) word view of the packet bytes -> the (H, W) image seen as (H, P, C)
+        source = pixels[..., f.offset:f.offset + f.src].view(_WORD[f.src])[..., 0]
+        source = source.transpose(2, 0, 1)
+        view = buffer.views[name]
+        target = np.empty((h, w), f.dtype) if view.dtype != np.dtype(f.dtype) else view
+        shaped = target.reshape(h, packets, per)
+        if f.mask:
+            np.bitwise_and(source, f.mask, out=shaped, casting="unsafe")
+        else:
+            np.copyto(shaped, source, casting="unsafe")
+        if f.shift > 0:
+            np.right_shift(target, f.shift, out=target)
+        elif f.shift < 0:
+            np.left_shift(target, -f.shift, out=target)
+        if gaps.any():
+            target[:, gaps] = 0
+        if target is not view:                         # range in float32 metres
+            np.multiply(target, _meta._RANGE_MULTIPLIER, out=view, dtype=np.float64,
+                        casting="unsafe")
+            np.copyto(view, np.inf, where=target == 0)
+    times = np.zeros(w, np.uint64)
+    times[cols.valid] = _word(cols.data, 0, 8)[cols.valid]
+    full = _meta._column_times({"timestamps_ns": times}, w, cols.valid,
+                               int(info.column_time_increment))
+    assert full is not None                            # a valid column exists (caller)
+    return buffer.build(int(full[0]), column_time_offsets=full - full[0])
+
+
 def frame_arrays(layout: PacketLayout, rows: np.ndarray[Any, Any]) -> dict[str, Any]:
-    """The ouster-sdk style frame of N packets of one frame (rows (N, packet size) uint8).
+    """The ouster-sdk style frame of N packets of one frame (rows (N, packet size) uint8): the
+    readable numpy reference of the decoder (:func:`converters.ouster.scan_from_frame` of it
+    is the scan the decoder makes).
 
     Returns:
         dict: the profile's staggered images (H, W) (``range_mm`` uint32 mm, ``signal``,
         ``reflectivity``, ...; :data:`~converters.sources.ouster.packet_format.FIELDS`),
         ``timestamps_ns`` (W,) uint64, ``measurement_id`` (W,) uint16, ``status`` (W,)
-        uint32, ``frame_id``, ``invalid_columns`` (columns received with status not valid or
-        a measurement id >= W) and ``received`` (W,) bool (columns in some packet). Columns
-        not received valid are 0 everywhere.
+        uint32 and ``frame_id``. Columns not received valid are 0 everywhere, as ouster-sdk
+        leaves them.
     """
-    h, w, cpp, csize = layout.height, layout.width, layout.columns_per_packet, layout.column_bytes
-    n = rows.shape[0]
-    body = rows[:, layout.header_bytes:layout.header_bytes + cpp * csize]
-    cols = body.reshape(n * cpp, csize)
-    mids = cols[:, 8:10].view("<u2")[:, 0]
-    st = layout.status_offset
-    status = cols[:, st:st + 4].view("<u4")[:, 0] if layout.legacy else \
-        cols[:, st:st + 2].view("<u2")[:, 0]
-    inside = mids < w
-    ok = ((status & 1) != 0) & inside
-    invalid = int(np.count_nonzero(~ok))
-    received = np.zeros(w, bool)
-    received[mids[inside]] = True
-    times = cols[:, 0:8].view("<u8")[:, 0]
+    h, w = layout.height, layout.width
+    cols = _Columns(layout, rows)
+    data = cols.data.reshape(w, -1)
+    hdr, pix = layout.column_header_bytes, layout.pixel_bytes
+    pixels = data[:, hdr:hdr + h * pix].reshape(w, h, pix)
     out: dict[str, Any] = {}
-    hdr = layout.column_header_bytes
-    pix = cols[:, hdr:hdr + h * layout.pixel_bytes].reshape(n * cpp, h, layout.pixel_bytes)
-    everything = bool(ok.all()) and n * cpp == w and bool((mids == np.arange(w)).all())
-    if not everything:
-        pix = pix[ok]
-        where = mids[ok]
     for f in layout.fields:
-        raw = pix[:, :, f.offset:f.offset + f.src].view(_WORD[f.src])[:, :, 0]
+        raw = np.ascontiguousarray(pixels[:, :, f.offset:f.offset + f.src])
+        value = raw.view(_WORD[f.src])[:, :, 0].astype(np.uint64)
         if f.mask:
-            raw = raw & f.mask
-        if f.shift > 0:
-            raw = raw >> f.shift
-        values = raw.astype(f.dtype)
-        if f.shift < 0:
-            values <<= -f.shift
-        if everything:
-            out[f.key] = np.ascontiguousarray(values.T)
-        else:
-            image = np.zeros((h, w), f.dtype)
-            image[:, where] = values.T
-            out[f.key] = image
-    if everything:
-        out["timestamps_ns"] = times.astype(np.uint64)
-        out["measurement_id"] = mids.astype(np.uint16)
-        out["status"] = status.astype(np.uint32)
-    else:
-        for key, values, dtype in (("timestamps_ns", times, np.uint64),
-                                   ("measurement_id", mids, np.uint16),
-                                   ("status", status, np.uint32)):
-            column = np.zeros(w, dtype)
-            column[where] = values[ok]
-            out[key] = column
+            value &= np.uint64(f.mask)
+        value = value >> np.uint64(f.shift) if f.shift >= 0 else value << np.uint64(-f.shift)
+        value[~cols.valid] = 0
+        out[f.key] = value.T.astype(f.dtype)
+    valid = cols.valid
+    out["timestamps_ns"] = np.where(valid, _word(cols.data, 0, 8), 0).astype(np.uint64)
+    out["measurement_id"] = np.where(valid, np.arange(w), 0).astype(np.uint16)
+    status = _word(cols.data, layout.status_offset, 4 if layout.legacy else 2)
+    out["status"] = np.where(valid, status, 0).astype(np.uint32)
     out["frame_id"] = layout.header(rows[0])[0]
-    out["invalid_columns"] = invalid
-    out["received"] = received
     return out
 
 
