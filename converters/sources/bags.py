@@ -1,4 +1,4 @@
-"""rosbag2 recordings in, and the raw-packet messages of Velodyne and Hesai drivers.
+"""rosbag2 recordings in, and the raw-packet messages of Velodyne, Hesai and Ouster drivers.
 
 A *bag* here is a rosbag2 directory (``metadata.yaml`` plus sqlite3 ``.db3`` or MCAP storage
 files), a single ``.db3`` file, or a single ``.mcap`` file. :func:`open_bag` reads it into
@@ -23,6 +23,7 @@ byte order from that header): :func:`velodyne_packets` for ``velodyne_msgs/msg/V
 ``builtin_interfaces/Time stamp``, ``uint8[1206] data``) and :func:`pandar_packets` for
 ``pandar_msgs/msg/PandarScan`` (``PandarPacket`` = ``Time stamp``, ``uint8[1500] data``,
 ``uint32 size``: the bytes of ``data`` used). Both return views into the message bytes.
+ouster-ros's ``PacketMsg`` (one packet per message): :mod:`converters.sources.ouster.bag`.
 """
 
 from __future__ import annotations
@@ -38,6 +39,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from converters.sources.ouster.bag import MSG_DEFINITIONS as OUSTER_MSG_DEFINITIONS
+from converters.sources.ouster.bag import PACKET_MSG_TYPES as OUSTER_PACKET_TYPES
+from converters.sources.ouster.bag import packet_scan as ouster_packet_scan
 from lidarscan.errors import ConversionError, DecodeError, McapFormatError
 from lidarscan.mcap import BadMessage, McapMessage, describe_bytes
 
@@ -667,10 +671,14 @@ def pandar_packets(cdr: bytes | bytearray | memoryview) -> PacketScan:
     return PacketScan(frame_id, stamp, stamps, data, sizes)
 
 
-#: packet message type -> (module providing ``PacketDecoder``, parser of the message's CDR)
+#: packet message type -> (module providing ``PacketDecoder``, parser of the message's CDR);
+#: an Ouster PacketMsg holds one packet, and its decoder needs the sensor's metadata
+#: (``lidarscan convert`` finds it in the recording)
 PACKET_TYPES: dict[str, tuple[str, Any]] = {
     VELODYNE_SCAN: ("converters.sources.velodyne", velodyne_packets),
     PANDAR_SCAN: ("converters.sources.hesai.decoder", pandar_packets),
+    **{name: ("converters.sources.ouster.decoder", ouster_packet_scan)
+       for name in OUSTER_PACKET_TYPES},
 }
 
 _PACKET_MSGS = {
@@ -679,6 +687,7 @@ _PACKET_MSGS = {
     "pandar_msgs/msg/PandarScan": "std_msgs/Header header\nPandarPacket[] packets\n",
     "pandar_msgs/msg/PandarPacket": "builtin_interfaces/Time stamp\nuint8[1500] data\n"
                                    "uint32 size\n",
+    **OUSTER_MSG_DEFINITIONS,
 }
 
 

@@ -208,6 +208,12 @@ def cmd_convert(args: argparse.Namespace) -> int:
             mode = "scans"
     plan = _plan(topics, args, slices, mode)
     decoders = _packet_decoders(topics) if mode == "packets" else {}
+    for topic, msgtype in topics.items():
+        if topic in decoders and msgtype in _ouster_packet_types():
+            from converters.edge.cli.convert_inputs import ouster_decoder, ouster_metadata
+
+            decoders[topic] = ouster_decoder(ouster_metadata(source, topics, topic,
+                                                             args.metadata))
     decoder_options = _decoder_options(args, decoders)
     if decoder_options:
         import functools
@@ -271,6 +277,12 @@ def cmd_convert(args: argparse.Namespace) -> int:
     if not args.quiet:
         _err(summary)
     return EXIT_OK
+
+
+def _ouster_packet_types() -> tuple[str, ...]:
+    from converters.sources.ouster.bag import PACKET_MSG_TYPES
+
+    return PACKET_MSG_TYPES
 
 
 def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from typing import Any
 
 from lidarscan.errors import ConfigError, DecodeError
 
-__all__ = ["PACKET_MSG_TYPES", "STRING_TYPE", "find_metadata", "packet_payload",
+__all__ = ["PACKET_MSG_TYPES", "STRING_TYPE", "find_metadata", "packet_payload", "packet_scan",
            "scans_from_bag", "string_payload"]
 
 #: the packet message types of ouster-ros (current and older package name)
@@ -124,3 +124,16 @@ def scans_from_bag(path: str | os.PathLike[str], metadata: Any = None, *,
         if isinstance(item, McapMessage):
             yield from decoder.push(item.log_time_ns, packet_payload(item.payload))
     yield from decoder.flush()
+
+
+def packet_scan(cdr: Any) -> Any:
+    """A PacketMsg's CDR as a :class:`converters.bags.PacketScan` of one packet (what
+    ``lidarscan convert`` hands the packet decoders): no header (frame_id "", stamps 0; the
+    packet carries its own times), ``data`` (1, size) read-only view of ``buf``."""
+    import numpy as np
+
+    from converters.bags import PacketScan
+
+    buf = np.frombuffer(packet_payload(cdr), np.uint8)[None, :]
+    buf.flags.writeable = False
+    return PacketScan("", 0, np.zeros(1, np.int64), buf, np.array([buf.shape[1]], np.int64))

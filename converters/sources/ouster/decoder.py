@@ -117,12 +117,14 @@ class PacketDecoder:
         Args:
             stamps_ns: (N,) integer ns (not used: the packets carry their times).
             payloads: (N, packet size) uint8, one packet per row. Never modified.
-            errors: with a list, a row of another size is recorded as (row, DecodeError) and
-                skipped instead of raising (the contract of the other packet decoders).
+            errors: with a list, rows of another size or of another sensor are recorded as
+                (row, error) and skipped instead of raising (the contract of the other packet
+                decoders).
 
         Raises:
             DecodeError: wrong array shape/dtype.
-            InfoMismatchError: a packet of another sensor (after the frames before it).
+            InfoMismatchError: a packet of another sensor (without ``errors``; the frames
+                completed before it are lost to the caller: use ``errors`` to keep them).
         """
         rows = payloads
         if not isinstance(rows, np.ndarray) or rows.dtype != np.uint8 or rows.ndim != 2:
@@ -138,7 +140,13 @@ class PacketDecoder:
         frames, inits, serials = self.layout.headers(rows)
         out: list[tuple[Any, Any]] = []
         for i in range(rows.shape[0]):
-            self._check_sensor(int(inits[i]), int(serials[i]))
+            try:
+                self._check_sensor(int(inits[i]), int(serials[i]))
+            except InfoMismatchError as mismatch:
+                if errors is None:
+                    raise
+                errors.append((i, mismatch))
+                continue
             out += self._accept(int(frames[i]), rows[i])
         return out
 
