@@ -9,8 +9,8 @@ Conventions
 -----------
 * Frames: packets are gathered by frame id. A frame is emitted when every column of the column
   window has arrived, when a packet of another frame id arrives, or at :meth:`PacketDecoder.
-  flush`. A packet of the frame just emitted (late, reordered) is dropped and counted, never
-  opens a second frame of that id; frames are never merged or shifted.
+  flush`. A packet of one of the last 8 frames emitted (late, reordered) is dropped and
+  counted, never opens a second frame of that id; frames are never merged or shifted.
 * Columns: measurement id = column. A column whose status bit 0 is clear (invalid), or that
   never arrived (missing packet), is left as ouster-sdk leaves it: every field 0, timestamp 0,
   status 0, so the scan has no return there and its time is interpolated
@@ -24,6 +24,7 @@ Conventions
 
 from __future__ import annotations
 
+import collections
 from collections.abc import Iterable, Iterator
 from typing import Any
 
@@ -35,6 +36,9 @@ from converters.sources.ouster.packet_format import PacketLayout, layout_from_me
 from lidarscan.errors import DecodeError, InfoMismatchError, LidarScanError
 
 __all__ = ["PacketDecoder", "decode_packets"]
+
+#: frame ids remembered as emitted: a late packet of one of them is dropped
+_RECENT = 8
 
 _WORD = {1: "u1", 2: "<u2", 4: "<u4", 8: "<u8"}
 
@@ -86,7 +90,7 @@ class PacketDecoder:
         self._mids = self._buf[:, :0]
         self._n = 0
         self._frame: int | None = None
-        self._last: int | None = None                  # frame id last emitted
+        self._done: collections.deque[int] = collections.deque(maxlen=_RECENT)
         self.stats = {"packets": 0, "frames": 0, "late_packets": 0, "missing_columns": 0,
                       "invalid_columns": 0}
 
@@ -153,7 +157,7 @@ class PacketDecoder:
     def flush(self) -> list[tuple[Any, Any]]:
         """The frame being gathered (complete or not), if any; the decoder is then empty."""
         out = self._emit() if self._n else []
-        self._last = None
+        self._done.clear()
         return out
 
     # ------------------------------------------------------------------------------ frames
@@ -173,7 +177,7 @@ class PacketDecoder:
         if frame != self._frame:
             if self._n:
                 out = self._emit()
-            if frame == self._last:                   # late packet of the frame just out
+            if frame in self._done:                   # late packet of a frame already out
                 self.stats["late_packets"] += 1
                 return out
             self._frame = frame
@@ -203,7 +207,8 @@ class PacketDecoder:
 
     def _emit(self) -> list[tuple[Any, Any]]:
         rows = self._buf[:self._n]
-        self._last, self._frame, self._n = self._frame, None, 0
+        self._done.append(self._frame)
+        self._frame, self._n = None, 0
         self.stats["frames"] += 1
         cols = _Columns(self.layout, rows)
         self.stats["invalid_columns"] += cols.invalid
