@@ -253,15 +253,16 @@ def test_recording_without_metadata_needs_it(tmp_path: Path) -> None:
 
 
 def test_packet_msg_cdr_is_rosbags() -> None:
-    from converters.sources.ouster.bag import packet_payload, string_payload
+    from converters.sources.ouster.bag import string_payload
 
     store = _typestore()
     raw = bytes(range(256)) * 3 + b"\x07"
-    assert bytes(packet_payload(_cdr(store, PACKET_TYPE,
-                                     buf=np.frombuffer(raw, np.uint8)))) == raw
+    scan = bags.ouster_packets(_cdr(store, PACKET_TYPE, buf=np.frombuffer(raw, np.uint8)))
+    assert scan.data.shape == (1, len(raw)) and scan.data.tobytes() == raw
+    assert scan.payloads.tobytes() == raw and not scan.data.flags.writeable
     assert string_payload(_cdr(store, "std_msgs/msg/String", data="{\"a\": 1}")) == "{\"a\": 1}"
     with pytest.raises(Exception, match="PacketMsg"):
-        packet_payload(b"\x00\x01\x00\x00\xff\x00\x00\x00abc")
+        bags.ouster_packets(b"\x00\x01\x00\x00\xff\x00\x00\x00abc")
 
 
 # ----------------------------------------------------------------------------------- CLI

@@ -280,9 +280,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def _ouster_packet_types() -> tuple[str, ...]:
-    from converters.sources.ouster.bag import PACKET_MSG_TYPES
+    from converters.sources.bags import OUSTER_PACKET_TYPES
 
-    return PACKET_MSG_TYPES
+    return OUSTER_PACKET_TYPES
 
 
 def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict[str, Any]:

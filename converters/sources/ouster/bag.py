@@ -22,37 +22,24 @@ from typing import Any
 
 from lidarscan.errors import ConfigError, DecodeError
 
-__all__ = ["PACKET_MSG_TYPES", "STRING_TYPE", "find_metadata", "packet_payload", "packet_scan",
-           "scans_from_bag", "string_payload"]
+__all__ = ["STRING_TYPE", "find_metadata", "metadata_topic", "scans_from_bag",
+           "string_payload"]
 
-#: the packet message types of ouster-ros (current and older package name)
-PACKET_MSG_TYPES = ("ouster_sensor_msgs/msg/PacketMsg", "ouster_msgs/msg/PacketMsg")
 STRING_TYPE = "std_msgs/msg/String"
-
-#: message definitions, to copy packet topics into MCAP files with their schema
-MSG_DEFINITIONS = {name: "uint8[] buf\n" for name in PACKET_MSG_TYPES}
-
-
-def _sequence(cdr: Any, what: str) -> memoryview:
-    view = memoryview(cdr).cast("B")
-    if len(view) < 8 or view[0] != 0 or view[1] not in (0, 1):
-        raise DecodeError(what, bytes(view[:4]).hex(), "CDR with a 4-byte encapsulation header "
-                          "and a uint32 length")
-    size = struct.unpack("<I" if view[1] == 1 else ">I", view[4:8])[0]
-    if 8 + size > len(view):
-        raise DecodeError(f"{what} length", size, f"at most {len(view) - 8} bytes (message "
-                          "truncated)")
-    return view[8:8 + size]
-
-
-def packet_payload(cdr: Any) -> memoryview:
-    """The ``buf`` of a PacketMsg's CDR bytes (a view, no copy)."""
-    return _sequence(cdr, "PacketMsg.buf")
 
 
 def string_payload(cdr: Any) -> str:
-    """The ``data`` of a std_msgs/String's CDR bytes."""
-    raw = bytes(_sequence(cdr, "String.data"))
+    """The ``data`` of a std_msgs/String's CDR bytes (a uint32 length, then the text and its
+    terminating NUL)."""
+    view = memoryview(cdr).cast("B")
+    if len(view) < 8 or view[0] != 0 or view[1] not in (0, 1):
+        raise DecodeError("String", bytes(view[:4]).hex(), "CDR with a 4-byte encapsulation "
+                          "header and a uint32 length")
+    size = struct.unpack("<I" if view[1] == 1 else ">I", view[4:8])[0]
+    if 8 + size > len(view):
+        raise DecodeError("String.data length", size, f"at most {len(view) - 8} bytes "
+                          "(message truncated)")
+    raw = bytes(view[8:8 + size])
     return raw[:-1].decode("utf-8", errors="replace") if raw.endswith(b"\x00") else \
         raw.decode("utf-8", errors="replace")
 
@@ -72,7 +59,7 @@ def metadata_topic(topics: dict[str, str], packet_topic: str) -> str | None:
 
 def find_metadata(bag: Any, packet_topic: str) -> str | None:
     """The metadata JSON recorded next to ``packet_topic`` in an open bag
-    (:func:`converters.bags.open_bag`), or None when the recording has none."""
+    (:func:`converters.sources.bags.open_bag`), or None when the recording has none."""
     from lidarscan.mcap import McapMessage
 
     topics = {name: t.msgtype for name, t in bag.topics.items()}
@@ -100,17 +87,17 @@ def scans_from_bag(path: str | os.PathLike[str], metadata: Any = None, *,
     Raises:
         ConfigError: no (or several) packet topics, no metadata in the recording and none given.
     """
-    from converters.bags import open_bag
+    from converters.sources.bags import OUSTER_PACKET_TYPES, open_bag, ouster_packets
     from converters.sources.ouster.decoder import PacketDecoder
     from lidarscan.mcap import McapMessage
 
     bag = open_bag(path)
     packet_topics = sorted(t for t, info in bag.topics.items()
-                           if info.msgtype in PACKET_MSG_TYPES)
+                           if info.msgtype in OUSTER_PACKET_TYPES)
     if topic is None:
         if len(packet_topics) != 1:
             raise ConfigError("topic", packet_topics or None,
-                              f"one {PACKET_MSG_TYPES[0]} topic in {path} (name it)")
+                              f"one {OUSTER_PACKET_TYPES[0]} topic in {path} (name it)")
         topic = packet_topics[0]
     elif topic not in packet_topics:
         raise ConfigError("topic", topic, f"a PacketMsg topic of {path}: {packet_topics}")
@@ -122,18 +109,6 @@ def scans_from_bag(path: str | os.PathLike[str], metadata: Any = None, *,
     decoder = PacketDecoder(metadata, **kw)
     for item in bag.messages([topic]):
         if isinstance(item, McapMessage):
-            yield from decoder.push(item.log_time_ns, packet_payload(item.payload))
+            yield from decoder.push(item.log_time_ns, ouster_packets(item.payload).data[0])
     yield from decoder.flush()
 
-
-def packet_scan(cdr: Any) -> Any:
-    """A PacketMsg's CDR as a :class:`converters.bags.PacketScan` of one packet (what
-    ``lidarscan convert`` hands the packet decoders): no header (frame_id "", stamps 0; the
-    packet carries its own times), ``data`` (1, size) read-only view of ``buf``."""
-    import numpy as np
-
-    from converters.bags import PacketScan
-
-    buf = np.frombuffer(packet_payload(cdr), np.uint8)[None, :]
-    buf.flags.writeable = False
-    return PacketScan("", 0, np.zeros(1, np.int64), buf, np.array([buf.shape[1]], np.int64))

@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-import converters.ouster as _meta
-from converters._packets import payload_bytes
+import converters.sources.ouster.metadata as _meta
+from converters.sources.packets import payload_bytes
 from converters.sources.ouster.packet_format import PacketLayout, layout_from_metadata
 from lidarscan.errors import DecodeError, InfoMismatchError, LidarScanError
 

@@ -44,17 +44,7 @@ from lidarscan.errors import DecodeError, ValidationError
 from lidarscan.scan import make_info, make_scan
 
 __all__ = [
-    "PROFILES",
-    "OusterDecoder",
-    "PacketDecoder",
-    "PacketLayout",
-    "decode_packets",
     "default_beam_origin_mm",
-    "layout_from_metadata",
-    "lidar_packets",
-    "read_pcap",
-    "scans_from_bag",
-    "scans_from_pcap",
     "info_from_metadata",
     "load_metadata",
     "scan_from_frame",
@@ -559,15 +549,3 @@ def scans_from_recording(path: str | os.PathLike[str], *,
         if callable(close):
             close()
 
-
-
-# ------------------------------------------------------------------- lidar packets (native)
-# (imported last: those modules read this one's metadata functions)
-from converters.sources.ouster.bag import scans_from_bag  # noqa: E402
-from converters.sources.ouster.decoder import PacketDecoder, decode_packets  # noqa: E402
-from converters.sources.ouster.packet_format import (  # noqa: E402
-    PROFILES, PacketLayout, layout_from_metadata)
-from converters.sources.ouster.pcap import lidar_packets, read_pcap, scans_from_pcap  # noqa: E402
-
-#: the packet decoder under the name of this module's vendor
-OusterDecoder = PacketDecoder

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-import converters.ouster as _meta
+import converters.sources.ouster.metadata as _meta
 from lidarscan.errors import DecodeError, ValidationError
 
 __all__ = ["FIELDS", "PIXEL_BYTES", "PROFILES", "Field", "PacketLayout", "layout_from_metadata"]
