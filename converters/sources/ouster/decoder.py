@@ -103,15 +103,18 @@ class PacketDecoder:
                 stays usable).
             InfoMismatchError: a packet of another sensor (init_id / serial number).
         """
-        data = packet if type(packet) is bytes else payload_bytes(packet)
-        if len(data) != self._size:
-            raise DecodeError("ouster lidar packet size", len(data),
+        if isinstance(packet, (bytes, bytearray, memoryview)):
+            row = np.frombuffer(packet, np.uint8)       # a view: copied once, into the frame
+        else:
+            row = np.frombuffer(payload_bytes(packet), np.uint8)
+        if row.size != self._size:
+            raise DecodeError("ouster lidar packet size", row.size,
                               f"{self._size} bytes ({self.layout.profile}, "
                               f"{self.layout.columns_per_packet} columns of "
                               f"{self.layout.height} pixels)")
-        frame, init_id, serial = self.layout.header(data)
+        frame, init_id, serial = self.layout.header(row)
         self._check_sensor(init_id, serial)
-        return self._accept(frame, np.frombuffer(data, np.uint8))
+        return self._accept(frame, row[None])
 
     def push_many(self, stamps_ns: Any, payloads: Any,
                   errors: list[tuple[int, LidarScanError]] | None = None
@@ -142,16 +145,24 @@ class PacketDecoder:
             errors.extend((i, err) for i in range(rows.shape[0]))
             return []
         frames, inits, serials = self.layout.headers(rows)
+        lay = self.layout
+        foreign = np.zeros(rows.shape[0], bool)
+        if not lay.legacy:
+            foreign = ((inits != lay.init_id) & (lay.init_id != 0)) | \
+                ((serials != lay.serial) & (lay.serial != 0))
+        # runs of consecutive packets of one frame id (and one sensor) go in together
+        cuts = np.flatnonzero((np.diff(frames) != 0) | foreign[1:] | foreign[:-1]) + 1
         out: list[tuple[Any, Any]] = []
-        for i in range(rows.shape[0]):
-            try:
-                self._check_sensor(int(inits[i]), int(serials[i]))
-            except InfoMismatchError as mismatch:
-                if errors is None:
-                    raise
-                errors.append((i, mismatch))
+        for start, stop in zip([0, *cuts.tolist()], [*cuts.tolist(), rows.shape[0]]):
+            if foreign[start]:
+                try:
+                    self._check_sensor(int(inits[start]), int(serials[start]))
+                except InfoMismatchError as mismatch:
+                    if errors is None:
+                        raise
+                    errors.append((start, mismatch))
                 continue
-            out += self._accept(int(frames[i]), rows[i])
+            out += self._accept(int(frames[start]), rows[start:stop])
         return out
 
     def flush(self) -> list[tuple[Any, Any]]:
@@ -171,27 +182,36 @@ class PacketDecoder:
                 f"init_id {lay.init_id}, serial {lay.serial} of the metadata (a packet of "
                 "another sensor, or of a re-initialised sensor: use its metadata)")
 
-    def _accept(self, frame: int, row: Any) -> list[tuple[Any, Any]]:
-        self.stats["packets"] += 1
+    def _accept(self, frame: int, rows: np.ndarray[Any, Any]) -> list[tuple[Any, Any]]:
+        """Packets ``rows`` (k, size), all of frame id ``frame``, in arrival order: the same as
+        one by one (a frame completed by one of them is emitted there, the rest of the run is
+        then late)."""
+        self.stats["packets"] += rows.shape[0]
         out: list[tuple[Any, Any]] = []
         if frame != self._frame:
             if self._n:
                 out = self._emit()
-            if frame in self._done:                   # late packet of a frame already out
-                self.stats["late_packets"] += 1
+            if frame in self._done:                   # late packets of a frame already out
+                self.stats["late_packets"] += rows.shape[0]
                 return out
             self._frame = frame
-        if self._n == self._buf.shape[0]:
-            self._grow()
-        self._buf[self._n] = row
-        self._n += 1
-        if self._n >= self._full and self._complete():
-            out += self._emit()
+        at = 0
+        while at < rows.shape[0]:
+            take = min(max(self._full - self._n, 1), rows.shape[0] - at)
+            if self._n + take > self._buf.shape[0]:
+                self._grow(self._n + take)
+            self._buf[self._n:self._n + take] = rows[at:at + take]
+            self._n += take
+            at += take
+            if self._n >= self._full and self._complete():
+                out += self._emit()
+                self.stats["late_packets"] += rows.shape[0] - at
+                break
         return out
 
-    def _grow(self) -> None:
+    def _grow(self, need: int) -> None:
         lay = self.layout
-        cap = max(2 * self._buf.shape[0], self._full + 2)
+        cap = max(2 * self._buf.shape[0], self._full + 2, need)
         buf = np.empty((cap, self._size), np.uint8)
         buf[:self._n] = self._buf[:self._n]
         self._buf = buf
@@ -353,11 +373,37 @@ def frame_arrays(layout: PacketLayout, rows: np.ndarray[Any, Any]) -> dict[str, 
     return out
 
 
+#: packets handed to push_many at once by decode_packets
+_RUN = 256
+
+
 def decode_packets(packets: Iterable[tuple[int, Any]], metadata: Any = None, **kw: Any
                    ) -> Iterator[tuple[Any, Any]]:
     """Decode an iterable of (stamp_ns, lidar packet), then flush(): (LidarScan, LidarInfo)
-    per frame, as :class:`PacketDecoder` with ``metadata`` and ``kw``."""
+    per frame, as :class:`PacketDecoder` with ``metadata`` and ``kw`` (the results of push()
+    one by one; runs of up to 256 packets go through push_many).
+
+    Raises:
+        DecodeError: a packet of another size (after the frames completed before it).
+        InfoMismatchError: a packet of another sensor (likewise).
+    """
     decoder = PacketDecoder(metadata, **kw)
-    for stamp, packet in packets:
-        yield from decoder.push(stamp, packet)
+    size = decoder.layout.packet_bytes
+    run: list[Any] = []
+    for _, packet in packets:
+        if len(packet) != size:
+            if run:
+                yield from _push_run(decoder, run)
+            yield from decoder.push(0, packet)         # raises the size error
+        run.append(packet)
+        if len(run) == _RUN:
+            yield from _push_run(decoder, run)
+    if run:
+        yield from _push_run(decoder, run)
     yield from decoder.flush()
+
+
+def _push_run(decoder: PacketDecoder, run: list[Any]) -> list[tuple[Any, Any]]:
+    rows = np.frombuffer(b"".join(run), np.uint8).reshape(len(run), -1)
+    del run[:]
+    return decoder.push_many(np.zeros(rows.shape[0], np.int64), rows)

@@ -34,14 +34,15 @@ _PCAPNG_SHB = 0x0A0D0D0A
 
 @dataclass(frozen=True)
 class Datagram:
-    """One UDP datagram: capture time (int64 ns), addresses (bytes), ports, payload."""
+    """One UDP datagram: capture time (int64 ns), addresses (bytes), ports, payload (a
+    read-only memoryview of the capture's bytes, or bytes for a reassembled datagram)."""
 
     stamp_ns: int
     src: bytes
     dst: bytes
     src_port: int
     dst_port: int
-    payload: bytes
+    payload: Any
 
 
 @dataclass
@@ -88,7 +89,26 @@ def read_pcap(path: str | os.PathLike[str], stats: PcapStats | None = None
         stats.incomplete += len(assembler.pending)
 
 
-def _classic(fh: BinaryIO, magic: bytes, path: Any) -> Iterator[tuple[int, int, bytes]]:
+class _Blocks:
+    """Reads a file in 4 MiB blocks and hands out views of them (no copy per record)."""
+
+    def __init__(self, fh: BinaryIO) -> None:
+        self.fh = fh
+        self.buf = memoryview(b"")
+        self.pos = 0
+
+    def read(self, n: int) -> memoryview:
+        """The next ``n`` bytes (fewer at the end of the file)."""
+        if self.pos + n > len(self.buf):
+            rest = bytes(self.buf[self.pos:])
+            self.buf = memoryview(rest + self.fh.read(max(n, 1 << 22)))
+            self.pos = 0
+        out = self.buf[self.pos:self.pos + n]
+        self.pos += len(out)
+        return out
+
+
+def _classic(fh: BinaryIO, magic: bytes, path: Any) -> Iterator[tuple[int, int, Any]]:
     formats = {b"\xd4\xc3\xb2\xa1": ("<", 1000), b"\xa1\xb2\xc3\xd4": (">", 1000),
                b"\x4d\x3c\xb2\xa1": ("<", 1), b"\xa1\xb2\x3c\x4d": (">", 1)}
     if magic not in formats:
@@ -100,31 +120,33 @@ def _classic(fh: BinaryIO, magic: bytes, path: Any) -> Iterator[tuple[int, int, 
         raise DecodeError(f"pcap {path}", "truncated global header", "24 bytes")
     link = struct.unpack(order + "I", head[16:20])[0] & 0x0FFFFFFF
     record = struct.Struct(order + "IIII")
+    blocks = _Blocks(fh)
     while True:
-        rec = fh.read(16)
+        rec = blocks.read(16)
         if len(rec) < 16:
             return
         sec, frac, caplen, _ = record.unpack(rec)
-        data = fh.read(caplen)
+        data = blocks.read(caplen)
         if len(data) < caplen:
             return                                   # a capture cut short: keep what is whole
         yield sec * 1_000_000_000 + frac * unit, link, data
 
 
-def _pcapng(fh: BinaryIO, magic: bytes, path: Any) -> Iterator[tuple[int, int, bytes]]:
+def _pcapng(fh: BinaryIO, magic: bytes, path: Any) -> Iterator[tuple[int, int, Any]]:
     order = "<"
+    fh = _Blocks(fh)  # type: ignore[assignment]
     interfaces: list[tuple[int, int, int]] = []    # (link type, ticks numerator, per second)
     block = magic
     while True:
         if block is None:
-            block = fh.read(4)
+            block = bytes(fh.read(4))
         if len(block) < 4:
             return
         rest = fh.read(4)
         if len(rest) < 4:
             return
         if struct.unpack("<I", block)[0] == _PCAPNG_SHB:
-            bom = fh.read(4)
+            bom = bytes(fh.read(4))
             order = "<" if bom == b"\x4d\x3c\x2b\x1a" else ">"
             if bom not in (b"\x4d\x3c\x2b\x1a", b"\x1a\x2b\x3c\x4d"):
                 raise DecodeError(f"pcapng {path} byte-order magic", bom.hex(), "1a2b3c4d")
@@ -176,10 +198,10 @@ class _Fragments:
     """IPv4 fragments waiting for the rest of their datagram."""
 
     def __init__(self, stats: PcapStats) -> None:
-        self.pending: dict[tuple[bytes, bytes, int, int], dict[int, tuple[bytes, bool]]] = {}
+        self.pending: dict[tuple[bytes, bytes, int, int], dict[int, tuple[Any, bool]]] = {}
         self.stats = stats
 
-    def add(self, key: tuple[bytes, bytes, int, int], offset: int, more: bool, data: bytes
+    def add(self, key: tuple[bytes, bytes, int, int], offset: int, more: bool, data: Any
             ) -> bytes | None:
         parts = self.pending.setdefault(key, {})
         parts[offset] = (data, more)
@@ -203,8 +225,9 @@ class _Fragments:
         return b"".join(out)
 
 
-def _udp(stamp: int, link: int, frame: bytes, frags: _Fragments) -> Datagram | None:
+def _udp(stamp: int, link: int, frame: Any, frags: _Fragments) -> Datagram | None:
     """The UDP datagram of one link-layer frame (None: not UDP, or a fragment kept)."""
+    frame = memoryview(frame)                         # slices below are views, not copies
     at, ethertype = 0, None
     if link == _ETHERNET:
         at, ethertype = 14, frame[12:14]
@@ -243,7 +266,7 @@ def _udp(stamp: int, link: int, frame: bytes, frags: _Fragments) -> Datagram | N
     flags = struct.unpack(">H", ip[6:8])[0]
     more, offset = bool(flags & 0x2000), (flags & 0x1FFF) * 8
     if more or offset:
-        key = (src, dst, ip[9], struct.unpack(">H", ip[4:6])[0])
+        key = (bytes(src), bytes(dst), ip[9], struct.unpack(">H", ip[4:6])[0])
         whole = frags.add(key, offset, more, body)
         if whole is None:
             return None
@@ -251,17 +274,18 @@ def _udp(stamp: int, link: int, frame: bytes, frags: _Fragments) -> Datagram | N
     return _datagram(stamp, src, dst, body)
 
 
-def _datagram(stamp: int, src: bytes, dst: bytes, udp: bytes) -> Datagram | None:
+def _datagram(stamp: int, src: Any, dst: Any, udp: Any) -> Datagram | None:
     if len(udp) < 8:
         return None
     sport, dport, length = struct.unpack(">HHH", udp[:6])
     end = length if 8 <= length <= len(udp) else len(udp)
-    return Datagram(stamp, bytes(src), bytes(dst), sport, dport, bytes(udp[8:end]))
+    return Datagram(stamp, bytes(src), bytes(dst), sport, dport, udp[8:end])
 
 
 def lidar_packets(path: str | os.PathLike[str], metadata: Any, *, port: int | None = None,
-                  stats: PcapStats | None = None) -> Iterator[tuple[int, bytes]]:
-    """(capture time ns, UDP payload) of one Ouster sensor's lidar packets in a capture.
+                  stats: PcapStats | None = None) -> Iterator[tuple[int, Any]]:
+    """(capture time ns, UDP payload: bytes-like) of one Ouster sensor's lidar packets in a
+    capture.
 
     Args:
         path: the pcap/pcapng file.
