@@ -346,3 +346,16 @@ def test_packet_sizes_from_metadata() -> None:
                      "RNG19_RFL8_SIG16_NIR16_DUAL": 33024, "RNG15_RFL8_NIR8": 8448,
                      "FUSA_RNG15_RFL8_NIR8_DUAL": 16640}
     assert json.loads(json.dumps(sizes)) == sizes
+
+
+def test_valid_columns_without_timestamps_give_no_scan() -> None:
+    meta = metadata("RNG19_RFL8_SIG16_NIR16", 16, 512)
+    writer = Writer(meta)
+    packets = []
+    for p in writer.frame(1):
+        raw = bytearray(p)
+        for k in range(writer.cpp):
+            raw[writer.head + k * writer.col:writer.head + k * writer.col + 8] = bytes(8)
+        packets.append(bytes(raw))
+    results, decoder = _decode(meta, packets)
+    assert results == [] and decoder.stats["frames"] == 1

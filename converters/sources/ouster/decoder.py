@@ -33,7 +33,7 @@ import numpy as np
 import converters.sources.ouster.metadata as _meta
 from converters.sources.packets import payload_bytes
 from converters.sources.ouster.packet_format import PacketLayout, layout_from_metadata
-from lidarscan.errors import DecodeError, InfoMismatchError, LidarScanError
+from lidarscan.errors import DecodeError, InfoMismatchError, LidarScanError, ValidationError
 
 __all__ = ["PacketDecoder", "decode_packets"]
 
@@ -75,7 +75,6 @@ class PacketDecoder:
                                              use_lidar_to_sensor=use_lidar_to_sensor,
                                              as_dataclass=as_dataclass)
         if range_encoding not in ("float32", "uint32_mm"):
-            from lidarscan.errors import ValidationError
             raise ValidationError("range_encoding", range_encoding, '"float32" or "uint32_mm"')
         self.range_encoding = range_encoding
         self.destagger = destagger
@@ -233,8 +232,8 @@ class PacketDecoder:
         cols = _Columns(self.layout, rows)
         self.stats["invalid_columns"] += cols.invalid
         self.stats["missing_columns"] += int(np.count_nonzero(self._window & ~cols.received))
-        if not cols.valid.any():
-            return []                       # no valid column: nothing to make a scan of
+        if not (cols.times[cols.valid] != 0).any():
+            return []                       # no valid, timed column: nothing to make a scan of
         if self.destagger:
             scan = _meta.scan_from_frame(frame_arrays(self.layout, rows), self.info,
                                          range_encoding=self.range_encoding, destagger=True,
@@ -255,9 +254,11 @@ class _Columns:
 
     Attributes:
         data: (P, C, column bytes) uint8 with P * C = W: column c's bytes at [c // C, c % C]
-            (a strided view of the packets when they hold columns 0..W-1 in order, else the
-            columns gathered, C = 1; columns not received valid hold arbitrary bytes).
+            (a strided view of the packets, P packets of C columns, when they hold columns
+            0..W-1 in order; else the columns gathered, P = W, C = 1; the rows of columns not
+            received valid hold arbitrary bytes).
         valid: (W,) bool, the columns received with a valid status.
+        times: (W,) uint64 ns, their column timestamps (0 elsewhere).
         received: (W,) bool, the columns in some packet.
         invalid: columns received whose status is not valid (or measurement id >= W).
     """
@@ -276,6 +277,8 @@ class _Columns:
         self.received[mids[inside]] = True
         self.valid = np.zeros(w, bool)
         self.valid[mids[ok]] = True
+        self.times = np.zeros(w, np.uint64)
+        self.times[mids[ok]] = _word(cols, 0, 8)[ok]
         if mids.size == w and bool(ok.all()) and bool((mids == np.arange(w)).all()):
             self.data = cols
         else:
@@ -330,11 +333,10 @@ def _scan(layout: PacketLayout, cols: _Columns, info: Any, range_encoding: str,
             np.multiply(target, _meta._RANGE_MULTIPLIER, out=view, dtype=np.float64,
                         casting="unsafe")
             np.copyto(view, np.inf, where=target == 0)
-    times = np.zeros(w, np.uint64)
-    times[cols.valid] = _word(cols.data, 0, 8)[cols.valid]
-    full = _meta._column_times({"timestamps_ns": times}, w, cols.valid,
+    full = _meta._column_times({"timestamps_ns": cols.times}, w, cols.valid,
                                int(info.column_time_increment))
-    assert full is not None                            # a valid column exists (caller)
+    if full is None:                                   # the caller checks there is one
+        raise ValidationError("stamp_ns", None, "a valid column with a timestamp")
     return buffer.build(int(full[0]), column_time_offsets=full - full[0])
 
 
@@ -365,7 +367,7 @@ def frame_arrays(layout: PacketLayout, rows: np.ndarray[Any, Any]) -> dict[str, 
         value[~cols.valid] = 0
         out[f.key] = value.T.astype(f.dtype)
     valid = cols.valid
-    out["timestamps_ns"] = np.where(valid, _word(cols.data, 0, 8), 0).astype(np.uint64)
+    out["timestamps_ns"] = cols.times
     out["measurement_id"] = np.where(valid, np.arange(w), 0).astype(np.uint16)
     status = _word(cols.data, layout.status_offset, 4 if layout.legacy else 2)
     out["status"] = np.where(valid, status, 0).astype(np.uint32)

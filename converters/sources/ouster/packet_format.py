@@ -21,7 +21,6 @@ ranges (RNG15) come in units of 8 mm and their near-IR in units of 16.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -266,7 +265,3 @@ def layout_from_metadata(src: Any) -> PacketLayout:
                               f"of {profile})")
     return layout
 
-
-def packets_per_frame(layout: PacketLayout) -> int:
-    """Packets the sensor sends per frame (its column window, whole packets)."""
-    return math.ceil(int(layout.window_mask().sum()) / layout.columns_per_packet)
