@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 
 import converters.sources.ouster.metadata as _meta
-from converters.sources.packets import payload_bytes
 from converters.sources.ouster.packet_format import PacketLayout, layout_from_metadata
+from converters.sources.packets import payload_bytes
 from lidarscan.errors import DecodeError, InfoMismatchError, LidarScanError, ValidationError
 
 __all__ = ["PacketDecoder", "decode_packets"]

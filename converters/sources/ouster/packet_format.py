@@ -241,8 +241,7 @@ def layout_from_metadata(src: Any) -> PacketLayout:
     if not 0 < per_packet <= width:
         raise ValidationError("metadata.columns_per_packet", per_packet, f"1..{width}")
     profile = str(meta.get("udp_profile_lidar", fmt) or "LEGACY")
-    if profile.startswith("PROFILE_"):
-        profile = profile[len("PROFILE_"):]
+    profile = profile.removeprefix("PROFILE_")
     if profile == "LIDAR_LEGACY":
         profile = "LEGACY"
     if profile not in FIELDS:
