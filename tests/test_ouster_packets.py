@@ -239,6 +239,31 @@ def test_nested_metadata_layout_decodes_the_same(name: str) -> None:
 def test_sdk_written_nested_metadata() -> None:
     layout = ouster.layout_from_metadata(DATA / f"{OS2}_nested.json")
     assert layout == ouster.layout_from_metadata(DATA / f"{OS2}.json")
+    # a sensor's own metadata may give the profile and packet size in config_params only
+    nested = json.loads((DATA / f"{OS2}_nested.json").read_text())
+    fmt = nested["lidar_data_format"]
+    nested["config_params"].update(udp_profile_lidar=fmt.pop("udp_profile_lidar"),
+                                   columns_per_packet=fmt.pop("columns_per_packet"))
+    assert ouster.layout_from_metadata(nested) == layout
+
+
+def test_firmware_1_metadata_is_legacy() -> None:
+    """No data_format at all (firmware 1.x): LEGACY, 16 columns per packet, every column."""
+    meta = load(OS2)
+    for key in ("data_format", "initialization_id", "udp_port_lidar"):
+        meta.pop(key)
+    layout = ouster.layout_from_metadata(meta)
+    assert (layout.profile, layout.height, layout.width, layout.columns_per_packet,
+            layout.column_window, layout.init_id) == ("LEGACY", 128, 1024, 16, (0, 1023), 0)
+    packets = Writer({**meta, "data_format": {"pixels_per_column": 128,
+                                              "columns_per_frame": 1024,
+                                              "columns_per_packet": 16}}).frame(2)
+    results, decoder = _decode(meta, packets)
+    assert len(results) == 1
+    _same_scan(results[0][0], ouster.scan_from_frame(
+        loop_frame({**meta, "data_format": {"pixels_per_column": 128, "columns_per_frame": 1024,
+                                            "columns_per_packet": 16}}, packets),
+        decoder.info, as_dataclass=True))
 
 
 # ------------------------------------------------------------------------------- frames

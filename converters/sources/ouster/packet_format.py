@@ -217,7 +217,7 @@ def layout_from_metadata(src: Any) -> PacketLayout:
     or nested layout, as :func:`converters.ouster.info_from_metadata` reads it).
 
     ``udp_profile_lidar`` absent means LEGACY (firmware < 2.2); ``columns_per_packet`` absent
-    means 16.
+    means 16 (both read from ``lidar_data_format``, else ``config_params``).
 
     Raises:
         DecodeError: unreadable metadata, unknown profile, missing size keys.
@@ -237,10 +237,13 @@ def layout_from_metadata(src: Any) -> PacketLayout:
     if not 0 < width <= _meta.MAX_COLUMNS or not 0 < height <= 1024:
         raise ValidationError("metadata", f"{height} x {width}",
                               f"1..1024 pixels per column, 1..{_meta.MAX_COLUMNS} columns")
-    per_packet = _meta._int(meta.get("columns_per_packet", fmt, 16), "columns_per_packet")
+    # the sensor's own /api/v1/sensor/metadata also states these in config_params
+    fmt_or_config = ("lidar_data_format", "config_params")
+    per_packet = _meta._int(meta.get("columns_per_packet", fmt_or_config, 16),
+                            "columns_per_packet")
     if not 0 < per_packet <= width:
         raise ValidationError("metadata.columns_per_packet", per_packet, f"1..{width}")
-    profile = str(meta.get("udp_profile_lidar", fmt) or "LEGACY")
+    profile = str(meta.get("udp_profile_lidar", fmt_or_config) or "LEGACY")
     profile = profile.removeprefix("PROFILE_")
     if profile == "LIDAR_LEGACY":
         profile = "LEGACY"
