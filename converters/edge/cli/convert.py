@@ -212,8 +212,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         if topic in decoders and msgtype in _ouster_packet_types():
             from converters.edge.cli.convert_inputs import ouster_decoder, ouster_metadata
 
-            decoders[topic] = ouster_decoder(ouster_metadata(source, topics, topic,
-                                                             args.metadata))
+            decoders[topic] = ouster_decoder(ouster_metadata(source, topic, args.metadata))
     decoder_options = _decoder_options(args, decoders)
     if decoder_options:
         import functools

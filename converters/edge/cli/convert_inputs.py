@@ -306,27 +306,23 @@ def _firetimes_option(decoder: Any, args: argparse.Namespace) -> dict[str, Any]:
     return {"firetimes": firetimes}
 
 
-def ouster_metadata(source: _Input, topics: dict[str, str], packet_topic: str,
-                    given: str | None) -> Any:
+def ouster_metadata(source: _Input, packet_topic: str, given: str | None) -> Any:
     """The metadata for an ouster-ros packet topic: ``--metadata`` when given, else the JSON
     recorded on the namespace's ``metadata`` topic (std_msgs/String); a ConfigError (exit 2,
     before anything is written) when there is neither."""
-    from converters.sources.ouster.bag import metadata_topic, string_payload
+    from converters.sources.bags import open_bag
+    from converters.sources.ouster.bag import find_metadata
     from lidarscan.errors import ConfigError
-    from lidarscan.mcap import McapMessage, read_messages
 
     if given is not None:
         return Path(given)
-    topic = metadata_topic(topics, packet_topic)
-    if topic is not None:
-        items = source.bag.messages([topic]) if source.bag is not None else \
-            read_messages(source.path, topics=[topic])
-        for item in items:
-            if isinstance(item, McapMessage) and string_payload(item.payload).strip():
-                return string_payload(item.payload)
-    raise ConfigError("--metadata", None, f"the sensor's metadata JSON for {packet_topic}: "
-                      f"IN has no {_namespace(packet_topic)}/metadata (std_msgs/String) "
-                      "message")
+    text = find_metadata(source.bag if source.bag is not None else open_bag(source.path),
+                         packet_topic)
+    if text is None:
+        raise ConfigError("--metadata", None, f"the sensor's metadata JSON for {packet_topic}: "
+                          f"IN has no {_namespace(packet_topic)}/metadata (std_msgs/String) "
+                          "message")
+    return text
 
 
 def ouster_decoder(metadata: Any) -> Callable[..., Any]:

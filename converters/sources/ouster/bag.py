@@ -16,11 +16,11 @@ and the bytes (String: with a terminating NUL), alignment relative to the payloa
 from __future__ import annotations
 
 import os
-import struct
 from collections.abc import Iterator
 from typing import Any
 
-from lidarscan.errors import ConfigError, DecodeError
+from converters.sources.bags import _Cdr
+from lidarscan.errors import ConfigError
 
 __all__ = ["STRING_TYPE", "find_metadata", "metadata_topic", "scans_from_bag",
            "string_payload"]
@@ -30,16 +30,13 @@ STRING_TYPE = "std_msgs/msg/String"
 
 def string_payload(cdr: Any) -> str:
     """The ``data`` of a std_msgs/String's CDR bytes (a uint32 length, then the text and its
-    terminating NUL)."""
-    view = memoryview(cdr).cast("B")
-    if len(view) < 8 or view[0] != 0 or view[1] not in (0, 1):
-        raise DecodeError("String", bytes(view[:4]).hex(), "CDR with a 4-byte encapsulation "
-                          "header and a uint32 length")
-    size = struct.unpack("<I" if view[1] == 1 else ">I", view[4:8])[0]
-    if 8 + size > len(view):
-        raise DecodeError("String.data length", size, f"at most {len(view) - 8} bytes "
-                          "(message truncated)")
-    raw = bytes(view[8:8 + size])
+    terminating NUL).
+
+    Raises:
+        DecodeError: bad encapsulation, a length beyond the message.
+    """
+    reader = _Cdr(cdr, "String")
+    raw = bytes(reader.take(reader.count("data", 1), "data"))
     return raw[:-1].decode("utf-8", errors="replace") if raw.endswith(b"\x00") else \
         raw.decode("utf-8", errors="replace")
 
