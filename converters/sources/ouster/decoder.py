@@ -92,6 +92,7 @@ class PacketDecoder:
         self._done: collections.deque[int] = collections.deque(maxlen=_RECENT)
         self.stats = {"packets": 0, "frames": 0, "late_packets": 0, "missing_columns": 0,
                       "invalid_columns": 0}
+        self._scratch: dict[str, np.ndarray[Any, Any]] = {}    # reused by _scan per frame
 
     # ------------------------------------------------------------------------ packet intake
     def push(self, stamp_ns: int, packet: Any) -> list[tuple[Any, Any]]:
@@ -239,7 +240,8 @@ class PacketDecoder:
                                          range_encoding=self.range_encoding, destagger=True,
                                          as_dataclass=self.as_dataclass)
         else:
-            scan = _scan(self.layout, cols, self.info, self.range_encoding, self.as_dataclass)
+            scan = _scan(self.layout, cols, self.info, self.range_encoding, self.as_dataclass,
+                         self._scratch)
         return [(scan, self.info)]
 
 
@@ -294,10 +296,11 @@ def _word(cols: np.ndarray[Any, Any], at: int, size: int) -> np.ndarray[Any, Any
 
 
 def _scan(layout: PacketLayout, cols: _Columns, info: Any, range_encoding: str,
-          as_dataclass: bool) -> Any:
+          as_dataclass: bool, scratch: dict[str, np.ndarray[Any, Any]]) -> Any:
     """The LidarScan of :func:`converters.ouster.scan_from_frame` (staggered) written straight
     into the scan's data block: per field one pass that reads the packet bytes and writes the
-    (H, W) image (the tests check both give the same scan)."""
+    (H, W) image (the tests check both give the same scan). ``scratch``: the caller's reused
+    (H, W) integer images of the ranges converted to float32 metres."""
     from lidarscan.scan import ScanBuffer
 
     h, w = layout.height, layout.width
@@ -317,7 +320,11 @@ def _scan(layout: PacketLayout, cols: _Columns, info: Any, range_encoding: str,
         source = pixels[..., f.offset:f.offset + f.src].view(_WORD[f.src])[..., 0]
         source = source.transpose(2, 0, 1)
         view = buffer.views[name]
-        target = np.empty((h, w), f.dtype) if view.dtype != np.dtype(f.dtype) else view
+        target = view
+        if view.dtype != np.dtype(f.dtype):                 # range in float32 metres
+            if f.dtype not in scratch:
+                scratch[f.dtype] = np.empty((h, w), f.dtype)
+            target = scratch[f.dtype]
         shaped = target.reshape(h, packets, per)
         if f.mask:
             np.bitwise_and(source, f.mask, out=shaped, casting="unsafe")
@@ -329,10 +336,10 @@ def _scan(layout: PacketLayout, cols: _Columns, info: Any, range_encoding: str,
             np.left_shift(target, -f.shift, out=target)
         if gaps.any():
             target[:, gaps] = 0
-        if target is not view:                         # range in float32 metres
+        if target is not view:
             np.multiply(target, _meta._RANGE_MULTIPLIER, out=view, dtype=np.float64,
                         casting="unsafe")
-            np.copyto(view, np.inf, where=target == 0)
+            np.copyto(view, np.inf, where=view == 0)
     full = _meta._column_times({"timestamps_ns": cols.times}, w, cols.valid,
                                int(info.column_time_increment))
     if full is None:                                   # the caller checks there is one
