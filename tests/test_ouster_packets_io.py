@@ -210,6 +210,9 @@ def _recording_rows(name: str, with_metadata: bool = True) -> list[tuple[str, st
     for k, (ns, payload) in enumerate(_packets(name)):
         rows.append(("/ouster/lidar_packets", PACKET_TYPE, 10**18 + 1000 * (k + 1),
                      _cdr(store, PACKET_TYPE, buf=np.frombuffer(payload, np.uint8))))
+        if k % 8 == 0:       # ouster-ros's IMU packets: the same type, never decoded
+            rows.append(("/ouster/imu_packets", PACKET_TYPE, 10**18 + 1000 * (k + 1) + 1,
+                         _cdr(store, PACKET_TYPE, buf=np.zeros(48, np.uint8))))
     return rows
 
 
@@ -309,7 +312,8 @@ def test_cli_convert_ouster_ros_recording(tmp_path: Path, storage: str, capsys: 
     topics = messages_by_topic(out)
     prefix = "/ouster/lidar_packets"
     assert {f"{prefix}/lidar_info", f"{prefix}/lidar_scan", f"{prefix}/points",
-            "/ouster/metadata"} == set(topics)
+            "/ouster/metadata", "/ouster/imu_packets"} == set(topics)
+    assert len(topics["/ouster/imu_packets"]) == 8           # copied like any other topic
     (expected, _), = ouster.scans_from_pcap(DATA / f"{OS0}.pcap", DATA / f"{OS0}.json",
                                             as_dataclass=True)
     assert topics[f"{prefix}/lidar_scan"][0].payload == _encoded(expected)

@@ -54,6 +54,7 @@ __all__ = [
     "pandar_packets",
     "ouster_packets",
     "OUSTER_PACKET_TYPES",
+    "is_packet_topic",
     "VELODYNE_SCAN",
     "PANDAR_SCAN",
     "PACKET_TYPES",
@@ -64,6 +65,14 @@ VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
 PANDAR_SCAN = "pandar_msgs/msg/PandarScan"
 #: ouster-ros's packet message (current package name, then the older one)
 OUSTER_PACKET_TYPES = ("ouster_sensor_msgs/msg/PacketMsg", "ouster_msgs/msg/PacketMsg")
+
+
+def is_packet_topic(topic: str, msgtype: str) -> bool:
+    """Whether a topic holds lidar packets to decode: a packet message type, except
+    ouster-ros's IMU packets (``<ns>/imu_packets``, the same PacketMsg type)."""
+    if msgtype in OUSTER_PACKET_TYPES:
+        return not topic.rstrip("/").endswith("imu_packets")
+    return msgtype in PACKET_TYPES
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 # sqlite3 raises UnicodeDecodeError when a damaged file's error message is not UTF-8
 _SQL_ERRORS = (sqlite3.Error, UnicodeDecodeError)

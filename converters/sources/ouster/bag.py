@@ -5,7 +5,9 @@ ouster-ros publishes, under its namespace (default ``/ouster``):
 * ``<ns>/lidar_packets``: ``ouster_sensor_msgs/msg/PacketMsg`` (one field ``uint8[] buf``, one
   UDP payload per message; older releases name the package ``ouster_msgs``);
 * ``<ns>/metadata``: ``std_msgs/msg/String``, the sensor's metadata JSON (latched, so a
-  recording has it once, usually first).
+  recording has it once, usually first);
+* ``<ns>/imu_packets``: the IMU's packets, the same PacketMsg type (not lidar data: never
+  decoded; ``lidarscan convert`` copies them like any other topic).
 
 The metadata is taken from the recording itself (the ``metadata`` topic of the packets'
 namespace, else the only String topic named ``.../metadata``); without one the caller passes
@@ -78,19 +80,22 @@ def scans_from_bag(path: str | os.PathLike[str], metadata: Any = None, *,
     Args:
         path: rosbag2 directory, ``.db3`` or ``.mcap`` file.
         metadata: the sensor's metadata; default the one recorded next to the packets.
-        topic: the packet topic; default the recording's only PacketMsg topic.
+        topic: the packet topic; default the recording's only PacketMsg topic of lidar
+            packets (``<ns>/imu_packets`` are IMU packets: never decoded).
         kw: options of :class:`converters.sources.ouster.decoder.PacketDecoder`.
 
     Raises:
         ConfigError: no (or several) packet topics, no metadata in the recording and none given.
     """
-    from converters.sources.bags import OUSTER_PACKET_TYPES, open_bag, ouster_packets
+    from converters.sources.bags import (OUSTER_PACKET_TYPES, is_packet_topic, open_bag,
+                                         ouster_packets)
     from converters.sources.ouster.decoder import PacketDecoder
     from lidarscan.mcap import McapMessage
 
     bag = open_bag(path)
     packet_topics = sorted(t for t, info in bag.topics.items()
-                           if info.msgtype in OUSTER_PACKET_TYPES)
+                           if info.msgtype in OUSTER_PACKET_TYPES
+                           and is_packet_topic(t, info.msgtype))
     if topic is None:
         if len(packet_topics) != 1:
             raise ConfigError("topic", packet_topics or None,
