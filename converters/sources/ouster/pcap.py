@@ -204,7 +204,7 @@ class _Fragments:
     def add(self, key: tuple[bytes, bytes, int, int], offset: int, more: bool, data: Any
             ) -> bytes | None:
         parts = self.pending.setdefault(key, {})
-        parts[offset] = (data, more)
+        parts[offset] = (bytes(data), more)     # a copy: a view would pin its 4 MiB block
         if len(self.pending) > 256:                   # old datagrams that never completed
             oldest = next(iter(self.pending))
             del self.pending[oldest]
