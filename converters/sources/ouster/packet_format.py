@@ -112,7 +112,7 @@ class PacketLayout:
         columns_per_packet: measurement columns per packet.
         column_window: (first, last) measurement id the sensor sends, inclusive (may wrap).
         init_id: the metadata's initialization id (0: not given, not checked).
-        serial: the metadata's serial number (0: not given, not checked).
+        serial: the metadata's serial number (0: not given or not a number, not checked).
         udp_port: the metadata's lidar UDP port (0: not given).
         fusa: the FuSa packet header (FUSA profile or ``header_type`` "FUSA").
     """
@@ -258,7 +258,7 @@ def layout_from_metadata(src: Any) -> PacketLayout:
         profile=profile, height=height, width=width, columns_per_packet=per_packet,
         column_window=_window(meta.get("column_window", fmt), width),
         init_id=_meta._int(init_id, "initialization_id"),
-        serial=_meta._int(str(serial).strip() or 0, "prod_sn"),
+        serial=int(str(serial).strip()) if str(serial).strip().isdigit() else 0,
         udp_port=_meta._int(port, "udp_port_lidar"),
         fusa=profile.startswith("FUSA") or header_type.upper() == "FUSA")
     if layout.packet_bytes > 65535:
