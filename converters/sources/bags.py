@@ -1,4 +1,4 @@
-"""rosbag2 recordings in, and the raw-packet messages of Velodyne and Hesai drivers.
+"""rosbag2 recordings in, and the raw-packet messages of Velodyne, Hesai and Ouster drivers.
 
 A *bag* here is a rosbag2 directory (``metadata.yaml`` plus sqlite3 ``.db3`` or MCAP storage
 files), a single ``.db3`` file, or a single ``.mcap`` file. :func:`open_bag` reads it into
@@ -23,6 +23,8 @@ byte order from that header): :func:`velodyne_packets` for ``velodyne_msgs/msg/V
 ``builtin_interfaces/Time stamp``, ``uint8[1206] data``) and :func:`pandar_packets` for
 ``pandar_msgs/msg/PandarScan`` (``PandarPacket`` = ``Time stamp``, ``uint8[1500] data``,
 ``uint32 size``: the bytes of ``data`` used). Both return views into the message bytes.
+:func:`ouster_packets` for ouster-ros's ``PacketMsg`` (``uint8[] buf``: one UDP payload per
+message, no header; the recording's metadata topic: :mod:`converters.sources.ouster.bag`).
 """
 
 from __future__ import annotations
@@ -50,6 +52,9 @@ __all__ = [
     "PacketScan",
     "velodyne_packets",
     "pandar_packets",
+    "ouster_packets",
+    "OUSTER_PACKET_TYPES",
+    "is_packet_topic",
     "VELODYNE_SCAN",
     "PANDAR_SCAN",
     "PACKET_TYPES",
@@ -58,6 +63,16 @@ __all__ = [
 
 VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
 PANDAR_SCAN = "pandar_msgs/msg/PandarScan"
+#: ouster-ros's packet message (current package name, then the older one)
+OUSTER_PACKET_TYPES = ("ouster_sensor_msgs/msg/PacketMsg", "ouster_msgs/msg/PacketMsg")
+
+
+def is_packet_topic(topic: str, msgtype: str) -> bool:
+    """Whether a topic holds lidar packets to decode: a packet message type, except
+    ouster-ros's IMU packets (``<ns>/imu_packets``, the same PacketMsg type)."""
+    if msgtype in OUSTER_PACKET_TYPES:
+        return not topic.rstrip("/").endswith("imu_packets")
+    return msgtype in PACKET_TYPES
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 # sqlite3 raises UnicodeDecodeError when a damaged file's error message is not UTF-8
 _SQL_ERRORS = (sqlite3.Error, UnicodeDecodeError)
@@ -667,10 +682,31 @@ def pandar_packets(cdr: bytes | bytearray | memoryview) -> PacketScan:
     return PacketScan(frame_id, stamp, stamps, data, sizes)
 
 
-#: packet message type -> (module providing ``PacketDecoder``, parser of the message's CDR)
+def ouster_packets(cdr: bytes | bytearray | memoryview) -> PacketScan:
+    """ouster-ros ``PacketMsg`` CDR (``uint8[] buf``) -> :class:`PacketScan` of its one
+    packet: frame_id "", stamps 0 (the message has no header; Ouster packets carry their own
+    times), ``data`` (1, len(buf)) read-only view of ``buf``.
+
+    Raises:
+        DecodeError: truncated message, bad encapsulation, a length beyond the message.
+    """
+    import numpy as np
+
+    reader = _Cdr(cdr, "PacketMsg")
+    n = reader.count("buf", 1)
+    data = np.frombuffer(reader.take(n, "buf"), np.uint8)[None, :]
+    data.flags.writeable = False
+    return PacketScan("", 0, np.zeros(1, np.int64), data, np.array([n], np.int64))
+
+
+#: packet message type -> (module providing ``PacketDecoder``, parser of the message's CDR);
+#: an Ouster PacketMsg holds one packet, and its decoder needs the sensor's metadata
+#: (``lidarscan convert`` finds it in the recording)
 PACKET_TYPES: dict[str, tuple[str, Any]] = {
     VELODYNE_SCAN: ("converters.sources.velodyne", velodyne_packets),
     PANDAR_SCAN: ("converters.sources.hesai.decoder", pandar_packets),
+    **{name: ("converters.sources.ouster.decoder", ouster_packets)
+       for name in OUSTER_PACKET_TYPES},
 }
 
 _PACKET_MSGS = {
@@ -679,6 +715,7 @@ _PACKET_MSGS = {
     "pandar_msgs/msg/PandarScan": "std_msgs/Header header\nPandarPacket[] packets\n",
     "pandar_msgs/msg/PandarPacket": "builtin_interfaces/Time stamp\nuint8[1500] data\n"
                                    "uint32 size\n",
+    **{name: "uint8[] buf\n" for name in OUSTER_PACKET_TYPES},
 }
 
 

@@ -15,7 +15,8 @@ Commands::
     lidarscan view REC --out DIR [--index K]
 
 REC is an MCAP file, a rosbag2 directory (``metadata.yaml`` + ``.db3`` or ``.mcap`` storage) or a
-single rosbag2 ``.db3`` file; ``convert`` also takes an Ouster ``.pcap``/``.osf``. What a path is
+single rosbag2 ``.db3`` file; ``convert`` also takes an Ouster ``.pcap``/``.pcapng`` (decoded
+here, with ``--metadata``) or ``.osf`` (through ouster-sdk). What a path is
 is told from its contents and said in every error about it.
 
 Exit status: 0 success; 1 the run finished but some messages or parts of the input were bad

@@ -223,7 +223,7 @@ def _open_input(name: str, role: str, *, ouster: bool = False) -> _Input:
     from lidarscan.errors import McapFormatError
 
     path = Path(name)
-    if ouster and path.suffix.lower() in (".pcap", ".osf") and path.is_file():
+    if ouster and path.suffix.lower() in (".pcap", ".pcapng", ".osf") and path.is_file():
         return _Input(path, InputKind("ouster", "an Ouster recording"))
     kind = detect_input(path)
     if kind.kind == "missing":
@@ -234,7 +234,7 @@ def _open_input(name: str, role: str, *, ouster: bool = False) -> _Input:
         return _Input(path, kind, open_bag(path))
     raise McapFormatError(f"{role} {path}", kind.description,
                           "an MCAP file, a rosbag2 directory or a rosbag2 .db3 file"
-                          + (" (or an Ouster .pcap/.osf)" if ouster else ""))
+                          + (" (or an Ouster .pcap/.pcapng/.osf)" if ouster else ""))
 
 
 def _describe_bad(item: Any) -> str:

@@ -55,15 +55,17 @@ def build_parser() -> argparse.ArgumentParser:
                     "<ns>/lidar_scan + <ns>/lidar_info; with --slice, every cloud (any "
                     "layout, grid or not, e.g. Livox) also gives <ns>/slices/NAME from its "
                     "points, and a cloud without a grid gives only those. Raw packets "
-                    "(velodyne_msgs/VelodyneScan, pandar_msgs/PandarScan): <topic>/lidar_info + "
-                    "<topic>/lidar_scan (+ outputs). An Ouster .pcap/.osf (needs ouster-sdk): "
+                    "(velodyne_msgs/VelodyneScan, pandar_msgs/PandarScan, ouster-ros PacketMsg with "
+                    "its /ouster/metadata or --metadata): <topic>/lidar_info + "
+                    "<topic>/lidar_scan (+ outputs). An Ouster .pcap/.pcapng (with --metadata "
+                    "or the .json next to it) or .osf (needs ouster-sdk): "
                     "/lidar/info + /lidar/scan (+ outputs). Copied topics keep their channel "
                     "metadata (QoS). Bad messages and damaged parts of IN are reported on "
                     "stderr; every good message is written. OUT is written under a temporary "
                     "name and renamed at the end. Exit status 0 all good, 1 some bad, 2 fatal "
                     "(nothing written), 130 Ctrl-C (OUT stays readable).")
     p.add_argument("input", metavar="IN", help="input recording (.mcap, rosbag2 directory or "
-                                               ".db3, .pcap/.osf with --metadata)")
+                                               ".db3, .pcap/.pcapng/.osf with --metadata)")
     p.add_argument("output", metavar="OUT", help="output MCAP file (a new name, not IN)")
     p.add_argument("--pointcloud2", action="store_true", help="add PointCloud2 per scan")
     p.add_argument("--preset", default="", type=_preset,
@@ -114,7 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progress", action="store_true",
                    help="report progress also when stderr is not a terminal")
     p.add_argument("--metadata", default=None, metavar="FILE",
-                   help="Ouster metadata JSON for a .pcap")
+                   help="Ouster metadata JSON for a .pcap, or for ouster-ros packets "
+                        "recorded without their /ouster/metadata")
     p.add_argument("--max-pending", type=_positive_int, default=64, metavar="N",
                    help="scans held while waiting for their LidarInfo (64)")
     p.add_argument("--compress", action="store_true",

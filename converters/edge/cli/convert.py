@@ -119,7 +119,7 @@ def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any
           mode: str) -> _Plan:
     """The output topics; refuses (exit 2) an output topic the input already has unless it is
     excluded (``--exclude TOPIC`` or ``--replace``)."""
-    from converters.sources.bags import PACKET_TYPES
+    from converters.sources.bags import is_packet_topic
     from lidarscan.errors import ConfigError
     from lidarscan.mcap import SCAN_TYPE
 
@@ -127,7 +127,7 @@ def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any
     if mode != "ouster":
         _check_input_topics(topics, args)
     if mode == "packets":
-        sources = [t for t, k in topics.items() if k in PACKET_TYPES]
+        sources = [t for t, k in topics.items() if is_packet_topic(t, k)]
         plan.prefix = {t: t for t in sources}
         per = ["lidar_info", "lidar_scan"]
     elif mode == "clouds":
@@ -196,11 +196,11 @@ def cmd_convert(args: argparse.Namespace) -> int:
     topics: dict[str, str] = {}
     mode = "ouster"
     if source.kind.kind != "ouster":
-        from converters.sources.bags import PACKET_TYPES
+        from converters.sources.bags import is_packet_topic
 
         topics = source.topics()
         kinds = set(topics.values())
-        if kinds & set(PACKET_TYPES):
+        if any(is_packet_topic(t, k) for t, k in topics.items()):
             mode = "packets"
         elif SCAN_TYPE not in kinds and "sensor_msgs/msg/PointCloud2" in kinds:
             mode = "clouds"
@@ -208,6 +208,11 @@ def cmd_convert(args: argparse.Namespace) -> int:
             mode = "scans"
     plan = _plan(topics, args, slices, mode)
     decoders = _packet_decoders(topics) if mode == "packets" else {}
+    for topic, msgtype in topics.items():
+        if topic in decoders and msgtype in _ouster_packet_types():
+            from converters.edge.cli.convert_inputs import ouster_decoder, ouster_metadata
+
+            decoders[topic] = ouster_decoder(ouster_metadata(source, topic, args.metadata))
     decoder_options = _decoder_options(args, decoders)
     if decoder_options:
         import functools
@@ -273,6 +278,12 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _ouster_packet_types() -> tuple[str, ...]:
+    from converters.sources.bags import OUSTER_PACKET_TYPES
+
+    return OUSTER_PACKET_TYPES
+
+
 def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict[str, Any]:
     """Keyword options of the packet decoders from the command line (``--cut-angle``), checked
     against every decoder that will get them (before anything is written)."""
@@ -299,12 +310,12 @@ def _packet_decoders(topics: dict[str, str]) -> dict[str, Any]:
     installation has no decoder for one of them (before anything is written)."""
     import importlib
 
-    from converters.sources.bags import PACKET_TYPES
+    from converters.sources.bags import PACKET_TYPES, is_packet_topic
     from lidarscan.errors import ConversionError
 
     out: dict[str, Any] = {}
     for topic, msgtype in sorted(topics.items()):
-        if msgtype not in PACKET_TYPES:
+        if not is_packet_topic(topic, msgtype):
             continue
         module_name = PACKET_TYPES[msgtype][0]
         try:

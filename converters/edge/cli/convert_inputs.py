@@ -1,5 +1,5 @@
 """``lidarscan convert`` per kind of input: LidarScan recordings, driver PointCloud2, raw packets
-(Velodyne, Hesai) and Ouster .pcap/.osf."""
+(Velodyne, Hesai, ouster-ros) and Ouster .pcap/.osf."""
 
 from __future__ import annotations
 
@@ -306,17 +306,68 @@ def _firetimes_option(decoder: Any, args: argparse.Namespace) -> dict[str, Any]:
     return {"firetimes": firetimes}
 
 
+def ouster_metadata(source: _Input, packet_topic: str, given: str | None) -> Any:
+    """The metadata for an ouster-ros packet topic: ``--metadata`` when given, else the JSON
+    recorded on the namespace's ``metadata`` topic (std_msgs/String); a ConfigError (exit 2,
+    before anything is written) when there is neither."""
+    from converters.sources.bags import open_bag
+    from converters.sources.ouster.bag import find_metadata
+    from lidarscan.errors import ConfigError
+
+    if given is not None:
+        return Path(given)
+    text = find_metadata(source.bag if source.bag is not None else open_bag(source.path),
+                         packet_topic)
+    if text is None:
+        raise ConfigError("--metadata", None, f"the sensor's metadata JSON for {packet_topic}: "
+                          f"IN has no {_namespace(packet_topic)}/metadata (std_msgs/String) "
+                          "message")
+    return text
+
+
+def ouster_decoder(metadata: Any) -> Callable[..., Any]:
+    """A PacketDecoder factory for :func:`_convert_packets` with the sensor's metadata
+    (``--calibration`` and the packets' frame_id do not apply: the frame is Ouster's
+    ``os_sensor``)."""
+    from converters.sources.ouster.decoder import PacketDecoder
+
+    def make(_calibration: Any = None, *, frame_id: str = "", as_dataclass: bool = False
+             ) -> Any:
+        return PacketDecoder(metadata, as_dataclass=as_dataclass)
+    return make
+
+
+def _pcap_metadata(src: Path, given: str | None) -> Path:
+    """``--metadata``, else the ``.json`` next to the pcap (ouster-sdk's naming); exit 2
+    without either."""
+    from lidarscan.errors import ConfigError
+
+    if given is not None:
+        return Path(given)
+    sibling = src.with_suffix(".json")
+    if sibling.is_file():
+        return sibling
+    raise ConfigError("--metadata", None, f"the sensor's metadata JSON for {src.name} (or "
+                      f"{sibling.name} next to it)")
+
+
 def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
                     fallback: Any, report: ConvertReport, emit: Callable[[str], None]) -> None:
-    """Ouster pcap/OSF (via ouster-sdk) -> LidarInfo + LidarScan (+ the requested outputs)."""
+    """Ouster .pcap/.pcapng (native decoder) or .osf (via ouster-sdk) -> LidarInfo +
+    LidarScan (+ the requested outputs)."""
     from converters.edge.nodes.tf import TransformBuffer
     from converters.sources.ouster.metadata import scans_from_recording
+    from converters.sources.ouster.pcap import scans_from_pcap
     from lidarscan.errors import LidarScanError
     from lidarscan.stamps import to_ns
 
+    if src.suffix.lower() in (".pcap", ".pcapng"):
+        scans = scans_from_pcap(src, _pcap_metadata(src, args.metadata), as_dataclass=True)
+    else:
+        scans = scans_from_recording(src, meta=args.metadata)
     pipeline = _ScanPipeline(args, slices, fallback, TransformBuffer())
     info_written = None
-    for index, (scan, info) in enumerate(scans_from_recording(src, meta=args.metadata)):
+    for index, (scan, info) in enumerate(scans):
         report.read += 1
         stamp = to_ns(scan.header.stamp)
         if info_written is not info:

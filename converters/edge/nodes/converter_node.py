@@ -18,6 +18,10 @@ topic                     type                                   QoS
 ``depth/slices/NAME``     sensor_msgs/LaserScan, one per slice   ``output_qos``
 ``depth/lidar_scan``,     lidarscan_msgs/LidarScan, LidarInfo    ``depth.publish_scan``
 ``depth/lidar_info``                                             (the info latched)
+``/ouster/lidar_packets`` ouster_sensor_msgs/PacketMsg           ``ouster.qos``, when
+``/ouster/metadata`` (in) std_msgs/String (sensor JSON)          ``ouster.enabled`` (latched)
+``ouster/lidar_scan``,    lidarscan_msgs/LidarScan, LidarInfo    ``ouster.enabled``
+``ouster/lidar_info``                                            (the info latched)
 ========================  =====================================  ==============================
 
 (``scan`` is left to sensor_msgs/LaserScan, as everywhere else in ROS.)
@@ -101,6 +105,11 @@ image stamp, else ``depth.extrinsics``. ``depth.publish_scan`` [false] also publ
 LidarScan and the latched LidarInfo. A new CameraInfo content rebuilds the rays and the slice
 tables when it arrives, before the image that needs them (:mod:`converters.edge.nodes.depth_input`).
 
+Ouster packets (``ouster.enabled`` [false]; needs ouster-ros's ``ouster_sensor_msgs``): the
+packets and metadata ouster-ros publishes are decoded into LidarScan + LidarInfo (published on
+``ouster.scan_topic`` / ``ouster.info_topic``) and converted like the scans of ``scan_topic``
+(:mod:`converters.edge.nodes.ouster_input`).
+
 Ready: the node compiles or loads every kernel its configuration will call (numba's cache,
 filled by ``make install``) before it logs ``ready: warm-up ... ms`` and publishes a ``startup``
 status, and it builds each LidarInfo version's converters and tables when that info arrives, so
@@ -131,6 +140,7 @@ import numpy as np
 from converters.edge.nodes.common import entry_points
 from converters.edge.nodes.converter_core import ConverterCore, ConverterStats
 from converters.edge.nodes.depth_input import depth_options  # noqa: F401 - its old home
+from converters.edge.nodes.ouster_input import ouster_specs
 from converters.edge.nodes.params import SliceConfig, parse_extrinsics
 from converters.shared.options import HOLE_KEYS
 from lidarscan.errors import ConfigError
@@ -184,6 +194,7 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
         S("allow_unknown_parameters", False, "start even with parameters this node does not "
           "know (a typo is otherwise an error)", read_only=True),
         *_depth_specs(S, QOS_NAMES),
+        *ouster_specs(S, QOS_NAMES),
     )
     per_slice = (
         S("slices.NAME.min_height", None, "slice NAME: lowest z in target_frame, metres "
@@ -262,6 +273,10 @@ TOPICS = (("lidar_scan", "in  lidarscan_msgs/LidarScan", "scan_topic, scan_qos")
           ("depth/slices/NAME", "out sensor_msgs/LaserScan", "one per slice (depth)"),
           ("depth/lidar_scan", "out lidarscan_msgs/LidarScan", "depth.publish_scan"),
           ("depth/lidar_info", "out lidarscan_msgs/LidarInfo", "depth.publish_scan, latched"),
+          ("/ouster/lidar_packets", "in  ouster_sensor_msgs/PacketMsg", "ouster.enabled"),
+          ("/ouster/metadata", "in  std_msgs/String", "ouster.enabled, latched"),
+          ("ouster/lidar_scan", "out lidarscan_msgs/LidarScan", "ouster.enabled"),
+          ("ouster/lidar_info", "out lidarscan_msgs/LidarInfo", "ouster.enabled, latched"),
           ("/diagnostics", "out diagnostic_msgs/DiagnosticArray", "1 Hz"))
 
 
@@ -347,9 +362,10 @@ def _node_class() -> type:
         warm_up,
     )
     from converters.edge.nodes.depth_input import DepthInput
+    from converters.edge.nodes.ouster_input import OusterInput
     from converters.edge.nodes.tf import TfListener, TransformBuffer, TransformLookupError
 
-    class ConverterNode(DepthInput, Node):
+    class ConverterNode(DepthInput, OusterInput, Node):
         """The rclpy node around :class:`ConverterCore` (see the module docstring)."""
 
         def __init__(self, name: str = "lidarscan_converter", **kwargs: Any) -> None:
@@ -407,6 +423,7 @@ def _node_class() -> type:
             self._latency = LatencyWindow()
             self._status = (Status, WARN, ERROR)
             self._init_depth(values, out_qos)
+            self._init_ouster(values, out_qos)
             self.diagnostics = Diagnostics(self, self._diagnose)
             log.info(f"converting '{self.resolve_topic_name(scan_topic)}' -> "
                      f"{'PointCloud2 ' + repr(cloud_topic) if self.cloud_pub else 'no cloud'}"
@@ -482,6 +499,8 @@ def _node_class() -> type:
                 statuses.append(self._diagnose_moving(Status, WARN, ERROR))
             if self.depth_sync is not None:
                 statuses.append(self._diagnose_depth())
+            if self.ouster_info_pub is not None:
+                statuses.append(self._diagnose_ouster())
             return statuses
 
         def _diagnose_moving(self, Status: Any, WARN: Any, ERROR: Any) -> Any:  # noqa: N803
