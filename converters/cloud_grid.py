@@ -461,16 +461,16 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     valid = np.zeros(size, bool)
     valid[gpix] = True
     if time_cols and t_abs is not None:
-        tf, rf, cf = t_abs[keep], rows[keep], cols[keep]
-        beam = beam_times.astype(np.float64)
-        for _ in range(2):
-            col = _interp_missing(_median_by(cf, tf - beam[rf], width))
-            beam = np.nan_to_num(_median_by(rf, tf - col[cf], height))
-            beam -= beam.min()
-        beam_times = np.rint(beam).astype(np.int64)
-        column_times = _column_times(tf - beam_times[rf], cf, width)
+        beam_times, column_times = _beam_and_column_times(
+            t_abs[keep], rows[keep], cols[keep], beam_times, height, width)
     elif t_abs is not None and np.ptp(t_abs) > 0:
-        column_times = _column_times(t_abs[keep], cols[keep], width)
+        # times that do not resolve the firings (a driver stamping per packet or block, or
+        # velodyne_pointcloud's single-return table on dual-return packets, which stamps a
+        # firing's second return two firings after its first): a firing's time is its first
+        # return's, each beam's offset its median lag inside the firings
+        first = keep & (ret == 0)
+        beam_times, column_times = _beam_and_column_times(
+            t_abs[first], rows[first], cols[first], np.zeros(height, np.int64), height, width)
     known = None
     if range_name is not None:
         k = _field_f64(flat[None, :], range_name)[0] * range_scale
@@ -611,6 +611,23 @@ def _columns_from_times(t_abs: np.ndarray[Any, Any], rows: np.ndarray[Any, Any],
     k = np.empty(tc.size, np.int64)
     k[o] = np.concatenate([[0], np.cumsum(inc)]).astype(np.int64)
     return k, np.rint(beam).astype(np.int64)
+
+
+def _beam_and_column_times(t: np.ndarray[Any, Any], rows: np.ndarray[Any, Any],
+                           cols: np.ndarray[Any, Any], beam0: np.ndarray[Any, Any],
+                           height: int, width: int
+                           ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """Each beam's firing offset (int64 ns, the smallest 0) and each column's absolute time
+    (int64 ns) from points' absolute times ``t`` in (``rows``, ``cols``): alternating medians
+    (column time = median of t - beam offset, beam offset = median of t - column time), starting
+    from the offsets ``beam0``; empty columns interpolated."""
+    beam = np.asarray(beam0, np.float64)
+    for _ in range(2):
+        col = _interp_missing(_median_by(cols, t - beam[rows], width))
+        beam = np.nan_to_num(_median_by(rows, t - col[cols], height))
+        beam -= beam.min(initial=0.0) if beam.size else 0.0
+    beam_times = np.rint(beam).astype(np.int64)
+    return beam_times, _column_times(t - beam_times[rows], cols, width)
 
 
 def _column_times(t_col: np.ndarray[Any, Any], cols: np.ndarray[Any, Any], width: int

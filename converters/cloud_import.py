@@ -226,9 +226,8 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
     if grid.column_times is not None:
         scan_stamp = int(grid.column_times[0])
         col_offsets = grid.column_times - np.int64(scan_stamp)
-        if width > 1:
-            increment = round(float(np.median(np.diff(col_offsets))))
-            increment = max(increment, 0)
+        seen = grid.valid.reshape(grid.valid.shape[0], -1, width).any(axis=(0, 1))
+        increment = _time_increment(col_offsets, seen)
     frame = frame_id if frame_id is not None else cloud.header.frame_id
     shifts = rows(grid.shifts)
     info = make_info(
@@ -261,6 +260,31 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
                      column_azimuth_angles=fit.alpha if grid.per_scan_azimuths else None,
                      as_dataclass=as_dataclass)
     return scan, info
+
+
+def _time_increment(col_offsets: np.ndarray[Any, Any], seen: np.ndarray[Any, Any]) -> int:
+    """Nominal ns between two columns: the median step of the column times, unless the times
+    of the columns with points say otherwise (jittery packet stamps, a driver's table that
+    runs ahead of the firings, columns of a missing sector sharing one interpolated time): then
+    the slope of straight lines through them, one per run of consecutive columns with points
+    (a common slope: a time gap between two runs, e.g. a sector the sensor does not send, does
+    not bend it). Never negative."""
+    if col_offsets.size < 2:
+        return 0
+    median = float(np.median(np.diff(col_offsets)))
+    idx = np.flatnonzero(seen)
+    run = np.cumsum(np.concatenate([[1], np.diff(idx) != 1]))      # run number of each column
+    counts = np.bincount(run).astype(np.float64)
+    x = idx.astype(np.float64)
+    y = col_offsets[idx].astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dx = x - (np.bincount(run, x) / np.maximum(counts, 1))[run]
+        dy = y - (np.bincount(run, y) / np.maximum(counts, 1))[run]
+    if not np.any(dx):
+        return max(round(median), 0)
+    slope = float(np.sum(dx * dy) / np.sum(dx * dx))
+    step = median if abs(median - slope) <= 0.1 * abs(slope) else slope
+    return max(round(step), 0)
 
 
 # ------------------------------------------------------------------- cloud + known LidarInfo
