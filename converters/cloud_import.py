@@ -172,6 +172,13 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
     build = _organized_grid if chosen == "organized" else _ring_grid
     grid = build(pts, names, time_name, header_ns, range_name, scale)
     fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
+    if chosen == "ring" and grid.time_columns and not _fits(grid, fit):
+        # times that are not the firings' (velodyne_pointcloud's single-return table on
+        # dual-return packets stamps a firing's second echo two firings later): the point order
+        # gives the firings, the times then only their times
+        grid = _ring_grid(pts, names, time_name, header_ns, range_name, scale,
+                          time_columns=False)
+        fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
     _check_fit(grid, fit, chosen, ring_name, time_name)
     return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass)
 
@@ -181,9 +188,8 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
 MAX_LOST_SHARE, MAX_MEDIAN_ERROR_M = 0.02, 0.02
 
 
-def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
-               time_name: str | None) -> None:
-    """Raise instead of returning a scan that silently loses points or misplaces them."""
+def _fit_figures(grid: _Grid, fit: _Fit) -> tuple[int, float]:
+    """(points of the cloud, median re-projection error in metres) of a grid and its fit."""
     u, g = np.nonzero(grid.valid)
     points = u.size + grid.dropped
     theta = fit.alpha[grid.cidx[u, g]] + fit.beta[u]
@@ -197,14 +203,28 @@ def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
     err = np.linalg.norm(model - grid.points[u, g], axis=-1)
     err = np.where(np.isfinite(err), err, np.inf)
     median = float(np.median(err)) if err.size else 0.0
-    if grid.dropped <= MAX_LOST_SHARE * points and median <= MAX_MEDIAN_ERROR_M:
+    return points, median
+
+
+def _fits(grid: _Grid, fit: _Fit) -> bool:
+    """The grid holds the cloud: at most MAX_LOST_SHARE of its points without a pixel and a
+    median re-projection error of at most MAX_MEDIAN_ERROR_M."""
+    points, median = _fit_figures(grid, fit)
+    return grid.dropped <= MAX_LOST_SHARE * points and median <= MAX_MEDIAN_ERROR_M
+
+
+def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
+               time_name: str | None) -> None:
+    """Raise instead of returning a scan that silently loses points or misplaces them."""
+    if _fits(grid, fit):
         return
+    points, median = _fit_figures(grid, fit)
     if layout == "organized":
         tried = "rows as beams (organized cloud), columns in cloud order"
     else:
         tried = (f"rows from the {ring_name!r} field, columns (firings) from "
-                 + (f"the {time_name!r} times" if grid.column_times is not None
-                    else "the point order and azimuth steps"))
+                 + (f"the {time_name!r} times, then " if time_name is not None else "")
+                 + "the point order and azimuth steps")
     raise ConversionError(
         "cloud", f"{grid.dropped} of {points} points without a pixel, median re-projection "
                  f"error {median:.3g} m on a {grid.points.shape[0]} x {grid.width} grid",
