@@ -401,9 +401,10 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     """Unorganized (or ring-mixed) cloud -> grid of rings x firings, up to two returns a pixel.
 
     Columns come from the per-point times when the cloud has them (and ``time_columns``), else
-    from the cloud's own point order and each ring's azimuth steps (:func:`_order_times`). Points sharing a pixel
-    (same ring, same firing: dual return) become the pixel's first and second return in cloud
-    order; a third is dropped and counted.
+    from the cloud's own point order and each ring's azimuth steps (:func:`_order_times`); the
+    times then give only the firings' times (their first returns') and the beams' offsets.
+    Points sharing a pixel (same ring, same firing: dual return) become the pixel's first and
+    second return in cloud order; a third is dropped and counted.
     """
     ring_name = _ring_name(names) or "ring"
     flat = pts.reshape(-1)
@@ -630,7 +631,7 @@ def _beam_and_column_times(t: np.ndarray[Any, Any], rows: np.ndarray[Any, Any],
     for _ in range(2):
         col = _interp_missing(_median_by(cols, rel - beam[rows], width))
         beam = np.nan_to_num(_median_by(rows, rel - col[cols], height))
-        beam -= beam.min(initial=0.0) if beam.size else 0.0
+        beam -= beam.min() if beam.size else 0.0
     beam_times = np.rint(beam).astype(np.int64)
     return beam_times, _column_times(t - beam_times[rows], cols, width)
 

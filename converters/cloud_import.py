@@ -19,7 +19,12 @@ values of the beam number field (``ring``: velodyne_pointcloud, Hesai ROS driver
 ``channel``: Nebula), columns the firings, found from the time field (``time`` f32 s relative,
 ``timestamp`` f64 absolute s, Nebula ``time_stamp`` u32 ns relative, ...) or, without one, from
 the cloud's point order: drivers publish firing after firing, so the azimuth step between a
-ring's consecutive points counts the firings between them. Two points in one pixel (same ring,
+ring's consecutive points counts the firings between them. Times that do not give the firings
+(a grid they make does not hold the points: velodyne_pointcloud stamps a VLP-16 dual-return
+packet with its single-return table, a firing's second echo two firings after its first, the
+packet's offsets overrunning the next packet) leave the columns to the point order and time
+them by their first returns; negative times (a cloud stamped after its last firing) and jittery
+packet stamps are taken as they are. Two points in one pixel (same ring,
 same firing: dual return) become ``range`` and ``range2`` (and ``intensity``/``intensity2``...)
 in cloud order; Nebula's ``distance`` is used as the range along the beam when it fits. With a
 known LidarInfo (``info=``, e.g. from the calibration file) any cloud, xyz only too, is placed by
@@ -31,7 +36,9 @@ What is achievable (tests/test_pointcloud2.py): ouster-ros clouds of the REAL Ou
 tests/data re-project to <= 0.03 mm (float32 rounding; OS-2-128 0.015 mm max with the range
 field, 0.03 mm from xyz alone; OS-0-32 0.005 mm), times exactly; a noise-free VLP-16-like ring
 cloud to 0.006 mm, times to 4 ns (f32 relative) or ~0.27 us (f64 absolute seconds: that is the
-float64 resolution of an epoch time). Real Velodyne output is bounded by the driver itself:
+float64 resolution of an epoch time); VLP-16 dual-return clouds made by velodyne_pointcloud's
+rules from real echoes (tests/test_velodyne_pointcloud_dual.py): > 99 % of the points within
+2 mm, with and without ``time``. Real Velodyne output is bounded by the driver itself:
 velodyne_pointcloud rounds every laser's interpolated azimuth to 0.01 deg, a per-point pattern a
 per-column + per-beam model cannot hold, so expect up to ~1.3e-4 rad x range (simulated VLP-16:
 7.6 mm max at 60 m, 1.5 mm RMS). Very sparse clouds (most columns with < 2 points, e.g. second
@@ -293,6 +300,8 @@ def _time_increment(col_offsets: np.ndarray[Any, Any], seen: np.ndarray[Any, Any
         return 0
     median = float(np.median(np.diff(col_offsets)))
     idx = np.flatnonzero(seen)
+    if idx.size < 2:
+        return max(round(median), 0)
     run = np.cumsum(np.concatenate([[1], np.diff(idx) != 1]))      # run number of each column
     counts = np.bincount(run).astype(np.float64)
     x = idx.astype(np.float64)
