@@ -22,7 +22,13 @@ code is our own):
    block; a negative diff takes the previous one, or skips the block when that was 0). In a
    dual packet the even blocks' diff is 0 (both blocks of a pair have one azimuth): those points
    all sit at their block's azimuth. ``ros2_dual_azimuths=False`` gives them their pair's diff
-   instead (what the sensor's firing times say), for a comparison.
+   instead (what the sensor's firing times say; the clouds the importer tests use).
+   With the driver's own azimuths the last echo of a firing lies up to half a pair's rotation
+   plus 15 laser steps (~0.32 deg at 600 rpm) from the strongest echo of the same firing, and
+   the last echoes of a pair's two firings share one azimuth: no grid of one direction per
+   pixel and a per-beam azimuth offset holds both echoes. On the real-echo clouds below, the
+   strongest echoes exact and each last echo in its firing's pixel put 65.5 % of the points
+   within 2 mm (measured on messages 1 and 3); from_pointcloud2 refuses such clouds.
 5. x, y, z from the calibration (distance = raw * 0.002 m + dist_correction, vertical and
    horizontal offsets, ROS axes x = y', y = -x'), float32, sin/cos from a 0.01 deg table;
    points outside [0.9, 130] m (the default min_range / max_range) and no-returns are left out;
