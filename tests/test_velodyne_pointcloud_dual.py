@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import struct
 import tempfile
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -25,14 +25,14 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-import lidarscan  # noqa: E402
-from converters import pointcloud2 as pc  # noqa: E402
-from converters import velodyne  # noqa: E402
+import velodyne_pointcloud_rules as rules
+from cloud_oracles import make_cloud
+from test_hesai import nearest_within
+from test_velodyne_packets import _read_bag, build_packet
 
-import velodyne_pointcloud_rules as rules  # noqa: E402
-from cloud_oracles import make_cloud  # noqa: E402
-from test_hesai import nearest_within  # noqa: E402
-from test_velodyne_packets import _read_bag, build_packet  # noqa: E402
+import lidarscan
+from converters import pointcloud2 as pc
+from converters import velodyne
 
 DATA = Path(__file__).parent / "data" / "nebula" / "velodyne_vlp32"
 WITHIN_M, KEPT = 0.002, 0.98
@@ -46,24 +46,21 @@ def recording() -> tuple[tuple[int, tuple[tuple[int, bytes], ...]], ...]:
     return tuple((rec, tuple(pk)) for rec, pk in messages)
 
 
-@lru_cache(maxsize=None)
+@cache
 def vlp16(message: int) -> tuple[list[tuple[int, bytes]], dict[str, Any]]:
     """VLP-16 dual packets of one VelodyneScan of the recording, and their calibration."""
     cal32 = velodyne.load_calibration(DATA / "VLP32.yaml")
     return rules.vlp16_dual_packets(recording()[message][1], cal32), rules.vlp16_calibration(cal32)
 
 
-def scan_points(scan: Any, info: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """(N, 3) points of every valid pixel of every return, and (N,) their absolute times."""
+def scan_points(scan: Any, info: Any) -> np.ndarray[Any, Any]:
+    """(N, 3) float64 points of every valid pixel of every return of a scan."""
     proj = lidarscan.make_projector(info)
-    times = proj.pixel_times(scan) + np.int64(lidarscan.to_ns(scan.header.stamp))
-    pts, ts = [], []
+    pts = []
     for name in lidarscan.scan.return_channels("range", lidarscan.scan.channel_names(scan)):
         xyz = proj.project(scan, info, name).astype(np.float64)
-        ok = np.isfinite(xyz).all(-1)
-        pts.append(xyz[ok])
-        ts.append(times[ok])
-    return np.concatenate(pts), np.concatenate(ts)
+        pts.append(xyz[np.isfinite(xyz).all(-1)])
+    return np.concatenate(pts)
 
 
 # --------------------------------------------------------------- the generator's rules
@@ -169,7 +166,7 @@ def test_real_vlp16_dual_cloud_imports_within_2mm(message: int, with_time: bool)
     pts = _cloud_fields(cloud)
     rings = sorted(set(pts["ring"].tolist()))
     assert scan.height == len(rings) == 15 and sorted(info.beam_ids) == rings
-    back, back_t = scan_points(scan, info)
+    back = scan_points(scan, info)
     assert back.shape[0] == cloud.width                 # every point is a pixel, pairs too
     dist = nearest_within(source["xyz"], back, WITHIN_M)
     within = float(np.isfinite(dist).mean())
