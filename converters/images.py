@@ -10,9 +10,12 @@ Conventions:
 * Encodings per REP 118 / ``sensor_msgs/image_encodings``: a float32 range is ``32FC1`` in
   metres (+Inf no return, REP 117), integer channels ``8UC1``, ``8SC1``, ``16UC1``, ``16SC1``,
   ``32SC1``, float ``32FC1`` / ``64FC1``; a channel with count N > 1 is N-channel (``16UC2``).
-  ``image_encodings`` has no unsigned 32-bit type: UINT32 channels (Ouster's native millimetres)
-  go out as ``32SC1`` with the same bits; :func:`from_images` restores UINT32 when told so by
-  ``datatypes``.
+* UINT32 (Ouster's native millimetres): ``image_encodings`` has no unsigned 32-bit name, so the
+  datatype travels in the encoding as ``32UC<n>``, the name the ``<bits><U|S|F>C<n>`` pattern of
+  ``image_encodings`` gives it (and OpenCV 5's ``CV_32U``): the image alone says what it holds
+  and :func:`from_images` rebuilds UINT32 with nothing else given. Consumers that only take
+  ``image_encodings`` names (cv_bridge) can ask ``uint32_as="32S"``: ``32SC1``, the same bits read
+  signed; :func:`from_images` then needs ``datatypes`` to restore UINT32.
 * Values are never converted: the image holds the channel's bytes in the scan's byte order
   (``is_bigendian`` copied), so the round trip is bit-exact (NaN payloads, -0, +-Inf included).
 * Column order: destaggered images by default (what image tools expect: each column one
@@ -32,20 +35,26 @@ from lidarscan.errors import ConversionError, UnknownChannelError
 
 __all__ = ["ENCODINGS", "encoding_of", "from_images", "to_images"]
 
-#: PointField datatype id -> image_encodings prefix (bits and kind); UINT32 shares 32S.
-ENCODINGS = {1: "8S", 2: "8U", 3: "16S", 4: "16U", 5: "32S", 6: "32S", 7: "32F", 8: "64F"}
-_DATATYPE_OF_PREFIX = {"8S": 1, "8U": 2, "16S": 3, "16U": 4, "32S": 5, "32F": 7, "64F": 8}
+#: PointField datatype id -> encoding prefix (bits and kind); UINT32 is ``32U`` (module header).
+ENCODINGS = {1: "8S", 2: "8U", 3: "16S", 4: "16U", 5: "32S", 6: "32U", 7: "32F", 8: "64F"}
+_DATATYPE_OF_PREFIX = {prefix: datatype for datatype, prefix in ENCODINGS.items()}
 _ALIASES = {"mono8": "8UC1", "mono16": "16UC1"}
+_UINT32_PREFIXES = ("32U", "32S")
 
 
-def encoding_of(datatype: int, count: int = 1) -> str:
-    """Image encoding of a channel: ``32FC1`` for FLOAT32, ``16UC2`` for UINT16 count 2, ...
+def encoding_of(datatype: int, count: int = 1, *, uint32_as: str = "32U") -> str:
+    """Image encoding of a channel: ``32FC1`` for FLOAT32, ``16UC2`` for UINT16 count 2,
+    ``32UC1`` for UINT32 (``32SC1`` with ``uint32_as="32S"``), ...
 
     Raises:
         UnknownDatatypeError: ``datatype`` is not a PointField id.
+        ConversionError: ``uint32_as`` is not ``32U`` or ``32S``.
     """
     dtype_of(datatype)  # validates the id
-    return f"{ENCODINGS[int(datatype)]}C{int(count)}"
+    if uint32_as not in _UINT32_PREFIXES:
+        raise ConversionError("uint32_as", uint32_as, f"one of {list(_UINT32_PREFIXES)}")
+    prefix = uint32_as if int(datatype) == 6 else ENCODINGS[int(datatype)]
+    return f"{prefix}C{int(count)}"
 
 
 def _parse_encoding(encoding: str, name: str) -> tuple[int, int]:
@@ -53,8 +62,8 @@ def _parse_encoding(encoding: str, name: str) -> tuple[int, int]:
     prefix, sep, count = enc.partition("C")
     if not sep or prefix not in _DATATYPE_OF_PREFIX or not count.isdigit() or int(count) < 1:
         raise ConversionError(f"images[{name!r}].encoding", encoding,
-                              "one of 8UC<n>, 8SC<n>, 16UC<n>, 16SC<n>, 32SC<n>, 32FC<n>, "
-                              "64FC<n>, mono8, mono16")
+                              "one of 8UC<n>, 8SC<n>, 16UC<n>, 16SC<n>, 32SC<n>, 32UC<n>, "
+                              "32FC<n>, 64FC<n>, mono8, mono16")
     return _DATATYPE_OF_PREFIX[prefix], int(count)
 
 
@@ -71,7 +80,8 @@ def _order(info: Any, scan_destaggered: bool, want_destaggered: bool
 
 
 def to_images(scan: Any, info: Any, *, channels: Sequence[str] | None = None,
-              destagger: bool = True, as_dataclass: bool = False) -> dict[str, Any]:
+              destagger: bool = True, uint32_as: str = "32U",
+              as_dataclass: bool = False) -> dict[str, Any]:
     """One ``sensor_msgs/Image`` per channel of a LidarScan.
 
     Args:
@@ -79,6 +89,8 @@ def to_images(scan: Any, info: Any, *, channels: Sequence[str] | None = None,
         info: its LidarInfo (for ``pixel_shift_by_row``; only read when reordering columns).
         channels: names to convert, in order (default: every channel of the scan).
         destagger: images in destaggered column order (else the scan's own order).
+        uint32_as: ``"32U"`` (default: UINT32 channels are ``32UC<n>``, lossless) or ``"32S"``
+            (``32SC<n>``, ``image_encodings`` names only; the reader then passes ``datatypes``).
         as_dataclass: return :mod:`lidarscan.types` dataclasses instead of rclpy messages.
 
     Returns:
@@ -87,8 +99,10 @@ def to_images(scan: Any, info: Any, *, channels: Sequence[str] | None = None,
 
     Raises:
         UnknownChannelError: a requested channel is not in the scan.
+        ConversionError: ``uint32_as`` is neither ``32U`` nor ``32S``.
     """
     import lidarscan as ls
+    encoding_of(6, uint32_as=uint32_as)  # validates the option before any work
     names = ls.channel_names(scan) if channels is None else list(channels)
     order = _order(info, bool(scan.is_destaggered), bool(destagger) or bool(scan.is_destaggered))
     descs = {c.name: c for c in scan.channels}
@@ -109,7 +123,8 @@ def to_images(scan: Any, info: Any, *, channels: Sequence[str] | None = None,
         raw = np.ascontiguousarray(arr).tobytes()
         step = int(scan.width) * int(desc.count) * arr.dtype.itemsize
         fields = dict(height=int(scan.height), width=int(scan.width),
-                      encoding=encoding_of(int(desc.datatype), int(desc.count)),
+                      encoding=encoding_of(int(desc.datatype), int(desc.count),
+                                           uint32_as=uint32_as),
                       is_bigendian=int(bool(scan.is_bigendian)), step=step)
         if as_dataclass:
             out[name] = image_cls(header=scan.header, data=np.frombuffer(raw, np.uint8), **fields)
@@ -138,8 +153,9 @@ def from_images(images: Mapping[str, Any], info: Any, *, destaggered: bool = Tru
         info: the LidarInfo (size, ``pixel_shift_by_row``, the link stamp).
         destaggered: column order of the images.
         is_destaggered: column order of the scan to build (default: the images').
-        datatypes: channel name -> PointField datatype where the encoding is ambiguous
-            (``UINT32`` for a ``32SC1`` image of Ouster millimetres); default from the encoding.
+        datatypes: channel name -> PointField datatype of the same size overriding the
+            encoding's (``UINT32`` for a ``32SC1`` image written with
+            ``uint32_as="32S"``); default from the encoding (``32UC1`` is UINT32).
         column_time_offsets, column_azimuth_angles: the scan's per-column arrays (images carry
             none; default zeros / empty as :func:`lidarscan.make_scan`).
         as_dataclass: return a :class:`lidarscan.types.LidarScan`.

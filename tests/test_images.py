@@ -1,8 +1,9 @@
 """converters.images: one sensor_msgs/Image per channel and back, bit for bit.
 
 Round trips on hypothesis scans (shapes, every datatype, counts, both byte orders, NaN/+-Inf/-0,
-staggered and destaggered, images in either column order), the encodings against REP 118 /
-image_encodings by hand, the destaggered image against a loop over ``pixel_shift_by_row``, the
+staggered and destaggered, images in either column order) with nothing but the images and the
+info: the datatypes come back from the encodings alone (UINT32 as ``32UC<n>``), and through the
+``32SC<n>`` option given ``datatypes``; the encodings against REP 118 / image_encodings by hand, the destaggered image against a loop over ``pixel_shift_by_row``, the
 real Ouster frames, and the errors.
 """
 
@@ -57,11 +58,49 @@ def test_roundtrip_is_bit_exact(case: tuple[Any, Any], destagger: bool) -> None:
     scan, info = case
     imgs = images.to_images(scan, info, destagger=destagger, as_dataclass=True)
     image_order = destagger or bool(scan.is_destaggered)
-    datatypes = {c.name: c.datatype for c in scan.channels if c.datatype == 6}
     back = images.from_images(imgs, info, destaggered=image_order,
-                              is_destaggered=bool(scan.is_destaggered), datatypes=datatypes,
+                              is_destaggered=bool(scan.is_destaggered),
                               column_time_offsets=scan.column_time_offsets, as_dataclass=True)
+    assert [(c.name, c.datatype, c.count) for c in back.channels] == [
+        (c.name, c.datatype, c.count) for c in scan.channels]
     assert ls.encode(back) == ls.encode(scan)
+
+
+@given(st.sampled_from(_DTYPES), st.integers(1, 3), st.booleans(), st.data())
+def test_every_datatype_comes_back_from_its_encoding(dtype: str, count: int, big: bool,
+                                                     data: Any) -> None:
+    info = _info(2, 3, [0, 1])
+    shape = (2, 3) if count == 1 else (2, 3, count)
+    dt = np.dtype(dtype)
+    raw = data.draw(st.binary(min_size=6 * count * dt.itemsize, max_size=6 * count * dt.itemsize))
+    scan = ls.make_scan(info, {"c": np.frombuffer(raw, dt).reshape(shape)}, 7,
+                        is_bigendian=big, as_dataclass=True)
+    img = images.to_images(scan, info, as_dataclass=True)["c"]
+    want = {"i1": "8S", "u1": "8U", "i2": "16S", "u2": "16U", "i4": "32S", "u4": "32U",
+            "f4": "32F", "f8": "64F"}[dtype]
+    assert img.encoding == f"{want}C{count}"
+    back = images.from_images({"c": img}, info, is_destaggered=False, as_dataclass=True)
+    got = ls.channel(back, "c")
+    assert got.dtype == dt.newbyteorder(">" if big else "<") and got.shape == shape
+    assert back.channels[0].datatype == scan.channels[0].datatype
+    assert ls.encode(back) == ls.encode(scan)
+
+
+@given(_case())
+def test_image_encodings_only_option_needs_the_datatypes(case: tuple[Any, Any]) -> None:
+    scan, info = case
+    imgs = images.to_images(scan, info, uint32_as="32S", as_dataclass=True)
+    assert not any(i.encoding.startswith("32UC") for i in imgs.values())
+    uint32 = {c.name: c.datatype for c in scan.channels if c.datatype == 6}
+    back = images.from_images(imgs, info, is_destaggered=bool(scan.is_destaggered),
+                              datatypes=uint32, column_time_offsets=scan.column_time_offsets,
+                              as_dataclass=True)
+    assert ls.encode(back) == ls.encode(scan)
+    if uint32:  # without them the same bits come back signed
+        plain = images.from_images(imgs, info, is_destaggered=bool(scan.is_destaggered),
+                                   as_dataclass=True)
+        assert {c.name: c.datatype for c in plain.channels if c.name in uint32} == {
+            n: 5 for n in uint32}
 
 
 @given(_case())
@@ -91,7 +130,7 @@ def test_encodings_header_and_step_per_rep_118(small_info: Any) -> None:
                         as_dataclass=True)
     imgs = images.to_images(scan, small_info, as_dataclass=True)
     assert {k: v.encoding for k, v in imgs.items()} == {
-        "range": "32FC1", "intensity": "16UC1", "reflectivity": "8UC1", "mm": "32SC1",
+        "range": "32FC1", "intensity": "16UC1", "reflectivity": "8UC1", "mm": "32UC1",
         "pair": "16SC2", "d": "64FC1", "s8": "8SC1", "i32": "32SC1"}
     assert {k: v.step for k, v in imgs.items()} == {
         "range": 32, "intensity": 16, "reflectivity": 8, "mm": 32, "pair": 32, "d": 64,
@@ -100,7 +139,12 @@ def test_encodings_header_and_step_per_rep_118(small_info: Any) -> None:
         assert (img.header.stamp.sec, img.header.stamp.nanosec) == (5, 123)
         assert img.header.frame_id == "os_lidar" and (img.height, img.width) == (h, w)
         assert img.is_bigendian == 0
-    back = images.from_images({"mm": imgs["mm"]}, small_info, datatypes={"mm": 6},
+    back = images.from_images({"mm": imgs["mm"]}, small_info, as_dataclass=True)
+    assert ls.channel(back, "mm").dtype == np.dtype("<u4")
+    signed = images.to_images(scan, small_info, channels=["mm"], uint32_as="32S",
+                              as_dataclass=True)["mm"]
+    assert signed.encoding == "32SC1" and signed.data.tobytes() == imgs["mm"].data.tobytes()
+    back = images.from_images({"mm": signed}, small_info, datatypes={"mm": 6},
                               as_dataclass=True)
     assert ls.channel(back, "mm").dtype == np.dtype("<u4")
     assert ls.to_ns(back.lidar_info_time) == ls.to_ns(small_info.header.stamp)
@@ -124,9 +168,8 @@ def test_real_frames_roundtrip_through_rclpy_images() -> None:
                                    as_dataclass=True)
             imgs = images.to_images(scan, info)  # rclpy messages, destaggered
             assert type(imgs["range"]).__module__.startswith("sensor_msgs")
+            assert (imgs["range"].encoding == "32UC1") == (encoding == "uint32_mm")
             back = images.from_images(imgs, info, is_destaggered=False,
-                                      datatypes={c.name: 6 for c in scan.channels
-                                                 if c.datatype == 6},
                                       column_time_offsets=scan.column_time_offsets,
                                       as_dataclass=True)
             assert ls.encode(back) == ls.encode(scan)
@@ -146,6 +189,8 @@ def test_errors_name_the_bad_input(small_info: Any) -> None:
                                      "data")}, "encoding": "rgb8"})
     with pytest.raises(ConversionError, match="encoding"):
         images.from_images({"range": bad}, small_info)
+    with pytest.raises(ConversionError, match="uint32_as"):
+        images.to_images(scan, small_info, uint32_as="32", as_dataclass=True)
     with pytest.raises(ConversionError, match="datatypes"):
         images.from_images({"range": imgs["range"]}, small_info, datatypes={"range": 4})
     other = ls.make_scan(small_info, {"x": np.ones((4, 8), np.float32)}, 2, as_dataclass=True)

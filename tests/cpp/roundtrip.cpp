@@ -1,7 +1,11 @@
 // lidarscan_roundtrip: the C++ side of tests/test_cpp.py.
 //   lidarscan_roundtrip encode OUT   write the CDR bytes (rmw_serialize) of the scan below
 //   lidarscan_roundtrip decode IN    rmw_deserialize IN and print every field, one per line
+//   lidarscan_roundtrip pixels IN    rmw_deserialize IN, print the header and, per channel, its
+//                                    name and every element read as its datatype in the
+//                                    message's byte order (row-major, count values a pixel)
 // The scan: 2 x 3, channels range (float32 metres, offset 0) and intensity (uint16, offset 24).
+#include <algorithm>
 #include <cinttypes>
 #include <cstdio>
 #include <cstring>
@@ -83,7 +87,7 @@ int encode(const char * path)
   return file.good() ? 0 : 1;
 }
 
-int decode(const char * path)
+bool read_scan(const char * path, LidarScan & scan)
 {
   std::ifstream file(path, std::ios::binary);
   std::vector<uint8_t> bytes((std::istreambuf_iterator<char>(file)), std::istreambuf_iterator<char>());
@@ -92,16 +96,97 @@ int decode(const char * path)
   in.buffer_length = bytes.size();
   in.buffer_capacity = bytes.size();
   in.allocator = rcutils_get_default_allocator();
-  LidarScan scan;
-  if (rmw_deserialize(&in, scan_type_support(), &scan) != RMW_RET_OK) {
-    return fail("rmw_deserialize");
-  }
+  return rmw_deserialize(&in, scan_type_support(), &scan) == RMW_RET_OK;
+}
+
+void print_header(const LidarScan & scan)
+{
   std::printf("stamp=%d %u\n", scan.header.stamp.sec, scan.header.stamp.nanosec);
   std::printf("frame_id=%s\n", scan.header.frame_id.c_str());
   std::printf("lidar_info_time=%d %u\n", scan.lidar_info_time.sec, scan.lidar_info_time.nanosec);
   std::printf("height=%u\nwidth=%u\n", scan.height, scan.width);
   std::printf("is_bigendian=%d\nis_destaggered=%d\n", scan.is_bigendian ? 1 : 0,
     scan.is_destaggered ? 1 : 0);
+}
+
+// One element of type T at p, stored big-endian or little-endian.
+template<typename T>
+T load(const uint8_t * p, bool big_endian)
+{
+  uint8_t b[sizeof(T)];
+  std::memcpy(b, p, sizeof(T));
+  const uint16_t one = 1;
+  const bool host_big = *reinterpret_cast<const uint8_t *>(&one) == 0;
+  if (big_endian != host_big) {
+    std::reverse(b, b + sizeof(T));
+  }
+  T v;
+  std::memcpy(&v, b, sizeof(T));
+  return v;
+}
+
+size_t itemsize(uint8_t datatype)
+{
+  switch (datatype) {
+    case LidarChannel::INT8: case LidarChannel::UINT8: return 1;
+    case LidarChannel::INT16: case LidarChannel::UINT16: return 2;
+    case LidarChannel::INT32: case LidarChannel::UINT32: case LidarChannel::FLOAT32: return 4;
+    case LidarChannel::FLOAT64: return 8;
+    default: return 0;
+  }
+}
+
+void print_element(uint8_t datatype, const uint8_t * p, bool big)
+{
+  switch (datatype) {
+    case LidarChannel::INT8: std::printf(" %d", static_cast<int>(static_cast<int8_t>(*p))); break;
+    case LidarChannel::UINT8: std::printf(" %u", static_cast<unsigned>(*p)); break;
+    case LidarChannel::INT16: std::printf(" %d", static_cast<int>(load<int16_t>(p, big))); break;
+    case LidarChannel::UINT16: std::printf(" %u", static_cast<unsigned>(load<uint16_t>(p, big)));
+      break;
+    case LidarChannel::INT32: std::printf(" %" PRId32, load<int32_t>(p, big)); break;
+    case LidarChannel::UINT32: std::printf(" %" PRIu32, load<uint32_t>(p, big)); break;
+    case LidarChannel::FLOAT32: std::printf(" %.9g", static_cast<double>(load<float>(p, big)));
+      break;
+    case LidarChannel::FLOAT64: std::printf(" %.17g", load<double>(p, big)); break;
+    default: break;
+  }
+}
+
+int pixels(const char * path)
+{
+  LidarScan scan;
+  if (!read_scan(path, scan)) {
+    return fail("rmw_deserialize");
+  }
+  print_header(scan);
+  const bool big = scan.is_bigendian;
+  for (const auto & c : scan.channels) {
+    const size_t size = itemsize(c.datatype);
+    const size_t n = static_cast<size_t>(scan.height) * scan.width * c.count;
+    if (size == 0 || c.offset + n * size > scan.data.size()) {
+      std::fprintf(stderr, "error: channel %s: datatype %u, %zu elements from byte %u do not fit "
+        "in %zu bytes of data\n", c.name.c_str(), static_cast<unsigned>(c.datatype), n, c.offset,
+        scan.data.size());
+      return 1;
+    }
+    std::printf("pixels=%s %u %u", c.name.c_str(), static_cast<unsigned>(c.datatype), c.count);
+    const uint8_t * base = scan.data.data() + c.offset;
+    for (size_t i = 0; i < n; ++i) {
+      print_element(c.datatype, base + i * size, big);
+    }
+    std::printf("\n");
+  }
+  return 0;
+}
+
+int decode(const char * path)
+{
+  LidarScan scan;
+  if (!read_scan(path, scan)) {
+    return fail("rmw_deserialize");
+  }
+  print_header(scan);
   std::printf("column_time_offsets=");
   for (size_t i = 0; i < scan.column_time_offsets.size(); ++i) {
     std::printf("%s%" PRId64, i ? " " : "", scan.column_time_offsets[i]);
@@ -127,7 +212,7 @@ int decode(const char * path)
 int main(int argc, char ** argv)
 {
   if (argc != 3) {
-    std::fprintf(stderr, "usage: %s encode OUT | decode IN\n", argv[0]);
+    std::fprintf(stderr, "usage: %s encode OUT | decode IN | pixels IN\n", argv[0]);
     return 2;
   }
   if (std::strcmp(argv[1], "encode") == 0) {
@@ -135,6 +220,9 @@ int main(int argc, char ** argv)
   }
   if (std::strcmp(argv[1], "decode") == 0) {
     return decode(argv[2]);
+  }
+  if (std::strcmp(argv[1], "pixels") == 0) {
+    return pixels(argv[2]);
   }
   std::fprintf(stderr, "unknown mode %s\n", argv[1]);
   return 2;

@@ -129,7 +129,6 @@ def measure_sizes() -> list[dict[str, Any]]:
     for label, info, scan in _frames():
         imgs = to_images(scan, info, as_dataclass=True)
         back = from_images(imgs, info, is_destaggered=bool(scan.is_destaggered),
-                           datatypes={c.name: 6 for c in scan.channels if c.datatype == 6},
                            column_time_offsets=scan.column_time_offsets, as_dataclass=True)
         out.append({"label": label, "n": len(imgs), "scan": len(ls.encode(scan)),
                     "images": sum(len(ls.encode(i)) for i in imgs.values()),

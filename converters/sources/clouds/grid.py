@@ -330,6 +330,7 @@ class _Grid:
     per_scan_azimuths: bool
     dropped: int = 0
     returns: int = 1                           # grid columns = returns x width
+    time_columns: bool = False                 # columns (firings) from the time field
 
 
 def _organized_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str | None,
@@ -395,13 +396,15 @@ def _check_grid_size(height: int, width: int, points: int, source: str) -> None:
 
 
 def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str | None,
-               stamp_ns: int, range_name: str | None, range_scale: float) -> _Grid:
+               stamp_ns: int, range_name: str | None, range_scale: float, *,
+               time_columns: bool = True) -> _Grid:
     """Unorganized (or ring-mixed) cloud -> grid of rings x firings, up to two returns a pixel.
 
-    Columns come from the per-point times when the cloud has them, else from the cloud's own
-    point order and each ring's azimuth steps (:func:`_order_times`). Points sharing a pixel
-    (same ring, same firing: dual return) become the pixel's first and second return in cloud
-    order; a third is dropped and counted.
+    Columns come from the per-point times when the cloud has them (and ``time_columns``), else
+    from the cloud's own point order and each ring's azimuth steps (:func:`_order_times`); the
+    times then give only the firings' times (their first returns') and the beams' offsets.
+    Points sharing a pixel (same ring, same firing: dual return) become the pixel's first and
+    second return in cloud order; a third is dropped and counted.
     """
     ring_name = _ring_name(names) or "ring"
     flat = pts.reshape(-1)
@@ -429,7 +432,7 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     column_times = None
     t_abs = _time_ns(flat[None, :], time_name, stamp_ns)[0] if time_name else None
     cols = None
-    if t_abs is not None and np.ptp(t_abs) > 0:
+    if time_columns and t_abs is not None and np.ptp(t_abs) > 0:
         cols, beam_times = _columns_from_times(t_abs, rows, height)
     time_cols = cols is not None
     if cols is not None:
@@ -461,16 +464,16 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     valid = np.zeros(size, bool)
     valid[gpix] = True
     if time_cols and t_abs is not None:
-        tf, rf, cf = t_abs[keep], rows[keep], cols[keep]
-        beam = beam_times.astype(np.float64)
-        for _ in range(2):
-            col = _interp_missing(_median_by(cf, tf - beam[rf], width))
-            beam = np.nan_to_num(_median_by(rf, tf - col[cf], height))
-            beam -= beam.min()
-        beam_times = np.rint(beam).astype(np.int64)
-        column_times = _column_times(tf - beam_times[rf], cf, width)
+        beam_times, column_times = _beam_and_column_times(
+            t_abs[keep], rows[keep], cols[keep], beam_times, height, width)
     elif t_abs is not None and np.ptp(t_abs) > 0:
-        column_times = _column_times(t_abs[keep], cols[keep], width)
+        # times that do not resolve the firings (a driver stamping per packet or block, or
+        # velodyne_pointcloud's single-return table on dual-return packets, which stamps a
+        # firing's second return two firings after its first): a firing's time is its first
+        # return's, each beam's offset its median lag inside the firings
+        first = keep & (ret == 0)
+        beam_times, column_times = _beam_and_column_times(
+            t_abs[first], rows[first], cols[first], np.zeros(height, np.int64), height, width)
     known = None
     if range_name is not None:
         k = _field_f64(flat[None, :], range_name)[0] * range_scale
@@ -493,7 +496,8 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
                  valid=valid.reshape(height, returns * width), cidx=cidx, width=width,
                  shifts=np.zeros(height, np.int64), beam_ids=beam_ids, beam_times=beam_times,
                  column_times=column_times, channels=channels, known_range=known,
-                 per_scan_azimuths=True, dropped=dropped, returns=returns)
+                 per_scan_azimuths=True, dropped=dropped, returns=returns,
+                 time_columns=time_cols)
 
 
 def _order_times(psi: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], height: int
@@ -613,8 +617,28 @@ def _columns_from_times(t_abs: np.ndarray[Any, Any], rows: np.ndarray[Any, Any],
     return k, np.rint(beam).astype(np.int64)
 
 
+def _beam_and_column_times(t: np.ndarray[Any, Any], rows: np.ndarray[Any, Any],
+                           cols: np.ndarray[Any, Any], beam0: np.ndarray[Any, Any],
+                           height: int, width: int
+                           ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """Each beam's firing offset (int64 ns, the smallest 0) and each column's absolute time
+    (int64 ns) from points' absolute times ``t`` in (``rows``, ``cols``): alternating medians
+    (column time = median of t - beam offset, beam offset = median of t - column time), starting
+    from the offsets ``beam0``; empty columns interpolated."""
+    beam = np.asarray(beam0, np.float64)
+    t0 = np.int64(t.min()) if t.size else np.int64(0)
+    rel = (t - t0).astype(np.float64)        # float64 of epoch ns would round to 256 ns
+    for _ in range(2):
+        col = _interp_missing(_median_by(cols, rel - beam[rows], width))
+        beam = np.nan_to_num(_median_by(rows, rel - col[cols], height))
+        beam -= beam.min() if beam.size else 0.0
+    beam_times = np.rint(beam).astype(np.int64)
+    return beam_times, _column_times(t - beam_times[rows], cols, width)
+
+
 def _column_times(t_col: np.ndarray[Any, Any], cols: np.ndarray[Any, Any], width: int
                   ) -> np.ndarray[Any, Any]:
     """Absolute ns of each column: median over its points, interpolated where empty."""
-    med = _median_by(cols, t_col.astype(np.float64), width)
-    return np.asarray(np.rint(_interp_missing(med)), dtype=np.int64)
+    t0 = np.int64(t_col.min()) if t_col.size else np.int64(0)
+    med = _median_by(cols, (t_col - t0).astype(np.float64), width)
+    return np.asarray(np.rint(_interp_missing(med)), dtype=np.int64) + t0

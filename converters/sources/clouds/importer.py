@@ -19,7 +19,12 @@ values of the beam number field (``ring``: velodyne_pointcloud, Hesai ROS driver
 ``channel``: Nebula), columns the firings, found from the time field (``time`` f32 s relative,
 ``timestamp`` f64 absolute s, Nebula ``time_stamp`` u32 ns relative, ...) or, without one, from
 the cloud's point order: drivers publish firing after firing, so the azimuth step between a
-ring's consecutive points counts the firings between them. Two points in one pixel (same ring,
+ring's consecutive points counts the firings between them. Times that do not give the firings
+(a grid they make does not hold the points: velodyne_pointcloud stamps a VLP-16 dual-return
+packet with its single-return table, a firing's second echo two firings after its first, the
+packet's offsets overrunning the next packet) leave the columns to the point order and time
+them by their first returns; negative times (a cloud stamped after its last firing) and jittery
+packet stamps are taken as they are. Two points in one pixel (same ring,
 same firing: dual return) become ``range`` and ``range2`` (and ``intensity``/``intensity2``...)
 in cloud order; Nebula's ``distance`` is used as the range along the beam when it fits. With a
 known LidarInfo (``info=``, e.g. from the calibration file) any cloud, xyz only too, is placed by
@@ -31,7 +36,9 @@ What is achievable (tests/test_pointcloud2.py): ouster-ros clouds of the REAL Ou
 tests/data re-project to <= 0.03 mm (float32 rounding; OS-2-128 0.015 mm max with the range
 field, 0.03 mm from xyz alone; OS-0-32 0.005 mm), times exactly; a noise-free VLP-16-like ring
 cloud to 0.006 mm, times to 4 ns (f32 relative) or ~0.27 us (f64 absolute seconds: that is the
-float64 resolution of an epoch time). Real Velodyne output is bounded by the driver itself:
+float64 resolution of an epoch time); VLP-16 dual-return clouds made by velodyne_pointcloud's
+rules from real echoes (tests/test_velodyne_pointcloud_dual.py): > 99 % of the points within
+2 mm, with and without ``time``. Real Velodyne output is bounded by the driver itself:
 velodyne_pointcloud rounds every laser's interpolated azimuth to 0.01 deg, a per-point pattern a
 per-column + per-beam model cannot hold, so expect up to ~1.3e-4 rad x range (simulated VLP-16:
 7.6 mm max at 60 m, 1.5 mm RMS). Very sparse clouds (most columns with < 2 points, e.g. second
@@ -172,6 +179,13 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
     build = _organized_grid if chosen == "organized" else _ring_grid
     grid = build(pts, names, time_name, header_ns, range_name, scale)
     fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
+    if chosen == "ring" and grid.time_columns and not _fits(grid, fit):
+        # times that are not the firings' (velodyne_pointcloud's single-return table on
+        # dual-return packets stamps a firing's second echo two firings later): the point order
+        # gives the firings, the times then only their times
+        grid = _ring_grid(pts, names, time_name, header_ns, range_name, scale,
+                          time_columns=False)
+        fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
     _check_fit(grid, fit, chosen, ring_name, time_name)
     return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass)
 
@@ -181,9 +195,8 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
 MAX_LOST_SHARE, MAX_MEDIAN_ERROR_M = 0.02, 0.02
 
 
-def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
-               time_name: str | None) -> None:
-    """Raise instead of returning a scan that silently loses points or misplaces them."""
+def _fit_figures(grid: _Grid, fit: _Fit) -> tuple[int, float]:
+    """(points of the cloud, median re-projection error in metres) of a grid and its fit."""
     u, g = np.nonzero(grid.valid)
     points = u.size + grid.dropped
     theta = fit.alpha[grid.cidx[u, g]] + fit.beta[u]
@@ -197,14 +210,28 @@ def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
     err = np.linalg.norm(model - grid.points[u, g], axis=-1)
     err = np.where(np.isfinite(err), err, np.inf)
     median = float(np.median(err)) if err.size else 0.0
-    if grid.dropped <= MAX_LOST_SHARE * points and median <= MAX_MEDIAN_ERROR_M:
+    return points, median
+
+
+def _fits(grid: _Grid, fit: _Fit) -> bool:
+    """The grid holds the cloud: at most MAX_LOST_SHARE of its points without a pixel and a
+    median re-projection error of at most MAX_MEDIAN_ERROR_M."""
+    points, median = _fit_figures(grid, fit)
+    return grid.dropped <= MAX_LOST_SHARE * points and median <= MAX_MEDIAN_ERROR_M
+
+
+def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
+               time_name: str | None) -> None:
+    """Raise instead of returning a scan that silently loses points or misplaces them."""
+    if _fits(grid, fit):
         return
+    points, median = _fit_figures(grid, fit)
     if layout == "organized":
         tried = "rows as beams (organized cloud), columns in cloud order"
     else:
         tried = (f"rows from the {ring_name!r} field, columns (firings) from "
-                 + (f"the {time_name!r} times" if grid.column_times is not None
-                    else "the point order and azimuth steps"))
+                 + (f"the {time_name!r} times, then " if time_name is not None else "")
+                 + "the point order and azimuth steps")
     raise ConversionError(
         "cloud", f"{grid.dropped} of {points} points without a pixel, median re-projection "
                  f"error {median:.3g} m on a {grid.points.shape[0]} x {grid.width} grid",
@@ -226,9 +253,8 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
     if grid.column_times is not None:
         scan_stamp = int(grid.column_times[0])
         col_offsets = grid.column_times - np.int64(scan_stamp)
-        if width > 1:
-            increment = round(float(np.median(np.diff(col_offsets))))
-            increment = max(increment, 0)
+        seen = grid.valid.reshape(grid.valid.shape[0], -1, width).any(axis=(0, 1))
+        increment = _time_increment(col_offsets, seen)
     frame = frame_id if frame_id is not None else cloud.header.frame_id
     shifts = rows(grid.shifts)
     info = make_info(
@@ -261,6 +287,33 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
                      column_azimuth_angles=fit.alpha if grid.per_scan_azimuths else None,
                      as_dataclass=as_dataclass)
     return scan, info
+
+
+def _time_increment(col_offsets: np.ndarray[Any, Any], seen: np.ndarray[Any, Any]) -> int:
+    """Nominal ns between two columns: the median step of the column times, unless the times
+    of the columns with points say otherwise (jittery packet stamps, a driver's table that
+    runs ahead of the firings, columns of a missing sector sharing one interpolated time): then
+    the slope of straight lines through them, one per run of consecutive columns with points
+    (a common slope: a time gap between two runs, e.g. a sector the sensor does not send, does
+    not bend it). Never negative."""
+    if col_offsets.size < 2:
+        return 0
+    median = float(np.median(np.diff(col_offsets)))
+    idx = np.flatnonzero(seen)
+    if idx.size < 2:
+        return max(round(median), 0)
+    run = np.cumsum(np.concatenate([[1], np.diff(idx) != 1]))      # run number of each column
+    counts = np.bincount(run).astype(np.float64)
+    x = idx.astype(np.float64)
+    y = col_offsets[idx].astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dx = x - (np.bincount(run, x) / np.maximum(counts, 1))[run]
+        dy = y - (np.bincount(run, y) / np.maximum(counts, 1))[run]
+    if not np.any(dx):
+        return max(round(median), 0)
+    slope = float(np.sum(dx * dy) / np.sum(dx * dx))
+    step = median if abs(median - slope) <= 0.1 * abs(slope) else slope
+    return max(round(step), 0)
 
 
 # ------------------------------------------------------------------- cloud + known LidarInfo
