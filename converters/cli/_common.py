@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import sys
 import time
@@ -97,12 +98,15 @@ class _Input:
         kind: :class:`converters.bags.InputKind` (``kind.kind`` is ``"ouster"`` for .pcap/.osf).
         bag: the :class:`converters.bags.Bag` of a rosbag2 directory or .db3 file.
         ahead: :meth:`items` reads in a background thread (False: in the caller's).
+        stop: a predicate checked before each item: when it turns true, :meth:`items` ends
+            early (``convert``'s Ctrl-C: :class:`converters.cli._interrupt.StopRequest`).
     """
 
     path: Path
     kind: Any
     bag: Any = None
     ahead: bool = True
+    stop: Callable[[], bool] | None = None
 
     def topics(self) -> dict[str, str]:
         """topic -> message type."""
@@ -123,11 +127,14 @@ class _Input:
             functools.partial(_mcap_items, self.path)
         entries = functools.partial(_prepared, source, prepare, self.bag is None)
         count = 0
-        for item, position, value in _read_ahead(entries) if self.ahead else entries():
-            count += 1
-            if progress is not None:
-                progress.update(position if self.bag is None else count, f"{count} msgs")
-            yield item if prepare is None else (item, value)
+        with contextlib.closing(_read_ahead(entries) if self.ahead else entries()) as stream:
+            for item, position, value in stream:
+                if self.stop is not None and self.stop():
+                    return      # the reader thread is stopped by closing the stream
+                count += 1
+                if progress is not None:
+                    progress.update(position if self.bag is None else count, f"{count} msgs")
+                yield item if prepare is None else (item, value)
         if progress is not None:
             progress.update(progress.total, "done", force=True)
 

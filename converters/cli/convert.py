@@ -5,9 +5,10 @@ per-input conversions are in :mod:`converters.cli.convert_inputs`."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from converters.cli.convert_inputs import (
     _convert_scans,
     _takes,
 )
+from converters.cli._interrupt import StopRequest, is_interrupt
 from converters.cli.convert_pipeline import ConvertReport, _Plan
 
 
@@ -164,11 +166,18 @@ def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
+    """``lidarscan convert``; Ctrl-C stops it between messages (:mod:`._interrupt`)."""
+    with StopRequest() as stop:
+        return _convert(args, stop)
+
+
+def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     from lidarscan.errors import ConfigError, McapFormatError
     from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter
 
     source = _open_input(args.input, "IN", ouster=True)
     source.ahead = args.threads > 1     # --threads 1: everything in one thread
+    source.stop = stop
     src, dst = source.path, Path(args.output)
     if dst.is_dir():
         raise ConfigError("OUT", str(dst), "a file name (it is a directory)")
@@ -232,17 +241,20 @@ def cmd_convert(args: argparse.Namespace) -> int:
     try:
         try:
             if mode == "ouster":
-                _convert_ouster(src, writer, args, slices, fallback, report, emit)
+                _convert_ouster(src, writer, args, slices, fallback, report, emit, stop)
             elif mode == "packets":
-                _convert_packets(source, writer, args, plan, decoders, slices, fallback,
-                                 report, emit, progress)
+                with _calibration_flag(args):
+                    _convert_packets(source, writer, args, plan, decoders, slices, fallback,
+                                     report, emit, progress)
             elif mode == "clouds":
                 _convert_clouds(source, writer, args, plan, slices, fallback, report, emit,
                                 progress)
             else:
                 _convert_scans(source, writer, args, plan, slices, fallback, report, emit,
                                progress)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, SystemError) as err:   # a second Ctrl-C
+            if not is_interrupt(err):
+                raise
             interrupted = True
         finally:
             progress.close()
@@ -250,6 +262,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
                 writer.close()
             finally:
                 sys.setswitchinterval(switch)
+        interrupted = interrupted or stop()
         if not interrupted and report.read == 0 and report.bad:
             raise McapFormatError(f"IN {src}", f"{len(report.bad)} damaged part(s), listed above",
                                   "at least one readable message; nothing written")
@@ -271,6 +284,21 @@ def cmd_convert(args: argparse.Namespace) -> int:
     if not args.quiet:
         _err(summary)
     return EXIT_OK
+
+
+@contextlib.contextmanager
+def _calibration_flag(args: argparse.Namespace) -> Iterator[None]:
+    """A decoder's "no calibration" error (a model without a nominal one) restated with the
+    option that gives it (``--calibration FILE``) and the file it expects."""
+    from lidarscan.errors import ConfigError
+
+    try:
+        yield
+    except ConfigError as err:
+        if err.field != "calibration" or args.calibration is not None:
+            raise
+        raise ConfigError("--calibration", "not given", err.expected,
+                          hint="give the file with --calibration FILE") from err
 
 
 def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict[str, Any]:

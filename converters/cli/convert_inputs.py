@@ -307,8 +307,10 @@ def _firetimes_option(decoder: Any, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
-                    fallback: Any, report: ConvertReport, emit: Callable[[str], None]) -> None:
-    """Ouster pcap/OSF (via ouster-sdk) -> LidarInfo + LidarScan (+ the requested outputs)."""
+                    fallback: Any, report: ConvertReport, emit: Callable[[str], None],
+                    stop: Callable[[], bool] = lambda: False) -> None:
+    """Ouster pcap/OSF (via ouster-sdk) -> LidarInfo + LidarScan (+ the requested outputs);
+    ``stop()`` is checked between scans (Ctrl-C)."""
     from converters.nodes.tf import TransformBuffer
     from converters.ouster import scans_from_recording
     from lidarscan.errors import LidarScanError
@@ -317,6 +319,8 @@ def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Se
     pipeline = _ScanPipeline(args, slices, fallback, TransformBuffer())
     info_written = None
     for index, (scan, info) in enumerate(scans_from_recording(src, meta=args.metadata)):
+        if stop():
+            break
         report.read += 1
         stamp = to_ns(scan.header.stamp)
         if info_written is not info:
