@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -30,6 +29,7 @@ from converters.cli.convert_inputs import (
     _takes,
 )
 from converters.cli._interrupt import StopRequest, is_interrupt
+from converters.cli.convert_checks import output_of, refuse_unfit_options
 from converters.cli.convert_pipeline import ConvertReport, _Plan
 
 
@@ -173,18 +173,14 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     from lidarscan.errors import ConfigError, McapFormatError
-    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter
+    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE
 
     source = _open_input(args.input, "IN", ouster=True)
     source.ahead = args.threads > 1     # --threads 1: everything in one thread
     source.stop = stop
-    src, dst = source.path, Path(args.output)
-    if dst.is_dir():
-        raise ConfigError("OUT", str(dst), "a file name (it is a directory)")
-    if src.resolve() == dst.resolve():
-        raise ConfigError("OUT", str(dst), "a file other than IN")
-    if not dst.parent.is_dir():
-        raise FileNotFoundError(f"OUT {dst}: no such directory {dst.parent}")
+    src = source.path
+    output = output_of(args.output, src)
+    dst = output.path
     from converters.nodes.params import parse_extrinsics
 
     slices = [parse_slice(s) for s in args.slice]
@@ -215,6 +211,7 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
             mode = "clouds"
         else:
             mode = "scans"
+    refuse_unfit_options(args, mode, slices)
     plan = _plan(topics, args, slices, mode)
     decoders = _packet_decoders(topics) if mode == "packets" else {}
     decoder_options = _decoder_options(args, decoders)
@@ -223,14 +220,13 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
         decoders = {t: functools.partial(d, **decoder_options) for t, d in decoders.items()}
     report = ConvertReport()
     emit = _err  # bad messages are always reported, also with --quiet
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
-    writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20,
-                        level=args.zstd_level, threads=args.threads, file_name=dst.name,
-                        scan_encoding=CODEC_ENCODING if args.compress else "cdr",
-                        # the compiled coder (numba: ~0.4 s to import) only where a scan may be
-                        # coded: --compress, or LidarScans that may come in codec-compressed
-                        codec_coder=codec_coder() if args.compress
-                        or SCAN_TYPE in topics.values() else None)
+    writer = output.writer(compression=args.compression, chunk_size=1 << 20,
+                           level=args.zstd_level, threads=args.threads,
+                           scan_encoding=CODEC_ENCODING if args.compress else "cdr",
+                           # the compiled coder (numba: ~0.4 s to import) only where a scan may
+                           # be coded: --compress, or LidarScans that may come codec-compressed
+                           codec_coder=codec_coder() if args.compress
+                           or SCAN_TYPE in topics.values() else None)
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
     progress = Progress(size, f"converting {src.name}",
                         enabled=True if args.progress else (None if not args.quiet else False))
@@ -266,14 +262,14 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
         if not interrupted and report.read == 0 and report.bad:
             raise McapFormatError(f"IN {src}", f"{len(report.bad)} damaged part(s), listed above",
                                   "at least one readable message; nothing written")
-        os.replace(tmp, dst)
+        output.finish()
         finished = True
     finally:
         if not finished:
-            tmp.unlink(missing_ok=True)
+            output.discard()
     if interrupted:
-        _err(f"interrupted: {dst} is a valid MCAP file with the {writer.count} messages "
-             f"written so far ({report.read} read)")
+        _err(f"interrupted: {dst} is a valid {'rosbag2 folder' if output.bag else 'MCAP file'}"
+             f" with the {writer.count} messages written so far ({report.read} read)")
         return EXIT_INTERRUPTED
     summary = (f"{src} -> {dst}: {report.read} messages read, {report.converted} converted, "
                f"{writer.count} written")
