@@ -100,6 +100,8 @@ class _Input:
         ahead: :meth:`items` reads in a background thread (False: in the caller's).
         stop: a predicate checked before each item: when it turns true, :meth:`items` ends
             early (``convert``'s Ctrl-C: :class:`converters.cli._interrupt.StopRequest`).
+        keep: a predicate of each message (McapMessage): False skips it (``convert``'s time
+            range and topics: :class:`converters.cli.convert_filters.Selection`).
     """
 
     path: Path
@@ -107,6 +109,7 @@ class _Input:
     bag: Any = None
     ahead: bool = True
     stop: Callable[[], bool] | None = None
+    keep: Callable[[Any], bool] | None = None
 
     def topics(self) -> dict[str, str]:
         """topic -> message type."""
@@ -125,7 +128,7 @@ class _Input:
             progress.total = max(self.bag.message_count, 1)
         source = self.bag.messages if self.bag is not None else \
             functools.partial(_mcap_items, self.path)
-        entries = functools.partial(_prepared, source, prepare, self.bag is None)
+        entries = functools.partial(_prepared, source, prepare, self.bag is None, self.keep)
         count = 0
         with contextlib.closing(_read_ahead(entries) if self.ahead else entries()) as stream:
             for item, position, value in stream:
@@ -149,14 +152,18 @@ def _mcap_items(path: Path) -> Iterator[tuple[Any, int]]:
 
 
 def _prepared(source: Callable[[], Iterator[Any]], prepare: Callable[[Any], Any] | None,
-              positioned: bool) -> Iterator[tuple[Any, int, Any]]:
+              positioned: bool, keep: Callable[[Any], bool] | None = None
+              ) -> Iterator[tuple[Any, int, Any]]:
     """(item, file position (``positioned``: the source gives (item, position) pairs) or 0,
-    ``prepare(item)`` or the LidarScanError it raised or None)."""
+    ``prepare(item)`` or the LidarScanError it raised or None); a message ``keep`` refuses is
+    skipped."""
     from lidarscan.errors import LidarScanError
     from lidarscan.mcap import McapMessage
 
     for entry in source():
         item, position = entry if positioned else (entry, 0)
+        if keep is not None and isinstance(item, McapMessage) and not keep(item):
+            continue
         value = None
         if prepare is not None and isinstance(item, McapMessage):
             try:

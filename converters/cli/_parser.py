@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from typing import Any
 
 from converters.cli.convert import cmd_convert
 from converters.cli.demo import cmd_demo
@@ -92,6 +93,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="merged scan range_max, metres (100)")
     p.add_argument("--cloud-topic", action="append", default=[], metavar="TOPIC",
                    help="PointCloud2 input topic to convert (repeatable; default: all)")
+    p.add_argument("--topics", action="append", default=[], metavar="T1,T2",
+                   help="read only these input topics (comma-separated, repeatable; default: "
+                        "all); what is not read is neither copied nor converted (add /tf and "
+                        "/tf_static when --frame needs them)")
+    p.add_argument("--start", type=_time, default=None, metavar="TIME",
+                   help="skip the messages logged before TIME (LidarInfo and /tf_static are "
+                        "kept): seconds since the epoch (1713492677.46, as `info` prints), "
+                        "nanoseconds (1713492677464078412ns, or 16+ digits), an ISO date "
+                        "(2024-04-19T02:11:17.5Z; UTC without an offset) or +SECONDS after the "
+                        "first message")
+    p.add_argument("--end", type=_time, default=None, metavar="TIME",
+                   help="skip the messages logged at or after TIME (same forms as --start)")
+    p.add_argument("--rename-topic", action="append", default=[], metavar="OLD=NEW",
+                   help="write the output topic OLD (copied or new) as NEW (repeatable)")
     p.add_argument("--keep-clouds", action="store_true",
                    help="also copy the input PointCloud2 messages")
     p.add_argument("--exclude", action="append", default=[], metavar="TOPIC",
@@ -209,3 +224,13 @@ def _floats(text: str) -> list[float]:
         return [float(v) for v in text.replace(" ", ",").split(",") if v]
     except ValueError as err:
         raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers") from err
+
+
+def _time(text: str) -> Any:
+    """``--start``/``--end``: :func:`converters.cli.convert_filters.parse_time`."""
+    from converters.cli.convert_filters import parse_time
+
+    try:
+        return parse_time(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None

@@ -30,6 +30,12 @@ from converters.cli.convert_inputs import (
 )
 from converters.cli._interrupt import StopRequest, is_interrupt
 from converters.cli.convert_checks import output_of, refuse_unfit_options
+from converters.cli.convert_filters import (
+    RenamingWriter,
+    check_renames,
+    parse_renames,
+    selection_of,
+)
 from converters.cli.convert_pipeline import ConvertReport, _Plan
 
 
@@ -198,12 +204,19 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
         if value is not None and not Path(value).is_file():
             raise FileNotFoundError(f"{option} {value}: no such file")
+    selection = selection_of(args)
+    renames = parse_renames(args.rename_topic)
     topics: dict[str, str] = {}
     mode = "ouster"
+    if source.kind.kind == "ouster" and selection.topics:
+        raise ConfigError("--topics", ",".join(selection.topics), "a recording with topics "
+                          "(IN is an Ouster .pcap/.osf: its scans go to /lidar/info and "
+                          "/lidar/scan)")
     if source.kind.kind != "ouster":
         from converters.bags import PACKET_TYPES
 
-        topics = source.topics()
+        topics = selection.select_topics(source.topics())
+        source.keep = selection.keep if selection.active else None
         kinds = set(topics.values())
         if kinds & set(PACKET_TYPES):
             mode = "packets"
@@ -213,6 +226,8 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
             mode = "scans"
     refuse_unfit_options(args, mode, slices)
     plan = _plan(topics, args, slices, mode)
+    if renames:
+        check_renames(renames, _written_topics(topics, plan, args, slices, mode))
     decoders = _packet_decoders(topics) if mode == "packets" else {}
     decoder_options = _decoder_options(args, decoders)
     if decoder_options:
@@ -227,6 +242,8 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
                            # be coded: --compress, or LidarScans that may come codec-compressed
                            codec_coder=codec_coder() if args.compress
                            or SCAN_TYPE in topics.values() else None)
+    if renames:
+        writer = RenamingWriter(writer, renames)
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
     progress = Progress(size, f"converting {src.name}",
                         enabled=True if args.progress else (None if not args.quiet else False))
@@ -237,7 +254,8 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     try:
         try:
             if mode == "ouster":
-                _convert_ouster(src, writer, args, slices, fallback, report, emit, stop)
+                _convert_ouster(src, writer, args, slices, fallback, report, emit, stop,
+                                selection.keep_time)
             elif mode == "packets":
                 with _calibration_flag(args):
                     _convert_packets(source, writer, args, plan, decoders, slices, fallback,
@@ -280,6 +298,22 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     if not args.quiet:
         _err(summary)
     return EXIT_OK
+
+
+def _written_topics(topics: dict[str, str], plan: _Plan, args: argparse.Namespace,
+                    slices: Sequence[Any], mode: str) -> set[str]:
+    """The topics the output will have (before ``--rename-topic``): the copied input topics
+    and the new ones."""
+    from converters.bags import PACKET_TYPES
+
+    copied = {t for t, k in topics.items() if t not in plan.excluded
+              and not (k in PACKET_TYPES and not args.keep_packets)
+              and not (mode == "clouds" and t in plan.prefix and not args.keep_clouds)}
+    if mode == "ouster":
+        copied = {"/lidar/info", "/lidar/scan"} | ({"/lidar/points"} if args.pointcloud2
+                                                  else set())
+        copied |= {f"/lidar/slices/{s.name}" for s in slices}
+    return copied | set(plan.outputs)
 
 
 @contextlib.contextmanager

@@ -308,9 +308,11 @@ def _firetimes_option(decoder: Any, args: argparse.Namespace) -> dict[str, Any]:
 
 def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
                     fallback: Any, report: ConvertReport, emit: Callable[[str], None],
-                    stop: Callable[[], bool] = lambda: False) -> None:
+                    stop: Callable[[], bool] = lambda: False,
+                    keep_time: Callable[[int], bool] = lambda ns: True) -> None:
     """Ouster pcap/OSF (via ouster-sdk) -> LidarInfo + LidarScan (+ the requested outputs);
-    ``stop()`` is checked between scans (Ctrl-C)."""
+    ``stop()`` is checked between scans (Ctrl-C); a scan whose stamp ``keep_time`` refuses is
+    skipped (``--start``/``--end``)."""
     from converters.nodes.tf import TransformBuffer
     from converters.ouster import scans_from_recording
     from lidarscan.errors import LidarScanError
@@ -321,8 +323,10 @@ def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Se
     for index, (scan, info) in enumerate(scans_from_recording(src, meta=args.metadata)):
         if stop():
             break
-        report.read += 1
         stamp = to_ns(scan.header.stamp)
+        if not keep_time(stamp):
+            continue
+        report.read += 1
         if info_written is not info:
             writer.write("/lidar/info", info, log_time_ns=stamp)
             info_written = info
