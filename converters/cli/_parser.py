@@ -43,7 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "exit status 1 if it has problems (bad messages, damaged "
                                    "parts, unlinked scans, conflicting infos, a topic whose "
                                    "frame, shape or type changes).")
-    p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 file")
+    p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 "
+                                               "file, or an Ouster .pcap/.osf")
+    p.add_argument("--metadata", default=None, metavar="FILE",
+                   help="Ouster metadata JSON for a .pcap (as for convert)")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser(
@@ -161,8 +164,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 file "
                                                "(raw packets: convert them first)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--index", type=_non_negative_int, default=0, metavar="K",
-                   help="which scan of each topic (0 = first)")
+    p.add_argument("--index", type=_non_negative_int, default=None, metavar="K",
+                   help="which scan of each topic (0 = first; default: the first complete "
+                        "rotation, a scan covering as many columns as the next ones); a "
+                        "partial rotation is marked in the image title")
     p.add_argument("--frame", default="",
                    help="frame of the LaserScan top view (default: base_link if known, else "
                         "the first LaserScan's)")
