@@ -6,6 +6,7 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
+from converters.cli._examples import EXAMPLES, HelpFormatter
 from converters.cli.convert import cmd_convert
 from converters.cli.demo import cmd_demo
 from converters.cli.info import cmd_info
@@ -22,8 +23,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser(
-        "demo", help="simulate a robot in a room (3D + 2D lidar, depth camera), convert, "
-                     "record and draw",
+        "demo", formatter_class=HelpFormatter, epilog=EXAMPLES["demo"],
+        help="simulate a robot in a room (3D + 2D lidar, depth camera), convert, "
+             "record and draw",
         description="Simulated robot with a 3D lidar (real Ouster OS-1-128 geometry), a 2D "
                     "lidar and a depth camera (424x240 16UC1) in a room with a table, an "
                     "overhanging shelf and a stairwell going down. Converts every frame "
@@ -38,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="range noise of the 3D lidar, metres (0: exact)")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("info", help="topics, types, counts, LidarInfo versions, linkage",
+    p = sub.add_parser("info", formatter_class=HelpFormatter, epilog=EXAMPLES["info"],
+                       help="topics, types, counts, LidarInfo versions, linkage",
                        description="Summarise a recording (MCAP, rosbag2 directory or .db3); "
                                    "exit status 1 if it has problems (bad messages, damaged "
                                    "parts, unlinked scans, conflicting infos, a topic whose "
@@ -50,7 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser(
-        "convert", help="offline conversion of a recording",
+        "convert", formatter_class=HelpFormatter, epilog=EXAMPLES["convert"],
+        help="offline conversion of a recording",
         usage="lidarscan convert [-h] [options] IN OUT",  # a usage error: two lines, not 15
         description="IN is an MCAP file, a rosbag2 directory or .db3 file, or an Ouster "
                     ".pcap/.osf. LidarScan recording: copy every message and add PointCloud2 "
@@ -68,7 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "(nothing written), 130 Ctrl-C (OUT stays readable).")
     p.add_argument("input", metavar="IN", help="input recording (.mcap, rosbag2 directory or "
                                                ".db3, .pcap/.osf with --metadata)")
-    p.add_argument("output", metavar="OUT", help="output MCAP file (a new name, not IN)")
+    p.add_argument("output", metavar="OUT", help="output: an MCAP file (a new name, not IN), "
+                   "or a folder (OUT/ or an existing empty one) for a rosbag2 bag with MCAP "
+                   "storage and metadata.yaml; .db3 is refused (not written)")
     p.add_argument("--pointcloud2", action="store_true", help="add PointCloud2 per scan")
     p.add_argument("--preset", default="", type=_preset,
                    help="PointCloud2 field preset: a driver's layout, e.g. ouster, velodyne, "
@@ -158,7 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar, notes or summary (bad messages are still listed)")
     p.set_defaults(func=cmd_convert)
 
-    p = sub.add_parser("view", help="PNG views of a recording (MCAP or rosbag2)",
+    p = sub.add_parser("view", formatter_class=HelpFormatter, epilog=EXAMPLES["view"],
+                       help="PNG views of a recording (MCAP or rosbag2)",
                        description="Range images of a LidarScan, a top view of the LaserScans "
                                    "(in --frame via the file's TF) and of each PointCloud2.")
     p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 file "
