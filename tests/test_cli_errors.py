@@ -271,3 +271,49 @@ def test_an_output_that_cannot_be_written_as_named_is_refused(
     assert status == 2
     one_error(lines, "convert", *words)
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["full", "keep.txt"]
+
+
+# ------------------------------------------------------ one plain line, naming what is wrong
+
+@pytest.mark.parametrize(("bag", "calibration", "kind"), [
+    (VLP32 / "bag", DATA / "velodyne_vls128" / "VLS128.yaml", "a Velodyne calibration YAML"),
+    (VLP32 / "bag", VLP32 / "NOTICE.md", "a Velodyne calibration YAML"),
+    (XT32 / "bag", VLP32 / "VLP32.yaml", "a Hesai angle-correction CSV"),
+])
+def test_a_calibration_error_names_the_file_and_the_format_on_one_line(
+        bag: Path, calibration: Path, kind: str, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    status, lines = run(["convert", str(bag), str(tmp_path / "o.mcap"), "--calibration",
+                         str(calibration)], capsys)
+    assert status == 2 and len(lines) == 1, lines   # (a YAML parser's message had 2 lines)
+    one_error(lines, "convert", f"--calibration='{calibration}': expected {kind}")
+
+
+def test_input_errors_are_plain_lines_with_the_role_and_the_path(
+        bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    gif = tmp_path / "pic.gif"
+    gif.write_bytes(b"GIF89a\x00\x01rest")
+    status, lines = run(["convert", str(gif), str(tmp_path / "o.mcap")], capsys)
+    assert status == 2
+    # the bytes escaped once (they were twice: b'GIF89a\\x00\\x01')
+    one_error(lines, "convert", f"IN {gif}: not an MCAP file (starts with b'GIF89a\\x00\\x01'): "
+                                "expected an MCAP file")
+    status, lines = run(["info", str(bags["badmeta"])], capsys)
+    assert status == 2 and "\\n" not in lines[0]            # no escaped newlines
+    one_error(lines, "info", f"FILE {bags['badmeta'] / 'metadata.yaml'}: ParserError: while "
+                             "parsing a flow sequence in")
+    status, lines = run(["convert", str(bags["cut.db3"]), str(tmp_path / "o.mcap")], capsys)
+    assert status == 2
+    one_error(lines, "convert", f"IN {bags['cut.db3']}: database disk image is malformed: "
+                                "expected a readable sqlite3 database")
+
+
+def test_frame_without_tf_says_what_the_file_has_not_a_nested_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status, lines = run(["convert", str(VLP32 / "bag"), str(tmp_path / "o.mcap"), "--slice",
+                         "s:0:1", "--frame", "base_link"], capsys)
+    assert status == 2
+    one_error(lines, "convert", "--frame='base_link': expected a transform base_link <- "
+              "velodyne_front in the file's /tf or /tf_static, or --extrinsics (the file has no "
+              "/tf or /tf_static message (so far))")
+    assert lines[-1].count("expected") == 1

@@ -234,7 +234,7 @@ def _read_ahead(make: Callable[[], Iterator[Any]], depth: int = READ_AHEAD) -> I
 def _open_input(name: str, role: str, *, ouster: bool = False) -> _Input:
     """Check what ``name`` is before anything is written (exit 2 with the reason otherwise)."""
     from converters.bags import InputKind, detect_input, open_bag
-    from lidarscan.errors import McapFormatError
+    from lidarscan.errors import LidarScanError, McapFormatError
 
     path = Path(name)
     if ouster and path.suffix.lower() in (".pcap", ".osf") and path.is_file():
@@ -245,10 +245,26 @@ def _open_input(name: str, role: str, *, ouster: bool = False) -> _Input:
     if kind.kind == "mcap":
         return _Input(path, kind)
     if kind.is_bag:
-        return _Input(path, kind, open_bag(path))
-    raise McapFormatError(f"{role} {path}", kind.description,
-                          "an MCAP file, a rosbag2 directory or a rosbag2 .db3 file"
-                          + (" (or an Ouster .pcap/.osf)" if ouster else ""))
+        try:
+            return _Input(path, kind, open_bag(path))
+        except LidarScanError as err:   # one line, naming the role (IN, FILE) and the path
+            where = err.field if str(path) in err.field else f"{path}: {err.field}"
+            raise _plain(err, f"{role} {where}", err.value) from err
+    raise _plain(McapFormatError(f"{role} {path}", kind.description,
+                                 "an MCAP file, a rosbag2 directory or a rosbag2 .db3 file"
+                                 + (" (or an Ouster .pcap/.osf)" if ouster else "")),
+                 f"{role} {path}", kind.description)
+
+
+def _plain(err: Any, where: str, what: Any) -> Any:
+    """``err`` (a LidarScanError) with the one-line message ``WHERE: WHAT: expected ...``:
+    ``what``, a description (text, not a value), is shown as it is (its repr escaped the bytes
+    a description already shows escaped, and the newlines of a parser's message) with its
+    whitespace collapsed."""
+    text = what if isinstance(what, str) else repr(what)
+    hint = f" ({err.hint})" if err.hint else ""
+    err.args = (" ".join(f"{where}: {text}: expected {err.expected}{hint}".split()),)
+    return err
 
 
 def _describe_bad(item: Any) -> str:

@@ -257,7 +257,7 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
                 _convert_ouster(src, writer, args, slices, fallback, report, emit, stop,
                                 selection.keep_time)
             elif mode == "packets":
-                with _calibration_flag(args):
+                with _calibration_flag(args, decoders):
                     _convert_packets(source, writer, args, plan, decoders, slices, fallback,
                                      report, emit, progress)
             elif mode == "clouds":
@@ -317,18 +317,31 @@ def _written_topics(topics: dict[str, str], plan: _Plan, args: argparse.Namespac
 
 
 @contextlib.contextmanager
-def _calibration_flag(args: argparse.Namespace) -> Iterator[None]:
-    """A decoder's "no calibration" error (a model without a nominal one) restated with the
-    option that gives it (``--calibration FILE``) and the file it expects."""
-    from lidarscan.errors import ConfigError
+def _calibration_flag(args: argparse.Namespace, decoders: dict[str, Any]) -> Iterator[None]:
+    """A decoder's calibration error restated with the option and the file: "no calibration"
+    (a model without a nominal one) names ``--calibration FILE`` and the file it expects; an
+    error of the given file names it and the format expected (a Velodyne YAML, a Hesai CSV),
+    on one line."""
+    from lidarscan.errors import ConfigError, LidarScanError
 
     try:
         yield
-    except ConfigError as err:
-        if err.field != "calibration" or args.calibration is not None:
+    except LidarScanError as err:
+        if not err.field.startswith("calibration"):
             raise
-        raise ConfigError("--calibration", "not given", err.expected,
-                          hint="give the file with --calibration FILE") from err
+        if args.calibration is None:
+            if not isinstance(err, ConfigError) or err.field != "calibration":
+                raise
+            raise ConfigError("--calibration", "not given", err.expected,
+                              hint="give the file with --calibration FILE") from err
+        modules = " ".join(getattr(d, "__module__", "") for d in decoders.values())
+        kinds = [kind for word, kind in (("velodyne", "a Velodyne calibration YAML "
+                                          "(ros-drivers format)"),
+                                         ("hesai", "a Hesai angle-correction CSV"))
+                 if word in modules]
+        raise ConfigError("--calibration", args.calibration,
+                          f"{' or '.join(kinds) or 'a calibration'} of the sensor that sent "
+                          "these packets", hint=" ".join(str(err).split())) from err
 
 
 def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict[str, Any]:

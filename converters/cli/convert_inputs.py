@@ -17,6 +17,7 @@ from converters.cli.convert_pipeline import (
     _drain_drops,
     _merge_sink,
     _side_input,
+    tf_known,
 )
 
 
@@ -179,7 +180,7 @@ def _cloud_extrinsics(cloud: Any, args: argparse.Namespace, tf: Any, fallback: A
             return np.asarray(fallback)
         raise TransformLookupError(
             "--frame", args.frame, f"a transform {args.frame} <- {source} in the file's /tf or "
-            f"/tf_static, or --extrinsics ({err})") from err
+            f"/tf_static, or --extrinsics ({tf_known(tf)})") from err
 
 
 def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan: _Plan,
