@@ -202,6 +202,11 @@ def scans_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ("vlp32", ["--preset", "velodyne"], ("--preset='velodyne'", "--pointcloud2 too")),
     ("vlp32", ["--merge-out", "/m"], ("--merge-out='/m'", "--merge or --merge-topic")),
     ("laser", ["--slice", "s:0:1", "--cloud-topic", "/nope"], ("--cloud-topic",)),
+    ("laser", ["--exclude", "/nope"], ("--exclude='/nope'", "a topic read from IN (it has /scan)")),
+    ("scans", ["--topics", "/sensing/lidar/front/velodyne_packets/lidar_scan", "--exclude",
+               "/sensing/lidar/front/velodyne_packets/lidar_info"],
+     ("--exclude='/sensing/lidar/front/velodyne_packets/lidar_info'", "a topic read from IN")),
+    ("laser", ["--progress", "-q"], ("--progress=True", "one of --progress and -q")),
 ])
 def test_an_option_that_does_not_fit_the_input_is_refused(
         source: str, options: list[str], words: tuple[str, ...], scans_mcap: Path,

@@ -224,7 +224,7 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
             mode = "clouds"
         else:
             mode = "scans"
-    refuse_unfit_options(args, mode, slices)
+    refuse_unfit_options(args, mode, slices, topics)
     plan = _plan(topics, args, slices, mode)
     if renames:
         check_renames(renames, _written_topics(topics, plan, args, slices, mode))

@@ -23,13 +23,21 @@ _OTHER_FORMATS = {".db3": "a rosbag2 sqlite3 file", ".bag": "a ROS 1 bag",
                   ".pcap": "a packet capture", ".osf": "an Ouster OSF file"}
 
 
-def refuse_unfit_options(args: argparse.Namespace, mode: str, slices: Sequence[Any]) -> None:
+def refuse_unfit_options(args: argparse.Namespace, mode: str, slices: Sequence[Any],
+                         topics: dict[str, str]) -> None:
     """Raise ConfigError (exit 2) for an option that would be ignored: one for another kind of
-    input (``mode``: "packets", "clouds", "scans" or "ouster"), or one that needs another
-    option it was given without."""
+    input (``mode``: "packets", "clouds", "scans" or "ouster"), one naming a topic IN does not
+    have (``topics``: what is read of IN), or one that needs another option it was given
+    without (or contradicts one)."""
     from lidarscan.errors import ConfigError
 
     what = _WHAT_IN_IS[mode]
+    if args.progress and args.quiet:
+        raise ConfigError("--progress", True, "one of --progress and -q (no progress)")
+    for topic in args.exclude:
+        if topic not in topics:
+            raise ConfigError("--exclude", topic, "a topic read from IN (it has "
+                              f"{', '.join(sorted(topics)) or 'none'})")
     if args.extrinsics is not None and not args.frame:
         raise ConfigError("--extrinsics", ",".join(f"{v:g}" for v in args.extrinsics),
                           "--frame FRAME too (the extrinsics are FRAME <- sensor, used where "
