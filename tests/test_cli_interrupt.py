@@ -113,3 +113,18 @@ def test_the_stop_request_restores_the_previous_handler() -> None:
     except SystemError as err:
         assert is_interrupt(err)
     assert not is_interrupt(SystemError("other"))
+
+
+def test_ctrl_c_leaves_a_readable_rosbag2_folder(many_scans: Path, tmp_path: Path) -> None:
+    """OUT/ (a rosbag2 folder): interrupted, it still has its MCAP and metadata.yaml."""
+    from converters.bags import open_bag
+
+    out = tmp_path / "bag"
+    status, err = _interrupt(["convert", str(many_scans), f"{out}/", "--compress",
+                              "--pointcloud2"], out, 0.4)
+    assert status == 130 and "is a valid rosbag2 folder" in err, err
+    assert sorted(p.name for p in out.iterdir()) == ["bag_0.mcap", "metadata.yaml"]
+    got = messages_by_topic(out / "bag_0.mcap")
+    assert 0 < len(got.get("/lidar/scan", [])) < 300
+    assert open_bag(out).message_count == sum(map(len, got.values()))
+    assert not list(tmp_path.glob(".*.partial"))
