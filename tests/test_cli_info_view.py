@@ -103,6 +103,6 @@ def test_view_index_out_of_range_says_how_many_scans(
     assert cli.main(["view", str(vlp32_clouds), "--out", str(tmp_path / "v"), "--index",
                      "9"]) == 2
     err = capsys.readouterr().err.splitlines()
-    assert err == ["lidarscan view: error: --index=9: expected an index below 6 (the "
-                   "LidarScans of frame 'velodyne_front' are 6: 0..5)"]
+    assert err == [("lidarscan view: error: --index=9: expected an index below 6 (the "
+                    "LidarScans of frame 'velodyne_front' are 6: 0..5)")]
     assert not (tmp_path / "v").exists()

@@ -80,8 +80,8 @@ def ouster_summary(path: Path, meta: str | None) -> tuple[list[str], int]:
         first = stamp if first is None else min(first, stamp)
         last = stamp if last is None else max(last, stamp)
         count += 1
-    lines = [f"{path} (an Ouster recording): {count} scans, read as `lidarscan convert` does "
-             "(/lidar/info + /lidar/scan)",
+    lines = [(f"{path} (an Ouster recording): {count} scans, read as `lidarscan convert` does "
+              "(/lidar/info + /lidar/scan)"),
              f"  {span_line(first, last, path.stat().st_size)}"]
     if info is not None:
         lines.append(f"  sensor: {info.vendor} {info.model} {info.height}x{info.width} frame "

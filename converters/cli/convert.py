@@ -335,10 +335,9 @@ def _calibration_flag(args: argparse.Namespace, decoders: dict[str, Any]) -> Ite
             raise ConfigError("--calibration", "not given", err.expected,
                               hint="give the file with --calibration FILE") from err
         modules = " ".join(getattr(d, "__module__", "") for d in decoders.values())
-        kinds = [kind for word, kind in (("velodyne", "a Velodyne calibration YAML "
-                                          "(ros-drivers format)"),
-                                         ("hesai", "a Hesai angle-correction CSV"))
-                 if word in modules]
+        formats = (("velodyne", "a Velodyne calibration YAML (ros-drivers format)"),
+                   ("hesai", "a Hesai angle-correction CSV"))
+        kinds = [kind for word, kind in formats if word in modules]
         raise ConfigError("--calibration", args.calibration,
                           f"{' or '.join(kinds) or 'a calibration'} of the sensor that sent "
                           "these packets", hint=" ".join(str(err).split())) from err
