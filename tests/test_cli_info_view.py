@@ -106,3 +106,15 @@ def test_view_index_out_of_range_says_how_many_scans(
     assert err == [("lidarscan view: error: --index=9: expected an index below 6 (the "
                     "LidarScans of frame 'velodyne_front' are 6: 0..5)")]
     assert not (tmp_path / "v").exists()
+
+
+def test_view_index_past_the_laserscans_says_how_many(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    laser = (Path(__file__).parent / "data" / "laserscan"
+             / "scan_tools_laser_scan_matcher_demo.mcap")
+    assert cli.main(["view", str(laser), "--out", str(tmp_path / "v"), "--index", "400"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == [("lidarscan view: error: --index=400: expected an index below 360 (the "
+                    "LaserScan and PointCloud2 topics have at most 360 messages: 0..359)")]
+    assert not (tmp_path / "v").exists()
+    assert cli.main(["view", str(laser), "--out", str(tmp_path / "v"), "--index", "359"]) == 0
