@@ -19,6 +19,8 @@ from helpers import messages_by_topic
 from lidarscan.mcap import McapWriter
 
 ROOT = Path(__file__).resolve().parents[1]
+#: the console script's entry point, in a fresh interpreter
+MAIN = "import sys; from converters.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +48,7 @@ def many_scans(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _interrupt(argv: list[str], out: Path, delay: float) -> tuple[int, str]:
     """Run ``lidarscan`` ``argv``; once its temporary output exists wait ``delay`` s, send
     SIGINT; (exit status, stderr)."""
-    proc = subprocess.Popen([sys.executable, "-m", "converters.cli", *argv], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-c", MAIN, *argv], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not list(out.parent.glob(f".{out.name}.*.partial")) and proc.poll() is None:
@@ -80,7 +82,7 @@ def test_ctrl_c_exits_130_with_a_valid_partial_output(
 def test_a_second_ctrl_c_still_closes_the_output(many_scans: Path, tmp_path: Path) -> None:
     """Twice Ctrl-C (a user who will not wait): still 130 and a readable file."""
     out = tmp_path / "out.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "converters.cli", "convert", str(many_scans),
+    proc = subprocess.Popen([sys.executable, "-c", MAIN, "convert", str(many_scans),
                              str(out), "--compress", "--pointcloud2"], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     while not list(tmp_path.glob(".out.mcap.*.partial")) and proc.poll() is None:
