@@ -102,7 +102,25 @@ class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
     def find_spec(self, fullname: str, path: Any, target: Any = None) -> Any:
         real = _moved_target(fullname) if fullname.startswith("converters.") else None
-        return None if real is None else importlib.util.spec_from_loader(fullname, self)
+        if real is None:
+            return None
+        real_spec = importlib.util.find_spec(real)
+        if real_spec is None:
+            return None
+        package = real_spec.submodule_search_locations is not None
+        spec = importlib.util.spec_from_loader(fullname, self, is_package=package)
+        if package and spec is not None:   # python -m finds SHORT.__main__ through it
+            spec.submodule_search_locations = list(real_spec.submodule_search_locations or [])
+        return spec
+
+    def get_code(self, fullname: str) -> Any:
+        """The real module's code (``python -m`` with a short path runs it)."""
+        real_spec = importlib.util.find_spec(_moved_target(fullname))  # type: ignore[arg-type]
+        return real_spec.loader.get_code(real_spec.name)  # type: ignore[union-attr]
+
+    def is_package(self, fullname: str) -> bool:
+        real_spec = importlib.util.find_spec(_moved_target(fullname))  # type: ignore[arg-type]
+        return real_spec is not None and real_spec.submodule_search_locations is not None
 
     def create_module(self, spec: Any) -> Any:
         module = importlib.import_module(_moved_target(spec.name))  # type: ignore[arg-type]

@@ -174,3 +174,151 @@ def test_an_output_a_recording_without_lidar_cannot_make_is_refused(
         assert status == 2, (option, lines)
         one_error(lines, "convert", option[0], "sensor_msgs/msg/LaserScan")
     assert not list(tmp_path.glob("*.mcap*"))
+
+
+# ------------------------------------------- options that do not fit the input are refused
+
+LASER = Path(__file__).parent / "data" / "laserscan" / "scan_tools_laser_scan_matcher_demo.mcap"
+
+
+@pytest.fixture(scope="module")
+def scans_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The VLP-32C bag converted to a LidarScan recording (the tool's own output)."""
+    out = tmp_path_factory.mktemp("scans") / "vlp32.mcap"
+    assert cli.main(["convert", str(VLP32 / "bag"), str(out), "-q"]) == 0
+    return out
+
+
+@pytest.mark.parametrize(("source", "options", "words"), [
+    ("scans", ["--calibration", str(VLP32 / "VLP32.yaml")],
+     ("--calibration=", "raw lidar packets", "IN is a recording of LidarScans")),
+    ("vlp32", ["--metadata", str(VLP32 / "VLP32.yaml")],
+     ("--metadata=", "an Ouster .pcap/.osf", "IN is a recording of raw lidar packets")),
+    ("vlp32", ["--extrinsics", "0,0,1,0,0,0"], ("--extrinsics=", "--frame FRAME too")),
+    ("vlp32", ["--frame", "base_link"], ("--frame='base_link'", "--slice or --merge-topic")),
+    ("vlp32", ["--keep-clouds"], ("--keep-clouds=True", "driver PointCloud2")),
+    ("scans", ["--keep-packets"], ("--keep-packets=True", "raw lidar packets")),
+    ("scans", ["--firetimes", str(XT32 / "PandarXT32.csv")], ("--firetimes=", "Hesai")),
+    ("vlp32", ["--preset", "velodyne"], ("--preset='velodyne'", "--pointcloud2 too")),
+    ("vlp32", ["--merge-out", "/m"], ("--merge-out='/m'", "--merge or --merge-topic")),
+    ("laser", ["--slice", "s:0:1", "--cloud-topic", "/nope"], ("--cloud-topic",)),
+    ("laser", ["--exclude", "/nope"], ("--exclude='/nope'", "a topic read from IN (it has /scan)")),
+    ("scans", ["--topics", "/sensing/lidar/front/velodyne_packets/lidar_scan", "--exclude",
+               "/sensing/lidar/front/velodyne_packets/lidar_info"],
+     ("--exclude='/sensing/lidar/front/velodyne_packets/lidar_info'", "a topic read from IN")),
+    ("laser", ["--progress", "-q"], ("--progress=True", "one of --progress and -q")),
+])
+def test_an_option_that_does_not_fit_the_input_is_refused(
+        source: str, options: list[str], words: tuple[str, ...], scans_mcap: Path,
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """(Each of these was silently ignored: exit 0 and an output made without it.)"""
+    inputs = {"scans": scans_mcap, "vlp32": VLP32 / "bag", "laser": LASER}
+    status, lines = run(["convert", str(inputs[source]), str(tmp_path / "o.mcap"), *options],
+                        capsys)
+    assert status == 2
+    one_error(lines, "convert", *words)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_missing_calibration_names_the_flag_and_the_file(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    for bag, file in ((DATA / "velodyne_vls128" / "bag", "VLS-128 calibration YAML"),
+                      (XT32 / "bag", "angle-correction CSV")):
+        status, lines = run(["convert", str(bag), str(tmp_path / "o.mcap")], capsys)
+        assert status == 2
+        one_error(lines, "convert", "--calibration='not given'", file,
+                  "give the file with --calibration FILE")
+    assert not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------------ kinds of output
+
+def test_out_ending_in_a_slash_or_an_empty_folder_writes_a_rosbag2_folder(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import yaml
+
+    from converters.bags import open_bag
+    from helpers import messages_by_topic
+
+    alone = tmp_path / "alone.mcap"
+    assert cli.main(["convert", str(VLP32 / "bag"), str(alone), "-q"]) == 0
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for out in (f"{tmp_path / 'run1'}/", str(empty)):
+        assert cli.main(["convert", str(VLP32 / "bag"), out, "-q"]) == 0
+        folder = Path(out)
+        storage = folder / f"{folder.name}_0.mcap"
+        assert sorted(p.name for p in folder.iterdir()) == sorted([storage.name, "metadata.yaml"])
+        meta = yaml.safe_load((folder / "metadata.yaml").read_text())
+        info = meta["rosbag2_bagfile_information"]
+        assert info["storage_identifier"] == "mcap"
+        assert info["relative_file_paths"] == [storage.name]
+        want, got = messages_by_topic(alone), messages_by_topic(storage)
+        assert {t: [m.payload for m in v] for t, v in got.items()} == \
+            {t: [m.payload for m in v] for t, v in want.items()}
+        assert info["message_count"] == sum(map(len, got.values()))
+        assert open_bag(folder).message_count == info["message_count"]   # read back as a bag
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["alone.mcap", "empty", "run1"]
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize(("name", "words"), [
+    ("o.db3", ("OUT='", "o.db3", "a rosbag2 sqlite3 file, which convert does not write")),
+    ("full", ("a new or empty folder", "nothing is overwritten")),
+])
+def test_an_output_that_cannot_be_written_as_named_is_refused(
+        name: str, words: tuple[str, ...], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Never MCAP bytes under a .db3 name, never files added to a folder that has some."""
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("mine")
+    status, lines = run(["convert", str(VLP32 / "bag"), str(tmp_path / name), "-q"], capsys)
+    assert status == 2
+    one_error(lines, "convert", *words)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["full", "keep.txt"]
+
+
+# ------------------------------------------------------ one plain line, naming what is wrong
+
+@pytest.mark.parametrize(("bag", "calibration", "kind"), [
+    (VLP32 / "bag", DATA / "velodyne_vls128" / "VLS128.yaml", "a Velodyne calibration YAML"),
+    (VLP32 / "bag", VLP32 / "NOTICE.md", "a Velodyne calibration YAML"),
+    (XT32 / "bag", VLP32 / "VLP32.yaml", "a Hesai angle-correction CSV"),
+])
+def test_a_calibration_error_names_the_file_and_the_format_on_one_line(
+        bag: Path, calibration: Path, kind: str, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    status, lines = run(["convert", str(bag), str(tmp_path / "o.mcap"), "--calibration",
+                         str(calibration)], capsys)
+    assert status == 2 and len(lines) == 1, lines   # (a YAML parser's message had 2 lines)
+    one_error(lines, "convert", f"--calibration='{calibration}': expected {kind}")
+
+
+def test_input_errors_are_plain_lines_with_the_role_and_the_path(
+        bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    gif = tmp_path / "pic.gif"
+    gif.write_bytes(b"GIF89a\x00\x01rest")
+    status, lines = run(["convert", str(gif), str(tmp_path / "o.mcap")], capsys)
+    assert status == 2
+    # the bytes escaped once (they were twice: b'GIF89a\\x00\\x01')
+    one_error(lines, "convert", f"IN {gif}: not an MCAP file (starts with b'GIF89a\\x00\\x01'): "
+                                "expected an MCAP file")
+    status, lines = run(["info", str(bags["badmeta"])], capsys)
+    assert status == 2 and "\\n" not in lines[0]            # no escaped newlines
+    one_error(lines, "info", f"FILE {bags['badmeta'] / 'metadata.yaml'}: ParserError: while "
+                             "parsing a flow sequence in")
+    status, lines = run(["convert", str(bags["cut.db3"]), str(tmp_path / "o.mcap")], capsys)
+    assert status == 2
+    one_error(lines, "convert", f"IN {bags['cut.db3']}: database disk image is malformed: "
+                                "expected a readable sqlite3 database")
+
+
+def test_frame_without_tf_says_what_the_file_has_not_a_nested_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status, lines = run(["convert", str(VLP32 / "bag"), str(tmp_path / "o.mcap"), "--slice",
+                         "s:0:1", "--frame", "base_link"], capsys)
+    assert status == 2
+    one_error(lines, "convert", "--frame='base_link': expected a transform base_link <- "
+              "velodyne_front in the file's /tf or /tf_static, or --extrinsics (the file has no "
+              "/tf or /tf_static message (so far))")
+    assert lines[-1].count("expected") == 1

@@ -141,3 +141,9 @@ def test_short_path_of_a_submodule_is_not_a_second_copy() -> None:
             "assert 'rclpy' not in sys.modules; print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.stdout.strip() == "ok", out.stderr
+
+
+def test_python_m_runs_a_short_path() -> None:
+    out = subprocess.run([sys.executable, "-m", "converters.cli", "--help"], capture_output=True,
+                         text=True, cwd=ROOT)
+    assert out.returncode == 0 and out.stdout.startswith("usage: lidarscan"), out.stderr

@@ -5,14 +5,21 @@ Commands::
 
     lidarscan --version
     lidarscan demo [--out DIR] [--frames N] [--no-images]
-    lidarscan info REC
-    lidarscan convert REC OUT.mcap [--pointcloud2] [--preset P | --fields x,y,z,...]
+    lidarscan info REC [--metadata JSON]
+    lidarscan convert REC OUT.mcap|OUT/ [--pointcloud2] [--preset P | --fields x,y,z,...]
                                    [--slice NAME:ZMIN:ZMAX[:holes[:KEY=VALUE]...]]...
                                    [--frame F] [--extrinsics ...]
                                    [--merge] [--merge-topic TOPIC]... [--calibration FILE]
                                    [--cut-angle DEG] [--replace] [--keep-packets] [--progress]
                                    [--compress] [--chunk-compression C] [--zstd-level N] [-q]
+                                   [--start TIME] [--end TIME] [--topics T1,T2]
+                                   [--rename-topic OLD=NEW]...
     lidarscan view REC --out DIR [--index K]
+
+(each command's ``--help`` ends with examples: :mod:`._examples`). ``convert`` writes an MCAP
+file, or a rosbag2 folder (MCAP storage + ``metadata.yaml``) when OUT ends in ``/`` or is an
+existing empty folder (:mod:`.convert_checks`); ``--start``/``--end``/``--topics`` select what is
+read and ``--rename-topic`` names the output topics (:mod:`.convert_filters`).
 
 REC is an MCAP file, a rosbag2 directory (``metadata.yaml`` + ``.db3`` or ``.mcap`` storage) or a
 single rosbag2 ``.db3`` file; ``convert`` also takes an Ouster ``.pcap``/``.pcapng`` (decoded
@@ -25,7 +32,8 @@ its offset and time range) or, for ``info``, problems were found; 2 usage error 
 (missing, empty or unreadable input, input of the wrong kind, an invalid option value, an option
 that does not fit the recording, an output topic that clashes with an input topic): nothing is
 written; 130 interrupted by Ctrl-C (``convert`` still closes its output, which is a valid MCAP of
-everything written so far).
+everything written so far: the first Ctrl-C only asks it to stop between two messages,
+:mod:`._interrupt`).
 
 ``convert`` writes OUT under a temporary name next to it and renames it only when the run ends
 (also with bad messages, exit 1): a failed run never leaves a partial or empty OUT.

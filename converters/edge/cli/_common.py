@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import sys
 import time
@@ -97,12 +98,18 @@ class _Input:
         kind: :class:`converters.sources.bags.InputKind` (``kind.kind`` is ``"ouster"`` for .pcap/.osf).
         bag: the :class:`converters.sources.bags.Bag` of a rosbag2 directory or .db3 file.
         ahead: :meth:`items` reads in a background thread (False: in the caller's).
+        stop: a predicate checked before each item: when it turns true, :meth:`items` ends
+            early (``convert``'s Ctrl-C: :class:`converters.edge.cli._interrupt.StopRequest`).
+        keep: a predicate of each message (McapMessage): False skips it (``convert``'s time
+            range and topics: :class:`converters.edge.cli.convert_filters.Selection`).
     """
 
     path: Path
     kind: Any
     bag: Any = None
     ahead: bool = True
+    stop: Callable[[], bool] | None = None
+    keep: Callable[[Any], bool] | None = None
 
     def topics(self) -> dict[str, str]:
         """topic -> message type."""
@@ -121,13 +128,16 @@ class _Input:
             progress.total = max(self.bag.message_count, 1)
         source = self.bag.messages if self.bag is not None else \
             functools.partial(_mcap_items, self.path)
-        entries = functools.partial(_prepared, source, prepare, self.bag is None)
+        entries = functools.partial(_prepared, source, prepare, self.bag is None, self.keep)
         count = 0
-        for item, position, value in _read_ahead(entries) if self.ahead else entries():
-            count += 1
-            if progress is not None:
-                progress.update(position if self.bag is None else count, f"{count} msgs")
-            yield item if prepare is None else (item, value)
+        with contextlib.closing(_read_ahead(entries) if self.ahead else entries()) as stream:
+            for item, position, value in stream:
+                if self.stop is not None and self.stop():
+                    return      # the reader thread is stopped by closing the stream
+                count += 1
+                if progress is not None:
+                    progress.update(position if self.bag is None else count, f"{count} msgs")
+                yield item if prepare is None else (item, value)
         if progress is not None:
             progress.update(progress.total, "done", force=True)
 
@@ -142,14 +152,18 @@ def _mcap_items(path: Path) -> Iterator[tuple[Any, int]]:
 
 
 def _prepared(source: Callable[[], Iterator[Any]], prepare: Callable[[Any], Any] | None,
-              positioned: bool) -> Iterator[tuple[Any, int, Any]]:
+              positioned: bool, keep: Callable[[Any], bool] | None = None
+              ) -> Iterator[tuple[Any, int, Any]]:
     """(item, file position (``positioned``: the source gives (item, position) pairs) or 0,
-    ``prepare(item)`` or the LidarScanError it raised or None)."""
+    ``prepare(item)`` or the LidarScanError it raised or None); a message ``keep`` refuses is
+    skipped."""
     from lidarscan.errors import LidarScanError
     from lidarscan.mcap import McapMessage
 
     for entry in source():
         item, position = entry if positioned else (entry, 0)
+        if keep is not None and isinstance(item, McapMessage) and not keep(item):
+            continue
         value = None
         if prepare is not None and isinstance(item, McapMessage):
             try:
@@ -220,7 +234,7 @@ def _read_ahead(make: Callable[[], Iterator[Any]], depth: int = READ_AHEAD) -> I
 def _open_input(name: str, role: str, *, ouster: bool = False) -> _Input:
     """Check what ``name`` is before anything is written (exit 2 with the reason otherwise)."""
     from converters.sources.bags import InputKind, detect_input, open_bag
-    from lidarscan.errors import McapFormatError
+    from lidarscan.errors import LidarScanError, McapFormatError
 
     path = Path(name)
     if ouster and path.suffix.lower() in (".pcap", ".pcapng", ".osf") and path.is_file():
@@ -231,10 +245,26 @@ def _open_input(name: str, role: str, *, ouster: bool = False) -> _Input:
     if kind.kind == "mcap":
         return _Input(path, kind)
     if kind.is_bag:
-        return _Input(path, kind, open_bag(path))
-    raise McapFormatError(f"{role} {path}", kind.description,
-                          "an MCAP file, a rosbag2 directory or a rosbag2 .db3 file"
-                          + (" (or an Ouster .pcap/.pcapng/.osf)" if ouster else ""))
+        try:
+            return _Input(path, kind, open_bag(path))
+        except LidarScanError as err:   # one line, naming the role (IN, FILE) and the path
+            where = err.field if str(path) in err.field else f"{path}: {err.field}"
+            raise _plain(err, f"{role} {where}", err.value) from err
+    raise _plain(McapFormatError(f"{role} {path}", kind.description,
+                                 "an MCAP file, a rosbag2 directory or a rosbag2 .db3 file"
+                                 + (" (or an Ouster .pcap/.pcapng/.osf)" if ouster else "")),
+                 f"{role} {path}", kind.description)
+
+
+def _plain(err: Any, where: str, what: Any) -> Any:
+    """``err`` (a LidarScanError) with the one-line message ``WHERE: WHAT: expected ...``:
+    ``what``, a description (text, not a value), is shown as it is (its repr escaped the bytes
+    a description already shows escaped, and the newlines of a parser's message) with its
+    whitespace collapsed."""
+    text = what if isinstance(what, str) else repr(what)
+    hint = f" ({err.hint})" if err.hint else ""
+    err.args = (" ".join(f"{where}: {text}: expected {err.expected}{hint}".split()),)
+    return err
 
 
 def _describe_bad(item: Any) -> str:

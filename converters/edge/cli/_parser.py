@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from typing import Any
 
+from converters.edge.cli._examples import EXAMPLES, HelpFormatter
 from converters.edge.cli.convert import cmd_convert
 from converters.edge.cli.demo import cmd_demo
 from converters.edge.cli.info import cmd_info
@@ -21,8 +23,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser(
-        "demo", help="simulate a robot in a room (3D + 2D lidar, depth camera), convert, "
-                     "record and draw",
+        "demo", formatter_class=HelpFormatter, epilog=EXAMPLES["demo"],
+        help="simulate a robot in a room (3D + 2D lidar, depth camera), convert, "
+             "record and draw",
         description="Simulated robot with a 3D lidar (real Ouster OS-1-128 geometry), a 2D "
                     "lidar and a depth camera (424x240 16UC1) in a room with a table, an "
                     "overhanging shelf and a stairwell going down. Converts every frame "
@@ -37,16 +40,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="range noise of the 3D lidar, metres (0: exact)")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("info", help="topics, types, counts, LidarInfo versions, linkage",
+    p = sub.add_parser("info", formatter_class=HelpFormatter, epilog=EXAMPLES["info"],
+                       help="topics, types, counts, LidarInfo versions, linkage",
                        description="Summarise a recording (MCAP, rosbag2 directory or .db3); "
                                    "exit status 1 if it has problems (bad messages, damaged "
                                    "parts, unlinked scans, conflicting infos, a topic whose "
                                    "frame, shape or type changes).")
-    p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 file")
+    p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 "
+                                               "file, or an Ouster .pcap/.osf")
+    p.add_argument("--metadata", default=None, metavar="FILE",
+                   help="Ouster metadata JSON for a .pcap (as for convert)")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser(
-        "convert", help="offline conversion of a recording",
+        "convert", formatter_class=HelpFormatter, epilog=EXAMPLES["convert"],
+        help="offline conversion of a recording",
         usage="lidarscan convert [-h] [options] IN OUT",  # a usage error: two lines, not 15
         description="IN is an MCAP file, a rosbag2 directory or .db3 file, or an Ouster "
                     ".pcap/.osf. LidarScan recording: copy every message and add PointCloud2 "
@@ -66,7 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "(nothing written), 130 Ctrl-C (OUT stays readable).")
     p.add_argument("input", metavar="IN", help="input recording (.mcap, rosbag2 directory or "
                                                ".db3, .pcap/.pcapng/.osf with --metadata)")
-    p.add_argument("output", metavar="OUT", help="output MCAP file (a new name, not IN)")
+    p.add_argument("output", metavar="OUT", help="output: an MCAP file (a new name, not IN), "
+                   "or a folder (OUT/ or an existing empty one) for a rosbag2 bag with MCAP "
+                   "storage and metadata.yaml; .db3 is refused (not written)")
     p.add_argument("--pointcloud2", action="store_true", help="add PointCloud2 per scan")
     p.add_argument("--preset", default="", type=_preset,
                    help="PointCloud2 field preset: a driver's layout, e.g. ouster, velodyne, "
@@ -94,6 +104,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="merged scan range_max, metres (100)")
     p.add_argument("--cloud-topic", action="append", default=[], metavar="TOPIC",
                    help="PointCloud2 input topic to convert (repeatable; default: all)")
+    p.add_argument("--topics", action="append", default=[], metavar="T1,T2",
+                   help="read only these input topics (comma-separated, repeatable; default: "
+                        "all); what is not read is neither copied nor converted (add /tf and "
+                        "/tf_static when --frame needs them)")
+    p.add_argument("--start", type=_time, default=None, metavar="TIME",
+                   help="skip the messages logged before TIME (LidarInfo and /tf_static are "
+                        "kept): seconds since the epoch (1713492677.46, as `info` prints), "
+                        "nanoseconds (1713492677464078412ns, or 16+ digits), an ISO date "
+                        "(2024-04-19T02:11:17.5Z; UTC without an offset) or +SECONDS after the "
+                        "first message")
+    p.add_argument("--end", type=_time, default=None, metavar="TIME",
+                   help="skip the messages logged at or after TIME (same forms as --start)")
+    p.add_argument("--rename-topic", action="append", default=[], metavar="OLD=NEW",
+                   help="write the output topic OLD (copied or new) as NEW (repeatable)")
     p.add_argument("--keep-clouds", action="store_true",
                    help="also copy the input PointCloud2 messages")
     p.add_argument("--exclude", action="append", default=[], metavar="TOPIC",
@@ -143,14 +167,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar, notes or summary (bad messages are still listed)")
     p.set_defaults(func=cmd_convert)
 
-    p = sub.add_parser("view", help="PNG views of a recording (MCAP or rosbag2)",
+    p = sub.add_parser("view", formatter_class=HelpFormatter, epilog=EXAMPLES["view"],
+                       help="PNG views of a recording (MCAP or rosbag2)",
                        description="Range images of a LidarScan, a top view of the LaserScans "
                                    "(in --frame via the file's TF) and of each PointCloud2.")
     p.add_argument("file", metavar="REC", help="an MCAP file, a rosbag2 directory or a .db3 file "
                                                "(raw packets: convert them first)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--index", type=_non_negative_int, default=0, metavar="K",
-                   help="which scan of each topic (0 = first)")
+    p.add_argument("--index", type=_non_negative_int, default=None, metavar="K",
+                   help="which scan of each topic (0 = first; default: the first complete "
+                        "rotation, a scan covering as many columns as the next ones); a "
+                        "partial rotation is marked in the image title")
     p.add_argument("--frame", default="",
                    help="frame of the LaserScan top view (default: base_link if known, else "
                         "the first LaserScan's)")
@@ -212,3 +239,13 @@ def _floats(text: str) -> list[float]:
         return [float(v) for v in text.replace(" ", ",").split(",") if v]
     except ValueError as err:
         raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers") from err
+
+
+def _time(text: str) -> Any:
+    """``--start``/``--end``: :func:`converters.edge.cli.convert_filters.parse_time`."""
+    from converters.edge.cli.convert_filters import parse_time
+
+    try:
+        return parse_time(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None

@@ -5,9 +5,9 @@ per-input conversions are in :mod:`converters.edge.cli.convert_inputs`."""
 from __future__ import annotations
 
 import argparse
-import os
+import contextlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,14 @@ from converters.edge.cli.convert_inputs import (
     _convert_packets,
     _convert_scans,
     _takes,
+)
+from converters.edge.cli._interrupt import StopRequest, is_interrupt
+from converters.edge.cli.convert_checks import output_of, refuse_unfit_options
+from converters.edge.cli.convert_filters import (
+    RenamingWriter,
+    check_renames,
+    parse_renames,
+    selection_of,
 )
 from converters.edge.cli.convert_pipeline import ConvertReport, _Plan
 
@@ -164,18 +172,21 @@ def _plan(topics: dict[str, str], args: argparse.Namespace, slices: Sequence[Any
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
+    """``lidarscan convert``; Ctrl-C stops it between messages (:mod:`._interrupt`)."""
+    with StopRequest() as stop:
+        return _convert(args, stop)
+
+
+def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     from lidarscan.errors import ConfigError, McapFormatError
-    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter
+    from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE
 
     source = _open_input(args.input, "IN", ouster=True)
     source.ahead = args.threads > 1     # --threads 1: everything in one thread
-    src, dst = source.path, Path(args.output)
-    if dst.is_dir():
-        raise ConfigError("OUT", str(dst), "a file name (it is a directory)")
-    if src.resolve() == dst.resolve():
-        raise ConfigError("OUT", str(dst), "a file other than IN")
-    if not dst.parent.is_dir():
-        raise FileNotFoundError(f"OUT {dst}: no such directory {dst.parent}")
+    source.stop = stop
+    src = source.path
+    output = output_of(args.output, src)
+    dst = output.path
     from converters.edge.nodes.params import parse_extrinsics
 
     slices = [parse_slice(s) for s in args.slice]
@@ -193,12 +204,19 @@ def cmd_convert(args: argparse.Namespace) -> int:
     for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
         if value is not None and not Path(value).is_file():
             raise FileNotFoundError(f"{option} {value}: no such file")
+    selection = selection_of(args)
+    renames = parse_renames(args.rename_topic)
     topics: dict[str, str] = {}
     mode = "ouster"
+    if source.kind.kind == "ouster" and selection.topics:
+        raise ConfigError("--topics", ",".join(selection.topics), "a recording with topics "
+                          "(IN is an Ouster .pcap/.osf: its scans go to /lidar/info and "
+                          "/lidar/scan)")
     if source.kind.kind != "ouster":
         from converters.sources.bags import is_packet_topic
 
-        topics = source.topics()
+        topics = selection.select_topics(source.topics())
+        source.keep = selection.keep if selection.active else None
         kinds = set(topics.values())
         if any(is_packet_topic(t, k) for t, k in topics.items()):
             mode = "packets"
@@ -206,7 +224,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
             mode = "clouds"
         else:
             mode = "scans"
+    refuse_unfit_options(args, mode, slices, topics)
     plan = _plan(topics, args, slices, mode)
+    if renames:
+        check_renames(renames, _written_topics(topics, plan, args, slices, mode))
     decoders = _packet_decoders(topics) if mode == "packets" else {}
     for topic, msgtype in topics.items():
         if topic in decoders and msgtype in _ouster_packet_types():
@@ -219,14 +240,15 @@ def cmd_convert(args: argparse.Namespace) -> int:
         decoders = {t: functools.partial(d, **decoder_options) for t, d in decoders.items()}
     report = ConvertReport()
     emit = _err  # bad messages are always reported, also with --quiet
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
-    writer = McapWriter(tmp, compression=args.compression, chunk_size=1 << 20,
-                        level=args.zstd_level, threads=args.threads, file_name=dst.name,
-                        scan_encoding=CODEC_ENCODING if args.compress else "cdr",
-                        # the compiled coder (numba: ~0.4 s to import) only where a scan may be
-                        # coded: --compress, or LidarScans that may come in codec-compressed
-                        codec_coder=codec_coder() if args.compress
-                        or SCAN_TYPE in topics.values() else None)
+    writer = output.writer(compression=args.compression, chunk_size=1 << 20,
+                           level=args.zstd_level, threads=args.threads,
+                           scan_encoding=CODEC_ENCODING if args.compress else "cdr",
+                           # the compiled coder (numba: ~0.4 s to import) only where a scan may
+                           # be coded: --compress, or LidarScans that may come codec-compressed
+                           codec_coder=codec_coder() if args.compress
+                           or SCAN_TYPE in topics.values() else None)
+    if renames:
+        writer = RenamingWriter(writer, renames)
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
     progress = Progress(size, f"converting {src.name}",
                         enabled=True if args.progress else (None if not args.quiet else False))
@@ -237,17 +259,21 @@ def cmd_convert(args: argparse.Namespace) -> int:
     try:
         try:
             if mode == "ouster":
-                _convert_ouster(src, writer, args, slices, fallback, report, emit)
+                _convert_ouster(src, writer, args, slices, fallback, report, emit, stop,
+                                selection.keep_time)
             elif mode == "packets":
-                _convert_packets(source, writer, args, plan, decoders, slices, fallback,
-                                 report, emit, progress)
+                with _calibration_flag(args, decoders):
+                    _convert_packets(source, writer, args, plan, decoders, slices, fallback,
+                                     report, emit, progress)
             elif mode == "clouds":
                 _convert_clouds(source, writer, args, plan, slices, fallback, report, emit,
                                 progress)
             else:
                 _convert_scans(source, writer, args, plan, slices, fallback, report, emit,
                                progress)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, SystemError) as err:   # a second Ctrl-C
+            if not is_interrupt(err):
+                raise
             interrupted = True
         finally:
             progress.close()
@@ -255,17 +281,18 @@ def cmd_convert(args: argparse.Namespace) -> int:
                 writer.close()
             finally:
                 sys.setswitchinterval(switch)
+        interrupted = interrupted or stop()
         if not interrupted and report.read == 0 and report.bad:
             raise McapFormatError(f"IN {src}", f"{len(report.bad)} damaged part(s), listed above",
                                   "at least one readable message; nothing written")
-        os.replace(tmp, dst)
+        output.finish()
         finished = True
     finally:
         if not finished:
-            tmp.unlink(missing_ok=True)
+            output.discard()
     if interrupted:
-        _err(f"interrupted: {dst} is a valid MCAP file with the {writer.count} messages "
-             f"written so far ({report.read} read)")
+        _err(f"interrupted: {dst} is a valid {'rosbag2 folder' if output.bag else 'MCAP file'}"
+             f" with the {writer.count} messages written so far ({report.read} read)")
         return EXIT_INTERRUPTED
     summary = (f"{src} -> {dst}: {report.read} messages read, {report.converted} converted, "
                f"{writer.count} written")
@@ -282,6 +309,49 @@ def _ouster_packet_types() -> tuple[str, ...]:
     from converters.sources.bags import OUSTER_PACKET_TYPES
 
     return OUSTER_PACKET_TYPES
+
+
+def _written_topics(topics: dict[str, str], plan: _Plan, args: argparse.Namespace,
+                    slices: Sequence[Any], mode: str) -> set[str]:
+    """The topics the output will have (before ``--rename-topic``): the copied input topics
+    and the new ones."""
+    from converters.sources.bags import PACKET_TYPES
+
+    copied = {t for t, k in topics.items() if t not in plan.excluded
+              and not (k in PACKET_TYPES and not args.keep_packets)
+              and not (mode == "clouds" and t in plan.prefix and not args.keep_clouds)}
+    if mode == "ouster":
+        copied = {"/lidar/info", "/lidar/scan"} | ({"/lidar/points"} if args.pointcloud2
+                                                  else set())
+        copied |= {f"/lidar/slices/{s.name}" for s in slices}
+    return copied | set(plan.outputs)
+
+
+@contextlib.contextmanager
+def _calibration_flag(args: argparse.Namespace, decoders: dict[str, Any]) -> Iterator[None]:
+    """A decoder's calibration error restated with the option and the file: "no calibration"
+    (a model without a nominal one) names ``--calibration FILE`` and the file it expects; an
+    error of the given file names it and the format expected (a Velodyne YAML, a Hesai CSV),
+    on one line."""
+    from lidarscan.errors import ConfigError, LidarScanError
+
+    try:
+        yield
+    except LidarScanError as err:
+        if not err.field.startswith("calibration"):
+            raise
+        if args.calibration is None:
+            if not isinstance(err, ConfigError) or err.field != "calibration":
+                raise
+            raise ConfigError("--calibration", "not given", err.expected,
+                              hint="give the file with --calibration FILE") from err
+        modules = " ".join(getattr(d, "__module__", "") for d in decoders.values())
+        formats = (("velodyne", "a Velodyne calibration YAML (ros-drivers format)"),
+                   ("hesai", "a Hesai angle-correction CSV"))
+        kinds = [kind for word, kind in formats if word in modules]
+        raise ConfigError("--calibration", args.calibration,
+                          f"{' or '.join(kinds) or 'a calibration'} of the sensor that sent "
+                          "these packets", hint=" ".join(str(err).split())) from err
 
 
 def _decoder_options(args: argparse.Namespace, decoders: dict[str, Any]) -> dict[str, Any]:

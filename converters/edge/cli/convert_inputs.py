@@ -17,6 +17,7 @@ from converters.edge.cli.convert_pipeline import (
     _drain_drops,
     _merge_sink,
     _side_input,
+    tf_known,
 )
 
 
@@ -179,7 +180,7 @@ def _cloud_extrinsics(cloud: Any, args: argparse.Namespace, tf: Any, fallback: A
             return np.asarray(fallback)
         raise TransformLookupError(
             "--frame", args.frame, f"a transform {args.frame} <- {source} in the file's /tf or "
-            f"/tf_static, or --extrinsics ({err})") from err
+            f"/tf_static, or --extrinsics ({tf_known(tf)})") from err
 
 
 def _convert_packets(source: _Input, writer: Any, args: argparse.Namespace, plan: _Plan,
@@ -352,9 +353,12 @@ def _pcap_metadata(src: Path, given: str | None) -> Path:
 
 
 def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Sequence[Any],
-                    fallback: Any, report: ConvertReport, emit: Callable[[str], None]) -> None:
+                    fallback: Any, report: ConvertReport, emit: Callable[[str], None],
+                    stop: Callable[[], bool] = lambda: False,
+                    keep_time: Callable[[int], bool] = lambda ns: True) -> None:
     """Ouster .pcap/.pcapng (native decoder) or .osf (via ouster-sdk) -> LidarInfo +
-    LidarScan (+ the requested outputs)."""
+    LidarScan (+ the requested outputs); ``stop()`` is checked between scans (Ctrl-C); a scan
+    whose stamp ``keep_time`` refuses is skipped (``--start``/``--end``)."""
     from converters.edge.nodes.tf import TransformBuffer
     from converters.sources.ouster.metadata import scans_from_recording
     from converters.sources.ouster.pcap import scans_from_pcap
@@ -368,8 +372,12 @@ def _convert_ouster(src: Path, writer: Any, args: argparse.Namespace, slices: Se
     pipeline = _ScanPipeline(args, slices, fallback, TransformBuffer())
     info_written = None
     for index, (scan, info) in enumerate(scans):
-        report.read += 1
+        if stop():
+            break
         stamp = to_ns(scan.header.stamp)
+        if not keep_time(stamp):
+            continue
+        report.read += 1
         if info_written is not info:
             writer.write("/lidar/info", info, log_time_ns=stamp)
             info_written = info

@@ -81,6 +81,15 @@ def _is_option_error(err: Exception) -> bool:
     return isinstance(err, (ConfigError, UnknownChannelError, TransformLookupError))
 
 
+def tf_known(tf: Any) -> str:
+    """What the file's TF knows, for an error about a missing transform (instead of the
+    lookup's own message nested in it)."""
+    frames = tf.frames()
+    if not frames:
+        return "the file has no /tf or /tf_static message (so far)"
+    return f"its TF has the frames {', '.join(frames)} but no transform between these two then"
+
+
 class _ScanPipeline:
     """Per linked (scan, info): PointCloud2, slices, merged scan; built lazily per info."""
 
@@ -114,7 +123,7 @@ class _ScanPipeline:
                 return np.asarray(self.fallback)
             raise TransformLookupError(
                 "--frame", frame, f"a transform {frame} <- {info.header.frame_id} in the file's "
-                f"/tf or /tf_static, or --extrinsics ({err})") from err
+                f"/tf or /tf_static, or --extrinsics ({tf_known(self.tf)})") from err
 
     def outputs(self, scan: Any, info: Any, topic: str, prefix: str, log_time_ns: int,
                 writer: Any, report: ConvertReport, merge: Callable[[str, Any, int], None],
@@ -243,7 +252,7 @@ class _LazyMerger:
             except TransformLookupError as err:
                 raise TransformLookupError(
                     "--merge-topic", name, f"a transform {self.frame} <- {source} in the file's "
-                    f"/tf_static ({err})") from err
+                    f"/tf_static ({tf_known(self.tf)})") from err
         if self._merger is None:
             self._held.append((name, scan))
             del self._held[:-self.hold]

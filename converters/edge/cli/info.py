@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from converters.edge.cli._common import EXIT_BAD, EXIT_OK, _fmt_stamp, _open_input, decode_item
+from converters.edge.cli._describe import ouster_summary, packet_model, recording_size, span_line
 
 
 @dataclass
@@ -32,7 +33,11 @@ def _layout(msgtype: str, msg: Any) -> tuple[str, str] | None:
         return msg.header.frame_id, f"{len(np.asarray(msg.ranges))} rays"
     if msgtype == "sensor_msgs/msg/PointCloud2":
         names = ",".join(f.name for f in msg.fields)
-        return msg.header.frame_id, f"{msg.height}x{msg.width} [{names}]"
+        # an unorganized cloud (height 1: a driver's points with returns only, what
+        # `convert --preset velodyne` writes) has as many points as returns: only its fields
+        # are its layout
+        size = "unorganized" if msg.height == 1 else f"{msg.height}x{msg.width}"
+        return msg.header.frame_id, f"{size} [{names}]"
     if msgtype == "lidarscan_msgs/msg/LidarInfo":
         return msg.header.frame_id, ""  # a new version may change the grid, not the frame
     return None
@@ -57,12 +62,22 @@ def cmd_info(args: argparse.Namespace) -> int:
     from lidarscan.geometry import info_key
     from lidarscan.mcap import INFO_TYPE, SCAN_TYPE, BadMessage, read_scans
 
-    source = _open_input(args.file, "FILE")
+    source = _open_input(args.file, "FILE", ouster=True)
     path = source.path
+    if source.kind.kind == "ouster":
+        lines, problems = ouster_summary(path, args.metadata)
+        print("\n".join(lines))
+        return EXIT_OK if not problems else EXIT_BAD
+    if args.metadata is not None:
+        from lidarscan.errors import ConfigError
+
+        raise ConfigError("--metadata", args.metadata, "an Ouster .pcap/.osf as REC (it is its "
+                          f"metadata JSON); REC is {source.kind.description}")
     topics: dict[str, _TopicStats] = {}
     bad: list[BadMessage] = []
     versions: dict[tuple[str, int], dict[str, Any]] = {}
     packets: dict[str, int] = {}
+    models: dict[str, str] = {}     # packet topic -> the sensor model its packets name
     encodings: dict[str, str] = {}  # topic -> a message encoding other than CDR
     total = 0
     for item in source.items():
@@ -82,6 +97,8 @@ def cmd_info(args: argparse.Namespace) -> int:
             if item.msgtype in PACKET_TYPES:
                 scan = PACKET_TYPES[item.msgtype][1](item.payload)
                 packets[item.topic] = packets.get(item.topic, 0) + len(scan.stamps)
+                if not models.get(item.topic):
+                    models[item.topic] = packet_model(item.msgtype, scan)
                 layout = (scan.frame_id, "")
             elif item.msgtype in (INFO_TYPE, SCAN_TYPE, "sensor_msgs/msg/LaserScan",
                                   "sensor_msgs/msg/PointCloud2"):
@@ -99,6 +116,10 @@ def cmd_info(args: argparse.Namespace) -> int:
         except lidarscan.errors.LidarScanError as err:
             bad.append(BadMessage(item.index, item.topic, item.log_time_ns, str(err), err))
     print(f"{path} ({source.kind.description}): {total} messages on {len(topics)} topics")
+    starts = [s.first_ns for s in topics.values() if s.first_ns is not None]
+    ends = [s.last_ns for s in topics.values() if s.last_ns is not None]
+    first, last = min(starts, default=None), max(ends, default=None)
+    print(f"  {span_line(first, last, recording_size(source))}")
     for note in getattr(source.bag, "notes", []):
         print(f"  note: {note}")
     width = max([len(t) for t in topics] + [5])
@@ -109,6 +130,8 @@ def cmd_info(args: argparse.Namespace) -> int:
         extra = f"  ({packets[topic]} packets)" if topic in packets else ""
         extra += f"  (compressed: {encodings[topic]})" if topic in encodings else ""
         print(f"  {topic:<{width}}  {stats.msgtype:<32} {stats.count:>7}  {span}{extra}")
+    for topic, model in sorted(models.items()):
+        print(f"  sensor on {topic}: {model or 'unknown (no packet decoded)'}")
     problems = len(bad)
     topic_problems = []
     for topic, stats in sorted(topics.items()):

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from converters.edge.cli._common import EXIT_BAD, EXIT_OK, _describe_bad, _err, _open_input
+from converters.edge.cli.view_pick import ScanPicker
 
 
 def cmd_view(args: argparse.Namespace) -> int:
@@ -29,18 +30,19 @@ def cmd_view(args: argparse.Namespace) -> int:
     def note_damage(item: BadMessage) -> None:
         if item.index < 0:
             damage.setdefault(item.reason, item)
-    # 1. range images: the index-th linked scan of each LidarScan topic
-    seen: dict[str, int] = {}
-    chosen_stamp: int | None = None
+    # 1. range images: per LidarScan topic the index-th linked scan, by default the first
+    # complete rotation (a recording usually starts in the middle of one)
+    picks = ScanPicker(args.index)
     for scan, info in read_scans(None, on_error=note_damage, items=source.items()):
-        topic = scan.header.frame_id
-        k = seen.get(topic, 0)
-        seen[topic] = k + 1
-        if k == args.index:
-            name = f"range_image_{_safe(topic)}.png"
-            written.append(viz.range_image(scan, info, out / name,
-                                           title=f"LidarScan (frame '{topic}') #{k}"))
-            chosen_stamp = chosen_stamp or to_ns(scan.header.stamp)
+        picks.add(scan, info)
+    picks.check_index()
+    chosen_stamp: int | None = None
+    for topic, pick in picks.chosen().items():
+        name = f"range_image_{_safe(topic)}.png"
+        written.append(viz.range_image(pick.scan, pick.info, out / name,
+                                       title=f"LidarScan (frame '{topic}') #{pick.index}"
+                                       f"{pick.note}"))
+        chosen_stamp = chosen_stamp or to_ns(pick.scan.header.stamp)
     # 2. LaserScans and clouds near that time, TF from the file
     tf = TransformBuffer(cache_ns=3600 * 10**9, max_per_edge=100_000)
     lasers: dict[str, Any] = {}
@@ -63,7 +65,7 @@ def cmd_view(args: argparse.Namespace) -> int:
                 msg = item.decode()
                 stamp = to_ns(msg.header.stamp)
                 if chosen_stamp is None:
-                    if k == args.index:
+                    if k == (args.index or 0):
                         target[item.topic] = msg
                 else:
                     best = target.get(item.topic)
@@ -72,6 +74,12 @@ def cmd_view(args: argparse.Namespace) -> int:
                         target[item.topic] = msg
         except LidarScanError:
             continue
+    if chosen_stamp is None and args.index is not None and counts and not (lasers or clouds):
+        from lidarscan.errors import ConfigError
+
+        most = max(counts.values())
+        raise ConfigError("--index", args.index, f"an index below {most} (the LaserScan and "
+                          f"PointCloud2 topics have at most {most} messages: 0..{most - 1})")
     frame = args.frame
     if lasers:
         if not frame:
@@ -101,7 +109,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         _err(_describe_bad(item))
     if not written:
         _err(f"{path} ({source.kind.description}): nothing to draw (no LidarScan with its "
-             f"LidarInfo, LaserScan or PointCloud2 at index {args.index}"
+             f"LidarInfo, LaserScan or PointCloud2 at index {args.index or 0}"
              + (", and the input is damaged" if damage else "") + ")"
              + (f"; raw packets on {', '.join(sorted(packets))}: `lidarscan convert` them to "
                 "LidarScans first, then view the output" if packets else ""))
