@@ -193,7 +193,7 @@ def scans_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ("scans", ["--calibration", str(VLP32 / "VLP32.yaml")],
      ("--calibration=", "raw lidar packets", "IN is a recording of LidarScans")),
     ("vlp32", ["--metadata", str(VLP32 / "VLP32.yaml")],
-     ("--metadata=", "an Ouster .pcap/.osf", "IN is a recording of raw lidar packets")),
+     ("--metadata=", "an Ouster .pcap/.pcapng/.osf or Ouster packets", "IN is a recording of raw lidar packets")),
     ("vlp32", ["--extrinsics", "0,0,1,0,0,0"], ("--extrinsics=", "--frame FRAME too")),
     ("vlp32", ["--frame", "base_link"], ("--frame='base_link'", "--slice or --merge-topic")),
     ("vlp32", ["--keep-clouds"], ("--keep-clouds=True", "driver PointCloud2")),
