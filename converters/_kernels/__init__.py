@@ -47,10 +47,11 @@ Kernels take native-byte-order arrays only: byte order is converted once at the 
 boundary (:func:`lidarscan.scan.channel` with ``native=True``).
 
 Warm-up: numba compiles a kernel at its first call (seconds) or loads it from its on-disk cache
-(a large part of a second), and the C kernels load at their first use. :func:`warm_up`
-(:mod:`converters._kernels.warm`) does both for a configuration before the first message; the
-nodes call it before they report ready, and ``python -m converters._kernels.warm`` (run by
-``make install``) fills the cache for every specialisation.
+(a large part of a second), and the C kernels load at their first use. :mod:`converters.warmup`
+(above this package: it drives the converters) does both for a configuration before the first
+message; the nodes call it before they subscribe, and ``lidarscan-warmup`` (``python -m
+converters.warmup``, run by ``make install``) fills the cache for every specialisation. This
+package imports nothing of ``converters`` outside itself.
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ from typing import Any
 
 from lidarscan.errors import ConfigError
 
-__all__ = ["Backends", "c_enabled", "numba_enabled", "select", "warm_up"]
+__all__ = ["Backends", "c_enabled", "numba_enabled", "select"]
 
 
 def c_enabled() -> bool:
@@ -151,11 +152,3 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
         c = slices.available() and (slices.vectorised() or numba is None)
     return Backends(c=c or None, numba=numba)
 
-
-def warm_up(tasks: Any = ("cloud", "slices", "merger"), **options: Any) -> dict[str, float]:
-    """Compile or load every kernel the converters of ``tasks`` will call with these options,
-    before the first message (:func:`converters._kernels.warm.warm`: arguments, returned
-    seconds per task). With numba off or missing, only the C kernels load."""
-    from converters._kernels import warm
-
-    return warm.warm(tasks, **options)
