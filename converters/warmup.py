@@ -24,24 +24,42 @@ mask dtype             uint8 bit masks up to 8 slices, uint64 above
 
 so :func:`warm` converts small synthetic scans through the converters themselves, with the
 caller's slice configuration, on three geometries: an upright sensor of 32 x 1024 rays, the
-same tilted, and a small one of 8 x 64. A kernel a configuration cannot reach is not
-compiled. Nothing here is needed for correctness; it only moves the cost to start-up.
+same tilted, and a small one of 8 x 64 (and a moving mount's paths when ``moving``). A kernel a
+configuration cannot reach is not compiled. Nothing here is needed for correctness; it only
+moves the cost to start-up.
 
-``python -m converters._kernels.warm`` fills the cache for every specialisation the library
-has (both mask dtypes, every path), as the Makefile's install does.
+No compiler on a node's start (:func:`prepare`): a node first loads its kernels from numba's
+cache only (``compile=False``: a kernel that would be compiled raises :class:`NotCached`
+instead). When one is missing (a plain ``pip install``, a new CPU, a cleared cache) the node
+runs ``backend="c"`` (the C kernels built at install where they apply, numpy elsewhere:
+nothing compiles) and fills the cache for its configuration in a background process
+(``lidarscan-warmup --config JSON``), so its next start runs numba; it says which backend runs
+in its log and its ``startup`` diagnostics (:func:`describe`).
+
+Where the cache lives: numba's, ``__pycache__`` next to the kernels' sources, or its user-wide
+cache directory when the install is read-only, or ``NUMBA_CACHE_DIR``. ``lidarscan-warmup``
+(``python -m converters.warmup``; run it once after ``pip install``, as ``make install`` does)
+fills it for every specialisation the library has (both mask dtypes, every path), or with
+``--config JSON`` (:func:`prepare`'s keyword arguments) for one configuration.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import json
 import math
+import os
+import subprocess
+import sys
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-__all__ = ["TASKS", "probe_cloud", "probe_info", "probe_scan", "specialisations", "warm"]
+__all__ = ["TASKS", "NotCached", "Prepared", "describe", "prepare", "probe_cloud", "probe_info",
+           "probe_scan", "specialisations", "warm"]
 
 #: What :func:`warm` can prepare.
 TASKS = ("cloud", "slices", "merger", "codec")
@@ -112,7 +130,36 @@ def _tilt(angle: float) -> np.ndarray[Any, Any]:
                      [0.0, 0.0, 0.0, 1.0]])
 
 
-def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any]) -> None:
+class NotCached(RuntimeError):
+    """A warm-up with ``compile=False`` reached a numba kernel that its cache does not hold
+    for this CPU and these argument types (numba would compile it)."""
+
+
+@contextlib.contextmanager
+def _cache_only() -> Any:
+    """Within: a numba compilation raises :class:`NotCached` (a load from the cache does not
+    compile). Without numba: nothing to refuse."""
+    try:
+        from numba.core import event
+    except ImportError:
+        yield
+        return
+
+    class Refuse(event.Listener):  # type: ignore[misc]
+        def on_start(self, ev: Any) -> None:
+            fn = getattr(ev.data.get("dispatcher"), "py_func", None)
+            raise NotCached(f"numba's cache has no {getattr(fn, '__name__', 'kernel')} for "
+                            "this CPU and these argument types")
+
+        def on_end(self, ev: Any) -> None:
+            pass
+
+    with event.install_listener("numba:compile", Refuse()):
+        yield
+
+
+def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any],
+                 moving: bool = True) -> None:
     from converters.laserscan import SliceConverter
 
     specs = dict(slices) if slices else {"warm": {"min_height": -0.5, "max_height": 0.5}}
@@ -122,6 +169,8 @@ def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any]) -
         converter = SliceConverter(info, specs, extrinsics=_tilt(tilt), frame_id="warm_target",
                                    **opts)
         converter.convert(probe_scan(info))
+    if not moving:
+        return
     # a moving mount (per-scan rays: the transform kernel, then the general kernel's passes)
     from converters.transforms import TransformTrack
 
@@ -144,16 +193,16 @@ def _warm_cloud(options: Mapping[str, Any]) -> None:
     PointCloud2Converter(info, **options).convert(probe_scan(info))
 
 
-def _warm_merger() -> None:
+def _warm_merger(backend: str = "auto") -> None:
     from converters.laserscan import SliceConverter
     from converters.merger import LaserScanMerger, MergerInput
 
     info = probe_info(8, 64)
-    laser = SliceConverter(info, {"s": {"min_height": -100.0, "max_height": 100.0}}
-                           ).convert(probe_scan(info))["s"]
+    laser = SliceConverter(info, {"s": {"min_height": -100.0, "max_height": 100.0}},
+                           backend="numpy").convert(probe_scan(info))["s"]
     merger = LaserScanMerger({"a": MergerInput(),
                               "b": MergerInput(extrinsics=_tilt(0.0), frame_id="warm")},
-                             frame_id="warm")
+                             frame_id="warm", backend=backend)
     merger.merge({"a": laser, "b": laser})
 
 
@@ -179,7 +228,8 @@ def _warm_codec() -> None:
 
 def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = None,
          slice_options: Mapping[str, Any] | None = None,
-         cloud_options: Mapping[str, Any] | None = None) -> dict[str, float]:
+         cloud_options: Mapping[str, Any] | None = None, moving: bool = True,
+         compile: bool = True) -> dict[str, float]:
     """Prepare the compiled kernels of ``tasks`` (a subset of :data:`TASKS`).
 
     Args:
@@ -189,7 +239,10 @@ def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = Non
         slices: the slice configuration a node will use (name -> SliceSpec or dict), as
             :class:`converters.laserscan.SliceConverter` takes it; None = one slice.
         slice_options, cloud_options: keyword options of the slice / PointCloud2 converters
-            (e.g. ``intensity_channel``, ``backend``; ``preset``, ``fields``).
+            (e.g. ``intensity_channel``, ``backend``; ``preset``, ``fields``); the merger
+            takes ``slice_options["backend"]``.
+        moving: also the kernels of a moving mount (False: a fixed mount's only).
+        compile: False: load numba's kernels from its cache only (nothing is compiled).
 
     Returns:
         task -> seconds it took (milliseconds when the cache is warm; seconds when numba
@@ -197,23 +250,142 @@ def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = Non
 
     Raises:
         ConfigError: an unknown task, or options the converters refuse.
+        NotCached: ``compile=False`` and a kernel is not in numba's cache.
     """
     from lidarscan.errors import ConfigError
 
+    backend = (slice_options or {}).get("backend", "auto")
     steps: dict[str, Callable[[], None]] = {
         "cloud": lambda: _warm_cloud(cloud_options or {}),
-        "slices": lambda: _warm_slices(slices, slice_options or {}),
-        "merger": _warm_merger, "codec": _warm_codec}
+        "slices": lambda: _warm_slices(slices, slice_options or {}, moving),
+        "merger": lambda: _warm_merger(backend), "codec": _warm_codec}
     chosen = list(tasks)
     for task in chosen:
         if task not in steps:
             raise ConfigError("warm task", task, f"one of {', '.join(TASKS)}")
     seconds = {}
-    for task in chosen:
-        start = time.perf_counter()
-        steps[task]()
-        seconds[task] = time.perf_counter() - start
+    with contextlib.nullcontext() if compile else _cache_only():
+        for task in chosen:
+            start = time.perf_counter()
+            steps[task]()
+            seconds[task] = time.perf_counter() - start
     return seconds
+
+
+def describe(tasks: Iterable[str], backend: str = "auto") -> dict[str, str]:
+    """Which code runs each of ``tasks`` ("cloud", "slices", "merger", "cloud_slices") with
+    ``backend`` (:func:`converters._kernels.select`), for a node's log and diagnostics: e.g.
+    ``{"cloud": "C", "slices": "C AVX-512 (row-ordered), numba (other cases)"}``."""
+    from converters._kernels import select
+
+    out = {}
+    for task in tasks:
+        if task == "cloud":
+            out[task] = "C" if select("cloud").c is not None else "numpy"
+            continue
+        chosen = select(task, backend=backend)
+        parts = []
+        if chosen.c and task == "slices":
+            from converters._kernels import slices as c_slices
+
+            vector = "AVX-512" if c_slices.vectorised() else "scalar"
+            parts.append(f"C {vector} (row-ordered)")
+        elif chosen.c:
+            parts.append("C")
+        if chosen.numba is not None:
+            parts.append("numba")
+        elif task != "cloud_slices" and (not parts or task == "slices"):
+            parts.append("numpy")
+        if len(parts) == 2:
+            parts[1] += " (other cases)"
+        out[task] = ", ".join(parts)
+    return out
+
+
+@dataclasses.dataclass
+class Prepared:
+    """What :func:`prepare` did.
+
+    Attributes:
+        backend: the ``backend`` the node's converters must use ("auto", or "c" while numba's
+            cache lacks their kernels, or the caller's).
+        seconds: task -> seconds of the warm-up.
+        runs: :func:`describe` of ``backend``.
+        missing: why numba is not used (its cache lacks a kernel), or "".
+        filler: the background process filling the cache (None: none started).
+    """
+
+    backend: str
+    seconds: dict[str, float]
+    runs: dict[str, str]
+    missing: str = ""
+    filler: Any = None
+
+    def summary(self) -> str:
+        """One line for the log: the backends, and the cache fill when one started."""
+        line = "kernels: " + "; ".join(f"{k} {v}" for k, v in self.runs.items())
+        if self.missing:
+            line += (f" (numba not used: {self.missing}; compiling this configuration's "
+                     "kernels into the cache in the background"
+                     + (f", pid {self.filler.pid}" if self.filler is not None else "")
+                     + ": the next start uses them; `lidarscan-warmup` after install avoids "
+                     "this)")
+        return line
+
+
+def prepare(tasks: Sequence[str], *, slices: Mapping[str, Any] | None = None,
+            slice_options: Mapping[str, Any] | None = None,
+            cloud_options: Mapping[str, Any] | None = None, moving: bool = True,
+            background: bool = True) -> Prepared:
+    """A node's warm-up with no compiler on its critical path: load every kernel of this
+    configuration (:func:`warm` arguments) from numba's cache; when a kernel is not cached,
+    use ``backend="c"`` instead (C kernels where they apply, numpy elsewhere: milliseconds)
+    and, with ``background``, start a low-priority process that compiles this configuration's
+    kernels into the cache for the next start. A ``backend`` other than "auto" in
+    ``slice_options`` is kept (``"numba"`` compiles here: the caller asked for it).
+
+    Raises:
+        ConfigError: options the converters refuse.
+    """
+    options = dict(slice_options or {})
+    backend = options.get("backend", "auto")
+    config = {"tasks": list(tasks), "slices": _plain(slices), "slice_options": options,
+              "cloud_options": dict(cloud_options or {}), "moving": moving}
+    missing, filler = "", None
+    try:
+        seconds = warm(tasks, slices=slices, slice_options=options,
+                       cloud_options=cloud_options, moving=moving,
+                       compile=backend != "auto")
+    except NotCached as err:
+        missing, backend = str(err), "c"
+        options["backend"] = "c"
+        seconds = warm(tasks, slices=slices, slice_options=options,
+                       cloud_options=cloud_options, moving=moving)
+        if background:
+            filler = _fill_in_background(config)
+    return Prepared(backend, seconds, describe([t for t in tasks if t != "codec"], backend),
+                    missing, filler)
+
+
+def _plain(slices: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """A slice configuration as JSON-able dicts (SliceSpec dataclasses become dicts)."""
+    if slices is None:
+        return None
+    return {name: dataclasses.asdict(spec) if dataclasses.is_dataclass(spec) else dict(spec)
+            for name, spec in slices.items()}
+
+
+def _fill_in_background(config: Mapping[str, Any]) -> Any:
+    """Start ``python -m converters.warmup --config JSON`` at low priority, detached (its own
+    session: a Ctrl-C to the node does not stop it), output discarded; None if it cannot
+    start."""
+    try:
+        return subprocess.Popen(
+            [sys.executable, "-m", "converters.warmup", "--nice", "--config",
+             json.dumps(config)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL, start_new_session=True)
+    except OSError:
+        return None
 
 
 def specialisations() -> dict[str, int]:
@@ -227,8 +399,23 @@ def specialisations() -> dict[str, int]:
     return {name: len(d.signatures) for name, d in compiled.dispatchers().items()}
 
 
-def main() -> int:
-    """``python -m converters._kernels.warm``: fill the cache for every specialisation."""
+def main(argv: Sequence[str] | None = None) -> int:
+    """``lidarscan-warmup`` (``python -m converters.warmup``): fill numba's cache for every
+    specialisation; ``--config JSON``: for one configuration (:func:`prepare`'s keywords);
+    ``--nice``: at low priority (a node's background fill)."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "--nice" in args:
+        args.remove("--nice")
+        with contextlib.suppress(OSError):
+            os.nice(10)
+    if args[:1] == ["--config"] and len(args) == 2:
+        config = json.loads(args[1])
+        took = warm(config.pop("tasks"), **config)
+        print("kernels ready: " + ", ".join(f"{k} {v:.2f} s" for k, v in took.items()))
+        return 0
+    if args:
+        print("usage: lidarscan-warmup [--nice] [--config JSON]", file=sys.stderr)
+        return 2
     one = {"a": {"min_height": -0.5, "max_height": 0.5}}
     nine = {f"s{i}": {"min_height": -0.5 + 0.1 * i, "max_height": 0.5} for i in range(9)}
     two_grids = {"a": {"min_height": -0.5, "max_height": 0.5},
@@ -249,6 +436,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    import sys
-
     sys.exit(main())

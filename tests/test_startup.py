@@ -47,7 +47,7 @@ def _numba() -> None:
 
 _SCANS = """
 import json, numpy as np, lidarscan, converters
-from converters._kernels import warm
+from converters import warmup as warm
 from converters.ouster import info_from_metadata, scan_from_frame
 
 D = "tests/data/ouster/"
@@ -112,7 +112,7 @@ def test_merger_kernels_are_ready_after_the_warm_up() -> None:
     _numba()
     out = _run("""
 import json, math, numpy as np, lidarscan
-from converters._kernels import warm
+from converters import warmup as warm
 from converters.merger import LaserScanMerger, MergerInput
 warm.warm(("merger",))
 ready = warm.specialisations()
@@ -139,10 +139,10 @@ print(json.dumps({"ready": ready, "after": warm.specialisations()}))
 
 def test_warm_rejects_an_unknown_task_and_probes_are_valid() -> None:
     import lidarscan
-    from converters._kernels import warm, warm_up
+    from converters import warmup as warm
 
     with pytest.raises(ConfigError, match="warm task"):
-        warm_up(("clouds",))
+        warm.warm(("clouds",))
     info = warm.probe_info(8, 64)
     scan = warm.probe_scan(info, intensity_name="signal", destaggered=True)
     lidarscan.validate(scan, info)
@@ -152,7 +152,7 @@ def test_warm_rejects_an_unknown_task_and_probes_are_valid() -> None:
     # every class of value the kernels treat apart is there
     assert np.isinf(r).any() and np.isnan(r).any() and (r == -np.inf).any()
     assert not r.flags.writeable                     # a view of the message, as received
-    assert warm_up(()) == {}
+    assert warm.warm(()) == {}
 
 
 # ------------------------------------------------------------------------- ready in nodes
@@ -200,7 +200,7 @@ def test_warm_up_times_steps_logs_ready_and_reports_failures() -> None:
 _NODE = """
 import json, time, os, numpy as np, rclpy, lidarscan
 from rclpy.parameter import Parameter
-from converters._kernels import warm
+from converters import warmup as warm
 from converters.nodes.converter_node import ConverterNode
 from converters.ouster import info_from_metadata, scan_from_frame
 
@@ -266,7 +266,7 @@ def test_cloud_slicer_warm_up_leaves_nothing_to_compile_for_a_driver_cloud() -> 
     got = _run("""
         import json, sys, numpy as np
         from converters import _kernels
-        from converters._kernels.warm import probe_cloud
+        from converters.warmup import probe_cloud
         from converters.nodes.cloud_to_scan_node import CloudSlicer
         from converters.nodes.params import SliceConfig
         from converters.ouster import info_from_metadata, scan_from_frame

@@ -41,7 +41,9 @@ Switches, read here and nowhere else (at the first use of a backend in the proce
 is re-checked at each ``select``, the others at their first use);
 ``LIDARSCAN_NUMBA=0`` disables numba. Per object, ``kernel=`` (PointCloud2: None = when built,
 False = numpy, True = required) and ``backend=`` (slices and merger: ``"auto"``, ``"numba"``,
-``"numpy"``) choose among what is enabled.
+``"numpy"``, ``"c"``) choose among what is enabled. ``"c"`` never compiles at run time: the C
+kernels (built at install) where they apply, else numpy; the nodes run it while numba's cache
+lacks their kernels (:mod:`converters.warmup`).
 
 Kernels take native-byte-order arrays only: byte order is converted once at the message
 boundary (:func:`lidarscan.scan.channel` with ``native=True``).
@@ -103,7 +105,9 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy; cloud slices: the C kernel, else
             numpy); ``"numba"``: numba only (an error when it is missing, and for the cloud
-            slices, which have no numba kernel); ``"numpy"``: the reference.
+            slices, which have no numba kernel); ``"numpy"``: the reference; ``"c"``: nothing
+            compiled at run time (slices and cloud slices: the C kernel when built and enabled,
+            whatever its vector path; merger: numpy).
         kernel: PointCloud2 only: None = the C kernel when built and enabled, False = numpy,
             True = the C kernel or an error.
 
@@ -131,15 +135,20 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
     if task not in ("slices", "merger", "cloud_slices"):
         raise ConfigError("task", task, "'cloud', 'slices', 'merger', 'cloud_slices', 'hesai', "
                           "'velodyne' or 'codec'")
-    if backend not in ("auto", "numba", "numpy"):
-        raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
+    if backend not in ("auto", "numba", "numpy", "c"):
+        raise ConfigError("backend", backend, "'auto', 'numba', 'numpy' or 'c'")
     if task == "cloud_slices":
         if backend == "numba":
             raise ConfigError("backend", backend, "'auto' (the compiled C kernel when it is "
                               "built) or 'numpy': the cloud slices have no numba kernel")
         from converters._kernels import cloud_slices
-        return Backends(c=cloud_slices.library() if backend == "auto" else None)
+        return Backends(c=cloud_slices.library() if backend in ("auto", "c") else None)
     numba = None
+    if backend == "c":
+        if task == "merger":
+            return Backends()
+        from converters._kernels import slices
+        return Backends(c=slices.available() or None)
     if backend != "numpy":
         from converters._kernels import slices_numba
         numba = slices_numba.kernels()

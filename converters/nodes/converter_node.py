@@ -392,15 +392,7 @@ def _node_class() -> type:
             self.slice_pubs = {s.name: self.create_publisher(LaserScan, s.topic, out_qos)
                                for s in specs}
             scan_topic = values["scan_topic"]
-            self.create_subscription(LidarScan, scan_topic, self._on_scan,
-                                     P.qos_profile(values["scan_qos"]), raw=True)
-            self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
-                                     P.qos_profile(values["info_qos"]), raw=True)
             self._prepared: set[Any] = set()
-            self.tf_listener = TfListener(self, self.tf_buffer,
-                                          on_error=lambda line: self._log(line, "tf"),
-                                          on_message=self._on_tf if self.moving else None) \
-                if self.target_frame else None
             self._lookup_error = TransformLookupError
             self.create_timer(0.5, self.core.expire)
             self._rates = RateMeter()
@@ -415,9 +407,34 @@ def _node_class() -> type:
                      + (f"; depth images {self.resolve_topic_name(values['depth.image_topic'])!r}"
                         if self.depth_sync is not None else "")
                      + ("; moving mount (pose from /tf per pixel)" if self.moving else ""))
-            self.startup = warm_up(
-                self, {"kernels": lambda: self.core.warm(cloud=self.cloud_pub is not None)},
-                self.diagnostics)
+            # ready before listening: every kernel loaded (from numba's cache only: no compiler
+            # here) before the subscriptions exist, so a publisher that waits for the match
+            # never meets a node that is not ready
+            self.kernels: Any = None
+            self.startup = warm_up(self, {"kernels": self._warm}, self.diagnostics,
+                                   describe=self._kernels_line)
+            self.tf_listener = TfListener(self, self.tf_buffer,
+                                          on_error=lambda line: self._log(line, "tf"),
+                                          on_message=self._on_tf if self.moving else None) \
+                if self.target_frame else None
+            self._subscribe_depth()
+            self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
+                                     P.qos_profile(values["info_qos"]), raw=True)
+            self.create_subscription(LidarScan, scan_topic, self._on_scan,
+                                     P.qos_profile(values["scan_qos"]), raw=True)
+
+        def _warm(self) -> None:
+            self.kernels = self.core.warm(cloud=self.cloud_pub is not None)
+
+        def _kernels_line(self) -> tuple[str, dict[str, Any]]:
+            """(log line, diagnostics values) of the kernels that run."""
+            if self.kernels is None:
+                return "", {}
+            return self.kernels.summary(), {
+                "backend": self.kernels.backend,
+                **{f"kernels_{k}": v for k, v in self.kernels.runs.items()},
+                **({"numba_cache": "filling in the background"} if self.kernels.missing
+                   else {})}
 
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:
@@ -431,13 +448,21 @@ def _node_class() -> type:
             parse_extrinsics(values["depth.extrinsics"], "depth.extrinsics")
 
         def _apply(self, values: dict[str, Any], changed: set[str]) -> None:
+            """Warm the new configuration's kernels (from the cache only, as at the start),
+            then apply it and rebuild the current LidarInfo's tables, before the next scan."""
             config = settings(values, self._file_slices)
             self.fallback_extrinsics = config.pop("extrinsics")
             self._have_fallback = bool(values["extrinsics"])
+            candidate = ConverterCore(**config, moving=self.moving)
+            self.kernels = candidate.warm(cloud=self.cloud_pub is not None)
+            config["slice_options"] = candidate.slice_options
             self.core.reconfigure(**{k: v for k, v in config.items() if k != "target_frame"})
             self._prepared.clear()
             self._apply_depth(values, config)
-            self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
+            if self.core.last_info is not None:
+                self._prepare(self.core.last_info)
+            self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}; "
+                                   f"{self.kernels.summary()}")
 
         # ----------------------------------------------------------------- diagnostics
         def _diagnose(self) -> list[Any]:
