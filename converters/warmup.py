@@ -349,7 +349,7 @@ def prepare(tasks: Sequence[str], *, slices: Mapping[str, Any] | None = None,
     """
     options = dict(slice_options or {})
     backend = options.get("backend", "auto")
-    config = {"tasks": list(tasks), "slices": _plain(slices), "slice_options": options,
+    config = {"tasks": list(tasks), "slices": _plain(slices), "slice_options": dict(options),
               "cloud_options": dict(cloud_options or {}), "moving": moving}
     missing, filler = "", None
     try:

@@ -57,7 +57,8 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
   how long (data time) a scan waits for ``/tf`` to cover its sweep; ``tf_tolerance`` [0.0] s:
   how long the newest ``/tf`` pose is held past its stamp (0 = never beyond the newest);
 * ``max_pending`` [16] scans held while their LidarInfo is missing, for at most
-  ``max_wait`` [2.0] seconds; ``max_infos`` [8] LidarInfo versions kept pairable (see
+  ``max_wait`` [2.0] seconds; ``info_wait`` [1.0] s: how long the start waits for a latched
+  LidarInfo before subscribing to the scans (its tables are built first); ``max_infos`` [8] LidarInfo versions kept pairable (see
   :mod:`lidarscan.linkage` for what happens to older ones: dropped, never mispaired);
 * ``allow_unknown_parameters`` [false]: a parameter this node does not declare (a typo such as
   ``target_fram``) stops it at start-up with the list and a suggestion, unless true;
@@ -101,10 +102,16 @@ image stamp, else ``depth.extrinsics``. ``depth.publish_scan`` [false] also publ
 LidarScan and the latched LidarInfo. A new CameraInfo content rebuilds the rays and the slice
 tables when it arrives, before the image that needs them (:mod:`converters.nodes.depth_input`).
 
-Ready: the node compiles or loads every kernel its configuration will call (numba's cache,
-filled by ``make install``) before it logs ``ready: warm-up ... ms`` and publishes a ``startup``
-status, and it builds each LidarInfo version's converters and tables when that info arrives, so
-the first scan after ready costs about what the next ones cost (bench/bench_startup.py).
+Ready before listening: the node loads every kernel its configuration will call from numba's
+cache (no compiler runs: when the cache lacks one, the C kernels and numpy run and the cache is
+filled in the background, :mod:`converters.warmup`), logs ``ready: warm-up ... ms; kernels:
+...`` (the backends that run; also in the ``startup`` status), subscribes to the LidarInfo and
+waits up to ``info_wait`` for the latched one (building its converters and tables), and only
+then subscribes to the scans: a driver that starts publishing when the subscription matches
+meets a ready node. A later LidarInfo version's tables are built when it arrives, before its
+first scan is converted (scans that arrive meanwhile wait in the reader's queue or the linkage,
+not dropped), so the first scans cost about what the next ones cost (bench/bench_startup.py,
+bench/bench_first_scans.py).
 
 ``lidarscan-converter --help`` prints every parameter with its default, rule and description
 (from the one table in :func:`_specs`) without starting ROS. Topics, QoS, ``slice_names``,
@@ -179,6 +186,9 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
         S("max_pending", 16, "scans held while their LidarInfo is missing", low=0,
           high=100_000),
         S("max_wait", 2.0, "seconds a scan may wait for its LidarInfo", low=0.0, high=3600.0),
+        S("info_wait", 1.0, "seconds the node waits at its start for a latched LidarInfo, so "
+          "that its tables exist before it subscribes to the scans (0 = do not wait)",
+          low=0.0, high=60.0, read_only=True),
         S("max_infos", 8, "LidarInfo versions kept pairable (older ones: scans dropped)",
           low=1, high=1024),
         S("allow_unknown_parameters", False, "start even with parameters this node does not "
@@ -418,10 +428,31 @@ def _node_class() -> type:
                                           on_message=self._on_tf if self.moving else None) \
                 if self.target_frame else None
             self._subscribe_depth()
-            self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
-                                     P.qos_profile(values["info_qos"]), raw=True)
+            info_sub = self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
+                                                P.qos_profile(values["info_qos"]), raw=True)
+            self._await_info(info_sub, values["info_wait"])
             self.create_subscription(LidarScan, scan_topic, self._on_scan,
                                      P.qos_profile(values["scan_qos"]), raw=True)
+
+        def _await_info(self, subscription: Any, seconds: float) -> None:
+            """Before subscribing to the scans: take a latched LidarInfo (and build its
+            tables, :meth:`_on_info`) if one comes within ``seconds``, so that a driver that
+            starts publishing when the scan subscription matches meets built tables."""
+            if seconds <= 0:
+                return
+            import time
+
+            from rclpy.executors import SingleThreadedExecutor
+
+            executor = SingleThreadedExecutor(context=self.context)
+            executor.add_node(self)
+            try:
+                end = time.monotonic() + seconds
+                while self.stats.infos_received == 0 and time.monotonic() < end:
+                    executor.spin_once(timeout_sec=min(0.05, max(end - time.monotonic(), 0)))
+            finally:
+                executor.remove_node(self)
+                executor.shutdown(timeout_sec=0)
 
         def _warm(self) -> None:
             self.kernels = self.core.warm(cloud=self.cloud_pub is not None)
