@@ -417,7 +417,11 @@ def _node_class() -> type:
             self.core.options = fresh.options
             self.core.angle_tolerance = fresh.angle_tolerance
             self.core.offset_tolerance = fresh.offset_tolerance
-            self.slicer = slicer(values, self._file_slices)
+            fresh_slicer = slicer(values, self._file_slices)
+            if fresh_slicer is not None:     # warmed before it replaces the running one
+                from converters.warmup import probe_cloud
+                fresh_slicer.convert(probe_cloud())
+            self.slicer = fresh_slicer
             self.fallback_extrinsics = P.parse_extrinsics(values["extrinsics"]) \
                 if values["extrinsics"] else None
             self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")

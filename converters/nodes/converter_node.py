@@ -403,6 +403,7 @@ def _node_class() -> type:
                                for s in specs}
             scan_topic = values["scan_topic"]
             self._prepared: set[Any] = set()
+            self._unmounted: Any = None    # an info prepared without its mount (cloud only)
             self._lookup_error = TransformLookupError
             self.create_timer(0.5, self.core.expire)
             self._rates = RateMeter()
@@ -448,11 +449,30 @@ def _node_class() -> type:
             executor.add_node(self)
             try:
                 end = time.monotonic() + seconds
-                while self.stats.infos_received == 0 and time.monotonic() < end:
+                while not self._mount_known() and time.monotonic() < end:
                     executor.spin_once(timeout_sec=min(0.05, max(end - time.monotonic(), 0)))
             finally:
                 executor.remove_node(self)
                 executor.shutdown(timeout_sec=0)
+            if self._unmounted is not None and self._mount_known():
+                # the mount came after the info: its slice tables now
+                self._prepared.discard(self._unmounted)
+                self._prepare(self.core.last_info)
+
+        def _mount_known(self) -> bool:
+            """A LidarInfo arrived, and the slices' mount is known (from TF, or the
+            ``extrinsics`` parameter, or not needed)."""
+            info = self.core.last_info
+            if info is None:
+                return False
+            if not self.target_frame or self.moving or not self.core.slices \
+                    or self._have_fallback:
+                return True
+            try:
+                self.tf_buffer.lookup(self.target_frame, info.header.frame_id, None)
+            except self._lookup_error:
+                return False
+            return True
 
         def _warm(self) -> None:
             self.kernels = self.core.warm(cloud=self.cloud_pub is not None)
@@ -589,6 +609,8 @@ def _node_class() -> type:
                         self.fallback_extrinsics if self._have_fallback else None, "extrinsics")
                 except self._lookup_error:
                     pass                                # no mount yet: the cloud only
+            self._unmounted = key if extrinsics is None and self.target_frame \
+                and not self.moving else None
             try:
                 self.core.prepare(info, extrinsics, cloud=self.cloud_pub is not None)
             except Exception as err:  # noqa: BLE001 - the first scan then builds them itself
