@@ -53,7 +53,7 @@ def node_command() -> list[str]:
     """The console script of the converter node (its module when the script is missing)."""
     script = Path(sys.executable).parent / "lidarscan-converter"
     return [str(script)] if script.exists() else [sys.executable, "-m",
-                                                  "converters.nodes.converter_node"]
+                                                  "converters.edge.nodes.converter_node"]
 
 
 def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int | None = None,
