@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import statistics
 import struct
 import subprocess
@@ -64,8 +65,8 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
 
     Returns:
         ``sent`` (stamps), ``clouds`` / ``slices`` (stamps in arrival order), ``cloud_ms`` /
-        ``slice_ms`` (stamp -> latency, ms), ``start_s`` (node start to the match), ``log``
-        (the node's output).
+        ``slice_ms`` (stamp -> latency, ms), ``start_s`` (process start to the match),
+        ``ready_s`` (process start to its ``ready`` line), ``log`` (the node's output).
     """
     import numpy as np
     import rclpy
@@ -109,7 +110,7 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
         info_pub.publish(lidarscan.encode(info))
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
-        start = time.monotonic()
+        start, start_wall = time.monotonic(), time.time()
         proc = subprocess.Popen([*node_command(), "--ros-args", *args], env=env,
                                 stdout=log, stderr=subprocess.STDOUT)
         while scan_pub.get_subscription_count() == 0:     # the driver waits for the match
@@ -144,6 +145,8 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
         rclpy.try_shutdown(context=context)
     log.seek(0)
     out: dict[str, Any] = {"sent": sent, "start_s": round(matched, 3), "log": log.read()}
+    ready = re.search(r"\[(\d+\.\d+)\] \[[^]]*\]: ready:", out["log"])
+    out["ready_s"] = round(float(ready.group(1)) - start_wall, 3) if ready else None
     for name, box in arrivals.items():
         out[name] = [s for s, _ in box]
         out[name[:-1] + "_ms"] = {s: (t - s) / 1e6 for s, t in box}
@@ -153,7 +156,7 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
 def goal(result: dict[str, Any]) -> dict[str, Any]:
     """Losses, the steady state and the first scans' latencies of a :func:`measure`."""
     sent = result["sent"]
-    row: dict[str, Any] = {"start_s": result["start_s"]}
+    row: dict[str, Any] = {"start_s": result["start_s"], "ready_s": result["ready_s"]}
     ok = True
     for kind in ("cloud", "slice"):
         got = result[kind + "_ms"]
@@ -185,7 +188,8 @@ def main() -> int:
             row = goal(result)
             ready = [line for line in result["log"].splitlines() if "ready:" in line]
             failed += not row["met"]
-            print(f"{case}: start->subscribed {row['start_s']:.2f} s; "
+            print(f"{case}: process start->ready {row['ready_s']} s, ->subscribed "
+                  f"{row['start_s']:.2f} s; "
                   + "; ".join(f"{k}: lost {row[k]['lost']}, steady {row[k]['steady_ms']} ms, "
                               f"first ten {row[k]['first_ms']} ms" for k in ("cloud", "slice"))
                   + f"; goal {'met' if row['met'] else 'MISSED'}", flush=True)
