@@ -70,13 +70,13 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
     """
     import numpy as np
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
-    import lidarscan
     from converters.ouster import info_from_metadata, scan_from_frame
     from lidarscan_msgs.msg import LidarInfo, LidarScan
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import LaserScan, PointCloud2
+
+    import lidarscan
 
     domain = 1 + (os.getpid() + 37) % 100 if domain is None else domain
     info = info_from_metadata(META, stamp_ns=1, frame_id="os_lidar", as_dataclass=True)
@@ -94,7 +94,7 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
     arrivals: dict[str, list[tuple[int, int]]] = {"clouds": [], "slices": []}
-    log = tempfile.TemporaryFile(mode="w+")
+    log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - read after the node stops
     proc = None
     executor = SingleThreadedExecutor(context=context)
     try:
@@ -145,6 +145,7 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
         rclpy.try_shutdown(context=context)
     log.seek(0)
     out: dict[str, Any] = {"sent": sent, "start_s": round(matched, 3), "log": log.read()}
+    log.close()
     ready = re.search(r"\[(\d+\.\d+)\] \[[^]]*\]: ready:", out["log"])
     out["ready_s"] = round(float(ready.group(1)) - start_wall, 3) if ready else None
     for name, box in arrivals.items():

@@ -194,8 +194,8 @@ def _warm_cloud(options: Mapping[str, Any]) -> None:
 
 
 def _warm_merger(backend: str = "auto") -> None:
-    from converters.slices.converter import SliceConverter
     from converters.merger import LaserScanMerger, MergerInput
+    from converters.slices.converter import SliceConverter
 
     info = probe_info(8, 64)
     laser = SliceConverter(info, {"s": {"min_height": -100.0, "max_height": 100.0}},
