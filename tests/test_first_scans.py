@@ -80,3 +80,87 @@ def test_a_cold_node_loses_no_scan_of_a_driver_that_starts_at_the_match(
     assert not _running(pid), "the background fill did not finish in 600 s"
     log = _check(bench.measure(str(cache), scans=30), 30)
     assert "numba not used" not in log and "slices" in log and "numba" in log, log[-3000:]
+
+
+@pytest.mark.ros
+def test_a_new_info_gets_its_tables_before_its_first_scan_and_no_queued_scan_is_dropped(
+        graph: Any) -> None:
+    """A LidarInfo version arriving mid-stream, with a burst of its scans right behind it on a
+    reliable topic: its tables are built before its first scan is converted, and every scan
+    of the burst (queued meanwhile in the reader, or held by the linkage when it came first)
+    is converted, in order."""
+    from lidarscan_msgs.msg import LidarInfo, LidarScan
+    from sensor_msgs.msg import PointCloud2
+
+    from converters.edge.nodes.converter_node import ConverterNode
+    from lidarscan.geometry import info_key
+    from test_nodes import overrides, small_info, small_scan
+
+    info = small_info()
+    info_pub = graph.publisher(LidarInfo, "lidar_info", "latched")
+    info_pub.publish(info)
+    from converters.edge.nodes import params as P
+
+    # the driver keeps its burst (depth 32); the node's reader keeps max_pending (16) scans
+    scan_pub = graph.tester.create_publisher(LidarScan, "lidar_scan",
+                                             P.qos_profile("reliable", 32))
+    clouds = graph.collect(PointCloud2, "points", "reliable")
+    node = graph.add(ConverterNode(context=graph.context, parameter_overrides=overrides(
+        scan_qos="reliable", output_qos="reliable", slice_names=["low"],
+        slices__low__min_height=-0.5, slices__low__max_height=0.5)))
+    # the latched info came before the scan subscription, with its tables
+    assert node.stats.infos_received == 1 and node.core._clouds and node.core._slicers
+    assert graph.wait(lambda: node.cloud_pub.get_subscription_count() > 0)
+    calls: list[tuple[str, Any]] = []
+    prepare, convert = node.core.prepare, node.core.convert
+
+    def spy_prepare(info: Any, *args: Any, **kwargs: Any) -> Any:
+        calls.append(("prepare", info_key(info)))
+        return prepare(info, *args, **kwargs)
+
+    def spy_convert(scan: Any, info: Any, **kwargs: Any) -> Any:
+        calls.append(("convert", info_key(info)))
+        return convert(scan, info, **kwargs)
+
+    node.core.prepare, node.core.convert = spy_prepare, spy_convert
+    wider = small_info(stamp_ns=7_777, width=256)        # a new geometry: new tables
+    burst = [small_scan(wider, 10**9 * (k + 1), seed=k) for k in range(12)]
+    info_pub.publish(wider)
+    for scan in burst:
+        scan_pub.publish(scan)
+    assert graph.wait(lambda: len(clouds) >= len(burst), timeout=30.0), (
+        [c.header.stamp.sec for c in clouds], node.stats)
+    stamps = [c.header.stamp.sec * 10**9 + c.header.stamp.nanosec for c in clouds]
+    assert stamps == [10**9 * (k + 1) for k in range(12)]       # none lost, in order
+    assert node.stats.scans_dropped == 0 and node.stats.scans_idle == 0
+    key = info_key(lidarscan_decode(wider))
+    first_prepare = calls.index(("prepare", key))
+    assert first_prepare < calls.index(("convert", key)), calls[:4]
+
+
+def lidarscan_decode(msg: Any) -> Any:
+    """The dataclass of a message as the node decodes it (for its info key)."""
+    import lidarscan
+
+    return lidarscan.decode_info(lidarscan.encode(msg))
+
+
+@pytest.fixture
+def graph(monkeypatch: pytest.MonkeyPatch) -> Any:
+    """test_nodes' in-process graph (an executor thread and a tester node)."""
+    rclpy = pytest.importorskip("rclpy")
+    pytest.importorskip("lidarscan_msgs.msg")
+    from test_nodes import DOMAIN, Graph
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=DOMAIN)
+    g = None
+    try:
+        g = Graph(context)
+        yield g
+    finally:
+        if g is not None:
+            g.close()
+        rclpy.try_shutdown(context=context)

@@ -56,7 +56,9 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
 * ``moving`` [false]: the sensor's mount moves during a sweep (below); ``tf_wait`` [0.1] s:
   how long (data time) a scan waits for ``/tf`` to cover its sweep; ``tf_tolerance`` [0.0] s:
   how long the newest ``/tf`` pose is held past its stamp (0 = never beyond the newest);
-* ``max_pending`` [16] scans held while their LidarInfo is missing, for at most
+* ``max_pending`` [16] scans held while their LidarInfo is missing (also the least depth of
+  the scan subscription's queue, fixed at the start: scans that arrive while a new LidarInfo's
+  tables are built wait there; under reliable QoS none is dropped), for at most
   ``max_wait`` [2.0] seconds; ``info_wait`` [1.0] s: how long the start waits for a latched
   LidarInfo before subscribing to the scans (its tables are built first); ``max_infos`` [8] LidarInfo versions kept pairable (see
   :mod:`lidarscan.linkage` for what happens to older ones: dropped, never mispaired);
@@ -432,8 +434,11 @@ def _node_class() -> type:
             info_sub = self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
                                                 P.qos_profile(values["info_qos"]), raw=True)
             self._await_info(info_sub, values["info_wait"])
-            self.create_subscription(LidarScan, scan_topic, self._on_scan,
-                                     P.qos_profile(values["scan_qos"]), raw=True)
+            # the reader keeps at least max_pending scans: those that arrive while a new
+            # LidarInfo's tables are built wait there (reliable QoS: none dropped)
+            scan_qos = P.qos_profile(values["scan_qos"])
+            scan_qos.depth = max(scan_qos.depth, values["max_pending"])
+            self.create_subscription(LidarScan, scan_topic, self._on_scan, scan_qos, raw=True)
 
         def _await_info(self, subscription: Any, seconds: float) -> None:
             """Before subscribing to the scans: take a latched LidarInfo (and build its
