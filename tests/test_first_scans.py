@@ -91,10 +91,10 @@ def test_a_new_info_gets_its_tables_before_its_first_scan_and_no_queued_scan_is_
     is converted, in order."""
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import PointCloud2
+    from test_nodes import overrides, small_info, small_scan
 
     from converters.edge.nodes.converter_node import ConverterNode
     from lidarscan.geometry import info_key
-    from test_nodes import overrides, small_info, small_scan
 
     info = small_info()
     info_pub = graph.publisher(LidarInfo, "lidar_info", "latched")
