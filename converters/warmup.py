@@ -294,7 +294,7 @@ def describe(tasks: Iterable[str], backend: str = "auto") -> dict[str, str]:
             parts.append("C")
         if chosen.numba is not None:
             parts.append("numba")
-        elif task != "cloud_slices" and (not parts or task == "slices"):
+        elif not parts or task == "slices":
             parts.append("numpy")
         if len(parts) == 2:
             parts[1] += " (other cases)"
