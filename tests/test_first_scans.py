@@ -110,6 +110,10 @@ def test_a_new_info_gets_its_tables_before_its_first_scan_and_no_queued_scan_is_
         slices__low__min_height=-0.5, slices__low__max_height=0.5)))
     # the latched info came before the scan subscription, with its tables
     assert node.stats.infos_received == 1 and node.core._clouds and node.core._slicers
+    # /diagnostics' startup status says which backend runs
+    status = node.startup.status().values
+    assert status["ready"] is True and status["backend"] in ("auto", "c")
+    assert status["kernels_cloud"] in ("C", "numpy") and status["kernels_slices"]
     assert graph.wait(lambda: node.cloud_pub.get_subscription_count() > 0)
     calls: list[tuple[str, Any]] = []
     prepare, convert = node.core.prepare, node.core.convert
