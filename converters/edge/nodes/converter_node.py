@@ -431,16 +431,16 @@ def _node_class() -> type:
                                           on_message=self._on_tf if self.moving else None) \
                 if self.target_frame else None
             self._subscribe_depth()
-            info_sub = self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
-                                                P.qos_profile(values["info_qos"]), raw=True)
-            self._await_info(info_sub, values["info_wait"])
+            self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
+                                     P.qos_profile(values["info_qos"]), raw=True)
+            self._await_info(values["info_wait"])
             # the reader keeps at least max_pending scans: those that arrive while a new
             # LidarInfo's tables are built wait there (reliable QoS: none dropped)
             scan_qos = P.qos_profile(values["scan_qos"])
             scan_qos.depth = max(scan_qos.depth, values["max_pending"])
             self.create_subscription(LidarScan, scan_topic, self._on_scan, scan_qos, raw=True)
 
-        def _await_info(self, subscription: Any, seconds: float) -> None:
+        def _await_info(self, seconds: float) -> None:
             """Before subscribing to the scans: take a latched LidarInfo (and build its
             tables, :meth:`_on_info`) if one comes within ``seconds``, so that a driver that
             starts publishing when the scan subscription matches meets built tables."""

@@ -93,7 +93,7 @@ class DepthInput:
             return
         from sensor_msgs.msg import CameraInfo, Image
 
-        from converters.nodes import params as P
+        from converters.edge.nodes import params as P
 
         self.depth_core.slice_options["backend"] = self.core.slice_options.get("backend",
                                                                                "auto")
