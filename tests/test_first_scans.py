@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from test_nodes import graph  # noqa: F401 - the in-process graph fixture
 
 pytestmark = [pytest.mark.ros]
 
@@ -84,7 +85,7 @@ def test_a_cold_node_loses_no_scan_of_a_driver_that_starts_at_the_match(
 
 @pytest.mark.ros
 def test_a_new_info_gets_its_tables_before_its_first_scan_and_no_queued_scan_is_dropped(
-        graph: Any) -> None:
+        graph: Any) -> None:  # noqa: F811 - the fixture
     """A LidarInfo version arriving mid-stream, with a burst of its scans right behind it on a
     reliable topic: its tables are built before its first scan is converted, and every scan
     of the burst (queued meanwhile in the reader, or held by the linkage when it came first)
@@ -147,24 +148,3 @@ def lidarscan_decode(msg: Any) -> Any:
     import lidarscan
 
     return lidarscan.decode_info(lidarscan.encode(msg))
-
-
-@pytest.fixture
-def graph(monkeypatch: pytest.MonkeyPatch) -> Any:
-    """test_nodes' in-process graph (an executor thread and a tester node)."""
-    rclpy = pytest.importorskip("rclpy")
-    pytest.importorskip("lidarscan_msgs.msg")
-    from test_nodes import DOMAIN, Graph
-
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=DOMAIN)
-    g = None
-    try:
-        g = Graph(context)
-        yield g
-    finally:
-        if g is not None:
-            g.close()
-        rclpy.try_shutdown(context=context)
