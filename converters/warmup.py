@@ -375,17 +375,50 @@ def _plain(slices: Mapping[str, Any] | None) -> dict[str, Any] | None:
             for name, spec in slices.items()}
 
 
+#: config JSON -> the background fill this process started for it (one at a time)
+_FILLERS: dict[str, Any] = {}
+
+
 def _fill_in_background(config: Mapping[str, Any]) -> Any:
     """Start ``python -m converters.warmup --config JSON`` at low priority, detached (its own
-    session: a Ctrl-C to the node does not stop it), output discarded; None if it cannot
-    start."""
+    session: a Ctrl-C to the node does not stop it), output discarded; the one already running
+    for this configuration if any (and across processes, :func:`main` runs one per
+    configuration and cache at a time); None if it cannot start."""
+    text = json.dumps(config, sort_keys=True)
+    running = _FILLERS.get(text)
+    if running is not None and running.poll() is None:
+        return running
     try:
-        return subprocess.Popen(
-            [sys.executable, "-m", "converters.warmup", "--nice", "--config",
-             json.dumps(config)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL, start_new_session=True)
+        _FILLERS[text] = subprocess.Popen(
+            [sys.executable, "-m", "converters.warmup", "--nice", "--config", text],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            start_new_session=True)
     except OSError:
         return None
+    return _FILLERS[text]
+
+
+@contextlib.contextmanager
+def _only_one(config_text: str) -> Any:
+    """Yields True in the one process filling this configuration into this cache (an
+    exclusive lock in the temporary directory), False in any other at the same time."""
+    try:
+        import fcntl
+    except ImportError:                       # not POSIX: no lock
+        yield True
+        return
+    import hashlib
+    import tempfile
+
+    key = hashlib.sha1((config_text + os.environ.get("NUMBA_CACHE_DIR", "") + sys.executable)
+                       .encode()).hexdigest()[:16]
+    with open(os.path.join(tempfile.gettempdir(), f"lidarscan-warmup-{key}.lock"), "w") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            yield False
+            return
+        yield True
 
 
 def specialisations() -> dict[str, int]:
@@ -410,7 +443,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             os.nice(10)
     if args[:1] == ["--config"] and len(args) == 2:
         config = json.loads(args[1])
-        took = warm(config.pop("tasks"), **config)
+        with _only_one(json.dumps(config, sort_keys=True)) as mine:
+            if not mine:
+                print("another process is filling the cache for this configuration")
+                return 0
+            took = warm(config.pop("tasks"), **config)
         print("kernels ready: " + ", ".join(f"{k} {v:.2f} s" for k, v in took.items()))
         return 0
     if args:
