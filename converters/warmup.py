@@ -384,7 +384,7 @@ def _fill_in_background(config: Mapping[str, Any]) -> Any:
     session: a Ctrl-C to the node does not stop it), output discarded; the one already running
     for this configuration if any (and across processes, :func:`main` runs one per
     configuration and cache at a time); None if it cannot start."""
-    text = json.dumps(config, sort_keys=True)
+    text = json.dumps(config, sort_keys=True, default=str)
     running = _FILLERS.get(text)
     if running is not None and running.poll() is None:
         return running
