@@ -252,7 +252,9 @@ def test_converter_node_compiles_nothing_after_it_reports_ready() -> None:
     assert out["status"]["ready"] is True and "kernels_ms" in out["status"]
     assert out["slices"] == ["high", "low"] and out["has_cloud"]
     assert out["prepared"] == [1, 1] and out["same_converters"]
-    if out["ready"]:                       # numba: the warm-up compiled or loaded the kernels
+    if out["status"]["backend"] == "c":   # numba's cache lacked a kernel: none compiled
+        assert sum(out["ready"].values()) == 0
+    elif out["ready"]:                     # numba: the warm-up loaded the kernels
         assert sum(out["ready"].values()) >= 1
         # the first scans (float and integer ranges) after ready compiled nothing
         assert out["after"] == out["ready"]
