@@ -339,8 +339,8 @@ def prepare(tasks: Sequence[str], *, slices: Mapping[str, Any] | None = None,
             background: bool = True) -> Prepared:
     """A node's warm-up with no compiler on its critical path: load every kernel of this
     configuration (:func:`warm` arguments) from numba's cache; when a kernel is not cached,
-    use ``backend="c"`` instead (C kernels where they apply, numpy elsewhere: milliseconds)
-    and, with ``background``, start a low-priority process that compiles this configuration's
+    use ``backend="c"`` instead (C kernels where they apply, numpy elsewhere: milliseconds;
+    the codec's kernels, which no node uses, are then left out) and, with ``background``, start a low-priority process that compiles this configuration's
     kernels into the cache for the next start. A ``backend`` other than "auto" in
     ``slice_options`` is kept (``"numba"`` compiles here: the caller asked for it).
 
@@ -358,9 +358,15 @@ def prepare(tasks: Sequence[str], *, slices: Mapping[str, Any] | None = None,
                        compile=backend != "auto")
     except NotCached as err:
         missing, backend = str(err), "c"
-        options["backend"] = "c"
-        seconds = warm(tasks, slices=slices, slice_options=options,
-                       cloud_options=cloud_options, moving=moving)
+        # the C kernels load (ms); numpy, where they do not apply, needs no warm-up
+        from converters._kernels import select
+
+        seconds = warm([t for t in tasks if t == "cloud"], cloud_options=cloud_options)
+        for task in tasks:
+            if task in ("slices", "merger"):
+                start = time.perf_counter()
+                select(task, backend="c")
+                seconds[task] = time.perf_counter() - start
         if background:
             filler = _fill_in_background(config)
     return Prepared(backend, seconds, describe([t for t in tasks if t != "codec"], backend),
