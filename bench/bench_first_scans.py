@@ -97,6 +97,7 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
     log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - read after the node stops
     proc = None
     executor = SingleThreadedExecutor(context=context)
+    spinner = None
     try:
         node = rclpy.create_node("driver", context=context)
         executor.add_node(node)
@@ -142,6 +143,8 @@ def measure(cache_dir: str, scans: int = 60, rate_hz: float = 10.0, domain: int 
                 proc.kill()
                 proc.wait()
         executor.shutdown(timeout_sec=2.0)
+        if spinner is not None:
+            spinner.join(timeout=5.0)
         rclpy.try_shutdown(context=context)
     log.seek(0)
     out: dict[str, Any] = {"sent": sent, "start_s": round(matched, 3), "log": log.read()}
