@@ -395,7 +395,7 @@ def _node_class() -> type:
                 steps["slices"] = lambda: self.slicer.convert(probe_cloud())
             from converters.warmup import describe
             runs = describe(("cloud_slices",)) if self.slicer is not None else {}
-            # ready before listening (converters.nodes.common): warmed, then subscribed
+            # ready before listening (converters.edge.nodes.common): warmed, then subscribed
             self.startup = warm_up(
                 self, steps, self.diagnostics,
                 describe=lambda: ("kernels: " + "; ".join(f"{k} {v}" for k, v in runs.items())
