@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml setup.py $(wildcard converters/_kernels/*.c) msgs/CMake
 	$(PY) -m pip install --quiet -e '.[test,viz,fast,msgs-build]'
 	$(MAKE) msgs
 	$(MAKE) tf2msgs
-	$(PY) -m converters._kernels.warm  # fill numba's cache: nodes start ready (bench/README.md)
+	$(PY) -m converters.warmup  # fill numba's cache: nodes start ready (bench/README.md)
 	touch $(STAMP)
 
 # Build the interface package into the venv with cmake + ninja (about 15 s). Into another

@@ -112,8 +112,9 @@ def child_node(config: dict[str, Any]) -> dict[str, Any]:
     rclpy.init(args=[], domain_id=1 + os.getpid() % 100)
     try:
         t = time.perf_counter()
+        # info_wait 0: the info is handed to _on_info below (nobody publishes it)
         node = ConverterNode(parameter_overrides=[
-            Parameter(k, value=v) for k, v in {**config, **MOUNT}.items()])
+            Parameter(k, value=v) for k, v in {**config, **MOUNT, "info_wait": 0.0}.items()])
         t_ready = time.perf_counter() - t
         t = time.perf_counter()
         node._on_info(raw_info)                     # what the latched LidarInfo triggers

@@ -110,8 +110,26 @@ def test_the_install_is_plain_pip_without_message_packages(installed: Installed)
         / "site-packages" / "lidarscan" / "_msgs"
     assert sorted(p.name for p in shipped.iterdir()) == sorted(
         p.name for p in (ROOT / "msgs" / "msg").glob("*.msg"))
-    for name in ("lidarscan", "lidarscan-converter", "lidarscan-merger", "lidarscan-cloud-to-scan"):
+    for name in ("lidarscan", "lidarscan-converter", "lidarscan-merger", "lidarscan-cloud-to-scan",
+                 "lidarscan-warmup"):
         assert (installed.venv / "bin" / name).is_file(), name
+
+
+@pytest.mark.slow
+def test_the_warm_up_step_the_docs_name_runs_after_a_plain_pip_install(
+        installed: Installed) -> None:
+    """``lidarscan-warmup`` (the first-run step of the README and the nodes' log): loads the
+    C kernels built at install and compiles numba's kernels when numba is there (a plain
+    install has none: nothing to compile, said so)."""
+    done = installed.run("lidarscan-warmup", timeout=1200)
+    assert done.returncode == 0, done.stderr[-3000:]
+    last = done.stdout.strip().splitlines()[-1]
+    assert last.startswith("kernels ready in"), done.stdout
+    numba = installed.python("import importlib.util; print(importlib.util.find_spec('numba'))")
+    if numba.stdout.strip() == "None":
+        assert "numba not installed or disabled" in last, last
+    bad = installed.run("lidarscan-warmup", "--bogus", timeout=120)
+    assert bad.returncode == 2 and bad.stderr.startswith("usage: lidarscan-warmup")
 
 
 @pytest.mark.slow

@@ -368,7 +368,7 @@ def test_slice_warm_up_leaves_nothing_to_compile_for_a_moving_mount() -> None:
     got = _run("""
         import json, numpy as np, lidarscan
         from converters import TransformTrack
-        from converters._kernels import warm
+        from converters import warmup as warm
         from converters.slices.converter import SliceConverter
         from converters.sources.ouster.metadata import info_from_metadata, scan_from_frame
 

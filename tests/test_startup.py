@@ -47,7 +47,7 @@ def _numba() -> None:
 
 _SCANS = """
 import json, numpy as np, lidarscan, converters
-from converters._kernels import warm
+from converters import warmup as warm
 from converters.sources.ouster.metadata import info_from_metadata, scan_from_frame
 
 D = "tests/data/ouster/"
@@ -112,7 +112,7 @@ def test_merger_kernels_are_ready_after_the_warm_up() -> None:
     _numba()
     out = _run("""
 import json, math, numpy as np, lidarscan
-from converters._kernels import warm
+from converters import warmup as warm
 from converters.merger import LaserScanMerger, MergerInput
 warm.warm(("merger",))
 ready = warm.specialisations()
@@ -139,10 +139,10 @@ print(json.dumps({"ready": ready, "after": warm.specialisations()}))
 
 def test_warm_rejects_an_unknown_task_and_probes_are_valid() -> None:
     import lidarscan
-    from converters._kernels import warm, warm_up
+    from converters import warmup as warm
 
     with pytest.raises(ConfigError, match="warm task"):
-        warm_up(("clouds",))
+        warm.warm(("clouds",))
     info = warm.probe_info(8, 64)
     scan = warm.probe_scan(info, intensity_name="signal", destaggered=True)
     lidarscan.validate(scan, info)
@@ -152,7 +152,7 @@ def test_warm_rejects_an_unknown_task_and_probes_are_valid() -> None:
     # every class of value the kernels treat apart is there
     assert np.isinf(r).any() and np.isnan(r).any() and (r == -np.inf).any()
     assert not r.flags.writeable                     # a view of the message, as received
-    assert warm_up(()) == {}
+    assert warm.warm(()) == {}
 
 
 # ------------------------------------------------------------------------- ready in nodes
@@ -200,7 +200,7 @@ def test_warm_up_times_steps_logs_ready_and_reports_failures() -> None:
 _NODE = """
 import json, time, os, numpy as np, rclpy, lidarscan
 from rclpy.parameter import Parameter
-from converters._kernels import warm
+from converters import warmup as warm
 from converters.edge.nodes.converter_node import ConverterNode
 from converters.sources.ouster.metadata import info_from_metadata, scan_from_frame
 
@@ -252,7 +252,9 @@ def test_converter_node_compiles_nothing_after_it_reports_ready() -> None:
     assert out["status"]["ready"] is True and "kernels_ms" in out["status"]
     assert out["slices"] == ["high", "low"] and out["has_cloud"]
     assert out["prepared"] == [1, 1] and out["same_converters"]
-    if out["ready"]:                       # numba: the warm-up compiled or loaded the kernels
+    if out["status"]["backend"] == "c":   # numba's cache lacked a kernel: none compiled
+        assert sum(out["ready"].values()) == 0
+    elif out["ready"]:                     # numba: the warm-up loaded the kernels
         assert sum(out["ready"].values()) >= 1
         # the first scans (float and integer ranges) after ready compiled nothing
         assert out["after"] == out["ready"]
@@ -266,7 +268,7 @@ def test_cloud_slicer_warm_up_leaves_nothing_to_compile_for_a_driver_cloud() -> 
     got = _run("""
         import json, sys, numpy as np
         from converters import _kernels
-        from converters._kernels.warm import probe_cloud
+        from converters.warmup import probe_cloud
         from converters.edge.nodes.cloud_to_scan_node import CloudSlicer
         from converters.edge.nodes.params import SliceConfig
         from converters.sources.ouster.metadata import info_from_metadata, scan_from_frame

@@ -43,16 +43,19 @@ them too) and asked here (at the first use of a backend in the process):
 is re-checked at each ``select``, the others at their first use);
 ``LIDARSCAN_NUMBA=0`` disables numba. Per object, ``kernel=`` (PointCloud2: None = when built,
 False = numpy, True = required) and ``backend=`` (slices and merger: ``"auto"``, ``"numba"``,
-``"numpy"``) choose among what is enabled.
+``"numpy"``, ``"c"``) choose among what is enabled. ``"c"`` never compiles at run time: the C
+kernels (built at install) where they apply, else numpy; the nodes run it while numba's cache
+lacks their kernels (:mod:`converters.warmup`).
 
 Kernels take native-byte-order arrays only: byte order is converted once at the message
 boundary (:func:`lidarscan.scan.channel` with ``native=True``).
 
 Warm-up: numba compiles a kernel at its first call (seconds) or loads it from its on-disk cache
-(a large part of a second), and the C kernels load at their first use. :func:`warm_up`
-(:mod:`converters._kernels.warm`) does both for a configuration before the first message; the
-nodes call it before they report ready, and ``python -m converters._kernels.warm`` (run by
-``make install``) fills the cache for every specialisation.
+(a large part of a second), and the C kernels load at their first use. :mod:`converters.warmup`
+(above this package: it drives the converters) does both for a configuration before the first
+message; the nodes call it before they subscribe, and ``lidarscan-warmup`` (``python -m
+converters.warmup``, run by ``make install``) fills the cache for every specialisation. This
+package imports nothing of ``converters`` outside itself.
 """
 
 from __future__ import annotations
@@ -63,7 +66,7 @@ from typing import Any
 from converters._kernels._switches import c_enabled, numba_enabled
 from lidarscan.errors import ConfigError
 
-__all__ = ["Backends", "c_enabled", "numba_enabled", "select", "warm_up"]
+__all__ = ["Backends", "c_enabled", "numba_enabled", "select"]
 
 
 @dataclass(frozen=True)
@@ -95,7 +98,9 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
         backend: ``"auto"``: the fastest enabled (slices: the C kernel where its vector path
             runs or numba is missing, else numba, else numpy; cloud slices: the C kernel, else
             numpy); ``"numba"``: numba only (an error when it is missing, and for the cloud
-            slices, which have no numba kernel); ``"numpy"``: the reference.
+            slices, which have no numba kernel); ``"numpy"``: the reference; ``"c"``: nothing
+            compiled at run time (slices and cloud slices: the C kernel when built and enabled,
+            whatever its vector path; merger: numpy).
         kernel: PointCloud2 only: None = the C kernel when built and enabled, False = numpy,
             True = the C kernel or an error.
 
@@ -124,15 +129,20 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
     if task not in ("slices", "merger", "cloud_slices"):
         raise ConfigError("task", task, "'cloud', 'slices', 'merger', 'cloud_slices', 'hesai', "
                           "'velodyne' or 'codec'")
-    if backend not in ("auto", "numba", "numpy"):
-        raise ConfigError("backend", backend, "'auto', 'numba' or 'numpy'")
+    if backend not in ("auto", "numba", "numpy", "c"):
+        raise ConfigError("backend", backend, "'auto', 'numba', 'numpy' or 'c'")
     if task == "cloud_slices":
         if backend == "numba":
             raise ConfigError("backend", backend, "'auto' (the compiled C kernel when it is "
                               "built) or 'numpy': the cloud slices have no numba kernel")
         from converters._kernels import cloud_slices
-        return Backends(c=cloud_slices.library() if backend == "auto" else None)
+        return Backends(c=cloud_slices.library() if backend in ("auto", "c") else None)
     numba = None
+    if backend == "c":
+        if task == "merger":
+            return Backends()
+        from converters._kernels import slices
+        return Backends(c=slices.available() or None)
     if backend != "numpy":
         from converters._kernels import slices_numba
         numba = slices_numba.kernels()
@@ -145,11 +155,3 @@ def select(task: str, *, backend: str = "auto", kernel: bool | None = None) -> B
         c = slices.available() and (slices.vectorised() or numba is None)
     return Backends(c=c or None, numba=numba)
 
-
-def warm_up(tasks: Any = ("cloud", "slices", "merger"), **options: Any) -> dict[str, float]:
-    """Compile or load every kernel the converters of ``tasks`` will call with these options,
-    before the first message (:func:`converters._kernels.warm.warm`: arguments, returned
-    seconds per task). With numba off or missing, only the C kernels load."""
-    from converters._kernels import warm
-
-    return warm.warm(tasks, **options)

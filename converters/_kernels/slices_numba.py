@@ -228,7 +228,7 @@ def frozen_f32(a: Any) -> Any:
     read-only (views of a message) or writeable (decoded integer ranges, byte-swapped
     channels), of any of the eight channel dtypes. Every per-scan array goes through here on
     its way into a kernel, so each kernel has exactly one specialisation, compiled (or loaded
-    from the cache) by :mod:`converters._kernels.warm` before the first scan. An intensity
+    from the cache) by :mod:`converters.warmup` before the first scan. An intensity
     image cast to float32 gives the values the kernels produced from it anyway; the cast's
     cost is in bench/README.md (start-up).
     """

@@ -36,7 +36,7 @@ __all__ = ["HOLE_DEFAULTS", "HOLE_KEYS", "IfPresent", "choice", "flag", "integer
            "merger_input", "merger_options", "name", "number", "resolve_channel",
            "slice_options"]
 
-BACKENDS = ("auto", "numba", "numpy")
+BACKENDS = ("auto", "numba", "numpy", "c")
 #: The hole-detection options of a slice and their defaults
 #: (:class:`converters.slices.converter.SliceConverter`: holes off).
 HOLE_DEFAULTS: dict[str, Any] = {"holes": False, "floor_height": 0.0, "hole_depth": 0.05,

@@ -371,12 +371,7 @@ def _node_class() -> type:
             self.info_pub = self.create_publisher(LidarInfo, info_topic, P.qos_profile("latched"))
             self.slice_pubs = {s.name: self.create_publisher(LaserScan, s.topic, out_qos)
                                for s in (self.slicer.slices if self.slicer else ())}
-            self.create_subscription(PointCloud2, cloud_topic, self._on_cloud,
-                                     P.qos_profile(values["cloud_qos"]), raw=True)
             self.tf_buffer = TransformBuffer()
-            self.tf_listener = TfListener(self, self.tf_buffer,
-                                          on_error=lambda line: self._log(line, "tf")) \
-                if self.target_frame and self.slicer else None
             self._lookup_error = TransformLookupError
             self._rates = RateMeter()
             self._status = (Status, WARN, ERROR)
@@ -396,9 +391,20 @@ def _node_class() -> type:
             steps: dict[str, Any] = {
                 "imports": lambda: [importlib.import_module(m) for m in modules]}
             if self.slicer is not None:          # compile its kernels on a driver-like cloud
-                from converters._kernels.warm import probe_cloud
+                from converters.warmup import probe_cloud
                 steps["slices"] = lambda: self.slicer.convert(probe_cloud())
-            self.startup = warm_up(self, steps, self.diagnostics)
+            from converters.warmup import describe
+            runs = describe(("cloud_slices",)) if self.slicer is not None else {}
+            # ready before listening (converters.edge.nodes.common): warmed, then subscribed
+            self.startup = warm_up(
+                self, steps, self.diagnostics,
+                describe=lambda: ("kernels: " + "; ".join(f"{k} {v}" for k, v in runs.items())
+                                  if runs else "", {f"kernels_{k}": v for k, v in runs.items()}))
+            self.tf_listener = TfListener(self, self.tf_buffer,
+                                          on_error=lambda line: self._log(line, "tf")) \
+                if self.target_frame and self.slicer else None
+            self.create_subscription(PointCloud2, cloud_topic, self._on_cloud,
+                                     P.qos_profile(values["cloud_qos"]), raw=True)
 
         def _validate(self, values: dict[str, Any]) -> None:
             CloudToScanCore(**settings(values))
@@ -411,7 +417,11 @@ def _node_class() -> type:
             self.core.options = fresh.options
             self.core.angle_tolerance = fresh.angle_tolerance
             self.core.offset_tolerance = fresh.offset_tolerance
-            self.slicer = slicer(values, self._file_slices)
+            fresh_slicer = slicer(values, self._file_slices)
+            if fresh_slicer is not None:     # warmed before it replaces the running one
+                from converters.warmup import probe_cloud
+                fresh_slicer.convert(probe_cloud())
+            self.slicer = fresh_slicer
             self.fallback_extrinsics = P.parse_extrinsics(values["extrinsics"]) \
                 if values["extrinsics"] else None
             self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")

@@ -2,11 +2,13 @@
 before a node reports ready, an exact-stamp synchroniser, and the ``main`` runner (``--help``
 without ROS, clean shutdown). Nothing here imports rclpy at module import time.
 
-Ready: a node compiles or loads every kernel it will use (:func:`warm_up`, which runs the
-node's steps, e.g. :func:`converters._kernels.warm_up` with its configuration) at the end of
-its constructor, then logs one ``ready`` line; its ``/diagnostics`` carry a ``startup`` status
-with the time each step took. A scan that arrives after that line is converted without
-compiling anything.
+Ready before listening: a node loads every kernel it will use (:func:`warm_up`, which runs the
+node's steps, e.g. :func:`converters.warmup.prepare` with its configuration: numba's cache only,
+the C kernels or numpy while the cache lacks a kernel) after its publishers and BEFORE its
+subscriptions, then logs one ``ready`` line naming the backends that run; its ``/diagnostics``
+carry a ``startup`` status with the time each step took and the backends. A publisher that
+waits for the subscription to match therefore never sends to a node that is not ready, and no
+scan compiles anything.
 
 Diagnostics: each node publishes ``diagnostic_msgs/DiagnosticArray`` on ``/diagnostics`` once a
 second (:class:`Diagnostics`); levels are OK (0), WARN (1), ERROR (2) with the reason in the
@@ -154,6 +156,8 @@ class Startup:
         self.seconds: dict[str, float] = {}
         self.failed: dict[str, str] = {}
         self.ready = False
+        #: more values of the ``startup`` status (e.g. the backends that run)
+        self.values: dict[str, Any] = {}
 
     def run(self, name: str, step: Callable[[], Any]) -> None:
         """Run and time one step; an exception is recorded, not raised."""
@@ -179,6 +183,7 @@ class Startup:
         values: dict[str, Any] = {"ready": self.ready,
                                   "warmup_ms": round(1e3 * sum(self.seconds.values()), 1)}
         values.update({f"{k}_ms": round(1e3 * v, 1) for k, v in self.seconds.items()})
+        values.update(self.values)
         st = Status("startup", values)
         if not self.ready:
             st.worse(WARN, "warming up")
@@ -188,19 +193,24 @@ class Startup:
 
 
 def warm_up(node: Any, steps: dict[str, Callable[[], Any]],
-            diagnostics: Diagnostics | None = None) -> Startup:
+            diagnostics: Diagnostics | None = None,
+            describe: Callable[[], tuple[str, dict[str, Any]]] | None = None) -> Startup:
     """Run a node's warm-up ``steps`` (name -> callable), then log ``ready`` with their times.
 
-    Call it at the end of the node's constructor, after its publishers and subscriptions exist
-    (no callback runs before the constructor returns). ``diagnostics`` gets the ``startup``
-    status.
+    Call it after the node's publishers exist and BEFORE it creates its subscriptions: a
+    publisher that starts when it matches a subscription then finds the node ready.
+    ``diagnostics`` gets the ``startup`` status; ``describe`` (after the steps) gives one more
+    log clause and status values (the backends that run).
     """
     startup = Startup()
     for name, step in steps.items():
         startup.run(name, step)
     startup.ready = True
+    line, values = describe() if describe is not None else ("", {})
+    startup.values.update(values)
     log = node.get_logger()
-    (log.warning if startup.failed else log.info)(f"ready: {startup.summary()}")
+    (log.warning if startup.failed else log.info)(
+        f"ready: {startup.summary()}" + (f"; {line}" if line else ""))
     if diagnostics is not None:
         diagnostics.startup = startup
     return startup

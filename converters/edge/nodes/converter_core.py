@@ -141,20 +141,26 @@ class ConverterCore:
             self._make_slicer(info, self.slices, extrinsics,
                               self.slice_options.get("intensity_channel"))
 
-    def warm(self, cloud: bool = True) -> dict[str, float]:
-        """Compile or load every kernel this configuration will call
-        (:func:`converters._kernels.warm_up`); call before reporting ready.
+    def warm(self, cloud: bool = True, background: bool = True) -> Any:
+        """Load every kernel this configuration will call, from numba's cache only
+        (:func:`converters.warmup.prepare`); when one is not cached, switch the slices to
+        ``backend="c"`` (nothing compiles; with ``background``, the cache is filled for the
+        next start). Call before subscribing.
 
         Returns:
-            task -> seconds.
+            the :class:`converters.warmup.Prepared` (backend, seconds per task, what runs).
         """
-        from converters._kernels import warm_up
+        from converters.warmup import prepare
 
         tasks = ["cloud"] if cloud else []
         if self.slices:
             tasks.append("slices")
-        return warm_up(tasks, slices={s.name: s.spec() for s in self.slices},
-                       slice_options=self.slice_options, cloud_options=self.cloud_options)
+        prepared = prepare(tasks, slices={s.name: s.spec() for s in self.slices},
+                           slice_options=self.slice_options, cloud_options=self.cloud_options,
+                           moving=self.moving, background=background)
+        self.slice_options["backend"] = prepared.backend
+        self._slicers.clear()
+        return prepared
 
     def prepare(self, info: Any, extrinsics: np.ndarray[Any, Any] | None = None, *,
                 cloud: bool = True, intensity: bool = True) -> None:
@@ -169,7 +175,7 @@ class ConverterCore:
             cloud: prepare the PointCloud2 converter.
             intensity: the scans will carry the configured intensity channel.
         """
-        from converters._kernels.warm import probe_scan
+        from converters.warmup import probe_scan
         from lidarscan.geometry import info_key
         from lidarscan.stamps import to_ns
 

@@ -60,8 +60,11 @@ Parameters (defaults in brackets; ``config/converter.yaml`` is a complete exampl
 * ``moving`` [false]: the sensor's mount moves during a sweep (below); ``tf_wait`` [0.1] s:
   how long (data time) a scan waits for ``/tf`` to cover its sweep; ``tf_tolerance`` [0.0] s:
   how long the newest ``/tf`` pose is held past its stamp (0 = never beyond the newest);
-* ``max_pending`` [16] scans held while their LidarInfo is missing, for at most
-  ``max_wait`` [2.0] seconds; ``max_infos`` [8] LidarInfo versions kept pairable (see
+* ``max_pending`` [16] scans held while their LidarInfo is missing (also the least depth of
+  the scan subscription's queue, fixed at the start: scans that arrive while a new LidarInfo's
+  tables are built wait there; under reliable QoS none is dropped), for at most
+  ``max_wait`` [2.0] seconds; ``info_wait`` [1.0] s: how long the start waits for a latched
+  LidarInfo before subscribing to the scans (its tables are built first); ``max_infos`` [8] LidarInfo versions kept pairable (see
   :mod:`lidarscan.linkage` for what happens to older ones: dropped, never mispaired);
 * ``allow_unknown_parameters`` [false]: a parameter this node does not declare (a typo such as
   ``target_fram``) stops it at start-up with the list and a suggestion, unless true;
@@ -110,10 +113,16 @@ packets and metadata ouster-ros publishes are decoded into LidarScan + LidarInfo
 ``ouster.scan_topic`` / ``ouster.info_topic``) and converted like the scans of ``scan_topic``
 (:mod:`converters.edge.nodes.ouster_input`).
 
-Ready: the node compiles or loads every kernel its configuration will call (numba's cache,
-filled by ``make install``) before it logs ``ready: warm-up ... ms`` and publishes a ``startup``
-status, and it builds each LidarInfo version's converters and tables when that info arrives, so
-the first scan after ready costs about what the next ones cost (bench/bench_startup.py).
+Ready before listening: the node loads every kernel its configuration will call from numba's
+cache (no compiler runs: when the cache lacks one, the C kernels and numpy run and the cache is
+filled in the background, :mod:`converters.warmup`), logs ``ready: warm-up ... ms; kernels:
+...`` (the backends that run; also in the ``startup`` status), subscribes to the LidarInfo and
+waits up to ``info_wait`` for the latched one (building its converters and tables), and only
+then subscribes to the scans: a driver that starts publishing when the subscription matches
+meets a ready node. A later LidarInfo version's tables are built when it arrives, before its
+first scan is converted (scans that arrive meanwhile wait in the reader's queue or the linkage,
+not dropped), so the first scans cost about what the next ones cost (bench/bench_startup.py,
+bench/bench_first_scans.py).
 
 ``lidarscan-converter --help`` prints every parameter with its default, rule and description
 (from the one table in :func:`_specs`) without starting ROS. Topics, QoS, ``slice_names``,
@@ -189,6 +198,9 @@ def _specs() -> tuple[tuple[Any, ...], tuple[Any, ...]]:
         S("max_pending", 16, "scans held while their LidarInfo is missing", low=0,
           high=100_000),
         S("max_wait", 2.0, "seconds a scan may wait for its LidarInfo", low=0.0, high=3600.0),
+        S("info_wait", 1.0, "seconds the node waits at its start for a latched LidarInfo, so "
+          "that its tables exist before it subscribes to the scans (0 = do not wait)",
+          low=0.0, high=60.0, read_only=True),
         S("max_infos", 8, "LidarInfo versions kept pairable (older ones: scans dropped)",
           low=1, high=1024),
         S("allow_unknown_parameters", False, "start even with parameters this node does not "
@@ -408,15 +420,8 @@ def _node_class() -> type:
             self.slice_pubs = {s.name: self.create_publisher(LaserScan, s.topic, out_qos)
                                for s in specs}
             scan_topic = values["scan_topic"]
-            self.create_subscription(LidarScan, scan_topic, self._on_scan,
-                                     P.qos_profile(values["scan_qos"]), raw=True)
-            self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
-                                     P.qos_profile(values["info_qos"]), raw=True)
             self._prepared: set[Any] = set()
-            self.tf_listener = TfListener(self, self.tf_buffer,
-                                          on_error=lambda line: self._log(line, "tf"),
-                                          on_message=self._on_tf if self.moving else None) \
-                if self.target_frame else None
+            self._unmounted: Any = None    # an info prepared without its mount (cloud only)
             self._lookup_error = TransformLookupError
             self.create_timer(0.5, self.core.expire)
             self._rates = RateMeter()
@@ -432,9 +437,78 @@ def _node_class() -> type:
                      + (f"; depth images {self.resolve_topic_name(values['depth.image_topic'])!r}"
                         if self.depth_sync is not None else "")
                      + ("; moving mount (pose from /tf per pixel)" if self.moving else ""))
-            self.startup = warm_up(
-                self, {"kernels": lambda: self.core.warm(cloud=self.cloud_pub is not None)},
-                self.diagnostics)
+            # ready before listening: every kernel loaded (from numba's cache only: no compiler
+            # here) before the subscriptions exist, so a publisher that waits for the match
+            # never meets a node that is not ready
+            self.kernels: Any = None
+            self.startup = warm_up(self, {"kernels": self._warm}, self.diagnostics,
+                                   describe=self._kernels_line)
+            self.tf_listener = TfListener(self, self.tf_buffer,
+                                          on_error=lambda line: self._log(line, "tf"),
+                                          on_message=self._on_tf if self.moving else None) \
+                if self.target_frame else None
+            self._subscribe_depth()
+            self._subscribe_ouster()
+            self.create_subscription(LidarInfo, values["info_topic"], self._on_info,
+                                     P.qos_profile(values["info_qos"]), raw=True)
+            self._await_info(values["info_wait"])
+            # the reader keeps at least max_pending scans: those that arrive while a new
+            # LidarInfo's tables are built wait there (reliable QoS: none dropped)
+            scan_qos = P.qos_profile(values["scan_qos"])
+            scan_qos.depth = max(scan_qos.depth, values["max_pending"])
+            self.create_subscription(LidarScan, scan_topic, self._on_scan, scan_qos, raw=True)
+
+        def _await_info(self, seconds: float) -> None:
+            """Before subscribing to the scans: take a latched LidarInfo (and build its
+            tables, :meth:`_on_info`) if one comes within ``seconds``, so that a driver that
+            starts publishing when the scan subscription matches meets built tables."""
+            if seconds <= 0:
+                return
+            import time
+
+            from rclpy.executors import SingleThreadedExecutor
+
+            executor = SingleThreadedExecutor(context=self.context)
+            executor.add_node(self)
+            try:
+                end = time.monotonic() + seconds
+                while not self._mount_known() and time.monotonic() < end:
+                    executor.spin_once(timeout_sec=min(0.05, max(end - time.monotonic(), 0)))
+            finally:
+                executor.remove_node(self)
+                executor.shutdown(timeout_sec=0)
+            if self._unmounted is not None and self._mount_known():
+                # the mount came after the info: its slice tables now
+                self._prepared.discard(self._unmounted)
+                self._prepare(self.core.last_info)
+
+        def _mount_known(self) -> bool:
+            """A LidarInfo arrived, and the slices' mount is known (from TF, or the
+            ``extrinsics`` parameter, or not needed)."""
+            info = self.core.last_info
+            if info is None:
+                return False
+            if not self.target_frame or self.moving or not self.core.slices \
+                    or self._have_fallback:
+                return True
+            try:
+                self.tf_buffer.lookup(self.target_frame, info.header.frame_id, None)
+            except self._lookup_error:
+                return False
+            return True
+
+        def _warm(self) -> None:
+            self.kernels = self.core.warm(cloud=self.cloud_pub is not None)
+
+        def _kernels_line(self) -> tuple[str, dict[str, Any]]:
+            """(log line, diagnostics values) of the kernels that run."""
+            if self.kernels is None:
+                return "", {}
+            return self.kernels.summary(), {
+                "backend": self.kernels.backend,
+                **{f"kernels_{k}": v for k, v in self.kernels.runs.items()},
+                **({"numba_cache": "filling in the background"} if self.kernels.missing
+                   else {})}
 
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:
@@ -448,13 +522,21 @@ def _node_class() -> type:
             parse_extrinsics(values["depth.extrinsics"], "depth.extrinsics")
 
         def _apply(self, values: dict[str, Any], changed: set[str]) -> None:
+            """Warm the new configuration's kernels (from the cache only, as at the start),
+            then apply it and rebuild the current LidarInfo's tables, before the next scan."""
             config = settings(values, self._file_slices)
             self.fallback_extrinsics = config.pop("extrinsics")
             self._have_fallback = bool(values["extrinsics"])
+            candidate = ConverterCore(**config, moving=self.moving)
+            self.kernels = candidate.warm(cloud=self.cloud_pub is not None)
+            config["slice_options"] = candidate.slice_options
             self.core.reconfigure(**{k: v for k, v in config.items() if k != "target_frame"})
             self._prepared.clear()
             self._apply_depth(values, config)
-            self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
+            if self.core.last_info is not None:
+                self._prepare(self.core.last_info)
+            self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}; "
+                                   f"{self.kernels.summary()}")
 
         # ----------------------------------------------------------------- diagnostics
         def _diagnose(self) -> list[Any]:
@@ -552,6 +634,8 @@ def _node_class() -> type:
                         self.fallback_extrinsics if self._have_fallback else None, "extrinsics")
                 except self._lookup_error:
                     pass                                # no mount yet: the cloud only
+            self._unmounted = key if extrinsics is None and self.target_frame \
+                and not self.moving else None
             try:
                 self.core.prepare(info, extrinsics, cloud=self.cloud_pub is not None)
             except Exception as err:  # noqa: BLE001 - the first scan then builds them itself

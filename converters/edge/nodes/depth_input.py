@@ -45,7 +45,8 @@ class DepthInput:
     """The depth-image input of ``ConverterNode`` (mixed in before rclpy's ``Node``)."""
 
     def _init_depth(self, values: dict[str, Any], out_qos: Any) -> None:
-        """Subscriptions and publishers of the depth-image input (``depth.*``)."""
+        """Publishers and state of the depth-image input (``depth.*``); its subscriptions:
+        :meth:`_subscribe_depth`."""
         from converters.edge.nodes.converter_core import ConverterCore, ConverterStats
 
         self.depth_sync: Any = None
@@ -61,7 +62,7 @@ class DepthInput:
             raise ConfigError("target_frame", "", "a frame with z up (e.g. base_link) "
                               "when depth.enabled: a camera's own frame has z forward")
         from lidarscan_msgs.msg import LidarInfo, LidarScan
-        from sensor_msgs.msg import CameraInfo, Image, LaserScan
+        from sensor_msgs.msg import LaserScan
 
         from converters.edge.nodes import params as P
 
@@ -82,11 +83,24 @@ class DepthInput:
                                                         out_qos)
             self.depth_info_pub = self.create_publisher(
                 LidarInfo, values["depth.info_topic"], P.qos_profile("latched"))
-        in_qos = P.qos_profile(values["depth.qos"])
-        self.create_subscription(Image, values["depth.image_topic"], self._on_depth_image,
-                                 in_qos, raw=True)
-        self.create_subscription(CameraInfo, values["depth.camera_info_topic"],
-                                 self._on_depth_info, in_qos, raw=True)
+        self._depth_topics = (values["depth.image_topic"], values["depth.camera_info_topic"],
+                              values["depth.qos"])
+
+    def _subscribe_depth(self) -> None:
+        """The depth inputs' subscriptions: created by the node after its warm-up (with the
+        slices' backend it chose), so that no image arrives before the node is ready."""
+        if self.depth_sync is None:
+            return
+        from sensor_msgs.msg import CameraInfo, Image
+
+        from converters.edge.nodes import params as P
+
+        self.depth_core.slice_options["backend"] = self.core.slice_options.get("backend",
+                                                                               "auto")
+        image_topic, info_topic, qos = self._depth_topics
+        in_qos = P.qos_profile(qos)
+        self.create_subscription(Image, image_topic, self._on_depth_image, in_qos, raw=True)
+        self.create_subscription(CameraInfo, info_topic, self._on_depth_info, in_qos, raw=True)
 
     def _on_depth_image(self, raw: bytes) -> None:
         self._depth_add("image", raw, "sensor_msgs/msg/Image")
@@ -189,7 +203,10 @@ class DepthInput:
             return
         self.depth_core.reconfigure(**{**{k: v for k, v in config.items()
                                           if k != "target_frame"},
-                                       "slice_options": {"intensity_channel": None}})
+                                       "slice_options": {
+                                           "intensity_channel": None,
+                                           "backend": self.core.slice_options.get(
+                                               "backend", "auto")}})
         self.depth_options = depth_options(values)
         self.depth_extrinsics = parse_extrinsics(
             values["depth.extrinsics"], "depth.extrinsics") \

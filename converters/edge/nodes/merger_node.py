@@ -536,10 +536,6 @@ def _node_class() -> type:
             frame_id = values["frame_id"]
 
             self.tf_buffer = TransformBuffer()
-            self.tf_listener = TfListener(self, self.tf_buffer,
-                                          on_error=lambda line: self._log(line, "tf"),
-                                          on_message=self._on_tf) \
-                if values["use_tf"] else None
 
             def resolve(target: str, source: str) -> Any:
                 try:
@@ -569,16 +565,7 @@ def _node_class() -> type:
             output_topic = values["output_topic"]
             self.pub = self.create_publisher(LaserScan, output_topic,
                                              P.qos_profile(values["output_qos"]))
-            for n, (topic, qos) in topics.items():
-                self.create_subscription(LaserScan, topic,
-                                         functools.partial(self._on_scan, n),
-                                         P.qos_profile(qos), raw=True)
             odom_topic = values["odometry_topic"]
-            if odom_topic:
-                from nav_msgs.msg import Odometry
-
-                self.create_subscription(Odometry, odom_topic, self._on_odom,
-                                         P.qos_profile(values["odometry_qos"]), raw=True)
             self._rates = RateMeter()
             self._latency = LatencyWindow()
             self._status = (Status, WARN, ERROR)
@@ -587,10 +574,46 @@ def _node_class() -> type:
                 f"merging {', '.join(f'{n} ({self.resolve_topic_name(t)})' for n, (t, _) in topics.items())}"
                 f" -> '{self.resolve_topic_name(output_topic)}' in '{frame_id}', policy "
                 f"{values['policy']}" + (f", odometry '{odom_topic}'" if odom_topic else ""))
-            from converters._kernels import warm_up as warm_kernels
+            # ready before listening (converters.edge.nodes.common): the merger's kernels from
+            # numba's cache only (numpy while it lacks them), then the subscriptions
             from converters.edge.nodes.common import warm_up
-            self.startup = warm_up(self, {"kernels": lambda: warm_kernels(("merger",))},
-                                   self.diagnostics)
+            self.kernels: Any = None
+            self.startup = warm_up(self, {"kernels": self._warm}, self.diagnostics,
+                                   describe=self._kernels_line)
+            self.tf_listener = TfListener(self, self.tf_buffer,
+                                          on_error=lambda line: self._log(line, "tf"),
+                                          on_message=self._on_tf) \
+                if values["use_tf"] else None
+            for n, (topic, qos) in topics.items():
+                self.create_subscription(LaserScan, topic,
+                                         functools.partial(self._on_scan, n),
+                                         P.qos_profile(qos), raw=True)
+            if odom_topic:
+                from nav_msgs.msg import Odometry
+
+                self.create_subscription(Odometry, odom_topic, self._on_odom,
+                                         P.qos_profile(values["odometry_qos"]), raw=True)
+
+        def _warm(self, config: dict[str, Any] | None = None) -> dict[str, Any]:
+            """Load the merger's kernels (cache only); the options with the backend to use
+            (``config``: :func:`settings` of new values; None: rebuild the running merger
+            when the backend changes)."""
+            from converters.warmup import prepare
+
+            self.kernels = prepare(("merger",))
+            options = {**(config or {}).get("options", self.core.output_options),
+                       "backend": self.kernels.backend}
+            if config is None and self.kernels.backend != "auto":
+                self.core.reconfigure(dict(self.core.inputs), jump_back_ns=self.core.jump_back_ns,
+                                      **options)
+            return options
+
+        def _kernels_line(self) -> tuple[str, dict[str, Any]]:
+            if self.kernels is None:
+                return "", {}
+            return self.kernels.summary(), {
+                "backend": self.kernels.backend,
+                **{f"kernels_{k}": v for k, v in self.kernels.runs.items()}}
 
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:
@@ -602,7 +625,7 @@ def _node_class() -> type:
         def _apply(self, values: dict[str, Any], changed: set[str]) -> None:
             config = settings(values)
             self.core.reconfigure(config["inputs"], jump_back_ns=config["jump_back_ns"],
-                                  **config["options"])
+                                  **self._warm(config))
             self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))} "
                                    "(merger rebuilt, its queues restart)")
 

@@ -92,11 +92,17 @@ class OusterInput:
                                                      P.qos_profile("latched"))
         if self.ouster_decoder is not None:
             self.ouster_info_pub.publish(self.ouster_decoder.info)
-        self.create_subscription(PacketMsg, values["ouster.packet_topic"],
-                                 self._on_ouster_packet, P.qos_profile(values["ouster.qos"]),
-                                 raw=True)
-        self.create_subscription(String, values["ouster.metadata_topic"],
-                                 self._on_ouster_metadata, P.qos_profile("latched"), raw=True)
+        self._ouster_subscriptions = [
+            (String, values["ouster.metadata_topic"], self._on_ouster_metadata,
+             P.qos_profile("latched")),
+            (PacketMsg, values["ouster.packet_topic"], self._on_ouster_packet,
+             P.qos_profile(values["ouster.qos"]))]
+
+    def _subscribe_ouster(self) -> None:
+        """The metadata and packet subscriptions (made after the warm-up: ready before
+        listening), when the Ouster input is enabled."""
+        for msgtype, topic, callback, qos in getattr(self, "_ouster_subscriptions", []):
+            self.create_subscription(msgtype, topic, callback, qos, raw=True)
 
     def _ouster_use(self, text: str) -> None:
         """A decoder for this metadata text (raises LidarScanError for a bad one)."""
