@@ -2,11 +2,14 @@
 
 * a Hypothesis profile with modest example counts and no deadline (shared 2-core machine);
 * ``rng``: a seeded numpy Generator;
-* ``small_info``: a tiny valid LidarInfo dataclass (4 beams x 8 columns), no ROS libraries needed.
+* ``small_info``: a tiny valid LidarInfo dataclass (4 beams x 8 columns), no ROS libraries needed;
+* Ctrl-C restored: a suite started in the background of a non-interactive shell inherits SIGINT
+  ignored, and so would every process it starts (the Ctrl-C tests send real SIGINTs).
 """
 
 from __future__ import annotations
 
+import signal
 from typing import Any
 
 import numpy as np
@@ -17,6 +20,9 @@ settings.register_profile(
     "lidarscan", max_examples=60, deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 settings.load_profile("lidarscan")
+
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
