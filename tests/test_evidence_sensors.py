@@ -17,6 +17,7 @@ import pytest
 
 from converters import evidence
 from converters.evidence import _common, sensors
+from helpers import assert_document_current
 
 NAMES = ("sensors-error", "sensors-claims", "sensors-fields", "sensors-size")
 
@@ -36,8 +37,7 @@ def _by_sensor() -> dict[str, list[dict[str, Any]]]:
 def test_the_document_holds_what_the_script_writes(blocks: list[Any]) -> None:
     assert [b.name for b in blocks] == list(NAMES)
     assert not any(b.placeholder for b in blocks)
-    problems = [p for p in evidence.check(evidence.DOC, blocks) if not p.startswith("skipped:")]
-    assert problems == [], "docs/proposal.md is stale; run `make evidence`:\n" + "\n".join(problems)
+    assert_document_current(evidence.check(evidence.DOC, blocks))
     text = evidence.DOC.read_text(encoding="utf-8")
     assert text.index("## 4. What omitting") < text.index("## 4b. Real sensors") \
         < text.index("## 5. The info link")
