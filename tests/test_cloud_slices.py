@@ -13,16 +13,16 @@ from typing import Any
 
 import numpy as np
 import pytest
+from grid_reference import RANK, pose, ref_bin, ref_grid, ref_output
+from helpers import cpu_has, messages_by_topic
 from hypothesis import given
 from hypothesis import strategies as st
+from test_nodes import graph  # noqa: F401 - the DDS graph fixture of the node tests
 
 from converters._kernels import cloud_slices as cloud_kernel
 from converters.cloud_slices import CloudSliceConverter, cloud_points, cloud_to_laserscan
 from converters.laserscan import SliceSpec
-from grid_reference import RANK, pose, ref_bin, ref_grid, ref_output
-from helpers import messages_by_topic
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
-from test_nodes import graph  # noqa: F401 - the DDS graph fixture of the node tests
 
 F32 = np.float32
 HAVE_KERNEL = cloud_kernel.available()
@@ -39,6 +39,9 @@ def variant(name: str) -> Iterator[str]:
         return
     if not HAVE_KERNEL:
         pytest.skip("the C cloud slices kernel is not built")
+    if name == "kernel" and not cloud_kernel.vectorised():
+        pytest.skip("this CPU has no AVX2: the kernel's AVX2 build cannot run here ('kernel "
+                    "scalar' covers the build it runs)")
     old = cloud_kernel.SIMD
     cloud_kernel.SIMD = int(name == "kernel")
     try:
@@ -55,7 +58,16 @@ def backend(request: pytest.FixtureRequest) -> Iterator[str]:
 
 
 def variants() -> list[str]:
-    return ["numpy"] + (["kernel", "kernel scalar"] if HAVE_KERNEL else [])
+    return ["numpy"] + ((["kernel"] if cloud_kernel.vectorised() else []) + ["kernel scalar"]
+                        if HAVE_KERNEL else [])
+
+
+def test_the_kernel_reports_the_avx2_build_this_cpu_has() -> None:
+    """The kernel's own CPU check agrees with numpy's detection: the "kernel" variant runs the
+    AVX2 build exactly where it exists (and is skipped elsewhere)."""
+    if not HAVE_KERNEL:
+        pytest.skip("the C cloud slices kernel is not built")
+    assert cloud_kernel.vectorised() == cpu_has("AVX2")
 
 
 # ----------------------------------------------------------------------------- clouds
@@ -306,9 +318,10 @@ def test_agrees_with_to_laserscan_on_a_structured_scans_own_cloud() -> None:
     beyond that (here: none or a handful of 128 * 3). No-return pixels are +Inf in the scan's
     slices and missing (NaN points) in the cloud, whose empty bins get the default fill, +Inf:
     the published values agree there too."""
+    from test_laserscan import BANDS, MOUNTS, make_sensor, room_scan
+
     from converters.laserscan import SliceConverter
     from converters.pointcloud2 import to_pointcloud2
-    from test_laserscan import BANDS, MOUNTS, make_sensor, room_scan
 
     info = make_sensor()
     ext = MOUNTS["level"]

@@ -14,10 +14,10 @@ import re
 from typing import Any
 
 import pytest
+from helpers import assert_document_current
 
 from converters import evidence
 from converters.evidence import codec_study, decision, summary
-from helpers import assert_document_current
 
 NAMES = ("decision-msgs", "decision-answers", "decision-compression", "decision-rejected")
 

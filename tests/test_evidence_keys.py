@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import assert_document_current
 
 from converters import evidence
 from converters.evidence import linkage, vendor_mapping
-from helpers import assert_document_current
 
 
 @pytest.fixture(scope="module")

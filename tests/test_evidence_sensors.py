@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import assert_document_current
 
 from converters import evidence
 from converters.evidence import _common, sensors
-from helpers import assert_document_current
 
 NAMES = ("sensors-error", "sensors-claims", "sensors-fields", "sensors-size")
 

@@ -42,6 +42,7 @@ from lidarscan.errors import DecodeError, LidarScanError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from fuzz_common import use_scan  # noqa: E402  (bench/fuzz.py's consumer, shared)
+from helpers import numba_usable
 
 H, W = 4, 8
 ROOT = Path(__file__).resolve().parents[1]
@@ -937,8 +938,7 @@ def test_byte_order_fuzz(seed: int, height: int, width: int, range_dtype: str,
                          intensity_dtype: str, tilt: float, per_pixel: bool) -> None:
     """Random small scans of every channel datatype, big- and little-endian, tilted mounts and
     per-pixel angles: slices (every backend) and clouds (both paths) are byte-identical."""
-    import importlib.util
-
+    
     from converters._kernels import slices as _slicec
     from converters.laserscan import SliceConverter
     from converters.pointcloud2 import PointCloud2Converter, kernel_available
@@ -963,7 +963,7 @@ def test_byte_order_fuzz(seed: int, height: int, width: int, range_dtype: str,
                    [-math.sin(tilt), 0, math.cos(tilt)]]
     scans = [ls.make_scan(info, {"range": ranges, "intensity": inten}, 5, is_bigendian=big,
                           as_dataclass=True) for big in (False, True)]
-    backends = ["numpy"] + (["numba"] if importlib.util.find_spec("numba") else [])
+    backends = ["numpy"] + (["numba"] if numba_usable() else [])
     backends += ["c"] if _slicec.available() else []
     for backend in backends:
         out = []

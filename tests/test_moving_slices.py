@@ -11,21 +11,21 @@ not when the motion is ignored).
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from typing import Any
 
 import numpy as np
 import pytest
+from grid_reference import pose, ref_slice
+from helpers import numba_usable
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_laserscan import BACKENDS, arrays, assert_same, make_sensor, raycast
 
 import lidarscan
 from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
 from converters.transforms import OutOfSpanError, TransformLookupError, TransformTrack
 from lidarscan.errors import ConfigError, ValidationError
-from grid_reference import pose, ref_slice
-from test_laserscan import BACKENDS, arrays, assert_same, make_sensor, raycast
 
 MS = 1_000_000
 STAMP = 10**9
@@ -274,7 +274,7 @@ def test_a_moving_mount_needs_the_target_frame() -> None:
 
 # ------------------------------------------------------- the per-scan path vs the full tables
 
-NUMBA = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
+NUMBA = pytest.mark.skipif(not numba_usable(),
                            reason="numba not installed")
 
 MOVING_SPECS = {

@@ -12,22 +12,12 @@ component is the reference's or its float32 neighbour (1 ulp), and almost always
 
 from __future__ import annotations
 
-import importlib.util
 from typing import Any
 
 import numpy as np
 import pytest
-
-import lidarscan
-from converters.frames import transform_rays
-from converters.laserscan import SliceConverter, SliceSpec
-from converters.transforms import (
-    OutOfSpanError,
-    TransformTrack,
-    interpolate_poses,
-    segment_rotvecs,
-)
 from grid_reference import pose
+from helpers import numba_usable
 from test_laserscan import arrays, assert_same, make_sensor
 from test_moving_slices import (
     BAND,
@@ -39,7 +29,17 @@ from test_moving_slices import (
     sweep_track,
 )
 
-NUMBA = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
+import lidarscan
+from converters.frames import transform_rays
+from converters.laserscan import SliceConverter, SliceSpec
+from converters.transforms import (
+    OutOfSpanError,
+    TransformTrack,
+    interpolate_poses,
+    segment_rotvecs,
+)
+
+NUMBA = pytest.mark.skipif(not numba_usable(),
                            reason="numba not installed")
 
 def random_track(rng: np.random.Generator, stamps: np.ndarray, tolerance: int = 0
