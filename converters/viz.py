@@ -127,8 +127,9 @@ def range_image(scan: Any, info: Any, path: str | Path, *, title: str | None = N
     Returns:
         the PNG path.
     """
-    import lidarscan
     from matplotlib.colors import LogNorm, Normalize
+
+    import lidarscan
 
     projector = lidarscan.make_projector(info)
     names = list(channels) if channels is not None else lidarscan.channel_names(scan)

@@ -33,9 +33,8 @@ has (both mask dtypes, every path), as the Makefile's install does.
 
 from __future__ import annotations
 
-import importlib.util
-
 import dataclasses
+import importlib.util
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping
