@@ -275,7 +275,7 @@ def test_a_moving_mount_needs_the_target_frame() -> None:
 # ------------------------------------------------------- the per-scan path vs the full tables
 
 NUMBA = pytest.mark.skipif(not numba_usable(),
-                           reason="numba not installed")
+                           reason="numba not installed or LIDARSCAN_NUMBA=0")
 
 MOVING_SPECS = {
     "one": {"s": SliceSpec(*BAND)},

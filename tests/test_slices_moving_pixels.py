@@ -40,7 +40,7 @@ from converters.transforms import (
 )
 
 NUMBA = pytest.mark.skipif(not numba_usable(),
-                           reason="numba not installed")
+                           reason="numba not installed or LIDARSCAN_NUMBA=0")
 
 def random_track(rng: np.random.Generator, stamps: np.ndarray, tolerance: int = 0
                  ) -> TransformTrack:
