@@ -9,6 +9,7 @@ wheels, ...) and no message package built, gives:
   ``lidarscan.types`` dataclasses, CDR round trips, the shipped Ouster metadata is installed
   (``converters/data``) and so are the message definitions (``lidarscan/_msgs``, copied by
   setup.py) that MCAP needs;
+* every ```python block of README.md, run from an empty folder;
 * ``lidarscan demo`` (a recording that ``lidarscan info`` then finds sound), with one line
   saying that PNG views need the ``[viz]`` extra;
 * the nodes that need ``lidarscan_msgs`` stop with exit status 2 and one line saying what to
@@ -151,6 +152,33 @@ def test_make_info_and_make_scan_work_without_lidarscan_msgs(installed: Installe
     assert done.stdout.splitlines() == ["LidarInfo lidarscan.types lidarscan.types",
                                         "128 2048 lidarscan.types"]
     assert not done.stderr
+
+
+@pytest.mark.slow
+def test_every_readme_block_runs_from_an_empty_folder(installed: Installed,
+                                                      tmp_path: Path) -> None:
+    """What a reader does after a plain ``pip install .``: each ```python block of README.md,
+    run by the installed interpreter from an empty temporary folder, works (its data comes
+    from the installed package) and leaves that folder empty (it writes into temporary
+    folders of its own)."""
+    from test_readme import BLOCKS
+
+    failures = []
+    for line, code, skip in BLOCKS:
+        if skip is not None:
+            continue
+        work = tmp_path / f"block_{line}"
+        work.mkdir()
+        script = tmp_path / f"readme_{line}.py"
+        script.write_text(code, encoding="utf-8")
+        done = subprocess.run([str(installed.venv / "bin" / "python"), str(script)], cwd=work,
+                              env=_env(), check=False, capture_output=True, text=True,
+                              timeout=600)
+        if done.returncode != 0 or "Traceback" in done.stderr:
+            failures.append(f"README.md:{line}: " + done.stderr.strip()[-1500:])
+        elif list(work.iterdir()):
+            failures.append(f"README.md:{line} wrote {sorted(p.name for p in work.iterdir())}")
+    assert not failures, "\n\n".join(failures)
 
 
 @pytest.mark.slow
