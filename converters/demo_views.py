@@ -81,8 +81,16 @@ def draw(out: Path, scene: Scene, info: Any, last: dict[str, Any], config: DemoC
 
 
 def _hole_edge_xy(last: dict[str, Any], config: DemoConfig) -> np.ndarray[Any, Any]:
-    """(N, 2) base_link x, y of the camera slice's bins that are a hole edge (:func:`hole_bins`
-    against the same slice without hole detection)."""
+    """(N, 2) base_link x, y of the camera slice's bins that are a hole edge."""
+    xy, edge, _ = _camera_bins(last, config)
+    return xy[edge]
+
+
+def _camera_bins(last: dict[str, Any], config: DemoConfig
+                 ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """The camera slice's bins: (N, 2) base_link x, y, and two (N,) masks: hole edge
+    (:func:`hole_bins` against the same slice without hole detection), band (finite, not an
+    edge)."""
     from converters.demo import _camera_slicer
 
     optical_mount = config.camera_mount @ LINK_FROM_OPTICAL
@@ -92,8 +100,8 @@ def _hole_edge_xy(last: dict[str, Any], config: DemoConfig) -> np.ndarray[Any, A
     ranges = np.asarray(cut.ranges, np.float64)
     angles = cut.angle_min + cut.angle_increment * np.arange(ranges.size)
     edge = hole_bins(cut, plain)
-    return np.stack([ranges[edge] * np.cos(angles[edge]), ranges[edge] * np.sin(angles[edge])],
-                    1)
+    band = np.isfinite(ranges) & ~edge
+    return np.stack([ranges * np.cos(angles), ranges * np.sin(angles)], 1), edge, band
 
 
 def hole_bins(with_holes: Any, without: Any) -> np.ndarray[Any, np.dtype[np.bool_]]:
@@ -110,17 +118,8 @@ def _draw_camera(path: Path, scene: Scene, last: dict[str, Any], config: DemoCon
                  outlines: list[tuple[str, np.ndarray[Any, Any]]]) -> Path:
     """The depth image and the camera's slice with the detected stair edge."""
     from converters import viz
-    from converters.demo import _camera_slicer
 
-    optical_mount = config.camera_mount @ LINK_FROM_OPTICAL
-    plain = _camera_slicer(last["camera_info"], optical_mount, config, holes=False).convert(
-        last["camera_scan"])["camera"]
-    cut = last["camera_slice"]
-    ranges = np.asarray(cut.ranges, np.float64)
-    angles = cut.angle_min + cut.angle_increment * np.arange(ranges.size)
-    edge = hole_bins(cut, plain)
-    band = np.isfinite(ranges) & ~edge
-    xy = np.stack([ranges * np.cos(angles), ranges * np.sin(angles)], 1)
+    xy, edge, band = _camera_bins(last, config)
     image = last["image"]
     depth = np.frombuffer(bytes(image.data), "<u2").reshape(image.height, image.width)
     x0, y0, x1, y1 = STAIRWELL
