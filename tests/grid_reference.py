@@ -11,9 +11,9 @@ import math
 from typing import Any
 
 import numpy as np
-from geometry_reference import checked_tables, shifts_of
 
 import lidarscan
+from geometry_reference import checked_tables, shifts_of
 
 TWO_PI = 2 * math.pi
 

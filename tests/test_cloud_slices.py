@@ -13,16 +13,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-from grid_reference import RANK, pose, ref_bin, ref_grid, ref_output
-from helpers import cpu_has, messages_by_topic
 from hypothesis import given
 from hypothesis import strategies as st
-from test_nodes import graph  # noqa: F401 - the DDS graph fixture of the node tests
 
 from converters._kernels import cloud_slices as cloud_kernel
 from converters.cloud_slices import CloudSliceConverter, cloud_points, cloud_to_laserscan
 from converters.laserscan import SliceSpec
+from grid_reference import RANK, pose, ref_bin, ref_grid, ref_output
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
+from test_nodes import graph  # noqa: F401 - the DDS graph fixture of the node tests
+from helpers import cpu_has, messages_by_topic
 
 F32 = np.float32
 HAVE_KERNEL = cloud_kernel.available()
@@ -318,10 +318,9 @@ def test_agrees_with_to_laserscan_on_a_structured_scans_own_cloud() -> None:
     beyond that (here: none or a handful of 128 * 3). No-return pixels are +Inf in the scan's
     slices and missing (NaN points) in the cloud, whose empty bins get the default fill, +Inf:
     the published values agree there too."""
-    from test_laserscan import BANDS, MOUNTS, make_sensor, room_scan
-
     from converters.laserscan import SliceConverter
     from converters.pointcloud2 import to_pointcloud2
+    from test_laserscan import BANDS, MOUNTS, make_sensor, room_scan
 
     info = make_sensor()
     ext = MOUNTS["level"]

@@ -17,17 +17,17 @@ from typing import Any
 
 import numpy as np
 import pytest
-from grid_reference import pose, ref_slice
-from helpers import numba_usable
 from hypothesis import given
 from hypothesis import strategies as st
-from test_laserscan import SPECIALS, draw_image
 
 import lidarscan
 from converters.demo import Box, Scene
 from converters.depth import OPTICAL_FROM_BODY, from_depth_image
 from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
 from lidarscan.errors import ConfigError, LidarScanError
+from grid_reference import pose, ref_slice
+from test_laserscan import SPECIALS, draw_image
+from helpers import numba_usable
 
 TWO_PI = 2 * math.pi
 F32 = np.float32

@@ -14,14 +14,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from grid_reference import pose, ref_slice
-from helpers import numba_usable
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
 import lidarscan
 from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError, UnknownChannelError
+from grid_reference import pose, ref_slice
+from helpers import numba_usable
 
 TWO_PI = 2 * math.pi  # as in grid_reference
 F32 = np.float32

@@ -13,8 +13,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from grid_reference import RANK, pose, ref_bin, ref_grid, ref_qualify
-from helpers import numba_usable
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -24,6 +22,8 @@ from converters._grid import AngleGrid
 from converters.merger import LaserScanMerger, MergerInput, Pose, interpolate_pose
 from lidarscan.errors import ConfigError, ValidationError
 from lidarscan.types import Header, Time, message_class
+from grid_reference import RANK, pose, ref_bin, ref_grid, ref_qualify
+from helpers import numba_usable
 
 DATA = pathlib.Path(__file__).parent / "data" / "laserscan"
 MCAP = DATA / "scan_tools_laser_scan_matcher_demo.mcap"

@@ -16,16 +16,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-from grid_reference import pose, ref_slice
-from helpers import numba_usable
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_laserscan import BACKENDS, arrays, assert_same, make_sensor, raycast
 
 import lidarscan
 from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
 from converters.transforms import OutOfSpanError, TransformLookupError, TransformTrack
 from lidarscan.errors import ConfigError, ValidationError
+from grid_reference import pose, ref_slice
+from test_laserscan import BACKENDS, arrays, assert_same, make_sensor, raycast
+from helpers import numba_usable
 
 MS = 1_000_000
 STAMP = 10**9

@@ -14,25 +14,17 @@ from typing import Any
 
 import numpy as np
 import pytest
-from grid_reference import pose
-from helpers import AVX512_SLICES, cpu_has, numba_usable
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_laserscan import (
-    MOUNTS,
-    SPECIALS,
-    TWO_PI,
-    arrays,
-    draw_image,
-    make_sensor,
-    ref_slice,
-    room_scan,
-)
 
 import lidarscan
 from converters import _grid
 from converters._kernels import slices as _slicec
 from converters.laserscan import SliceConverter, SliceSpec
+from grid_reference import pose
+from test_laserscan import (MOUNTS, SPECIALS, TWO_PI, arrays, draw_image, make_sensor,
+                            ref_slice, room_scan)
+from helpers import AVX512_SLICES, cpu_has, numba_usable
 
 HAVE_C = _slicec.available()
 HAVE_NUMBA = numba_usable()

@@ -16,18 +16,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from grid_reference import pose
-from helpers import numba_usable
-from test_laserscan import arrays, assert_same, make_sensor
-from test_moving_slices import (
-    BAND,
-    MOVING_SPECS,
-    MS,
-    STAMP,
-    mount_track,
-    moving_room_scan,
-    sweep_track,
-)
 
 import lidarscan
 from converters.frames import transform_rays
@@ -38,6 +26,18 @@ from converters.transforms import (
     interpolate_poses,
     segment_rotvecs,
 )
+from grid_reference import pose
+from test_laserscan import arrays, assert_same, make_sensor
+from test_moving_slices import (
+    BAND,
+    MOVING_SPECS,
+    MS,
+    STAMP,
+    mount_track,
+    moving_room_scan,
+    sweep_track,
+)
+from helpers import numba_usable
 
 NUMBA = pytest.mark.skipif(not numba_usable(),
                            reason="numba not installed or LIDARSCAN_NUMBA=0")

@@ -21,10 +21,9 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from helpers import cpu_has
-
 from converters._kernels import velodyne as kv  # noqa: E402
 from converters.velodyne import packets as vp  # noqa: E402
+from helpers import cpu_has  # noqa: E402
 
 pytestmark = pytest.mark.skipif(kv.library() is None,
                                 reason="converters._kernels._velokernel is not built")
