@@ -15,6 +15,9 @@ machine would run them:
   portable path (``LIDARSCAN_VELODYNE_SIMD=0``) and numpy without its run-time SIMD targets
   (``NPY_DISABLE_CPU_FEATURES``: the code numpy runs on a CPU without AVX2 / AVX-512).
 
+The document's deterministic evidence (``python -m converters.evidence --check``) is checked
+on the baseline paths too: its figures must not depend on the machine either.
+
 A failure prints the subprocess's failures; run the same command to reproduce it.
 """
 
@@ -63,12 +66,17 @@ CASES = {
 }
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("case", sorted(CASES))
-def test_byte_pinning_tests_pass_on_the_portable_paths(case: str) -> None:
+def _env(case: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items()
            if not k.startswith("LIDARSCAN_") and k != "NPY_DISABLE_CPU_FEATURES"}
     env.update(CASES[case])
+    return env
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_byte_pinning_tests_pass_on_the_portable_paths(case: str) -> None:
+    env = _env(case)
     command = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
                "-p", "no:randomly", *FILES, *(BASELINE_FILES if case == "baseline-cpu" else [])]
     done = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True,
@@ -77,3 +85,12 @@ def test_byte_pinning_tests_pass_on_the_portable_paths(case: str) -> None:
     assert done.returncode == 0, (f"{switches} {' '.join(command[2:])} failed:\n"
                                   + done.stdout[-6000:] + done.stderr[-2000:])
     assert " passed" in done.stdout.splitlines()[-1], done.stdout[-2000:]
+
+
+@pytest.mark.slow
+def test_the_evidence_document_holds_on_the_baseline_paths() -> None:
+    command = [sys.executable, "-m", "converters.evidence", "--check"]
+    done = subprocess.run(command, cwd=ROOT, env=_env("baseline-cpu"), capture_output=True,
+                          text=True, timeout=1800, check=False)
+    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
+    assert "document up to date" in done.stdout
