@@ -230,13 +230,13 @@ def specialisations() -> dict[str, int]:
 
 def main() -> int:
     """``python -m converters._kernels.warm``: fill the cache for every specialisation."""
+    from converters._kernels import numba_enabled
+
     one = {"a": {"min_height": -0.5, "max_height": 0.5}}
     nine = {f"s{i}": {"min_height": -0.5 + 0.1 * i, "max_height": 0.5} for i in range(9)}
     two_grids = {"a": {"min_height": -0.5, "max_height": 0.5},
                  "b": {"min_height": 0.0, "max_height": 1.0, "angle_increment": 0.01}}
     nine_grids = {**nine, "b": two_grids["b"]}
-    from converters._kernels import numba_enabled
-
     total = time.perf_counter()
     if importlib.util.find_spec("numba") is not None and numba_enabled():
         print("compiling the numba kernels once into numba's on-disk cache (about a minute "
