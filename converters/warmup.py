@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib.util
 import json
 import math
 import os
@@ -57,6 +58,8 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
+
+from converters._kernels._switches import numba_enabled
 
 __all__ = ["TASKS", "NotCached", "Prepared", "describe", "prepare", "probe_cloud", "probe_info",
            "probe_scan", "specialisations", "warm"]
@@ -465,16 +468,22 @@ def main(argv: Sequence[str] | None = None) -> int:
                  "b": {"min_height": 0.0, "max_height": 1.0, "angle_increment": 0.01}}
     nine_grids = {**nine, "b": two_grids["b"]}
     total = time.perf_counter()
+    if importlib.util.find_spec("numba") is not None and numba_enabled():
+        print("compiling the numba kernels once into numba's on-disk cache (about a minute "
+              "on a new machine, a few seconds when cached): later runs and nodes start "
+              "without compiling", flush=True)
+    else:
+        print("loading the C kernels (numba not installed or disabled: nothing to compile)",
+              flush=True)
     for label, config in (("1 slice", one), ("9 slices", nine), ("2 grids", two_grids),
                           ("10 slices, 2 grids", nine_grids)):
         took = warm(("slices",), slices=config)
-        print(f"slices ({label}): {took['slices']:.2f} s", flush=True)
+        print(f"  slices ({label}): {took['slices']:.1f} s", flush=True)
     for task, took in warm(("cloud", "merger", "codec")).items():
-        print(f"{task}: {took:.2f} s", flush=True)
+        print(f"  {task}: {took:.1f} s", flush=True)
     compiled = specialisations()
-    print(f"kernels ready in {time.perf_counter() - total:.1f} s: "
-          + (", ".join(f"{k} {v}" for k, v in compiled.items()) if compiled else
-             "numba not installed or disabled (nothing to compile)"))
+    print(f"kernels ready in {time.perf_counter() - total:.1f} s"
+          + (": " + ", ".join(f"{k} {v}" for k, v in compiled.items()) if compiled else ""))
     return 0
 
 

@@ -1,6 +1,8 @@
 """Plain-loop reference code shared by the slice and merger tests (the documented grid rules).
 
-Written from the conventions in converters/slices/spec.py's docstring, not from its code.
+Written from the conventions in converters/slices/spec.py's docstring, not from its code; the rays
+come from the project's float32 tables only after :func:`geometry_reference.checked_tables` has
+held them to a plain-loop evaluation of the documented beam model.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from typing import Any
 import numpy as np
 
 import lidarscan
+from geometry_reference import checked_tables, shifts_of
 
 TWO_PI = 2 * math.pi
 
@@ -95,8 +98,8 @@ def ref_slice(scan: Any, info: Any, *, zmin: float, zmax: float, ext: Any = None
         rmax = float(info.range_max) if float(info.range_max) > 0 else math.inf
     near = max(float(info.range_min), 0.0)
     grid = ref_grid(amin, amax, inc)
-    proj = lidarscan.make_projector(info)
-    dirs, offs = proj.tables_for(scan)
+    dirs, offs = checked_tables(scan, info)       # held to the plain-loop beam model
+    shifts = shifts_of(info)
     ranges = lidarscan.range_m(scan, info)
     values = lidarscan.channel(scan, intensity) if intensity else None
     cands: dict[int, tuple[Any, ...]] = {}
@@ -111,7 +114,7 @@ def ref_slice(scan: Any, info: Any, *, zmin: float, zmax: float, ext: Any = None
 
     for u in range(height):
         for v in range(width):
-            c = (v - int(proj.shifts[u])) % width if scan.is_destaggered else v
+            c = (v - shifts[u]) % width if scan.is_destaggered else v
             key = u * width + c
             if callable(ext):
                 m = np.asarray(ext(u, v), float)

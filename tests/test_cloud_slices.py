@@ -20,9 +20,9 @@ from converters._kernels import cloud_slices as cloud_kernel
 from converters.slices.cloud import CloudSliceConverter, cloud_points, cloud_to_laserscan
 from converters.slices.converter import SliceSpec
 from grid_reference import RANK, pose, ref_bin, ref_grid, ref_output
-from helpers import messages_by_topic
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
 from test_nodes import graph  # noqa: F401 - the DDS graph fixture of the node tests
+from helpers import cpu_has, messages_by_topic
 
 F32 = np.float32
 HAVE_KERNEL = cloud_kernel.available()
@@ -39,6 +39,9 @@ def variant(name: str) -> Iterator[str]:
         return
     if not HAVE_KERNEL:
         pytest.skip("the C cloud slices kernel is not built")
+    if name == "kernel" and not cloud_kernel.vectorised():
+        pytest.skip("this CPU has no AVX2: the kernel's AVX2 build cannot run here ('kernel "
+                    "scalar' covers the build it runs)")
     old = cloud_kernel.SIMD
     cloud_kernel.SIMD = int(name == "kernel")
     try:
@@ -55,7 +58,16 @@ def backend(request: pytest.FixtureRequest) -> Iterator[str]:
 
 
 def variants() -> list[str]:
-    return ["numpy"] + (["kernel", "kernel scalar"] if HAVE_KERNEL else [])
+    return ["numpy"] + ((["kernel"] if cloud_kernel.vectorised() else []) + ["kernel scalar"]
+                        if HAVE_KERNEL else [])
+
+
+def test_the_kernel_reports_the_avx2_build_this_cpu_has() -> None:
+    """The kernel's own CPU check agrees with numpy's detection: the "kernel" variant runs the
+    AVX2 build exactly where it exists (and is skipped elsewhere)."""
+    if not HAVE_KERNEL:
+        pytest.skip("the C cloud slices kernel is not built")
+    assert cloud_kernel.vectorised() == cpu_has("AVX2")
 
 
 # ----------------------------------------------------------------------------- clouds

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import assert_document_current
 
 from converters.edge import evidence
 from converters.edge.evidence import (
@@ -36,9 +37,7 @@ def blocks() -> list[Any]:
 
 
 def test_document_tables_equal_the_scripts_output(blocks: list[Any]) -> None:
-    problems = evidence.check(evidence.DOC, blocks)
-    real = [p for p in problems if not p.startswith("skipped:")]
-    assert real == [], "docs/proposal.md is stale; run `make evidence`:\n" + "\n".join(real)
+    assert_document_current(evidence.check(evidence.DOC, blocks))
 
 
 def test_every_generated_block_has_markers_and_no_placeholder_is_left(blocks: list[Any]) -> None:
@@ -57,6 +56,7 @@ def test_check_cli_passes_on_the_committed_document(capsys: pytest.CaptureFixtur
     assert evidence.main(["--check"]) == 0
     out = capsys.readouterr().out
     assert "CPU:" in out and "Python" in out and "document up to date" in out
+    assert_document_current([line for line in out.splitlines() if line.startswith("skipped:")])
 
 
 def test_render_writes_only_between_markers() -> None:
@@ -81,17 +81,52 @@ def test_check_reports_a_changed_number(tmp_path: Any, blocks: list[Any]) -> Non
     assert any(p.startswith("sizes:") for p in evidence.check(doc, blocks))
 
 
-def test_check_skips_library_dependent_blocks_when_versions_differ(tmp_path: Any,
-                                                                    blocks: list[Any]) -> None:
+@pytest.mark.parametrize(("ratio", "within"), [("3.48", True), ("3.40", True), ("3.70", False),
+                                               ("9.99", False)])
+def test_check_compares_library_dependent_blocks_within_a_tolerance_when_versions_differ(
+        tmp_path: Any, blocks: list[Any], ratio: str, within: bool) -> None:
+    """Other zstd / lz4 / Pillow releases: the block is compared within 5 % ("skipped:" the
+    exact comparison, named as such), and a figure beyond it is still a difference."""
     doc = tmp_path / "proposal.md"
     text = evidence.DOC.read_text(encoding="utf-8")
     old = evidence.read_blocks(text)["compression"]
     first = old.split("\n", 1)[0]
+    assert "| 3.47 |" in old
     doc.write_text(text.replace(old, old.replace(first, first.replace("zstandard ", "zstandard 0"))
-                                .replace("| 3.47 |", "| 9.99 |")), encoding="utf-8")
+                                .replace("| 3.47 |", f"| {ratio} |")), encoding="utf-8")
     problems = evidence.check(doc, blocks)
-    assert [p for p in problems if "compression" in p and p.startswith("skipped:")]
-    assert not [p for p in problems if p.startswith("compression:")]
+    skipped = [p for p in problems if "compression" in p and p.startswith("skipped:")]
+    differs = [p for p in problems if p.startswith("compression:")]
+    assert (bool(skipped), bool(differs)) == (within, not within), problems
+    if within:
+        assert "zstandard 00." in skipped[0] and "within 5 %" in skipped[0]
+
+
+def test_check_compares_jpegxl_sizes_within_their_tolerance(tmp_path: Any,
+                                                            blocks: list[Any]) -> None:
+    """libjxl's sizes depend on the CPU (its SIMD path): within 3 % they pass; the project's
+    own sizes in the same block are still compared exactly."""
+    text = evidence.DOC.read_text(encoding="utf-8")
+    study = evidence.read_blocks(text)["codec-study"]
+    rows = [line for line in study.split("\n") if line.startswith("| ")]
+    jxl = next(line for line in rows if "JPEG-XL" in line)
+    ours = next(line for line in rows if "lidarscan.codec v3" in line)
+    cells = jxl.split(" | ")
+    size = int(cells[3].replace(" ", ""))
+
+    def check_with(old: str, new: str) -> list[str]:
+        doc = tmp_path / "proposal.md"
+        doc.write_text(text.replace(study, study.replace(old, new)), encoding="utf-8")
+        return [p for p in evidence.check(doc, blocks) if p.startswith("codec-study")]
+
+    near = " | ".join(cells[:3] + [_common.fmt_int(round(size * 1.02))] + cells[4:])
+    far = " | ".join(cells[:3] + [_common.fmt_int(round(size * 1.05))] + cells[4:])
+    assert check_with(jxl, near) == []
+    assert check_with(jxl, far)
+    cells = ours.split(" | ")
+    one_more = " | ".join(cells[:3] + [_common.fmt_int(int(cells[3].replace(" ", "")) + 1)]
+                          + cells[4:])
+    assert check_with(ours, one_more)
 
 
 def test_core_evidence_import_does_not_import_rclpy() -> None:
@@ -336,30 +371,44 @@ def test_nebula_cloud_is_32_bytes_per_return_with_our_points() -> None:
     assert set(np.unique(pts["rt"])) == {1, 2}
 
 
+def codec_versions_differ() -> str:
+    """Why the document's zstd / lz4 / Draco dependent figures cannot be compared exactly in
+    this environment (the codec study's library versions differ from the document's), or ""."""
+    from converters.edge.evidence._compare import documented_versions
+    versions = codec_study._versions()
+    study = evidence.read_blocks(evidence.DOC.read_text(encoding="utf-8"))["codec-study"]
+    documented = documented_versions(study, _common.Block("codec-study", "", versions=versions))
+    return "" if documented == versions else \
+        f"the document's codec figures come from {documented}, this run's from {versions}"
+
+
 def test_the_compression_prose_matches_the_codec_facts() -> None:
-    text = evidence.DOC.read_text(encoding="utf-8")
+    """The project's own sizes exactly; the claims (goals met) always; the figures relative
+    to zstd / Draco exactly only with the document's library versions (else a visible skip)."""
+    flat = " ".join(evidence.DOC.read_text(encoding="utf-8").split())
     facts = {f["label"]: f for f in summary_codec_facts()}
-    off = [1 - f["codec_vs_zstd"] for f in facts.values()]
-    assert (f"takes a further {round(min(off) * 100)}–{round(max(off) * 100)} % off zstd-3"
-            in " ".join(text.split()))
-    nebula = [facts[s]["all_ratio"] for s in NEBULA_SENSORS]
-    assert f"all channels take {min(nebula):.2f}–{max(nebula):.2f}× the best lossless" in \
-        " ".join(text.split())
+    # the version 2 figures quoted in the format paragraph (the project's codec only)
+    os2 = next(r for r in codec_study.measure(False) if r["label"] == "OS-2-128 1024x10")
+    p64 = next(r for r in codec_study.measure(False) if r["label"] == "Hesai Pandar64")
+    assert f"to {fmt(os2['scan'][codec_study.V2])} B and the range from 162 340 to " \
+           f"{fmt(os2['range'][codec_study.V2])} B" in flat
+    assert f"from 200 697 to {fmt(p64['scan'][codec_study.V2])} B" in flat
+    # the claims
     assert all(facts[s]["all_met"] for s in NEBULA_SENSORS)
     # the default (format version 3) meets it on OS-2-128, version 2 does not
     os2_facts = facts["OS-2-128 1024x10"]
     assert os2_facts["all_met"] and os2_facts["all_ratio"] <= 0.2 < os2_facts["all_ratio_v2"]
-    assert f"OS-2-128 to {facts['OS-2-128 1024x10']['all_ratio']:.3f}×" in \
-        " ".join(text.split())
     assert all(f["range_met"] for f in facts.values())
-    assert "the range channel meets ≤ 0.4× Draco on every sensor" in " ".join(text.split())
-    # the version 2 figures quoted in the format paragraph
-    os2 = next(r for r in codec_study.measure(False) if r["label"] == "OS-2-128 1024x10")
-    p64 = next(r for r in codec_study.measure(False) if r["label"] == "Hesai Pandar64")
-    flat = " ".join(text.split())
-    assert f"to {fmt(os2['scan'][codec_study.V2])} B and the range from 162 340 to " \
-           f"{fmt(os2['range'][codec_study.V2])} B" in flat
-    assert f"from 200 697 to {fmt(p64['scan'][codec_study.V2])} B" in flat
+    assert "the range channel meets ≤ 0.4× Draco on every sensor" in flat
+    # the figures relative to the third-party codecs
+    why = codec_versions_differ()
+    if why:
+        pytest.skip(f"{why}: the prose's ratios to zstd are not compared")
+    off = [1 - f["codec_vs_zstd"] for f in facts.values()]
+    assert f"takes a further {round(min(off) * 100)}–{round(max(off) * 100)} % off zstd-3" in flat
+    nebula = [facts[s]["all_ratio"] for s in NEBULA_SENSORS]
+    assert f"all channels take {min(nebula):.2f}–{max(nebula):.2f}× the best lossless" in flat
+    assert f"OS-2-128 to {facts['OS-2-128 1024x10']['all_ratio']:.3f}×" in flat
 
 
 def test_units_cover_every_real_sensor_and_recover_every_integer() -> None:

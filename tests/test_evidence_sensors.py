@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import assert_document_current
 
 from converters.edge import evidence
 from converters.edge.evidence import _common, sensors
@@ -36,8 +37,7 @@ def _by_sensor() -> dict[str, list[dict[str, Any]]]:
 def test_the_document_holds_what_the_script_writes(blocks: list[Any]) -> None:
     assert [b.name for b in blocks] == list(NAMES)
     assert not any(b.placeholder for b in blocks)
-    problems = [p for p in evidence.check(evidence.DOC, blocks) if not p.startswith("skipped:")]
-    assert problems == [], "docs/proposal.md is stale; run `make evidence`:\n" + "\n".join(problems)
+    assert_document_current(evidence.check(evidence.DOC, blocks))
     text = evidence.DOC.read_text(encoding="utf-8")
     assert text.index("## 4. What omitting") < text.index("## 4b. Real sensors") \
         < text.index("## 5. The info link")

@@ -12,7 +12,6 @@ axis-aligned boxes ray-cast from the projector's own beam tables
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import math
 from typing import Any
 
@@ -28,11 +27,12 @@ from converters.slices.converter import SliceConverter, SliceSpec, to_laserscan
 from lidarscan.errors import ConfigError, LidarScanError
 from grid_reference import pose, ref_slice
 from test_laserscan import SPECIALS, draw_image
+from helpers import numba_usable
 
 TWO_PI = 2 * math.pi
 F32 = np.float32
 #: auto: the C kernel or numba where built (else numpy); numba: numba's kernels alone
-BACKENDS = ["numpy", "auto"] + (["numba"] if importlib.util.find_spec("numba") else [])
+BACKENDS = ["numpy", "auto"] + (["numba"] if numba_usable() else [])
 
 
 # --------------------------------------------------------------------------- reference code
@@ -289,7 +289,8 @@ def test_off_by_default_is_bit_identical_to_the_slicer_without_holes(backend: st
 
 # ------------------------------------------------------------- the one-call row kernel
 
-@pytest.mark.skipif(not importlib.util.find_spec("numba"), reason="numba is not installed")
+@pytest.mark.skipif(not numba_usable(),
+                    reason="numba is not installed or LIDARSCAN_NUMBA=0")
 @pytest.mark.parametrize("origins", [False, True])
 def test_row_kernel_fuses_the_holes_in_the_same_call(origins: bool, monkeypatch: Any) -> None:
     """An upright lidar at one bin per column takes the row-ordered numba kernel with holes on
@@ -477,7 +478,7 @@ def hole_case(draw: Any) -> tuple[Any, Any, dict[str, Any]]:
 def test_property_matches_the_loop_oracle(case: Any) -> None:
     info, scan, o = case
     ref = ref_slice(scan, info, **o)
-    for backend in ["numpy"] + (["auto"] if importlib.util.find_spec("numba") else []):
+    for backend in ["numpy"] + (["auto"] if numba_usable() else []):
         got = to_laserscan(scan, info, min_height=o["zmin"], max_height=o["zmax"],
                            extrinsics=o["ext"], frame_id="b", angle_min=o["amin"],
                            angle_max=o["amax"], angle_increment=o["inc"], range_min=o["rmin"],

@@ -9,7 +9,6 @@ range are known exactly.
 from __future__ import annotations
 
 import array
-import importlib.util
 import math
 from typing import Any
 
@@ -22,6 +21,7 @@ import lidarscan
 from converters.slices.converter import SliceConverter, SliceSpec, to_laserscan
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError, UnknownChannelError
 from grid_reference import pose, ref_slice
+from helpers import numba_usable
 
 TWO_PI = 2 * math.pi  # as in grid_reference
 F32 = np.float32
@@ -123,12 +123,12 @@ def sensor() -> Any:
 
 
 BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
-    importlib.util.find_spec("numba") is None, reason="numba not installed"))]
+    not numba_usable(), reason="numba is not installed or LIDARSCAN_NUMBA=0"))]
 
 
 def backends() -> list[str]:
     """Backends available here (for loops inside Hypothesis tests)."""
-    return ["numpy"] + (["numba"] if importlib.util.find_spec("numba") else [])
+    return ["numpy"] + (["numba"] if numba_usable() else [])
 
 
 # ------------------------------------------------------------------ oracle on the room scene
@@ -147,7 +147,8 @@ def test_slices_match_the_reference(sensor: Any, mount: str, backend: str) -> No
         assert out[name].header.frame_id == "base_link"
 
 
-@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.skipif(not numba_usable(),
+                    reason="numba is not installed or LIDARSCAN_NUMBA=0")
 @pytest.mark.parametrize("mount", ["level", "tilted", "offset"])
 def test_compiled_paths_agree(sensor: Any, mount: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """The compiled kernels have three drivers: the bin-ordered kernel (one grid, shared range
@@ -773,7 +774,8 @@ def _row_layout(conv: SliceConverter, scan: Any) -> Any:
     return tables.sorted.rows
 
 
-@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.skipif(not numba_usable(),
+                    reason="numba is not installed or LIDARSCAN_NUMBA=0")
 @pytest.mark.parametrize(("mount", "n_slices", "destagger"), [
     ("level", 1, False), ("level", 3, True), ("level", 5, False), ("level", 9, True),
     ("offset", 3, False), ("offset", 5, True), ("upside_down", 2, False),
@@ -825,7 +827,8 @@ def test_row_kernel_matches_general_kernel_and_oracle(mount: str, n_slices: int,
         assert_same(numpy[name], ref)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.skipif(not numba_usable(),
+                    reason="numba is not installed or LIDARSCAN_NUMBA=0")
 def test_row_kernel_per_position_qualifiers() -> None:
     """The row kernel reads +Inf/NaN/-Inf qualifiers per row when they are the same in every
     bin, else per position; both give the same slices (here forced on the same tables)."""
@@ -850,7 +853,8 @@ def test_row_kernel_per_position_qualifiers() -> None:
     assert _grid.EMPTY > 0
 
 
-@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.skipif(not numba_usable(),
+                    reason="numba is not installed or LIDARSCAN_NUMBA=0")
 @pytest.mark.parametrize("case", ["tilted", "coarse_grid", "fine_grid", "many_slices"])
 def test_row_kernel_falls_back_when_it_does_not_apply(case: str) -> None:
     """A tilted mount (dz, oz vary along a row), grids other than one bin per column,

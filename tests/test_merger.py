@@ -7,7 +7,6 @@ documented rules (converters/slices/spec.py and converters/merger.py docstrings)
 from __future__ import annotations
 
 import array
-import importlib.util
 import math
 import pathlib
 from typing import Any
@@ -24,6 +23,7 @@ from converters.merger import LaserScanMerger, MergerInput, Pose, interpolate_po
 from lidarscan.errors import ConfigError, ValidationError
 from lidarscan.types import Header, Time, message_class
 from grid_reference import RANK, pose, ref_bin, ref_grid, ref_qualify
+from helpers import numba_usable
 
 DATA = pathlib.Path(__file__).parent / "data" / "laserscan"
 MCAP = DATA / "scan_tools_laser_scan_matcher_demo.mcap"
@@ -127,11 +127,11 @@ def ref_merge(inputs: dict[str, MergerInput], scans: dict[str, Any], *, amin: fl
 # ----------------------------------------------------------------------------------- helpers
 
 BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
-    importlib.util.find_spec("numba") is None, reason="numba not installed"))]
+    not numba_usable(), reason="numba is not installed or LIDARSCAN_NUMBA=0"))]
 
 
 def backends() -> list[str]:
-    return ["numpy"] + (["numba"] if importlib.util.find_spec("numba") else [])
+    return ["numpy"] + (["numba"] if numba_usable() else [])
 
 
 def make_scan(ranges: Any, *, angle_min: float = -math.pi, inc: float | None = None,

@@ -11,7 +11,6 @@ not when the motion is ignored).
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from typing import Any
 
@@ -26,6 +25,7 @@ from converters.shared.transforms import OutOfSpanError, TransformLookupError, T
 from lidarscan.errors import ConfigError, ValidationError
 from grid_reference import pose, ref_slice
 from test_laserscan import BACKENDS, arrays, assert_same, make_sensor, raycast
+from helpers import numba_usable
 
 MS = 1_000_000
 STAMP = 10**9
@@ -274,8 +274,8 @@ def test_a_moving_mount_needs_the_target_frame() -> None:
 
 # ------------------------------------------------------- the per-scan path vs the full tables
 
-NUMBA = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
-                           reason="numba not installed")
+NUMBA = pytest.mark.skipif(not numba_usable(),
+                           reason="numba not installed or LIDARSCAN_NUMBA=0")
 
 MOVING_SPECS = {
     "one": {"s": SliceSpec(*BAND)},

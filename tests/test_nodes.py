@@ -507,6 +507,14 @@ def test_converter_node_end_to_end(graph: Graph) -> None:
         slice_names=["low", "high"], slices__low__min_height=-0.5, slices__low__max_height=0.5,
         slices__high__min_height=0.0, slices__high__max_height=5.0,
         slices__high__topic="slices/up")))
+    asked: list[list[str]] = []            # the slices each conversion was asked for
+    convert = node.core.convert
+
+    def spy(*args: Any, **kw: Any) -> Any:
+        asked.append(list(kw.get("slices") or []))
+        return convert(*args, **kw)
+
+    node.core.convert = spy
     scan = small_scan(info, 10**9)
     assert graph.wait(lambda: node.core.stats.infos_received >= 1)
     assert graph.wait(lambda: clouds and lows, tick=lambda: scan_pub.publish(scan))
@@ -516,8 +524,16 @@ def test_converter_node_end_to_end(graph: Graph) -> None:
         scan)["low"]
     assert same_floats(lows[0].ranges, expected.ranges)
     assert node.stats.slices_published >= 1
-    # nobody listens to slices/up: lazy, never published
-    assert graph.received.get("slices/up") is None
+    # nobody listens to slices/up: lazy, never computed nor published
+    assert asked and all(names == ["low"] for names in asked), asked
+    assert node.stats.slices_published == len(asked)
+    # ... until somebody does
+    ups = graph.collect(LaserScan, "slices/up")
+    assert graph.wait(lambda: ups, tick=lambda: scan_pub.publish(scan))
+    assert sorted(asked[-1]) == ["high", "low"]
+    high = SliceConverter(info, {"high": P.SliceConfig("high", 0.0, 5.0).spec()}).convert(
+        scan)["high"]
+    assert same_floats(ups[0].ranges, high.ranges)
     # garbage on the scan topic: counted, logged, the node keeps working
     good_before = node.stats.scans_converted
     scan_pub.publish(b"\x00\x01\x00\x00 definitely not a LidarScan")

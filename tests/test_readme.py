@@ -1,9 +1,9 @@
 """The README runs as written: every ```python block of README.md is a complete program.
 
-Each block runs on its own in a fresh interpreter (this environment's), with a temporary folder
-as its working directory in which ``tests`` links to this checkout's ``tests/`` (the shipped
-recordings the README names, ``tests/data/...``); a block writes nothing there (a reader runs it
-in the checkout): what it makes goes to a folder of its own (``tempfile``). A block
+Each block runs on its own in a fresh interpreter (this environment's, importing this checkout's
+packages), with an empty temporary folder as its working directory: a block reads only what
+the package ships (``converters/data``) or builds, never the checkout's ``tests/data``, and
+writes nowhere but its own temporary folders (the checkout is left as it was). A block
 that cannot run here (e.g. one that needs a live ROS graph) is preceded by the HTML comment
 ``<!-- readme-test: skip REASON -->``; the test then reports that reason as its skip reason.
 
@@ -59,22 +59,34 @@ def test_the_extraction_finds_every_block_and_its_skip_reason() -> None:
 def test_readme_block_runs(line: int, code: str, skip: str | None, tmp_path: Path) -> None:
     if skip is not None:
         pytest.skip(f"README.md:{line}: {skip}")
-    work, temp = tmp_path / "work", tmp_path / "tmp"
+    work, scratch = tmp_path / "work", tmp_path / "tmp"
     work.mkdir()
-    temp.mkdir()
-    (work / "tests").symlink_to(ROOT / "tests", target_is_directory=True)
+    scratch.mkdir()
     script = tmp_path / f"readme_{line}.py"
     script.write_text(code, encoding="utf-8")
     env = {k: v for k, v in os.environ.items() if k != "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}
-    env["TMPDIR"] = str(temp)
+    env["TMPDIR"] = str(scratch)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get(
+        "PYTHONPATH", "").split(os.pathsep) if p])
+    before = _checkout_state()
     done = subprocess.run([sys.executable, str(script)], cwd=work, env=env, check=False,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, f"README.md:{line}\n{code}\n{done.stdout}\n{done.stderr}"
     assert "Traceback" not in done.stderr, done.stderr
     assert done.stdout.strip(), f"README.md:{line}: the block prints what it made"
-    # a reader runs the blocks in the checkout: they write into a temporary folder, never into
-    # the working directory (one overwrote the demo_out/demo.mcap that `make demo` writes)
-    assert sorted(os.listdir(work)) == ["tests"], f"README.md:{line} wrote into its cwd"
+    assert list(work.iterdir()) == [], \
+        f"README.md:{line} wrote into its working directory: {sorted(work.iterdir())}"
+    assert _checkout_state() == before, f"README.md:{line} changed files of the checkout"
+
+
+def _checkout_state() -> dict[str, float]:
+    """Modification time of every file of this checkout a README block could write (the
+    demo's output folder, and the checkout's top level)."""
+    out = {p.name: p.stat().st_mtime for p in ROOT.iterdir() if p.is_file()}
+    demo = ROOT / "demo_out"
+    if demo.is_dir():
+        out.update({f"demo_out/{p.name}": p.stat().st_mtime for p in demo.iterdir()})
+    return out
 
 
 def named_paths(text: str, top: set[str]) -> list[str]:

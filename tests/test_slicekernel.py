@@ -9,7 +9,6 @@ W % 8 columns of every row), here forced with ``_slicec.SIMD = 0``.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from typing import Any
 
@@ -25,14 +24,29 @@ from converters.slices.converter import SliceConverter, SliceSpec
 from grid_reference import pose
 from test_laserscan import (MOUNTS, SPECIALS, TWO_PI, arrays, draw_image, make_sensor,
                             ref_slice, room_scan)
+from helpers import AVX512_SLICES, cpu_has, numba_usable
 
 HAVE_C = _slicec.available()
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+HAVE_NUMBA = numba_usable()
 pytestmark = pytest.mark.skipif(not HAVE_C, reason="compiled slicing kernel not built")
+
+
+#: the kernel's modes that run different code on this CPU: 1 (its AVX-512 path) only where the
+#: CPU has AVX-512 (elsewhere SIMD=1 runs the scalar code too), 0 (the scalar path) always
+MODES = [1, 0] if HAVE_C and _slicec.vectorised() else [0]
+
+
+def test_the_kernel_reports_the_vector_path_this_cpu_has() -> None:
+    """The kernel's own CPU check agrees with numpy's detection (so the "simd" cases below
+    run the AVX-512 code exactly where it exists, and skip elsewhere)."""
+    assert _slicec.vectorised() == cpu_has(*AVX512_SLICES)
 
 
 @pytest.fixture(params=[1, 0], ids=["simd", "scalar"])
 def simd(request: Any, monkeypatch: pytest.MonkeyPatch) -> int:
+    if request.param not in MODES:
+        pytest.skip("this CPU has no AVX-512 (F, VL, DQ, BW): the kernel's vector path cannot "
+                    "run here; the 'scalar' case covers the code it runs")
     monkeypatch.setattr(_slicec, "SIMD", request.param)
     return int(request.param)
 
@@ -153,7 +167,7 @@ def test_property_kernel_equals_numba_and_numpy(case: Any) -> None:
     info, scan, specs, kw = case
     conv = kernel_converter(info, specs, **kw)
     expect = [o.convert(scan) for o in others(info, specs, **kw)]
-    for mode in (1, 0):
+    for mode in MODES:
         _slicec.SIMD = mode
         try:
             out = conv.convert(scan)

@@ -12,7 +12,6 @@ component is the reference's or its float32 neighbour (1 ulp), and almost always
 
 from __future__ import annotations
 
-import importlib.util
 from typing import Any
 
 import numpy as np
@@ -38,9 +37,10 @@ from test_moving_slices import (
     moving_room_scan,
     sweep_track,
 )
+from helpers import numba_usable
 
-NUMBA = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
-                           reason="numba not installed")
+NUMBA = pytest.mark.skipif(not numba_usable(),
+                           reason="numba not installed or LIDARSCAN_NUMBA=0")
 
 def random_track(rng: np.random.Generator, stamps: np.ndarray, tolerance: int = 0
                  ) -> TransformTrack:

@@ -17,6 +17,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if images and importlib.util.find_spec("matplotlib") is None:   # a plain `pip install`
         images = False
         _err(f"note: no PNG views: {missing_module_hint('matplotlib', 'lidarscan demo')}")
+    print(f"lidarscan demo: {args.frames} frames into {args.out}; the first frame also builds "
+          "the sensor's tables and, where numba's cache is cold (a new machine, no `make "
+          "install`), compiles the kernels once: up to about a minute", flush=True)
     progress = Progress(args.frames, "simulating")
     try:
         result = run_demo(args.out, args.frames, images=images,

@@ -42,8 +42,11 @@ def draw(out: Path, scene: Scene, info: Any, last: dict[str, Any], config: DemoC
     notes = _notes(base_from_odom, scene)
     panels = [("plain 2D lidar at 0.2 m: table legs only, no table top, no shelf",
                [viz.Layer("2D lidar", laser_xy, "tab:red")])]
-    low = [viz.Layer(f"'{name}' {band[name]}", slice_xy[name], color)
-           for name, color in (("table", "tab:orange"), ("floor_to_knee", "tab:green"))
+    # the wide, faint floor_to_knee band under the table band, so the table band's walls (the
+    # same walls, seen by both) stay visible on top of it
+    low = [viz.Layer(f"'{name}' {band[name]}", slice_xy[name], color, size=size, alpha=alpha)
+           for name, color, size, alpha in (("floor_to_knee", "tab:green", 12.0, 0.35),
+                                            ("table", "tab:orange", 2.5, 1.0))
            if name in slice_xy]
     if low:
         panels.append(("3D lidar slices: the table top appears in 'table'", low))
@@ -54,13 +57,20 @@ def draw(out: Path, scene: Scene, info: Any, last: dict[str, Any], config: DemoC
     paths.append(viz.birdseye(out / "birdseye_slices.png", panels, outlines=outlines,
                               notes=notes, extent=extent))
     if last["merged"] is not None:
+        well = ("stairwell (down; below every lidar band)",
+                _footprint_in(base_from_odom, STAIRWELL), "#d9a07a")
+        mount = config.camera_mount
+        camera = ("depth camera (its slice sees the stairwell's edge)", float(mount[0, 3]),
+                  float(mount[1, 3]), float(np.arctan2(mount[1, 0], mount[0, 0])), "tab:cyan")
         paths.append(viz.birdseye(
             out / "merged_scan.png",
             [("merged scan (slice 'full' + 2D lidar + camera slice) over the plain 2D lidar",
               [viz.Layer("2D lidar alone", laser_xy, "tab:red", size=14.0, alpha=0.35),
                viz.Layer("merged", viz.laserscan_xy(last["merged"]), "tab:purple",
-                         size=2.5)])],
-            outlines=outlines, notes=notes, extent=extent))
+                         size=2.5),
+               viz.Layer("of which the camera slice's hole edge (stairwell)",
+                         _hole_edge_xy(last, config), "tab:brown", size=6.0)])],
+            outlines=outlines, notes=notes, extent=extent, areas=[well], markers=[camera]))
     paths.append(_draw_camera(out / "depth_camera.png", scene, last, config, base_from_odom,
                               outlines))
     paths.append(viz.cloud_topview(last["cloud"], out / "pointcloud_topview.png",
@@ -68,6 +78,30 @@ def draw(out: Path, scene: Scene, info: Any, last: dict[str, Any], config: DemoC
                                    title="PointCloud2 (organized 128x2048) in base_link, "
                                          "coloured by height"))
     return paths
+
+
+def _hole_edge_xy(last: dict[str, Any], config: DemoConfig) -> np.ndarray[Any, Any]:
+    """(N, 2) base_link x, y of the camera slice's bins that are a hole edge."""
+    xy, edge, _ = _camera_bins(last, config)
+    return xy[edge]
+
+
+def _camera_bins(last: dict[str, Any], config: DemoConfig
+                 ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """The camera slice's bins: (N, 2) base_link x, y, and two (N,) masks: hole edge
+    (:func:`hole_bins` against the same slice without hole detection), band (finite, not an
+    edge)."""
+    from converters.edge.demo.config import camera_slicer
+
+    optical_mount = config.camera_mount @ LINK_FROM_OPTICAL
+    plain = camera_slicer(last["camera_info"], optical_mount, config, holes=False).convert(
+        last["camera_scan"])["camera"]
+    cut = last["camera_slice"]
+    ranges = np.asarray(cut.ranges, np.float64)
+    angles = cut.angle_min + cut.angle_increment * np.arange(ranges.size)
+    edge = hole_bins(cut, plain)
+    band = np.isfinite(ranges) & ~edge
+    return np.stack([ranges * np.cos(angles), ranges * np.sin(angles)], 1), edge, band
 
 
 def hole_bins(with_holes: Any, without: Any) -> np.ndarray[Any, np.dtype[np.bool_]]:
@@ -84,17 +118,8 @@ def _draw_camera(path: Path, scene: Scene, last: dict[str, Any], config: DemoCon
                  outlines: list[tuple[str, np.ndarray[Any, Any]]]) -> Path:
     """The depth image and the camera's slice with the detected stair edge."""
     from converters.edge.demo import viz
-    from converters.edge.demo.config import camera_slicer
 
-    optical_mount = config.camera_mount @ LINK_FROM_OPTICAL
-    plain = camera_slicer(last["camera_info"], optical_mount, config, holes=False).convert(
-        last["camera_scan"])["camera"]
-    cut = last["camera_slice"]
-    ranges = np.asarray(cut.ranges, np.float64)
-    angles = cut.angle_min + cut.angle_increment * np.arange(ranges.size)
-    edge = hole_bins(cut, plain)
-    band = np.isfinite(ranges) & ~edge
-    xy = np.stack([ranges * np.cos(angles), ranges * np.sin(angles)], 1)
+    xy, edge, band = _camera_bins(last, config)
     image = last["image"]
     depth = np.frombuffer(bytes(image.data), "<u2").reshape(image.height, image.width)
     x0, y0, x1, y1 = STAIRWELL

@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Layer", "birdseye", "cloud_topview", "cloud_xyz", "laserscan_xy", "range_image"]
+__all__ = ["Layer", "birdseye", "cloud_topview", "cloud_xyz", "column_label", "laserscan_xy",
+           "range_image", "robust_limits"]
 
 
 @dataclass(frozen=True)
@@ -114,12 +115,20 @@ def range_image(scan: Any, info: Any, path: str | Path, *, title: str | None = N
                 channels: Sequence[str] | None = None) -> Path:
     """One image per channel of a LidarScan, destaggered, row 0 (highest beam) at the top.
 
-    The range is drawn in metres with no-return pixels black; other channels are stretched
-    between their 1st and 99th percentile.
+    Colours span a robust range, so that a few far returns or one bright window do not set the
+    scale (the colour bar's arrows mark what is clipped): the range in metres between its 1st
+    and 95th percentile, on a log scale when that spans more than a factor 10 (outdoor
+    sensors), no-return pixels black; an ``azimuth`` channel in degrees, every angle; other
+    channels between their 1st and 99th percentile, narrowed to the median +- 8 robust
+    standard deviations (1.4826 x the median absolute deviation) when that is narrower
+    (:func:`robust_limits`).
+    The x label says how azimuth runs along the columns for the sensor shown.
 
     Returns:
         the PNG path.
     """
+    from matplotlib.colors import LogNorm, Normalize
+
     import lidarscan
 
     projector = lidarscan.make_projector(info)
@@ -127,29 +136,89 @@ def range_image(scan: Any, info: Any, path: str | Path, *, title: str | None = N
     fig = _figure(16, 1.0 + 2.0 * len(names))
     axes = fig.subplots(len(names), 1, squeeze=False)[:, 0]
     for ax, name in zip(axes, names):
-        if name.startswith("range"):
-            image = np.asarray(lidarscan.range_m(scan, info, name), dtype=np.float64)
-            image = np.where(np.isfinite(image) & (image > 0), image, np.nan)
-            label = f"{name} [m]"
-        else:
-            image = np.asarray(lidarscan.channel(scan, name), dtype=np.float64)
-            if image.ndim == 3:
-                image = image[..., 0]
-            label = name
+        image, label = _channel_image(scan, info, name)
         if not bool(scan.is_destaggered):
             image = projector.destagger(image)
         finite = image[np.isfinite(image)]
-        lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0))
-        if name.startswith("range") and finite.size:
-            lo, hi = float(finite.min()), float(finite.max())
-        cmap = _cmap("turbo" if name.startswith("range") else "gray")
-        shown = ax.imshow(image, aspect="auto", cmap=cmap, vmin=lo, vmax=max(hi, lo + 1e-9),
-                          interpolation="nearest")
+        is_range = name.startswith("range")
+        if name.startswith("azimuth") and finite.size:     # every angle: no clipping
+            lo, hi = float(finite.min()), max(float(finite.max()), float(finite.min()) + 1e-9)
+        else:
+            lo, hi = robust_limits(finite, range_like=is_range)
+        norm: Any = Normalize(lo, hi)
+        log = is_range and lo > 0 and hi / lo > 10
+        if log:
+            norm, label = LogNorm(lo, hi), f"{label}\n(log scale)"
+        cmap = _cmap("turbo" if is_range else "gray")
+        shown = ax.imshow(image, aspect="auto", cmap=cmap, norm=norm, interpolation="nearest")
         ax.set_ylabel(f"{label}\nrow")
-        fig.colorbar(shown, ax=ax, pad=0.01, fraction=0.03)
-    axes[-1].set_xlabel("column (destaggered; azimuth decreases to the right for Ouster)")
+        clipped_lo = bool(finite.size) and float(finite.min()) < lo
+        clipped_hi = bool(finite.size) and float(finite.max()) > hi
+        bar = fig.colorbar(shown, ax=ax, pad=0.01, fraction=0.03,
+                           extend={(False, False): "neither", (True, False): "min",
+                                   (False, True): "max", (True, True): "both"}[
+                                       (clipped_lo, clipped_hi)])
+        if log:                                  # plain metres, not powers of ten
+            ticks = [t * 10.0 ** e for e in range(-1, 4) for t in (1, 2, 5)
+                     if lo <= t * 10.0 ** e <= hi]
+            bar.set_ticks(ticks, labels=[f"{t:g}" for t in ticks])
+            bar.minorticks_off()
+    axes[-1].set_xlabel(column_label(scan, info))
     fig.suptitle(title or f"LidarScan {int(scan.height)}x{int(scan.width)}")
     return _save(fig, path)
+
+
+def _channel_image(scan: Any, info: Any, name: str) -> tuple[np.ndarray[Any, Any], str]:
+    """(H, W) float64 image of one channel in the scan's column order, and its axis label."""
+    import lidarscan
+
+    if name.startswith("range"):
+        image = np.asarray(lidarscan.range_m(scan, info, name), dtype=np.float64)
+        return np.where(np.isfinite(image) & (image > 0), image, np.nan), f"{name} [m]"
+    raw = np.asarray(lidarscan.channel(scan, name))
+    if raw.ndim == 3:
+        raw = raw[..., 0]
+    image = raw.astype(np.float64)
+    if name.startswith("azimuth"):          # msgs/README.md: integer 0.01 deg, float radians
+        image = image / 100.0 if raw.dtype.kind in "iu" else np.degrees(image)
+        return image, f"{name} [deg]"
+    return image, name
+
+
+def robust_limits(values: np.ndarray[Any, Any], *, range_like: bool = False
+                  ) -> tuple[float, float]:
+    """Colour limits of finite ``values``: a range between its 1st and 95th percentile; other
+    channels between the 1st and 99th, narrowed to median +- 8 x 1.4826 x MAD when that is
+    narrower (and not degenerate). (0, 1) for no values."""
+    if not values.size:
+        return 0.0, 1.0
+    if range_like:
+        lo, hi = (float(v) for v in np.percentile(values, [1, 95]))
+    else:
+        lo, hi = (float(v) for v in np.percentile(values, [1, 99]))
+        median = float(np.median(values))
+        spread = 8 * 1.4826 * float(np.median(np.abs(values - median)))
+        if spread > 0:
+            lo, hi = max(lo, median - spread), min(hi, median + spread)
+    return lo, max(hi, lo + 1e-9)
+
+
+def column_label(scan: Any, info: Any) -> str:
+    """The x label of a range image: column order, and which way azimuth runs for this
+    sensor (from the scan's measured column azimuths, else the info's), e.g. "column
+    (destaggered): azimuth decreases to the right, 360 deg at column 0"."""
+    measured = np.asarray(scan.column_azimuth_angles, dtype=np.float64).reshape(-1)
+    alpha = measured if measured.size else np.asarray(info.horizontal_angles,
+                                                      dtype=np.float64).reshape(-1)
+    staggered = bool(np.any(np.asarray(info.pixel_shift_by_row)))
+    order = "column (destaggered)" if staggered else "column"
+    if alpha.size < 2:
+        return order
+    steps = np.diff(np.unwrap(alpha))
+    way = "decreases" if float(np.median(steps)) < 0 else "increases"
+    start = float(np.degrees(alpha[0])) % 360.0
+    return (f"{order}: azimuth {way} to the right ({start:.0f} deg at column 0; REP 103, "
+            "counter-clockwise from +x)")
 
 
 def _cmap(name: str) -> Any:
@@ -175,7 +244,9 @@ def birdseye(path: str | Path, panels: Sequence[tuple[str, Sequence[Layer]]], *,
              outlines: Sequence[tuple[str, np.ndarray[Any, Any]]] = (),
              notes: Sequence[tuple[str, float, float]] = (),
              extent: tuple[float, float, float, float] | None = None,
-             columns: int | None = None) -> Path:
+             columns: int | None = None,
+             areas: Sequence[tuple[str, np.ndarray[Any, Any], str]] = (),
+             markers: Sequence[tuple[str, float, float, float, str]] = ()) -> Path:
     """Top views side by side (x to the right, y up; metres; the robot arrow at the origin).
 
     Args:
@@ -186,6 +257,10 @@ def birdseye(path: str | Path, panels: Sequence[tuple[str, Sequence[Layer]]], *,
         extent: (xmin, xmax, ymin, ymax); default: a square around the outlines, or around the
             points when there are no outlines.
         columns: panels per row (default all in one row).
+        areas: (legend label, (K, 2) polygon, colour) drawn filled under the points in every
+            panel (e.g. a stairwell going down), with a legend entry.
+        markers: (legend label, x, y, yaw rad, colour) of a sensor drawn as a triangle
+            pointing along yaw in every panel, with a legend entry.
 
     Returns:
         the PNG path.
@@ -204,6 +279,12 @@ def birdseye(path: str | Path, panels: Sequence[tuple[str, Sequence[Layer]]], *,
         for name, poly in outlines:
             ax.fill(poly[:, 0], poly[:, 1], color="0.88", zorder=0)
             ax.plot(poly[:, 0], poly[:, 1], color="0.6", lw=0.6, zorder=1)
+        for label, poly, color in areas:
+            ax.fill(poly[:, 0], poly[:, 1], color=color, alpha=0.45, zorder=1, label=label)
+            ax.plot(poly[:, 0], poly[:, 1], color=color, lw=0.8, zorder=1)
+        for label, x, y, yaw, color in markers:
+            ax.scatter([x], [y], s=70, marker=(3, 0, math.degrees(yaw) - 90), color=color,
+                       edgecolors="black", linewidths=0.5, zorder=6, label=label)
         for layer in layers:
             xy = np.asarray(layer.xy).reshape(-1, 2)
             ax.scatter(xy[:, 0], xy[:, 1], s=layer.size, color=layer.color, alpha=layer.alpha,

@@ -251,13 +251,16 @@ def render(text: str, blocks: list[Block]) -> str:
 def check(doc: Path = DOC, blocks: list[Block] | None = None) -> list[str]:
     """Differences between the document's deterministic blocks and what the script writes.
 
-    Blocks whose numbers depend on library versions (compression) carry those versions in their
-    text; when the installed versions differ from the document's, the block is reported as
-    skipped (prefix "skipped:") rather than as a difference.
+    Every figure the project controls is compared exactly; figures of third-party encoders
+    that depend on the CPU (a block's ``tolerance``) within their stated tolerance; a block
+    whose library versions (``versions``, named in its text) differ from the document's is
+    compared within :data:`converters.edge.evidence._compare.VERSION_TOLERANCE` and reported with
+    the prefix "skipped:" (its exact comparison could not be made; tests skip visibly).
 
     Returns:
         One line per difference (empty: the document is up to date).
     """
+    from converters.edge.evidence._compare import compare
     blocks = generate(fast=True) if blocks is None else blocks
     have = read_blocks(doc.read_text(encoding="utf-8"))
     problems = []
@@ -267,15 +270,12 @@ def check(doc: Path = DOC, blocks: list[Block] | None = None) -> list[str]:
         if block.name not in have:
             problems.append(f"{block.name}: no markers in {doc.name}")
             continue
-        if have[block.name].strip() != block.text.strip():
-            first_doc = have[block.name].strip().split("\n", 1)[0]
-            first_new = block.text.strip().split("\n", 1)[0]
-            if "zstandard" in first_new and first_doc != first_new:
-                problems.append(f"skipped: {block.name} (library versions differ: "
-                                f"{first_new!r})")
-                continue
+        kind, why = compare(have[block.name], block)
+        if kind == "skipped":
+            problems.append(f"skipped: {block.name} exactly ({why})")
+        elif kind:
             problems.append(f"{block.name}: the document differs from the script's output "
-                            "(run `make evidence`)")
+                            f"({why}; run `make evidence`)")
     return problems
 
 

@@ -2,7 +2,8 @@
 
 A *block* is the text the script writes between ``<!-- evidence:NAME:begin -->`` and
 ``<!-- evidence:NAME:end -->`` in ``docs/proposal.md``. Deterministic blocks (sizes, errors,
-counts) are compared by ``tests/test_evidence.py``; timing blocks (names starting with
+counts) are compared by ``tests/test_evidence.py`` (exactly, but for the third-party figures of
+:mod:`converters.edge.evidence._compare`); timing blocks (names starting with
 ``timing-``) and the ``machine`` block change from run to run and are not compared.
 """
 
@@ -56,6 +57,13 @@ class Block:
         text: markdown between the markers (no leading/trailing blank lines).
         deterministic: compared by the test (sizes, errors, counts) or not (timings, machine).
         placeholder: True when the measured capability was not available ("not yet measured").
+        versions: the third-party library versions its figures depend on, as its text names
+            them ("zstandard 0.25.0, lz4 4.4.5"); "" when none. When the installed versions
+            differ from the document's, the block is compared within a tolerance only
+            (:mod:`converters.edge.evidence._compare`).
+        tolerance: line key -> relative tolerance: lines holding the key carry figures of a
+            third-party encoder that depend on the CPU (e.g. ``{"JPEG-XL": 0.03}``); they are
+            compared within it, every other line exactly.
     """
 
     name: str
@@ -63,6 +71,8 @@ class Block:
     deterministic: bool = True
     placeholder: bool = False
     notes: list[str] = field(default_factory=list)
+    versions: str = ""
+    tolerance: dict[str, float] = field(default_factory=dict)
 
 
 def pending(name: str, what: str, reason: str, deterministic: bool = True) -> Block:

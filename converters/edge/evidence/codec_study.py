@@ -50,13 +50,17 @@ import numpy as np
 
 from converters.edge.evidence._common import Block, fmt_int, table, time_call
 
-__all__ = ["GOALS", "SOURCES", "V3", "best_cloud", "blocks", "first_return_scan", "measure",
+__all__ = ["GOALS", "JPEGXL_TOLERANCE", "SOURCES", "V3", "best_cloud", "blocks", "first_return_scan", "measure",
            "second_return_pairs", "second_return_view", "sources"]
 
 #: Goals of the issue, per real sensor: all channels lossless <= 0.2 x the best lossless coding
 #: of the driver's cloud; the range channel lossless <= 0.4 x Draco's lossy 1 mm x,y,z; encode
 #: and decode >= 50 Hz on one core for 128 x 2048 pixels.
 GOALS = {"all": 0.2, "range": 0.4, "hz": 50.0, "pixels": 128 * 2048}
+#: Relative tolerance of the JPEG-XL sizes in the document's check: libjxl's lossless output
+#: depends on the SIMD path it picks at run time (AVX-512, AVX2, SSE4, ...), not only on its
+#: version (the same release gave up to 0.9 % apart on an Intel Xeon and an AMD EPYC).
+JPEGXL_TOLERANCE = 0.03
 
 
 def _ouster_sources() -> list[tuple[str, str, Callable[[], tuple[Any, Any]]]]:
@@ -565,11 +569,15 @@ def _timing_table(records: list[dict[str, Any]]) -> str:
 def blocks(timing: bool = True) -> list[Block]:
     """``codec-study`` and ``codec-goals`` (sizes) and ``timing-codec`` (times)."""
     records = measure(False)
-    out = [Block("codec-study", f"Real frames, bytes per frame ({_versions()}); every lossless "
-                 "coding decoded and compared before its size is counted:\n\n"
-                 + _size_table(records)),
-           Block("codec-goals", f"Goals per real sensor ({_versions()}):\n\n"
-                 + "\n".join(f"- {line}" for line in goal_lines(records)))]
+    versions = _versions()
+    out = [Block("codec-study", f"Real frames, bytes per frame ({versions}); every lossless "
+                 "coding decoded and compared before its size is counted; the JPEG-XL sizes "
+                 "depend on the CPU too (libjxl picks its SIMD path at run time: up to 0.9 % "
+                 "apart between an Intel Xeon and an AMD EPYC) and are checked within "
+                 f"{JPEGXL_TOLERANCE * 100:.0f} %:\n\n" + _size_table(records), versions=versions,
+                 tolerance={"JPEG-XL": JPEGXL_TOLERANCE}),
+           Block("codec-goals", f"Goals per real sensor ({versions}):\n\n"
+                 + "\n".join(f"- {line}" for line in goal_lines(records)), versions=versions)]
     if timing:
         timed = measure(True)
         out.append(Block("timing-codec", "Encode/decode time per frame on one thread (best of "

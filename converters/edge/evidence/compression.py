@@ -283,7 +283,8 @@ def blocks(timing: bool = True) -> list[Block]:
     enc_text = (f"Range block of the real frames in each encoding ({_versions()}), bytes:\n\n"
                 + table(["frame", "range encoding", "lossless for this frame", "raw", "zstd-3",
                          "lz4", "shuffle+zstd-3"], enc_rows, ["l", "l", "l", "r", "r", "r", "r"]))
-    out = [Block("compression", text), Block("range-encoding", enc_text)]
+    out = [Block("compression", text, versions=_versions()),
+           Block("range-encoding", enc_text, versions=_versions())]
     if timing:
         timed = measure(timing=True)
         trows = []

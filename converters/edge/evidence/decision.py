@@ -304,5 +304,5 @@ def blocks() -> list[Block]:
     return [Block("decision-msgs", compact_msgs()),
             Block("decision-answers", "\n".join(f"- {a}" for a in _answers())),
             Block("decision-compression", f"Compressed sizes ({versions()}):\n\n"
-                  + "\n".join(f"- {a}" for a in _compression())),
+                  + "\n".join(f"- {a}" for a in _compression()), versions=versions()),
             Block("decision-rejected", _rejected())]

@@ -297,4 +297,5 @@ def blocks() -> list[Block]:
         lines += part()
     return [Block("headline", "\n".join(f"- {line}" for line in lines)),
             Block("headline-compression", f"Compression ({versions()}):\n\n"
-                  + "\n".join(f"- {line}" for line in _compression() + _codec()))]
+                  + "\n".join(f"- {line}" for line in _compression() + _codec()),
+                  versions=versions())]

@@ -143,7 +143,8 @@ def blocks(timing: bool = True) -> list[Block]:
                  + table(["frame", "range form", "raw", "zstd-3", "shuffle+zstd-3",
                           "lidarscan.codec segment", "worst error vs the integer (µm)",
                           "every integer recovered", "max range in frame (m)"], rows,
-                         ["l", "l", "r", "r", "r", "r", "r", "l", "r"]))]
+                         ["l", "l", "r", "r", "r", "r", "r", "l", "r"]),
+                 versions=_versions())]
     if timing:
         out.append(Block("timing-int-vs-float", _timing(), deterministic=False))
     return out
