@@ -244,7 +244,7 @@ def crosscheck() -> str:
                          f"{int(cloud.width) / (height * width):.0%} of the pixels)",
                          fmt_int(len(ls.encode(cloud))), "—"])
     return ("Cross-check on the real frames: bytes of the messages the project's importer and "
-            "`converters.pointcloud2.converter` produce vs the layout model used above:\n\n"
+            "`converters.pointcloud2` produce vs the layout model used above:\n\n"
             + table(["frame", "message", "produced", "model"], rows, ["l", "l", "r", "r"]))
 
 
