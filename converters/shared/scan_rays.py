@@ -126,6 +126,7 @@ class ScanGeometry:
             the per-pixel azimuth channel and the channels of :attr:`ChannelWant.per_return`.
         extrinsics: 4x4 float64 pose of the info's frame in the target frame (checked by the
             caller), or None: the rays of :meth:`target_rays` are then the sensor's.
+        linkage_hint: what the linkage error says the expected stamp is.
 
     Raises (:meth:`prepare`):
         InfoMismatchError: the scan's size differs from the info's, or an integer range channel
@@ -136,7 +137,8 @@ class ScanGeometry:
     """
 
     def __init__(self, info: Any, *, range_channel: str = "range",
-                 extrinsics: np.ndarray[Any, Any] | None = None) -> None:
+                 extrinsics: np.ndarray[Any, Any] | None = None,
+                 linkage_hint: str = "the LidarInfo's header.stamp, in ns") -> None:
         self.info = info
         self.projector = make_projector(info)
         self.height, self.width = self.projector.height, self.projector.width
@@ -144,6 +146,7 @@ class ScanGeometry:
         self.has_shift = bool(np.any(self.projector.shifts))
         self.range_channel = range_channel
         self.extrinsics = extrinsics
+        self._linkage_hint = linkage_hint
         self._mult = float(info.range_multiplier)
         self._increment = self.projector.column_time_increment
         self._factors: tuple[Any, tuple[np.ndarray[Any, Any], ...] | None] | None = None
@@ -158,7 +161,7 @@ class ScanGeometry:
         link = to_ns(scan.lidar_info_time, field="LidarScan.lidar_info_time")
         if link != self.info_stamp_ns:
             raise LinkageError("LidarScan.lidar_info_time", link,
-                               f"{self.info_stamp_ns} (the LidarInfo's header.stamp, in ns)")
+                               f"{self.info_stamp_ns} ({self._linkage_hint})")
         stamp_ns = to_ns(scan.header.stamp, field="LidarScan.header.stamp")
         names = [c.name for c in scan.channels]
         destaggered = bool(scan.is_destaggered) and self.has_shift

@@ -46,7 +46,7 @@ column_time_offsets[c] + beam_time_offsets[u]`` (+ the per-pixel ``t`` channel w
 one; :meth:`lidarscan.geometry.Projector.pixel_times`), so the sweep is de-skewed pixel by pixel
 (with per-column times only, as most lidars, the pose is per column). The slicing that follows
 is the same in every respect (grid, band, classes, ties, holes, backends); only the rays are
-moved per scan (:meth:`SliceConverter._moving_tables`). What does not depend on the pose is kept:
+moved per scan (:meth:`SliceConverter._moving_tables_of`). What does not depend on the pose is kept:
 the sensor-frame rays per geometry, the distinct pixel times and each pixel's one per column
 timing (a scan with a ``t`` channel computes its own). A track computes the poses of the distinct
 times in one batch; a callable is called once per distinct pixel time and its result checked (a
@@ -94,7 +94,6 @@ column that looked at that azimuth (use the LidarScan for per-point time).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 from collections import OrderedDict
 from collections.abc import Mapping
@@ -115,17 +114,20 @@ from converters.slices.tables import MovingPlan, _MovingRays, _Slice, _Tables
 from converters.slices.spec import AngleGrid, OutputOptions
 from converters.slices.holes import HoleOptions
 from converters.shared.frames import check_extrinsics, check_poses, transform_rays
-from converters.shared.options import IfPresent, resolve_channel
+from converters.shared.options import IfPresent
+from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
 from converters.shared.transforms import OutOfSpanError, TransformTrack, segment_rotvecs
-from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
-from lidarscan.geometry import azimuth_channel, info_key, make_projector
-from lidarscan.scan import as_array, channel, channel_names, range_m
+from lidarscan.errors import ConfigError
+from lidarscan.geometry import info_key
+from lidarscan.scan import as_array
 from lidarscan.stamps import to_ns
 
 __all__ = ["SliceConverter", "SliceSpec", "check_extrinsics", "to_laserscan"]
 
 _NO_VALUES = np.zeros(0, np.float32)
 _NO_KEYS = np.zeros(0, np.int64)
+#: what :meth:`SliceConverter._tables_for` asks of the geometry service: the geometry alone
+_GEOMETRY = RayRequest()
 
 
 @dataclass(frozen=True)
@@ -254,9 +256,16 @@ class SliceConverter:
     # ------------------------------------------------------------------------- configuration
     def _set_info(self, info: Any) -> None:
         self.info = info
-        self.projector = make_projector(info)
+        #: the geometry service: checks, stamp, ranges, intensity view, rays (target frame)
+        self._geometry = ScanGeometry(info, range_channel=self.range_channel,
+                                      extrinsics=self.extrinsics, linkage_hint=(
+                                          "the converter's LidarInfo; pass the new info to "
+                                          "convert(scan, info)"))
+        self.projector = self._geometry.projector
         self._info_key = info_key(info)
-        self._info_stamp = to_ns(info.header.stamp)
+        wanted = self.intensity_channel
+        self._request = RayRequest(metres=True, channels=() if wanted is None else (
+            ChannelWant("intensity", (str(wanted),), required=not isinstance(wanted, IfPresent)),))
         self.frame_id = self._frame_id or info.header.frame_id
         self._tables.clear()
         self._moving_cache = None
@@ -309,48 +318,26 @@ class SliceConverter:
         mean = float(np.mean(step))
         return 0.0 if mean == 0 else math.copysign(1.0, mean)
 
-    def _scan_period_ns(self, info: Any, scan: Any) -> float:
-        width = int(info.width)
-        if int(info.column_time_increment) > 0:
-            return float(width * int(info.column_time_increment))
-        if scan is not None and width >= 2:
-            times = as_array(scan.column_time_offsets, np.int64)
-            if times.size == width:
-                return float(times[-1] - times[0]) * width / (width - 1)
-        return 0.0
-
     # ------------------------------------------------------------------------------ tables
-    def _geometry_key(self, scan: Any) -> tuple[Any, ...]:
-        """What the sensor-frame rays of a scan depend on: ("info", destaggered), or
-        ("measured", destaggered, digest) for scans with measured azimuths."""
-        measured = as_array(scan.column_azimuth_angles, np.float64)
-        destaggered = bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
-        azimuths = azimuth_channel(scan, self.range_channel)     # per-pixel azimuths
-        if measured.size or azimuths is not None:
-            digest = hashlib.blake2b(np.ascontiguousarray(measured).tobytes(), digest_size=16)
-            if azimuths is not None:
-                digest.update(np.ascontiguousarray(channel(scan, azimuths)).tobytes())
-            return ("measured", destaggered, digest.digest())
-        return ("info", destaggered)
-
     def _tie_keys(self, destaggered: bool) -> np.ndarray[Any, Any] | None:
         """Measurement-order tie key ``u*W + c`` per pixel of a destaggered scan (else None)."""
-        if not destaggered:
-            return None
-        height, width = self.projector.height, self.projector.width
-        src = self.projector.destagger_index
-        return (np.arange(height)[:, None] * width + src).reshape(-1).astype(np.int64)
+        return self._geometry.tie_keys(destaggered)
 
     def _tables_for(self, scan: Any) -> _Tables:
-        key = self._geometry_key(scan)
+        """The fixed-mount tables of a scan's geometry (see :meth:`_tables_of`)."""
+        return self._tables_of(self._geometry.prepare(scan, _GEOMETRY))
+
+    def _tables_of(self, rays: ScanRays) -> _Tables:
+        """The fixed-mount tables of a geometry (:attr:`ScanRays.key`), built from its rays in
+        the target frame on first use and kept (a measured geometry: only the latest)."""
+        key = rays.key
         tables = self._tables.get(key)
         if tables is None:
             if key[0] == "measured":     # per-scan geometry: keep only the latest such table
                 for k in [k for k in self._tables if k[0] == "measured"]:
                     del self._tables[k]
-            d32, o32 = self.projector.tables_for(scan, self.range_channel)
-            d, o = transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), self.extrinsics)
-            tables = _Tables(d, o, self._tie_keys(key[1]), self.slices, self._grids,
+            d, o = self._geometry.target_rays(rays)
+            tables = _Tables(d, o, self._tie_keys(rays.destaggered), self.slices, self._grids,
                              self._slice_grid, self._near, self.projector.width)
             self._tables[key] = tables
         return tables
@@ -426,6 +413,11 @@ class SliceConverter:
         return check_poses([self.moving(int(t)) for t in stamps], "extrinsics(stamp_ns)")
 
     def _moving_tables(self, scan: Any, r: np.ndarray[Any, Any]) -> _Tables | _MovingRays:
+        """:meth:`_moving_tables_of` a scan and its flat float32 ranges ``r``."""
+        rays = self._geometry.prepare(scan, _GEOMETRY)
+        return self._moving_tables_of(dataclasses.replace(rays, metres=r))
+
+    def _moving_tables_of(self, rays: ScanRays) -> _Tables | _MovingRays:
         """Tables of one scan seen by a moving mount: every pixel's ray moved by the mount's
         pose at its time (:meth:`mount_poses`). A mount that holds one pose over the whole
         scan gets fixed-mount tables at that pose (every kernel; kept for the next scan at the
@@ -435,17 +427,17 @@ class SliceConverter:
         column (per-beam offsets, an irregular ``t`` channel: up to one pose per pixel), each
         ray's pose is interpolated where it is used (:meth:`_track_rays`) instead of
         looking up and storing one pose per distinct time."""
-        geometry = self._geometry_key(scan)
+        scan, r, geometry = rays.scan, cast(np.ndarray, rays.metres), rays.key
         compiled = self._kernel is not None and not self._reference_tables
         per_pixel = compiled and self._per_pixel and isinstance(self.moving, TransformTrack)
         relative, index = self._pose_times(scan, distinct=not per_pixel)
-        stamp = self._stamp(scan)
+        stamp = np.int64(rays.stamp_ns)
         if index is None:
-            return self._track_rays(scan, r, geometry, stamp, relative)
+            return self._track_rays(rays, stamp, relative)
         poses = self._poses_at(stamp + relative)
         if np.all(poses == poses[0]):
-            return self._still_tables(scan, geometry, poses[0])
-        d32, o32 = self._sensor_rays(scan, geometry)
+            return self._still_tables(rays, poses[0])
+        d32, o32 = self._sensor_rays(rays)
         if compiled:
             return _MovingRays(self._kernel.transform_rays(d32, o32, poses, index),
                                self._tie_keys(geometry[1]), r, self._moving_plan())
@@ -453,22 +445,22 @@ class SliceConverter:
         return _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
                        self._slice_grid, self._near, self.projector.width)
 
-    def _still_tables(self, scan: Any, geometry: tuple[Any, ...],
-                      pose: np.ndarray[Any, Any]) -> _Tables:
+    def _still_tables(self, rays: ScanRays, pose: np.ndarray[Any, Any]) -> _Tables:
         """Fixed-mount tables at ``pose`` (kept for the next scan of this geometry and pose)."""
+        geometry = rays.key
         key = (geometry, pose.tobytes())
         if self._moving_cache is not None and self._moving_cache[0] == key:
             return self._moving_cache[1]
-        d32, o32 = self._sensor_rays(scan, geometry)
+        d32, o32 = self._sensor_rays(rays)
         d, o = transform_rays(d32, o32, pose[None], np.zeros(d32.shape[0], np.int64))
         tables = _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
                          self._slice_grid, self._near, self.projector.width)
         self._moving_cache = (key, tables)
         return tables
 
-    def _track_rays(self, scan: Any, r: np.ndarray[Any, Any], geometry: tuple[Any, ...],
-                    stamp: np.int64, relative: np.ndarray[Any, Any]) -> _Tables | _MovingRays:
-        """:meth:`_moving_tables` for a track and a time per pixel: the track's samples around
+    def _track_rays(self, rays: ScanRays, stamp: np.int64, relative: np.ndarray[Any, Any]
+                    ) -> _Tables | _MovingRays:
+        """:meth:`_moving_tables_of` for a track and a time per pixel: the track's samples around
         the scan, then one compiled pass that interpolates each ray's pose and moves the ray
         (:meth:`converters._kernels.slices_numba.Compiled.track_rays`: the poses of
         :meth:`TransformTrack.lookup_many` up to float64 rounding, see there)."""
@@ -476,15 +468,15 @@ class SliceConverter:
         try:
             times, poses = track.samples(stamp + relative.min(), stamp + relative.max())
         except OutOfSpanError:
-            self.mount_poses(scan)          # raises what the per-time lookup names
+            self.mount_poses(rays.scan)     # raises what the per-time lookup names
             raise
         if np.all(poses == poses[0]):       # one pose held over the scan
-            return self._still_tables(scan, geometry,
-                                      track.lookup_many(stamp + relative[:1])[0])
-        d32, o32 = self._sensor_rays(scan, geometry, columns=True)
-        rays = self._kernel.track_rays(d32, o32, relative, int(stamp), times, poses,
-                                       segment_rotvecs(poses[:-1], poses[1:]))
-        return _MovingRays(rays, self._tie_keys(geometry[1]), r, self._moving_plan())
+            return self._still_tables(rays, track.lookup_many(stamp + relative[:1])[0])
+        d32, o32 = self._sensor_rays(rays, columns=True)
+        moved = self._kernel.track_rays(d32, o32, relative, int(stamp), times, poses,
+                                        segment_rotvecs(poses[:-1], poses[1:]))
+        return _MovingRays(moved, self._tie_keys(rays.destaggered),
+                           cast(np.ndarray, rays.metres), self._moving_plan())
 
     def _moving_plan(self) -> MovingPlan:
         """What :class:`_MovingRays` reads of this slicer."""
@@ -498,19 +490,20 @@ class SliceConverter:
             self._inf_thr = np.full((len(self._grids), n), np.inf, np.float32)
         return self._inf_thr
 
-    def _sensor_rays(self, scan: Any, geometry: tuple[Any, ...], columns: bool = False
+    def _sensor_rays(self, rays: ScanRays, columns: bool = False
                      ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
         """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan, or with
         ``columns`` the same as (3, n) (one row per component; kept for the next scan of the
         same geometry)."""
+        geometry = rays.key
         if self._rays_cache is None or self._rays_cache[0] != geometry:
-            d32, o32 = self.projector.tables_for(scan, self.range_channel)
+            d32, o32, _ = self._geometry.sensor_tables(rays)
             d32 = np.ascontiguousarray(d32.reshape(-1, 3), np.float32)
             o32 = np.ascontiguousarray(o32.reshape(-1, 3), np.float32)
             self._rays_cache = (geometry, (d32, o32, np.ascontiguousarray(d32.T),
                                            np.ascontiguousarray(o32.T)))
-        rays = self._rays_cache[1]
-        return (rays[2], rays[3]) if columns else (rays[0], rays[1])
+        kept = self._rays_cache[1]
+        return (kept[2], kept[3]) if columns else (kept[0], kept[1])
 
     # ----------------------------------------------------------------------------- convert
     def convert(self, scan: Any, info: Any = None) -> dict[str, Any]:
@@ -532,22 +525,19 @@ class SliceConverter:
         """
         if info is not None and info_key(info) != self._info_key:
             self._set_info(info)
-        self._check(scan)
-        r = np.ascontiguousarray(range_m(scan, self.info, self.range_channel)).reshape(-1)
-        tables = self._tables_for(scan) if self.moving is None else self._moving_tables(scan, r)
-        intensity = None
-        wanted = resolve_channel(self.intensity_channel, channel_names(scan))
-        if wanted is not None:
-            values = channel(scan, wanted, native=True)
-            intensity = (values[..., 0] if values.ndim == 3 else values).reshape(-1)
+        rays = self._geometry.prepare(scan, self._request)
+        r = cast(np.ndarray, rays.metres)
+        tables = self._tables_of(rays) if self.moving is None else self._moving_tables_of(rays)
+        values = rays.views.get("intensity")
+        intensity = None if values is None else values.reshape(-1)
         decoded = self._row_convert(r, tables, intensity)
         if decoded is None:
             best = self._fuse(r, tables)
             if self._holes:
                 self._add_holes(best, r, tables)
             decoded = self._decode_all(best, tables, intensity)
-        stamp = to_ns(scan.header.stamp)
-        period = self._scan_period_ns(self.info, scan)
+        stamp = rays.stamp_ns
+        period = rays.period_ns
         out: dict[str, Any] = {}
         for s, off in zip(self.slices, self._offsets):
             if decoded is not None:
@@ -607,18 +597,6 @@ class SliceConverter:
         self._kernel.decode_slices(best, b.offset, b.size, b.inf_value, b.fill_value,
                                    *self._decode_inputs(tables, intensity), ranges, ints)
         return ranges, ints
-
-    def _check(self, scan: Any) -> None:
-        if (int(scan.height), int(scan.width)) != (self.projector.height, self.projector.width):
-            raise InfoMismatchError("LidarScan.height x width",
-                                    f"{int(scan.height)}x{int(scan.width)}",
-                                    f"{self.projector.height}x{self.projector.width} "
-                                    "from the LidarInfo")
-        stamp = to_ns(scan.lidar_info_time, field="LidarScan.lidar_info_time")
-        if stamp != self._info_stamp:
-            raise LinkageError("LidarScan.lidar_info_time", stamp,
-                               f"{self._info_stamp} (the converter's LidarInfo; pass the new "
-                               "info to convert(scan, info))")
 
     def _add_holes(self, best: np.ndarray[Any, Any], r: np.ndarray[Any, Any],
                    tables: _Tables) -> None:
