@@ -19,7 +19,7 @@ numba and the per-info caches done by a first call) and prints two figures:
   channel, then ``lidarscan/stamps.py`` for a stamp, then ``lidarscan/scan.py`` again is one
   climb; the converter calling its own writer after the kernel is none.
 
-``--tree`` prints the room-level call tree (entries with their caller room); ``--moving``
+``--tree`` prints the entries with their caller rooms; ``--moving``
 walks ``to_laserscan`` with a moving mount (a ``TransformTrack``) as well. Nothing is timed.
 """
 
