@@ -29,17 +29,18 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from converters.shared.frames import transform_rays
+from converters.shared.frames import check_poses, transform_rays
+from converters.shared.transforms import OutOfSpanError, TransformTrack, segment_rotvecs
 from lidarscan.errors import InfoMismatchError, LinkageError, ValidationError
 from lidarscan.geometry import azimuth_channel, make_projector, pixel_delays
 from lidarscan.scan import as_array, channel, range_m, return_channel, return_of
 from lidarscan.stamps import to_ns
 
-__all__ = ["ChannelWant", "RayRequest", "ScanGeometry", "ScanRays"]
+__all__ = ["ChannelWant", "MountPoses", "RayRequest", "ScanGeometry", "ScanRays"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,6 +76,10 @@ class RayRequest:
         column_times: (W,) int64 ns of each measurement column (and the scan's ``t`` delays).
         factors: the factored beam model for this scan's geometry, or None where it does not
             factor (per-pixel angles in the info, a per-pixel azimuth channel).
+        mount: a moving mount's poses (:class:`MountPoses`): "poses" (one pose per distinct
+            pixel time), "track" (a :class:`TransformTrack` whose pixel times vary within a
+            column: the track's samples for a kernel that interpolates each ray's pose), or
+            None.
     """
 
     raw: bool = False
@@ -82,6 +87,29 @@ class RayRequest:
     channels: tuple[ChannelWant, ...] = ()
     column_times: bool = False
     factors: bool = False
+    mount: str | None = None
+
+
+@dataclasses.dataclass
+class MountPoses:
+    """Where a moving mount was while the scan was measured (target <- sensor poses).
+
+    Attributes:
+        relative: int64 ns since the stamp: the (P,) distinct pixel times (sorted) with
+            ``index``, else every pixel's time (H*W,) (scan column order, row-major).
+        index: (H*W,) int64, the distinct time (and pose) of each pixel, or None.
+        poses: (P, 4, 4) float64 poses at the distinct times, or None (``samples`` instead).
+        samples: (times (S,) int64 ns, poses (S, 4, 4) float64, rotation vectors (S-1, 3)) of
+            the track around the scan, for a kernel interpolating each ray's pose, or None.
+        held: the (4, 4) pose when the mount held still over the whole scan (then the rays
+            are those of a fixed mount at that pose), else None.
+    """
+
+    relative: np.ndarray[Any, Any]
+    index: np.ndarray[Any, Any] | None
+    poses: np.ndarray[Any, Any] | None
+    samples: tuple[np.ndarray[Any, Any], ...] | None
+    held: np.ndarray[Any, Any] | None
 
 
 @dataclasses.dataclass
@@ -102,6 +130,7 @@ class ScanRays:
         factors: the factored beam model (float32 rows (H, 6), columns (6, W), constant (6,))
             of this geometry, or None (not requested, or it does not factor).
         period_ns: the scan period (``W * column_time_increment``, or from the column times).
+        mount: a moving mount's poses (:attr:`RayRequest.mount`), or None.
     """
 
     scan: Any
@@ -115,6 +144,7 @@ class ScanRays:
     delays: np.ndarray[Any, Any] | None
     factors: tuple[np.ndarray[Any, Any], ...] | None
     period_ns: float
+    mount: MountPoses | None = None
 
 
 class ScanGeometry:
@@ -126,6 +156,8 @@ class ScanGeometry:
             the per-pixel azimuth channel and the channels of :attr:`ChannelWant.per_return`.
         extrinsics: 4x4 float64 pose of the info's frame in the target frame (checked by the
             caller), or None: the rays of :meth:`target_rays` are then the sensor's.
+        moving: a moving mount: a :class:`TransformTrack` or a callable ``stamp_ns (int) ->
+            4x4`` (each result checked), looked up at the pixels' times; or None.
         linkage_hint: what the linkage error says the expected stamp is.
 
     Raises (:meth:`prepare`):
@@ -138,6 +170,7 @@ class ScanGeometry:
 
     def __init__(self, info: Any, *, range_channel: str = "range",
                  extrinsics: np.ndarray[Any, Any] | None = None,
+                 moving: Any = None,
                  linkage_hint: str = "the LidarInfo's header.stamp, in ns") -> None:
         self.info = info
         self.projector = make_projector(info)
@@ -150,6 +183,12 @@ class ScanGeometry:
         self._mult = float(info.range_multiplier)
         self._increment = self.projector.column_time_increment
         self._factors: tuple[Any, tuple[np.ndarray[Any, Any], ...] | None] | None = None
+        self.moving = moving
+        #: pixel times kept per column timing (see :meth:`pose_times`)
+        self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any],
+                                           np.ndarray[Any, Any] | None]] | None = None
+        #: sensor-frame rays of the latest geometry (see :meth:`sensor_rays`)
+        self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], ...]] | None = None
 
     # ------------------------------------------------------------------------------ per scan
     def prepare(self, scan: Any, request: RayRequest) -> ScanRays:
@@ -196,10 +235,12 @@ class ScanGeometry:
                             else np.arange(width, dtype=np.int64) * self._increment)
             delays = pixel_delays(scan) if "t" in names else None
         factors = self._factors_of(key, measured) if request.factors else None
-        return ScanRays(scan=scan, stamp_ns=stamp_ns, destaggered=destaggered, key=key,
+        rays = ScanRays(scan=scan, stamp_ns=stamp_ns, destaggered=destaggered, key=key,
                         raw=raw, metres=metres, views=views, column_times=column_times,
-                        delays=delays, factors=factors,
-                        period_ns=self._period_ns(offsets))
+                        delays=delays, factors=factors, period_ns=self._period_ns(offsets))
+        if request.mount is not None:
+            rays.mount = self.mount(rays, request.mount)
+        return rays
 
     def _views(self, scan: Any, names: list[str], wants: Sequence[ChannelWant]
                ) -> dict[str, np.ndarray[Any, Any] | None]:
@@ -283,3 +324,115 @@ class ScanGeometry:
             return None
         src = self.projector.destagger_index
         return (np.arange(self.height)[:, None] * self.width + src).reshape(-1).astype(np.int64)
+
+    def sensor_rays(self, rays: ScanRays, columns: bool = False
+                    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan, or with
+        ``columns`` the same as (3, n) (one row per component; kept for the next scan of the
+        same geometry)."""
+        geometry = rays.key
+        if self._rays_cache is None or self._rays_cache[0] != geometry:
+            d32, o32, _ = self.sensor_tables(rays)
+            d32 = np.ascontiguousarray(d32.reshape(-1, 3), np.float32)
+            o32 = np.ascontiguousarray(o32.reshape(-1, 3), np.float32)
+            self._rays_cache = (geometry, (d32, o32, np.ascontiguousarray(d32.T),
+                                           np.ascontiguousarray(o32.T)))
+        kept = self._rays_cache[1]
+        return (kept[2], kept[3]) if columns else (kept[0], kept[1])
+
+    # ----------------------------------------------------------------------- moving mounts
+    def mount(self, rays: ScanRays, mode: str) -> MountPoses:
+        """The moving mount's poses for a scan (:class:`MountPoses`; ``mode`` as
+        :attr:`RayRequest.mount`). With "track", pixel times that vary within a column give the
+        track's samples around the scan and their segments' rotation vectors
+        (:func:`converters.shared.transforms.segment_rotvecs`) instead of a pose per time.
+
+        Raises:
+            OutOfSpanError: a pixel time outside the track's span.
+            TransformLookupError: raised by the callable.
+            ValidationError: the callable returned something other than a finite rigid 4x4.
+        """
+        relative, index = self.pose_times(rays.scan, distinct=mode != "track")
+        stamp = np.int64(rays.stamp_ns)
+        if index is None:
+            track = self.moving
+            try:
+                times, poses = track.samples(stamp + relative.min(), stamp + relative.max())
+            except OutOfSpanError:
+                self.mount_poses(rays.scan)     # raises what the per-time lookup names
+                raise
+            if np.all(poses == poses[0]):       # one pose held over the scan
+                return MountPoses(relative, None, None, None,
+                                  track.lookup_many(stamp + relative[:1])[0])
+            return MountPoses(relative, None, None,
+                              (times, poses, segment_rotvecs(poses[:-1], poses[1:])), None)
+        poses = self.poses_at(stamp + relative)
+        held = poses[0] if np.all(poses == poses[0]) else None
+        return MountPoses(relative, index, poses, None, held)
+
+    def pose_times(self, scan: Any, distinct: bool = True
+                   ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
+        """The distinct pixel times of a scan relative to its stamp and each pixel's one.
+
+        When every pixel of a measurement column has its column's time (no per-beam offsets, a
+        ``t`` channel constant along each column: tested exactly) the distinct times are those
+        of the W columns; otherwise those of all pixels (``np.unique`` of H*W times), or, with
+        ``distinct=False``, none are computed.
+
+        Returns:
+            (times, index): (P,) int64 ns sorted, and (H*W,) int64 the time of each pixel
+            (scan column order, row-major); with ``distinct=False`` and times varying within a
+            column, (H*W,) int64 ns every pixel's time and None. Kept for the next scan when it
+            has no ``t`` channel (then they depend only on the column times and the column
+            order).
+        """
+        key = None
+        if not any(c.name == "t" for c in scan.channels):   # pixel_delays(scan) is None
+            key = (self.projector.column_times(scan).tobytes(), bool(scan.is_destaggered))
+            if self._time_cache is not None and self._time_cache[0] == key:
+                kept = self._time_cache[1]
+                if kept[1] is None and distinct:     # kept per pixel: not kept again
+                    unique, index = np.unique(kept[0], return_inverse=True)
+                    return unique, index.reshape(-1).astype(np.int64)
+                return kept
+        times = self.projector.pixel_times(scan)
+        height, width = times.shape
+        # the measurement column of each stored pixel
+        column = (self.projector.destagger_index
+                  if bool(scan.is_destaggered) and self.has_shift
+                  else np.broadcast_to(np.arange(width), (height, width)))
+        per_column = np.empty(width, np.int64)
+        per_column[column[0]] = times[0]
+        found: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]
+        if np.array_equal(times, per_column[column]):       # one time per column
+            unique, index = np.unique(per_column, return_inverse=True)
+            found = (unique, index.reshape(-1)[column].reshape(-1).astype(np.int64))
+        elif distinct:
+            unique, index = np.unique(times.reshape(-1), return_inverse=True)
+            found = (unique, index.reshape(-1).astype(np.int64))
+        else:
+            found = (times.reshape(-1), None)
+        self._time_cache = None if key is None else (key, found)
+        return found
+
+    def mount_poses(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """The moving mount's poses for a scan's pixels.
+
+        Returns:
+            (poses, index): (P, 4, 4) float64 target <- sensor at the P distinct pixel times,
+            and (H*W,) int64 the pose of each pixel (scan column order, row-major).
+
+        Raises:
+            OutOfSpanError: a pixel time outside the track's span.
+            TransformLookupError: raised by the callable.
+            ValidationError: the callable returned something other than a finite rigid 4x4.
+        """
+        relative, index = self.pose_times(scan)       # (distinct: index is not None)
+        stamp = np.int64(to_ns(scan.header.stamp, field="LidarScan.header.stamp"))
+        return self.poses_at(stamp + relative), cast(np.ndarray, index)
+
+    def poses_at(self, stamps: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """(P, 4, 4) float64 poses of the mount at the (P,) int64 ns stamps."""
+        if isinstance(self.moving, TransformTrack):
+            return self.moving.lookup_many(stamps)
+        return check_poses([self.moving(int(t)) for t in stamps], "extrinsics(stamp_ns)")

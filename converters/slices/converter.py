@@ -113,14 +113,13 @@ from converters._kernels.slices_numba import Bands
 from converters.slices.tables import MovingPlan, _MovingRays, _Slice, _Tables
 from converters.slices.spec import AngleGrid, OutputOptions
 from converters.slices.holes import HoleOptions
-from converters.shared.frames import check_extrinsics, check_poses, transform_rays
+from converters.shared.frames import check_extrinsics, transform_rays
 from converters.shared.options import IfPresent
 from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
-from converters.shared.transforms import OutOfSpanError, TransformTrack, segment_rotvecs
+from converters.shared.transforms import TransformTrack
 from lidarscan.errors import ConfigError
 from lidarscan.geometry import info_key
 from lidarscan.scan import as_array
-from lidarscan.stamps import to_ns
 
 __all__ = ["SliceConverter", "SliceSpec", "check_extrinsics", "to_laserscan"]
 
@@ -128,6 +127,8 @@ _NO_VALUES = np.zeros(0, np.float32)
 _NO_KEYS = np.zeros(0, np.int64)
 #: what :meth:`SliceConverter._tables_for` asks of the geometry service: the geometry alone
 _GEOMETRY = RayRequest()
+#: ... and with a moving mount's poses (:meth:`SliceConverter._mount_mode`)
+_MOUNT = {mode: RayRequest(mount=mode) for mode in ("poses", "track")}
 
 
 @dataclass(frozen=True)
@@ -241,9 +242,6 @@ class SliceConverter:
         self.range_channel = range_channel
         self._tables: dict[Any, _Tables] = {}
         self._moving_cache: tuple[Any, _Tables] | None = None
-        self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any],
-                                           np.ndarray[Any, Any] | None]] | None
-        self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], ...]] | None
         #: moving mount: build the full per-scan tables even with the compiled kernels (the
         #: path before :class:`_MovingRays`; tests compare both)
         self._reference_tables = False
@@ -258,7 +256,8 @@ class SliceConverter:
         self.info = info
         #: the geometry service: checks, stamp, ranges, intensity view, rays (target frame)
         self._geometry = ScanGeometry(info, range_channel=self.range_channel,
-                                      extrinsics=self.extrinsics, linkage_hint=(
+                                      extrinsics=self.extrinsics, moving=self.moving,
+                                      linkage_hint=(
                                           "the converter's LidarInfo; pass the new info to "
                                           "convert(scan, info)"))
         self.projector = self._geometry.projector
@@ -269,8 +268,6 @@ class SliceConverter:
         self.frame_id = self._frame_id or info.header.frame_id
         self._tables.clear()
         self._moving_cache = None
-        self._time_cache = None
-        self._rays_cache = None
         self._inf_thr: np.ndarray[Any, Any] | None = None
         width = int(info.width)
         self.slices = [self._build_slice(name, spec, info, width)
@@ -344,77 +341,36 @@ class SliceConverter:
 
     def _pose_times(self, scan: Any, distinct: bool = True
                     ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
-        """The distinct pixel times of a scan relative to its stamp and each pixel's one.
-
-        When every pixel of a measurement column has its column's time (no per-beam offsets, a
-        ``t`` channel constant along each column: tested exactly) the distinct times are those
-        of the W columns; otherwise those of all pixels (``np.unique`` of H*W times), or, with
-        ``distinct=False``, none are computed.
-
-        Returns:
-            (times, index): (P,) int64 ns sorted, and (H*W,) int64 the time of each pixel
-            (scan column order, row-major); with ``distinct=False`` and times varying within a
-            column, (H*W,) int64 ns every pixel's time and None. Kept for the next scan when it
-            has no ``t`` channel (then they depend only on the column times and the column
-            order).
-        """
-        key = None
-        if not any(c.name == "t" for c in scan.channels):   # pixel_delays(scan) is None
-            key = (self.projector.column_times(scan).tobytes(), bool(scan.is_destaggered))
-            if self._time_cache is not None and self._time_cache[0] == key:
-                kept = self._time_cache[1]
-                if kept[1] is None and distinct:     # kept per pixel: not kept again
-                    unique, index = np.unique(kept[0], return_inverse=True)
-                    return unique, index.reshape(-1).astype(np.int64)
-                return kept
-        times = self.projector.pixel_times(scan)
-        height, width = times.shape
-        # the measurement column of each stored pixel
-        column = (self.projector.destagger_index
-                  if bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
-                  else np.broadcast_to(np.arange(width), (height, width)))
-        per_column = np.empty(width, np.int64)
-        per_column[column[0]] = times[0]
-        found: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]
-        if np.array_equal(times, per_column[column]):       # one time per column
-            unique, index = np.unique(per_column, return_inverse=True)
-            found = (unique, index.reshape(-1)[column].reshape(-1).astype(np.int64))
-        elif distinct:
-            unique, index = np.unique(times.reshape(-1), return_inverse=True)
-            found = (unique, index.reshape(-1).astype(np.int64))
-        else:
-            found = (times.reshape(-1), None)
-        self._time_cache = None if key is None else (key, found)
-        return found
+        """:meth:`converters.shared.scan_rays.ScanGeometry.pose_times` of this converter's
+        geometry."""
+        return self._geometry.pose_times(scan, distinct)
 
     def mount_poses(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        """The moving mount's poses for a scan's pixels.
+        """The moving mount's poses for a scan's pixels
+        (:meth:`converters.shared.scan_rays.ScanGeometry.mount_poses`).
 
         Returns:
             (poses, index): (P, 4, 4) float64 target <- sensor at the P distinct pixel times,
             and (H*W,) int64 the pose of each pixel (scan column order, row-major).
-
-        Raises:
-            OutOfSpanError: a pixel time outside the track's span.
-            TransformLookupError: raised by the callable.
-            ValidationError: the callable returned something other than a finite rigid 4x4.
         """
-        relative, index = self._pose_times(scan)       # (distinct: index is not None)
-        return self._poses_at(self._stamp(scan) + relative), cast(np.ndarray, index)
+        return self._geometry.mount_poses(scan)
 
-    @staticmethod
-    def _stamp(scan: Any) -> np.int64:
-        return np.int64(to_ns(scan.header.stamp, field="LidarScan.header.stamp"))
+    @property
+    def _time_cache(self) -> Any:
+        """The pixel times kept for the next scan (the geometry service's)."""
+        return self._geometry._time_cache
 
-    def _poses_at(self, stamps: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """(P, 4, 4) float64 poses of the mount at the (P,) int64 ns stamps."""
-        if isinstance(self.moving, TransformTrack):
-            return self.moving.lookup_many(stamps)
-        return check_poses([self.moving(int(t)) for t in stamps], "extrinsics(stamp_ns)")
+    def _mount_mode(self) -> str:
+        """How the rays are moved: "track" (a track, the compiled kernels and
+        :attr:`_per_pixel`: each ray's pose interpolated in the kernel when pixel times vary
+        within a column) or "poses" (one pose per distinct pixel time)."""
+        compiled = self._kernel is not None and not self._reference_tables
+        return ("track" if compiled and self._per_pixel and isinstance(self.moving, TransformTrack)
+                else "poses")
 
     def _moving_tables(self, scan: Any, r: np.ndarray[Any, Any]) -> _Tables | _MovingRays:
         """:meth:`_moving_tables_of` a scan and its flat float32 ranges ``r``."""
-        rays = self._geometry.prepare(scan, _GEOMETRY)
+        rays = self._geometry.prepare(scan, _MOUNT[self._mount_mode()])
         return self._moving_tables_of(dataclasses.replace(rays, metres=r))
 
     def _moving_tables_of(self, rays: ScanRays) -> _Tables | _MovingRays:
@@ -425,24 +381,28 @@ class SliceConverter:
         the general kernel), without them the full :class:`_Tables` of the scan (numpy: the
         reference). With a track, the compiled kernels and pixel times that vary within a
         column (per-beam offsets, an irregular ``t`` channel: up to one pose per pixel), each
-        ray's pose is interpolated where it is used (:meth:`_track_rays`) instead of
+        ray's pose is interpolated where it is used (the track's samples of
+        :meth:`converters.shared.scan_rays.ScanGeometry.mount`, then
+        :meth:`converters._kernels.slices_numba.Compiled.track_rays`) instead of
         looking up and storing one pose per distinct time."""
-        scan, r, geometry = rays.scan, cast(np.ndarray, rays.metres), rays.key
-        compiled = self._kernel is not None and not self._reference_tables
-        per_pixel = compiled and self._per_pixel and isinstance(self.moving, TransformTrack)
-        relative, index = self._pose_times(scan, distinct=not per_pixel)
-        stamp = np.int64(rays.stamp_ns)
-        if index is None:
-            return self._track_rays(rays, stamp, relative)
-        poses = self._poses_at(stamp + relative)
-        if np.all(poses == poses[0]):
-            return self._still_tables(rays, poses[0])
-        d32, o32 = self._sensor_rays(rays)
-        if compiled:
+        r, mount = cast(np.ndarray, rays.metres), rays.mount
+        if mount is None:                      # unreachable: convert() asks for the mount
+            raise ConfigError("mount", None, "asked of the geometry service")
+        if mount.held is not None:
+            return self._still_tables(rays, mount.held)
+        geometry = self._geometry
+        if mount.samples is not None:          # a track, a time per pixel: the kernel's poses
+            d32, o32 = geometry.sensor_rays(rays, columns=True)
+            moved = self._kernel.track_rays(d32, o32, mount.relative, rays.stamp_ns,
+                                            *mount.samples)
+            return _MovingRays(moved, self._tie_keys(rays.destaggered), r, self._moving_plan())
+        poses, index = cast(np.ndarray, mount.poses), cast(np.ndarray, mount.index)
+        d32, o32 = geometry.sensor_rays(rays)
+        if self._kernel is not None and not self._reference_tables:
             return _MovingRays(self._kernel.transform_rays(d32, o32, poses, index),
-                               self._tie_keys(geometry[1]), r, self._moving_plan())
+                               self._tie_keys(rays.destaggered), r, self._moving_plan())
         d, o = transform_rays(d32, o32, poses, index)
-        return _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
+        return _Tables(d, o, self._tie_keys(rays.destaggered), self.slices, self._grids,
                        self._slice_grid, self._near, self.projector.width)
 
     def _still_tables(self, rays: ScanRays, pose: np.ndarray[Any, Any]) -> _Tables:
@@ -451,32 +411,12 @@ class SliceConverter:
         key = (geometry, pose.tobytes())
         if self._moving_cache is not None and self._moving_cache[0] == key:
             return self._moving_cache[1]
-        d32, o32 = self._sensor_rays(rays)
+        d32, o32 = self._geometry.sensor_rays(rays)
         d, o = transform_rays(d32, o32, pose[None], np.zeros(d32.shape[0], np.int64))
         tables = _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
                          self._slice_grid, self._near, self.projector.width)
         self._moving_cache = (key, tables)
         return tables
-
-    def _track_rays(self, rays: ScanRays, stamp: np.int64, relative: np.ndarray[Any, Any]
-                    ) -> _Tables | _MovingRays:
-        """:meth:`_moving_tables_of` for a track and a time per pixel: the track's samples around
-        the scan, then one compiled pass that interpolates each ray's pose and moves the ray
-        (:meth:`converters._kernels.slices_numba.Compiled.track_rays`: the poses of
-        :meth:`TransformTrack.lookup_many` up to float64 rounding, see there)."""
-        track = self.moving
-        try:
-            times, poses = track.samples(stamp + relative.min(), stamp + relative.max())
-        except OutOfSpanError:
-            self.mount_poses(rays.scan)     # raises what the per-time lookup names
-            raise
-        if np.all(poses == poses[0]):       # one pose held over the scan
-            return self._still_tables(rays, track.lookup_many(stamp + relative[:1])[0])
-        d32, o32 = self._sensor_rays(rays, columns=True)
-        moved = self._kernel.track_rays(d32, o32, relative, int(stamp), times, poses,
-                                        segment_rotvecs(poses[:-1], poses[1:]))
-        return _MovingRays(moved, self._tie_keys(rays.destaggered),
-                           cast(np.ndarray, rays.metres), self._moving_plan())
 
     def _moving_plan(self) -> MovingPlan:
         """What :class:`_MovingRays` reads of this slicer."""
@@ -489,21 +429,6 @@ class SliceConverter:
         if self._inf_thr is None or self._inf_thr.shape != (len(self._grids), n):
             self._inf_thr = np.full((len(self._grids), n), np.inf, np.float32)
         return self._inf_thr
-
-    def _sensor_rays(self, rays: ScanRays, columns: bool = False
-                     ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan, or with
-        ``columns`` the same as (3, n) (one row per component; kept for the next scan of the
-        same geometry)."""
-        geometry = rays.key
-        if self._rays_cache is None or self._rays_cache[0] != geometry:
-            d32, o32, _ = self._geometry.sensor_tables(rays)
-            d32 = np.ascontiguousarray(d32.reshape(-1, 3), np.float32)
-            o32 = np.ascontiguousarray(o32.reshape(-1, 3), np.float32)
-            self._rays_cache = (geometry, (d32, o32, np.ascontiguousarray(d32.T),
-                                           np.ascontiguousarray(o32.T)))
-        kept = self._rays_cache[1]
-        return (kept[2], kept[3]) if columns else (kept[0], kept[1])
 
     # ----------------------------------------------------------------------------- convert
     def convert(self, scan: Any, info: Any = None) -> dict[str, Any]:
@@ -525,7 +450,9 @@ class SliceConverter:
         """
         if info is not None and info_key(info) != self._info_key:
             self._set_info(info)
-        rays = self._geometry.prepare(scan, self._request)
+        rays = self._geometry.prepare(scan, self._request if self.moving is None else
+                                      dataclasses.replace(self._request,
+                                                          mount=self._mount_mode()))
         r = cast(np.ndarray, rays.metres)
         tables = self._tables_of(rays) if self.moving is None else self._moving_tables_of(rays)
         values = rays.views.get("intensity")
