@@ -13,8 +13,10 @@ numba and the per-info caches done by a first call) and prints two figures:
   room calling one of its own functions after a lower room returned (the converter's own
   helper after the kernel), which says little about where the data travels.
 * ``entries``: only calls that cross a room boundary count (the caller's room -- the nearest
-  frame on the stack that lies in a room -- differs from the callee's), consecutive repeats
-  merged; a climb is an entry into a room that was entered before. This is the figure that
+  frame on the stack that lies in a room -- differs from the callee's); a room asking the same
+  room again, with nothing asked of another room in between (what the callee asked of the
+  rooms below it aside), is the same entry; a climb is an entry into a room that was entered
+  before. This is the figure that
   says "visits each room once, going down": the converter asking ``lidarscan/scan.py`` for a
   channel, then ``lidarscan/stamps.py`` for a stamp, then ``lidarscan/scan.py`` again is one
   climb; the converter calling its own writer after the kernel is none.
@@ -99,12 +101,18 @@ def walk(fn: Callable[[], Any]) -> dict[str, Any]:
             call_climbs += 1
         seen.add(r)
     entered: set[str] = set()
+    asked: dict[str | None, str] = {}      # caller room -> the room it asked last
+    visits: list[tuple[str | None, str]] = []
     entry_climbs = 0
-    for _, r in entries:
+    for caller, r in entries:
+        if asked.get(caller) == r:
+            continue                       # asked again, the callee's own calls in between
+        asked[caller] = r
+        visits.append((caller, r))
         if r in entered:
             entry_climbs += 1
         entered.add(r)
-    return {"calls": calls, "call_climbs": call_climbs, "entries": entries,
+    return {"calls": calls, "call_climbs": call_climbs, "entries": visits,
             "entry_climbs": entry_climbs, "rooms": len(set(calls))}
 
 

@@ -494,7 +494,7 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
                                     scan_dest, False)
             count = djob.run(0, pixels, dense=True)
             del buf[count * step:]
-            return self._message(scan, specs, step, (1, count), buf, True, header_ns)
+            return self._message(scan, specs, step, (1, count), buf, True, header_ns, rays)
 
         direct = self.organized and self.order == "rows"
         if direct:                                    # fields go straight into the message
@@ -530,7 +530,7 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             else:
                 dense = not bool(np.isnan(r).any())
             return self._message(scan, specs, step, (self.height, self.width), buf,
-                                 dense, header_ns)
+                                 dense, header_ns, rays)
         valid = ~np.isnan(r).reshape(-1)
         if self.order == "rows":
             index = np.flatnonzero(valid)
@@ -545,7 +545,7 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             dense = bool(valid.all())
         else:
             shape, dense = (1, int(index.size)), True
-        return self._message(scan, specs, step, shape, buf, dense, header_ns)
+        return self._message(scan, specs, step, shape, buf, dense, header_ns, rays)
 
     def _images(self, rays: ScanRays, specs: Sequence[FieldSpec]) -> dict[str, Any]:
         """The scan channel (view) feeding each channel field; None: zero-fill (presets). The
@@ -605,12 +605,13 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
 
     def _message(self, scan: Any, specs: Sequence[FieldSpec], step: int,
                  shape: tuple[int, int], buf: array.array[int], dense: bool,
-                 header_ns: int) -> Any:
+                 header_ns: int, rays: ScanRays) -> Any:
         from builtin_interfaces.msg import Time
         from sensor_msgs.msg import PointCloud2, PointField
         from std_msgs.msg import Header
 
-        sec, nanosec = split_ns(header_ns)
+        # the scan's own stamp (time_reference "stamp") comes split with the geometry
+        sec, nanosec = rays.stamp if header_ns == rays.stamp_ns else split_ns(header_ns)
         frame = self.frame_id if self.frame_id is not None else scan.header.frame_id
         header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame)
         fields = [PointField(name=s.name, offset=s.offset, datatype=s.datatype, count=s.count)

@@ -38,7 +38,7 @@ from converters.shared.transforms import OutOfSpanError, TransformTrack, segment
 from lidarscan.errors import InfoMismatchError, LinkageError, ValidationError
 from lidarscan.geometry import azimuth_channel, make_projector, pixel_delays
 from lidarscan.scan import as_array, channel, range_m, return_channel, return_of
-from lidarscan.stamps import to_ns
+from lidarscan.stamps import split_ns, to_ns
 
 __all__ = ["ChannelWant", "MountPoses", "RayRequest", "ScanGeometry", "ScanRays"]
 
@@ -119,6 +119,7 @@ class ScanRays:
     Attributes:
         scan: the scan (for :meth:`ScanGeometry.sensor_tables` and friends).
         stamp_ns: ``header.stamp`` in int64 ns.
+        stamp: the same as (sec, nanosec), for the headers of the outputs.
         destaggered: the scan's columns are destaggered *and* the info has pixel shifts (the
             column order of every image and table here).
         key: the geometry key (module docstring).
@@ -135,6 +136,7 @@ class ScanRays:
 
     scan: Any
     stamp_ns: int
+    stamp: tuple[int, int]
     destaggered: bool
     key: tuple[Any, ...]
     raw: np.ndarray[Any, Any] | None
@@ -202,6 +204,7 @@ class ScanGeometry:
             raise LinkageError("LidarScan.lidar_info_time", link,
                                f"{self.info_stamp_ns} ({self._linkage_hint})")
         stamp_ns = to_ns(scan.header.stamp, field="LidarScan.header.stamp")
+        stamp = split_ns(stamp_ns, field="LidarScan.header.stamp")
         names = [c.name for c in scan.channels]
         destaggered = bool(scan.is_destaggered) and self.has_shift
         # the scan's own arrays, read once
@@ -235,7 +238,8 @@ class ScanGeometry:
                             else np.arange(width, dtype=np.int64) * self._increment)
             delays = pixel_delays(scan) if "t" in names else None
         factors = self._factors_of(key, measured) if request.factors else None
-        rays = ScanRays(scan=scan, stamp_ns=stamp_ns, destaggered=destaggered, key=key,
+        rays = ScanRays(scan=scan, stamp_ns=stamp_ns, stamp=stamp, destaggered=destaggered,
+                        key=key,
                         raw=raw, metres=metres, views=views, column_times=column_times,
                         delays=delays, factors=factors, period_ns=self._period_ns(offsets))
         if request.mount is not None:

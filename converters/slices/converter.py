@@ -481,7 +481,7 @@ class SliceConverter:
             out[s.name] = _grid.make_laserscan(
                 stamp_ns=stamp, frame_id=self.frame_id, grid=s.grid, ranges=ranges,
                 intensities=ints, options=s.options, scan_time=period * 1e-9,
-                time_increment=time_inc)
+                time_increment=time_inc, stamp=rays.stamp)
         return out
 
     def _row_convert(self, r: np.ndarray[Any, Any], tables: _Tables,
@@ -603,6 +603,24 @@ def _as_spec(name: str, spec: SliceSpec | Mapping[str, Any]) -> SliceSpec:
 _CONVERTERS: OrderedDict[Any, SliceConverter] = OrderedDict()
 
 
+def _cache_key(info: Any, spec: SliceSpec, kwargs: dict[str, Any]) -> tuple[Any, ...] | None:
+    """The key of :func:`to_laserscan`'s converter cache, or None when an option cannot be part
+    of one (not a number, not hashable: :func:`converters.shared.options.slice_options` then
+    says what is wrong)."""
+    extrinsics = kwargs["extrinsics"]
+    try:
+        # a moving mount is cached by identity (the cached converter keeps it alive)
+        ext = None if extrinsics is None else ("moving", id(extrinsics)) \
+            if callable(extrinsics) else check_extrinsics(extrinsics).tobytes()
+        # the type tells IfPresent("intensity") (the default) from a required "intensity"
+        key = (info_key(info), float(spec.min_height), float(spec.max_height), ext,
+               tuple((k, type(v), v) for k, v in kwargs.items() if k != "extrinsics"))
+        hash(key)
+    except (TypeError, ValueError):             # ConfigError, ValidationError included
+        return None
+    return key
+
+
 def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
                  extrinsics: Any = None, frame_id: str | None = None,
                  angle_min: float | None = None, angle_max: float | None = None,
@@ -633,19 +651,18 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
               "hole_range_max": hole_range_max, "hole_no_return": hole_no_return,
               "range_channel": range_channel, "backend": backend}
     spec = SliceSpec(min_height, max_height)
-    options.slice_options({"slice": spec}, {**kwargs, "extrinsics": _checkable(extrinsics)})
-    # a moving mount is cached by identity (the cached converter keeps it alive)
-    ext = None if extrinsics is None else ("moving", id(extrinsics)) if callable(extrinsics) \
-        else check_extrinsics(extrinsics).tobytes()
-    # the type tells IfPresent("intensity") (the default) from a required "intensity"
-    key = (info_key(info), float(min_height), float(max_height), ext,
-           tuple((k, type(v), v) for k, v in kwargs.items() if k != "extrinsics"))
-    converter = _CONVERTERS.get(key)
+    key = _cache_key(info, spec, kwargs)
+    converter = None if key is None else _CONVERTERS.get(key)
     if converter is None:
+        # the options of a cached converter were checked when it was built (equal key: equal
+        # values of the same types); the others are checked here, before anything is built
+        options.slice_options({"slice": spec}, {**kwargs, "extrinsics": _checkable(extrinsics)})
         converter = SliceConverter(info, {"slice": spec}, **kwargs)
-        _CONVERTERS[key] = converter
-        while len(_CONVERTERS) > 8:
-            _CONVERTERS.popitem(last=False)
+        key = _cache_key(info, spec, kwargs)
+        if key is not None:
+            _CONVERTERS[key] = converter
+            while len(_CONVERTERS) > 8:
+                _CONVERTERS.popitem(last=False)
     else:
         _CONVERTERS.move_to_end(key)
     return converter.convert(scan)["slice"]
