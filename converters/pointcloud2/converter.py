@@ -56,6 +56,9 @@ byte-identical to numpy; so do scans with a per-pixel azimuth channel (``azimuth
 reuse the buffer of the converter's previous message once that message was dropped. Rows can be split over threads (``threads=``).
 The numpy field writers and row rolling live in :mod:`converters.pointcloud2.fields`, the kernel's
 plan and call arguments in :mod:`converters.pointcloud2.kernel`.
+Everything the converter reads of a scan besides writing fields -- checks, stamp, range and
+channel images, times, beam factors or tables -- it asks of its geometry service in one call
+per scan (:class:`converters.shared.scan_rays.ScanGeometry`).
 Reading clouds (:func:`read_points`) and estimating a LidarScan from one
 (:func:`from_pointcloud2`, :func:`estimation_error`) live in :mod:`converters.shared.cloud_layout` and
 :mod:`converters.sources.clouds.importer`; they are re-exported here.

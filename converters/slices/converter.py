@@ -30,7 +30,10 @@ This is the cliff detection of the multi-laserscan toolbox's depth converter (it
 Tables: with a fixed mount every pixel is a ray ``p = r*D + O`` whose direction ``D`` and
 origin ``O`` in the target frame (float32 components, like the projector's tables; arithmetic in
 float64) are computed once per LidarInfo version and column order (:func:`lidarscan.make_projector`,
-then the extrinsics, :func:`converters.shared.frames.transform_rays`). Per distinct grid and pixel the
+then the extrinsics, :func:`converters.shared.frames.transform_rays`). What the slicer reads of a
+scan besides binning and fusing -- checks, stamp, ranges, the intensity view, the geometry key,
+the rays on a cache miss, a moving mount's poses -- it asks of its geometry service in one call
+per scan (:class:`converters.shared.scan_rays.ScanGeometry`). Per distinct grid and pixel the
 far-field bin and the range ``r_thr`` above which the point's bin *is* the far-field bin are
 precomputed (:func:`converters.slices.spec.far_field`), so ``atan2`` runs only for in-band points
 closer than their ``r_thr`` (a sensor far off the target's z axis makes most points need it:
