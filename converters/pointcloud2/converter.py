@@ -105,9 +105,9 @@ from converters.shared.cloud_layout import (
     read_points,
     structured,
 )
+from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
 from lidarscan.datatypes import dtype_of
 from lidarscan.errors import ConfigError, ConversionError, UnknownChannelError
-from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
 from lidarscan.geometry import info_key
 from lidarscan.scan import as_array
 from lidarscan.stamps import split_ns

@@ -120,7 +120,7 @@ from converters.shared.frames import check_extrinsics, transform_rays
 from converters.shared.options import IfPresent
 from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
 from converters.shared.transforms import TransformTrack
-from lidarscan.errors import ConfigError
+from lidarscan.errors import ConfigError, ConversionError
 from lidarscan.geometry import info_key
 from lidarscan.scan import as_array
 
@@ -268,6 +268,9 @@ class SliceConverter:
         wanted = self.intensity_channel
         self._request = RayRequest(metres=True, channels=() if wanted is None else (
             ChannelWant("intensity", (str(wanted),), required=not isinstance(wanted, IfPresent)),))
+        #: ... with a moving mount's poses, by :meth:`_mount_mode`
+        self._mount_requests = {mode: dataclasses.replace(self._request, mount=mode)
+                                for mode in ("poses", "track")}
         self.frame_id = self._frame_id or info.header.frame_id
         self._tables.clear()
         self._moving_cache = None
@@ -390,7 +393,7 @@ class SliceConverter:
         looking up and storing one pose per distinct time."""
         r, mount = cast(np.ndarray, rays.metres), rays.mount
         if mount is None:                      # unreachable: convert() asks for the mount
-            raise ConfigError("mount", None, "asked of the geometry service")
+            raise ConversionError("mount", None, "asked of the geometry service")
         if mount.held is not None:
             return self._still_tables(rays, mount.held)
         geometry = self._geometry
@@ -454,8 +457,7 @@ class SliceConverter:
         if info is not None and info_key(info) != self._info_key:
             self._set_info(info)
         rays = self._geometry.prepare(scan, self._request if self.moving is None else
-                                      dataclasses.replace(self._request,
-                                                          mount=self._mount_mode()))
+                                      self._mount_requests[self._mount_mode()])
         r = cast(np.ndarray, rays.metres)
         tables = self._tables_of(rays) if self.moving is None else self._moving_tables_of(rays)
         values = rays.views.get("intensity")
