@@ -248,7 +248,8 @@ class ScanGeometry:
 
     def _views(self, scan: Any, names: list[str], wants: Sequence[ChannelWant]
                ) -> dict[str, np.ndarray[Any, Any] | None]:
-        number = return_of(self.range_channel, names)[1]
+        number = (return_of(self.range_channel, names)[1]
+                  if any(want.per_return for want in wants) else 1)
         present = set(names)
         views: dict[str, np.ndarray[Any, Any] | None] = {}
         for want in wants:
