@@ -231,16 +231,11 @@ class ScanGeometry:
         key = self._key(scan, measured, azimuths, destaggered)
         column_times = delays = None
         if request.column_times:
-            if offsets.size and offsets.size != width:
-                raise ValidationError("LidarScan.column_time_offsets", f"length {offsets.size}",
-                                      f"length {width} or 0")
-            column_times = (offsets.astype(np.int64) if offsets.size
-                            else np.arange(width, dtype=np.int64) * self._increment)
+            column_times = self.projector.column_times(scan)
             delays = pixel_delays(scan) if "t" in names else None
         factors = self._factors_of(key, measured) if request.factors else None
         rays = ScanRays(scan=scan, stamp_ns=stamp_ns, stamp=stamp, destaggered=destaggered,
-                        key=key,
-                        raw=raw, metres=metres, views=views, column_times=column_times,
+                        key=key, raw=raw, metres=metres, views=views, column_times=column_times,
                         delays=delays, factors=factors, period_ns=self._period_ns(offsets))
         if request.mount is not None:
             rays.mount = self.mount(rays, request.mount)
