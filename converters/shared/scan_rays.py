@@ -5,7 +5,9 @@ once per scan, for what it needs with a :class:`RayRequest` built from its confi
 gets one :class:`ScanRays` back and then does only its own job (bin and fuse, write fields).
 Everything the outputs read of a scan besides that job comes from here: the linkage and size
 checks, the stamp, the range image (native channel view or decoded metres), the channel views
-they publish, the column and pixel times, and the rays.
+they publish, the column and pixel times, the rays, and for a moving mount (a
+:class:`converters.shared.transforms.TransformTrack` or a callable) the poses at the pixels'
+times (:class:`MountPoses`; moving the rays by them is the output's backend's job).
 
 Conventions: times are int64 ns, relative to ``scan.header.stamp`` unless named ``stamp``;
 ranges float32 metres along the beam (REP 117: +Inf no return); rays ``p = r * D + O`` with
@@ -16,12 +18,13 @@ images in the scan's column order (``is_destaggered``) unless said otherwise.
 Rays depend on the scan only through its *geometry key* (:attr:`ScanRays.key`):
 ``("info", destaggered)`` when the info's own angles apply (the rays are the same for every scan
 of the info: converters keep what they derive from them per key), or ``("measured",
-destaggered, digest)`` when the scan carries ``column_azimuth_angles`` or a per-pixel azimuth
-channel (:func:`lidarscan.geometry.pixel_azimuths`; rebuilt when the digest changes). So the
-rays themselves are computed on demand (:meth:`ScanGeometry.sensor_tables`,
-:meth:`ScanGeometry.target_rays`, :meth:`ScanGeometry.factors`) and only requested when a
-converter's cache for that key is empty, except the factored beam model, which is kept here
-per key.
+destaggered, has_azimuth_channel, digest)`` when the scan carries ``column_azimuth_angles`` or a
+per-pixel azimuth channel (:func:`lidarscan.geometry.pixel_azimuths`; rebuilt when the digest
+changes). So the per-pixel rays are computed on demand (:meth:`ScanGeometry.sensor_tables`,
+:meth:`ScanGeometry.target_rays`) and only asked for when a converter's cache for that key is
+empty; kept here are the factored beam model of the latest measured key (the info's is the
+projector's), a moving mount's sensor-frame rays of the latest key (:meth:`ScanGeometry.sensor_rays`)
+and its pixel times per column timing (:meth:`ScanGeometry.pose_times`).
 """
 
 from __future__ import annotations
