@@ -209,10 +209,9 @@ def test_demo_ships_its_metadata_with_provenance() -> None:
 
 
 def test_nothing_reads_the_shared_folder_at_run_time() -> None:
-    sources = [ROOT / "converters" / n for n in ("demo.py", "viz.py")]
-    sources += list((ROOT / "converters" / "cli").glob("*.py"))
-    sources += list((ROOT / "converters" / "nodes").glob("*.py"))
+    sources = list((ROOT / "converters").rglob("*.py")) + list((ROOT / "lidarscan").rglob("*.py"))
     sources += list((ROOT / "examples").glob("*.py"))
+    assert ROOT / "converters" / "edge" / "demo" / "run.py" in sources
     for source in sources:
         assert "/work/shared" not in source.read_text(), source
         assert "../shared" not in source.read_text(), source
