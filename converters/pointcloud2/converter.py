@@ -56,6 +56,9 @@ byte-identical to numpy; so do scans with a per-pixel azimuth channel (``azimuth
 reuse the buffer of the converter's previous message once that message was dropped. Rows can be split over threads (``threads=``).
 The numpy field writers and row rolling live in :mod:`converters.pointcloud2.fields`, the kernel's
 plan and call arguments in :mod:`converters.pointcloud2.kernel`.
+Everything the converter reads of a scan besides writing fields -- checks, stamp, range and
+channel images, times, beam factors or tables -- it asks of its geometry service in one call
+per scan (:class:`converters.shared.scan_rays.ScanGeometry`).
 Reading clouds (:func:`read_points`) and estimating a LidarScan from one
 (:func:`from_pointcloud2`, :func:`estimation_error`) live in :mod:`converters.shared.cloud_layout` and
 :mod:`converters.sources.clouds.importer`; they are re-exported here.
@@ -67,12 +70,11 @@ import array
 import contextlib
 import contextvars
 import itertools
-import math
 import sys
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -103,17 +105,12 @@ from converters.shared.cloud_layout import (
     read_points,
     structured,
 )
+from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
 from lidarscan.datatypes import dtype_of
-from lidarscan.errors import (
-    ConfigError,
-    InfoMismatchError,
-    LinkageError,
-    UnknownChannelError,
-    ValidationError,
-)
-from lidarscan.geometry import azimuth_channel, info_key, make_projector, pixel_delays
-from lidarscan.scan import as_array, channel, channel_names, return_channel, return_of
-from lidarscan.stamps import split_ns, to_ns
+from lidarscan.errors import ConfigError, ConversionError, UnknownChannelError
+from lidarscan.geometry import info_key
+from lidarscan.scan import as_array
+from lidarscan.stamps import split_ns
 
 __all__ = [
     "CHANNEL_ALIASES",
@@ -249,7 +246,9 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
         self.ring_mode = p.ring if p else "row"
 
         self.info = info
-        self.projector = make_projector(info)
+        #: the geometry service: checks, stamp, range image, channel views, times, rays
+        self._geometry = ScanGeometry(info, range_channel=range_channel)
+        self.projector = self._geometry.projector
         proj = self.projector
         self.height, self.width = proj.height, proj.width
         self._info_stamp = proj.info_stamp_ns
@@ -272,9 +271,8 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
         self._offset = float(info.range_offset)
         self._ring_values = self._rings(info)
         self._planes: _Planes | None = None
-        self._scan_planes: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None,
-                                 _Planes] | None = None
-        self._scan_factors: tuple[np.ndarray[Any, Any], Any] | None = None
+        self._scan_planes: tuple[tuple[Any, ...], _Planes] | None = None   # measured geometry
+        self._requests: dict[tuple[int, bool, bool], RayRequest] = {}
         self._static_args: tuple[Any, ...] | None = None      # see _kernel_job
         self._times_cache: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None = None
         self._layouts: dict[Any, tuple[tuple[FieldSpec, ...], int, np.dtype[Any]]] = {}
@@ -323,51 +321,33 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             self._layouts[key] = layout
         return layout
 
-    def _azimuths(self, scan: Any) -> np.ndarray[Any, Any] | None:
-        """The scan's per-pixel azimuth channel for the range channel (native view), or None."""
-        name = azimuth_channel(scan, self.range_channel)
-        return None if name is None else channel(scan, name, native=True)
+    def _request(self, specs: tuple[FieldSpec, ...], times: bool, factors: bool
+                 ) -> RayRequest:
+        """What this layout needs of each scan (one request per layout and path, kept)."""
+        key = (id(specs), times, factors)
+        request = self._requests.get(key)
+        if request is None:
+            wants = tuple(ChannelWant(s.name, tuple(s.channels), per_return=True,
+                                      first=s.count == 1)
+                          for s in specs if s.source == "channel")
+            request = RayRequest(raw=True, channels=wants, column_times=times, factors=factors)
+            self._requests[key] = request
+        return request
 
-    def _tables(self, scan: Any) -> _Planes:
-        """Projection tables as contiguous float32 planes in grid order (cached)."""
-        measured = as_array(scan.column_azimuth_angles, np.float64)
-        azimuths = self._azimuths(scan)
-        if measured.size or azimuths is not None:
-            cached = self._scan_planes
-            if cached is not None and np.array_equal(cached[0], measured) and (
-                    (cached[1] is None and azimuths is None) or (
-                        cached[1] is not None and azimuths is not None
-                        and cached[1].dtype == azimuths.dtype
-                        and np.array_equal(cached[1], azimuths))):
-                return cached[2]
-            d, o = self.projector.tables_for(scan, self.range_channel)
-            planes = self._split(d, o, bool(scan.is_destaggered) and self._has_shift)
-            self._scan_planes = (np.array(measured, copy=True),
-                                 None if azimuths is None else np.array(azimuths, copy=True),
-                                 planes)
-            return planes
-        if self._planes is None:
-            d, o = self.projector.tables(self._grid_destaggered)
-            self._planes = self._split(d, o, self._grid_destaggered)
-        return self._planes
-
-    def _factors(self, scan: Any) -> tuple[np.ndarray[Any, Any], ...] | None:
-        """Factored beam model (float32 rows, columns, constant) for the scan's column
-        azimuths, or None (per-pixel angles in the info, or a per-pixel azimuth channel: the
-        kernel then projects from the per-pixel tables)."""
-        if self._azimuths(scan) is not None:
-            return None
-        measured = as_array(scan.column_azimuth_angles, np.float64)
-        if not measured.size:
-            return self.projector.factors()
-        cached = self._scan_factors
-        if cached is None or not np.array_equal(cached[0], measured):
-            if measured.size != self.width:
-                raise ValidationError("LidarScan.column_azimuth_angles",
-                                      f"length {measured.size}", f"length {self.width} or 0")
-            cached = (np.array(measured, copy=True), self.projector.factors(measured))
-            self._scan_factors = cached
-        return cached[1]  # type: ignore[no-any-return]
+    def _tables(self, rays: ScanRays) -> _Planes:
+        """Projection tables as contiguous float32 planes in grid order (cached per geometry:
+        the info's, or the latest measured one)."""
+        if rays.key[0] == "info":
+            if self._planes is None:
+                d, o, dest = self._geometry.sensor_tables(rays, self._grid_destaggered)
+                self._planes = self._split(d, o, dest)
+            return self._planes
+        cached = self._scan_planes
+        if cached is None or cached[0] != rays.key:
+            d, o, dest = self._geometry.sensor_tables(rays)
+            cached = (rays.key, self._split(d, o, dest))
+            self._scan_planes = cached
+        return cached[1]
 
     def _split(self, d: np.ndarray[Any, Any], o: np.ndarray[Any, Any], tables_destaggered: bool
                ) -> _Planes:
@@ -388,11 +368,13 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             np.add(plane, np.float32(0), out=plane)
         return _Planes(planes[:3], planes[3:])
 
-    def _pixel_times(self, scan: Any) -> np.ndarray[Any, Any]:
+    def _pixel_times(self, rays: ScanRays) -> np.ndarray[Any, Any]:
         """(H, W) int64 ns since the scan stamp, grid order (cached per column times), plus the
         scan's per-pixel ``t`` delays where it has them (:func:`lidarscan.geometry.pixel_delays`,
-        moved from the scan's column order to the grid's)."""
-        cols = self.projector.column_times(scan)
+        moved from the scan's column order to the grid's). ``rays`` has the column times."""
+        cols = rays.column_times
+        if cols is None:                                  # unreachable: see convert()
+            raise ConversionError("column times", None, "asked of the geometry service")
         cached = self._times_cache
         if cached is not None and np.array_equal(cached[0], cols):
             times = cached[1]
@@ -403,10 +385,10 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
                 _roll_into(grid, times, self._groups, 1)
                 times = grid
             self._times_cache = (cols.copy(), times)
-        delays = pixel_delays(scan)
+        delays = rays.delays
         if delays is None:
             return np.asarray(times, dtype=np.int64)
-        roll = self._roll(bool(scan.is_destaggered))
+        roll = self._roll(rays.destaggered)
         if roll is not None:                # grid[u, (c + r_u) % W] = delays[u, c]
             cols_idx = (np.arange(self.width)[None, :] - roll[:, None]) % self.width
             delays = np.take_along_axis(delays, cols_idx, axis=1)
@@ -484,37 +466,28 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             UnknownChannelError: a requested channel is missing (preset channels zero-fill).
             ConversionError: a time that does not fit the requested time field.
         """
-        height, width = int(scan.height), int(scan.width)
-        if (height, width) != (self.height, self.width):
-            raise InfoMismatchError("LidarScan.height x width", f"{height}x{width}",
-                                    f"{self.height}x{self.width} from the LidarInfo")
-        link = to_ns(scan.lidar_info_time, field="LidarScan.lidar_info_time")
-        if link != self._info_stamp:
-            raise LinkageError("LidarScan.lidar_info_time", link,
-                               f"{self._info_stamp} (the LidarInfo's header.stamp, in ns)")
         specs, step, dtype = self._layout(scan)
-        raw = channel(scan, self.range_channel, native=True)
-        if raw.ndim == 3:
-            raw = raw[..., 0]
-        if raw.dtype.kind != "f" and (not self._mult > 0 or not math.isfinite(self._mult)):
-            raise InfoMismatchError("LidarInfo.range_multiplier", self._mult,
-                                    f"> 0 to decode the integer channel {self.range_channel!r}")
-        stamp_ns = to_ns(scan.header.stamp, field="LidarScan.header.stamp")
         motion = motion if motion is not None else self.motion
+        needs_times = motion is not None or any(
+            s.source in ("t", "time", "timestamp") for s in specs)
+        use_kernel = self._kfn is not None and motion is None
+        rays = self._geometry.prepare(scan, self._request(
+            specs, needs_times or self.time_reference != "stamp", use_kernel))
+        raw = cast(np.ndarray, rays.raw)
+        stamp_ns = rays.stamp_ns
         ref = 0
         if self.time_reference != "stamp":
-            cols = self.projector.column_times(scan)
+            cols = cast(np.ndarray, rays.column_times)
             beams = self.projector.beam_time_offsets
             pick = np.min if self.time_reference == "first" else np.max
             ref = (int(pick(cols)) if cols.size else 0) + (int(pick(beams)) if beams.size else 0)
         header_ns = stamp_ns + ref
         scan_dest = bool(scan.is_destaggered)
-        images = self._images(scan, specs)
-        plan = (self._kernel_plan(specs, raw, images) if self._kfn is not None and motion is None
-                else None)
-        factors = self._factors(scan) if plan is not None else None
+        images = self._images(rays, specs)
+        plan = self._kernel_plan(specs, raw, images) if use_kernel else None
+        factors = rays.factors if plan is not None else None
         # the per-pixel tables: only for the numpy path and the kernel's table form
-        tables = self._tables(scan) if factors is None else None
+        tables = self._tables(rays) if factors is None else None
         pixels = self.height * self.width
 
         if plan is not None and plan.covers_all and not self.organized and self.order == "rows":
@@ -524,7 +497,7 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
                                     scan_dest, False)
             count = djob.run(0, pixels, dense=True)
             del buf[count * step:]
-            return self._message(scan, specs, step, (1, count), buf, True, header_ns)
+            return self._message(scan, specs, step, (1, count), buf, True, header_ns, rays)
 
         direct = self.organized and self.order == "rows"
         if direct:                                    # fields go straight into the message
@@ -537,12 +510,10 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             needs_r = not direct or any(s.source == "range" for s in specs)
             kjob = self._kernel_job(plan, _ck.addr(grid), step, tables, factors, scan_dest,
                                     needs_r)
-        needs_times = motion is not None or any(
-            s.source in ("t", "time", "timestamp") for s in specs)
-        job = _Job(scan=scan, raw=raw, grid=grid,
+        job = _Job(rays=rays, raw=raw, grid=grid,
                    pair=_xy_pair(grid, specs) if kjob is None else None, specs=specs,
                    tables=tables, images=images,
-                   times=self._pixel_times(scan) if needs_times else None,
+                   times=self._pixel_times(rays) if needs_times else None,
                    ref=ref, stamp_ns=stamp_ns, scan_dest=scan_dest, kernel=kjob)
         if job.pair is not None and job.tables is not None:
             job.tables.pair()                        # built once, before any worker thread
@@ -562,7 +533,7 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             else:
                 dense = not bool(np.isnan(r).any())
             return self._message(scan, specs, step, (self.height, self.width), buf,
-                                 dense, header_ns)
+                                 dense, header_ns, rays)
         valid = ~np.isnan(r).reshape(-1)
         if self.order == "rows":
             index = np.flatnonzero(valid)
@@ -577,32 +548,19 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             dense = bool(valid.all())
         else:
             shape, dense = (1, int(index.size)), True
-        return self._message(scan, specs, step, shape, buf, dense, header_ns)
+        return self._message(scan, specs, step, shape, buf, dense, header_ns, rays)
 
-    def _images(self, scan: Any, specs: Sequence[FieldSpec]) -> dict[str, Any]:
-        """The scan channel (view) feeding each channel field; None: zero-fill (presets)."""
-        images: dict[str, Any] = {}
-        number = return_of(self.range_channel, channel_names(scan))[1]
-        for spec in specs:
-            if spec.source != "channel":
-                continue
-            # a field of the N-th return's cloud reads that return's channel (intensity2 beside
-            # range2) where the scan has one; a channel measured once per pixel (ambient) is
-            # shared by every return
-            desc = None if number == 1 else find_channel(
-                scan, [return_channel(name, number) for name in spec.channels])
-            if desc is None:
-                desc = find_channel(scan, spec.channels)
-            if desc is None:
-                if self.preset is None:
+    def _images(self, rays: ScanRays, specs: Sequence[FieldSpec]) -> dict[str, Any]:
+        """The scan channel (view) feeding each channel field; None: zero-fill (presets). The
+        geometry service found them: a field of the N-th return's cloud reads that return's
+        channel (intensity2 beside range2) where the scan has one; a channel measured once per
+        pixel (ambient) is shared by every return."""
+        images = rays.views
+        if self.preset is None:
+            for spec in specs:
+                if spec.source == "channel" and images.get(spec.name) is None:
                     raise UnknownChannelError("fields", spec.name,
                                               f"a channel named one of {spec.channels}")
-                images[spec.name] = None
-                continue
-            image = channel(scan, desc.name, native=True)
-            if image.ndim == 3 and spec.count == 1:
-                image = image[..., 0]
-            images[spec.name] = image
         return images
 
     def _fill(self, job: _Job, block: _Block, xyz: bool = True) -> int | None:
@@ -644,18 +602,19 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             elif src == "range":
                 self._range_field(field, spec, r, job.raw, block, job.scan_dest)
             else:
-                times = job.times if job.times is not None else self._pixel_times(job.scan)
+                times = job.times if job.times is not None else self._pixel_times(job.rays)
                 self._time_field(field, spec, times[rows], job.ref, job.stamp_ns)
         return valid
 
     def _message(self, scan: Any, specs: Sequence[FieldSpec], step: int,
                  shape: tuple[int, int], buf: array.array[int], dense: bool,
-                 header_ns: int) -> Any:
+                 header_ns: int, rays: ScanRays) -> Any:
         from builtin_interfaces.msg import Time
         from sensor_msgs.msg import PointCloud2, PointField
         from std_msgs.msg import Header
 
-        sec, nanosec = split_ns(header_ns)
+        # the scan's own stamp (time_reference "stamp") comes split with the geometry
+        sec, nanosec = rays.stamp if header_ns == rays.stamp_ns else split_ns(header_ns)
         frame = self.frame_id if self.frame_id is not None else scan.header.frame_id
         header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame)
         fields = [PointField(name=s.name, offset=s.offset, datatype=s.datatype, count=s.count)

@@ -87,7 +87,7 @@ class _Block:
 
 @dataclasses.dataclass
 class _Job:
-    scan: Any
+    rays: Any                                 # converters.shared.scan_rays.ScanRays
     raw: np.ndarray[Any, Any]
     grid: np.ndarray[Any, Any]
     pair: np.ndarray[Any, Any] | None
@@ -188,7 +188,7 @@ class _FieldWriter:
         from converters.shared.deskew import deskew_points
         r, tables, grid = self._r, job.tables, job.grid
         xyz = np.stack([r * d + o for d, o in zip(tables.d, tables.o)], axis=-1)
-        times = job.times if job.times is not None else self._pixel_times(job.scan)
+        times = job.times if job.times is not None else self._pixel_times(job.rays)
         moved = deskew_points(xyz, times + np.int64(job.stamp_ns), motion, header_ns)
         for k, name in enumerate("xyz"):
             if name in grid.dtype.names:

@@ -30,7 +30,10 @@ This is the cliff detection of the multi-laserscan toolbox's depth converter (it
 Tables: with a fixed mount every pixel is a ray ``p = r*D + O`` whose direction ``D`` and
 origin ``O`` in the target frame (float32 components, like the projector's tables; arithmetic in
 float64) are computed once per LidarInfo version and column order (:func:`lidarscan.make_projector`,
-then the extrinsics, :func:`converters.shared.frames.transform_rays`). Per distinct grid and pixel the
+then the extrinsics, :func:`converters.shared.frames.transform_rays`). What the slicer reads of a
+scan besides binning and fusing -- checks, stamp, ranges, the intensity view, the geometry key,
+the rays on a cache miss, a moving mount's poses -- it asks of its geometry service in one call
+per scan (:class:`converters.shared.scan_rays.ScanGeometry`). Per distinct grid and pixel the
 far-field bin and the range ``r_thr`` above which the point's bin *is* the far-field bin are
 precomputed (:func:`converters.slices.spec.far_field`), so ``atan2`` runs only for in-band points
 closer than their ``r_thr`` (a sensor far off the target's z axis makes most points need it:
@@ -46,7 +49,7 @@ column_time_offsets[c] + beam_time_offsets[u]`` (+ the per-pixel ``t`` channel w
 one; :meth:`lidarscan.geometry.Projector.pixel_times`), so the sweep is de-skewed pixel by pixel
 (with per-column times only, as most lidars, the pose is per column). The slicing that follows
 is the same in every respect (grid, band, classes, ties, holes, backends); only the rays are
-moved per scan (:meth:`SliceConverter._moving_tables`). What does not depend on the pose is kept:
+moved per scan (:meth:`SliceConverter._moving_tables_of`). What does not depend on the pose is kept:
 the sensor-frame rays per geometry, the distinct pixel times and each pixel's one per column
 timing (a scan with a ``t`` channel computes its own). A track computes the poses of the distinct
 times in one batch; a callable is called once per distinct pixel time and its result checked (a
@@ -94,7 +97,6 @@ column that looked at that azimuth (use the LidarScan for per-point time).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 from collections import OrderedDict
 from collections.abc import Mapping
@@ -114,18 +116,22 @@ from converters._kernels.slices_numba import Bands
 from converters.slices.tables import MovingPlan, _MovingRays, _Slice, _Tables
 from converters.slices.spec import AngleGrid, OutputOptions
 from converters.slices.holes import HoleOptions
-from converters.shared.frames import check_extrinsics, check_poses, transform_rays
-from converters.shared.options import IfPresent, resolve_channel
-from converters.shared.transforms import OutOfSpanError, TransformTrack, segment_rotvecs
-from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError
-from lidarscan.geometry import azimuth_channel, info_key, make_projector
-from lidarscan.scan import as_array, channel, channel_names, range_m
-from lidarscan.stamps import to_ns
+from converters.shared.frames import check_extrinsics, transform_rays
+from converters.shared.options import IfPresent
+from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
+from converters.shared.transforms import TransformTrack
+from lidarscan.errors import ConfigError, ConversionError
+from lidarscan.geometry import info_key
+from lidarscan.scan import as_array
 
 __all__ = ["SliceConverter", "SliceSpec", "check_extrinsics", "to_laserscan"]
 
 _NO_VALUES = np.zeros(0, np.float32)
 _NO_KEYS = np.zeros(0, np.int64)
+#: what :meth:`SliceConverter._tables_for` asks of the geometry service: the geometry alone
+_GEOMETRY = RayRequest()
+#: ... and with a moving mount's poses (:meth:`SliceConverter._mount_mode`)
+_MOUNT = {mode: RayRequest(mount=mode) for mode in ("poses", "track")}
 
 
 @dataclass(frozen=True)
@@ -239,9 +245,6 @@ class SliceConverter:
         self.range_channel = range_channel
         self._tables: dict[Any, _Tables] = {}
         self._moving_cache: tuple[Any, _Tables] | None = None
-        self._time_cache: tuple[Any, tuple[np.ndarray[Any, Any],
-                                           np.ndarray[Any, Any] | None]] | None
-        self._rays_cache: tuple[Any, tuple[np.ndarray[Any, Any], ...]] | None
         #: moving mount: build the full per-scan tables even with the compiled kernels (the
         #: path before :class:`_MovingRays`; tests compare both)
         self._reference_tables = False
@@ -254,14 +257,23 @@ class SliceConverter:
     # ------------------------------------------------------------------------- configuration
     def _set_info(self, info: Any) -> None:
         self.info = info
-        self.projector = make_projector(info)
+        #: the geometry service: checks, stamp, ranges, intensity view, rays (target frame)
+        self._geometry = ScanGeometry(info, range_channel=self.range_channel,
+                                      extrinsics=self.extrinsics, moving=self.moving,
+                                      linkage_hint=(
+                                          "the converter's LidarInfo; pass the new info to "
+                                          "convert(scan, info)"))
+        self.projector = self._geometry.projector
         self._info_key = info_key(info)
-        self._info_stamp = to_ns(info.header.stamp)
+        wanted = self.intensity_channel
+        self._request = RayRequest(metres=True, channels=() if wanted is None else (
+            ChannelWant("intensity", (str(wanted),), required=not isinstance(wanted, IfPresent)),))
+        #: ... with a moving mount's poses, by :meth:`_mount_mode`
+        self._mount_requests = {mode: dataclasses.replace(self._request, mount=mode)
+                                for mode in ("poses", "track")}
         self.frame_id = self._frame_id or info.header.frame_id
         self._tables.clear()
         self._moving_cache = None
-        self._time_cache = None
-        self._rays_cache = None
         self._inf_thr: np.ndarray[Any, Any] | None = None
         width = int(info.width)
         self.slices = [self._build_slice(name, spec, info, width)
@@ -309,123 +321,65 @@ class SliceConverter:
         mean = float(np.mean(step))
         return 0.0 if mean == 0 else math.copysign(1.0, mean)
 
-    def _scan_period_ns(self, info: Any, scan: Any) -> float:
-        width = int(info.width)
-        if int(info.column_time_increment) > 0:
-            return float(width * int(info.column_time_increment))
-        if scan is not None and width >= 2:
-            times = as_array(scan.column_time_offsets, np.int64)
-            if times.size == width:
-                return float(times[-1] - times[0]) * width / (width - 1)
-        return 0.0
-
     # ------------------------------------------------------------------------------ tables
-    def _geometry_key(self, scan: Any) -> tuple[Any, ...]:
-        """What the sensor-frame rays of a scan depend on: ("info", destaggered), or
-        ("measured", destaggered, digest) for scans with measured azimuths."""
-        measured = as_array(scan.column_azimuth_angles, np.float64)
-        destaggered = bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
-        azimuths = azimuth_channel(scan, self.range_channel)     # per-pixel azimuths
-        if measured.size or azimuths is not None:
-            digest = hashlib.blake2b(np.ascontiguousarray(measured).tobytes(), digest_size=16)
-            if azimuths is not None:
-                digest.update(np.ascontiguousarray(channel(scan, azimuths)).tobytes())
-            return ("measured", destaggered, digest.digest())
-        return ("info", destaggered)
-
     def _tie_keys(self, destaggered: bool) -> np.ndarray[Any, Any] | None:
         """Measurement-order tie key ``u*W + c`` per pixel of a destaggered scan (else None)."""
-        if not destaggered:
-            return None
-        height, width = self.projector.height, self.projector.width
-        src = self.projector.destagger_index
-        return (np.arange(height)[:, None] * width + src).reshape(-1).astype(np.int64)
+        return self._geometry.tie_keys(destaggered)
 
     def _tables_for(self, scan: Any) -> _Tables:
-        key = self._geometry_key(scan)
+        """The fixed-mount tables of a scan's geometry (see :meth:`_tables_of`)."""
+        return self._tables_of(self._geometry.prepare(scan, _GEOMETRY))
+
+    def _tables_of(self, rays: ScanRays) -> _Tables:
+        """The fixed-mount tables of a geometry (:attr:`ScanRays.key`), built from its rays in
+        the target frame on first use and kept (a measured geometry: only the latest)."""
+        key = rays.key
         tables = self._tables.get(key)
         if tables is None:
             if key[0] == "measured":     # per-scan geometry: keep only the latest such table
                 for k in [k for k in self._tables if k[0] == "measured"]:
                     del self._tables[k]
-            d32, o32 = self.projector.tables_for(scan, self.range_channel)
-            d, o = transform_rays(d32.reshape(-1, 3), o32.reshape(-1, 3), self.extrinsics)
-            tables = _Tables(d, o, self._tie_keys(key[1]), self.slices, self._grids,
+            d, o = self._geometry.target_rays(rays)
+            tables = _Tables(d, o, self._tie_keys(rays.destaggered), self.slices, self._grids,
                              self._slice_grid, self._near, self.projector.width)
             self._tables[key] = tables
         return tables
 
     def _pose_times(self, scan: Any, distinct: bool = True
                     ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
-        """The distinct pixel times of a scan relative to its stamp and each pixel's one.
-
-        When every pixel of a measurement column has its column's time (no per-beam offsets, a
-        ``t`` channel constant along each column: tested exactly) the distinct times are those
-        of the W columns; otherwise those of all pixels (``np.unique`` of H*W times), or, with
-        ``distinct=False``, none are computed.
-
-        Returns:
-            (times, index): (P,) int64 ns sorted, and (H*W,) int64 the time of each pixel
-            (scan column order, row-major); with ``distinct=False`` and times varying within a
-            column, (H*W,) int64 ns every pixel's time and None. Kept for the next scan when it
-            has no ``t`` channel (then they depend only on the column times and the column
-            order).
-        """
-        key = None
-        if not any(c.name == "t" for c in scan.channels):   # pixel_delays(scan) is None
-            key = (self.projector.column_times(scan).tobytes(), bool(scan.is_destaggered))
-            if self._time_cache is not None and self._time_cache[0] == key:
-                kept = self._time_cache[1]
-                if kept[1] is None and distinct:     # kept per pixel: not kept again
-                    unique, index = np.unique(kept[0], return_inverse=True)
-                    return unique, index.reshape(-1).astype(np.int64)
-                return kept
-        times = self.projector.pixel_times(scan)
-        height, width = times.shape
-        # the measurement column of each stored pixel
-        column = (self.projector.destagger_index
-                  if bool(scan.is_destaggered) and bool(np.any(self.projector.shifts))
-                  else np.broadcast_to(np.arange(width), (height, width)))
-        per_column = np.empty(width, np.int64)
-        per_column[column[0]] = times[0]
-        found: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]
-        if np.array_equal(times, per_column[column]):       # one time per column
-            unique, index = np.unique(per_column, return_inverse=True)
-            found = (unique, index.reshape(-1)[column].reshape(-1).astype(np.int64))
-        elif distinct:
-            unique, index = np.unique(times.reshape(-1), return_inverse=True)
-            found = (unique, index.reshape(-1).astype(np.int64))
-        else:
-            found = (times.reshape(-1), None)
-        self._time_cache = None if key is None else (key, found)
-        return found
+        """:meth:`converters.shared.scan_rays.ScanGeometry.pose_times` of this converter's
+        geometry."""
+        return self._geometry.pose_times(scan, distinct)
 
     def mount_poses(self, scan: Any) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        """The moving mount's poses for a scan's pixels.
+        """The moving mount's poses for a scan's pixels
+        (:meth:`converters.shared.scan_rays.ScanGeometry.mount_poses`).
 
         Returns:
             (poses, index): (P, 4, 4) float64 target <- sensor at the P distinct pixel times,
             and (H*W,) int64 the pose of each pixel (scan column order, row-major).
-
-        Raises:
-            OutOfSpanError: a pixel time outside the track's span.
-            TransformLookupError: raised by the callable.
-            ValidationError: the callable returned something other than a finite rigid 4x4.
         """
-        relative, index = self._pose_times(scan)       # (distinct: index is not None)
-        return self._poses_at(self._stamp(scan) + relative), cast(np.ndarray, index)
+        return self._geometry.mount_poses(scan)
 
-    @staticmethod
-    def _stamp(scan: Any) -> np.int64:
-        return np.int64(to_ns(scan.header.stamp, field="LidarScan.header.stamp"))
+    @property
+    def _time_cache(self) -> Any:
+        """The pixel times kept for the next scan (the geometry service's)."""
+        return self._geometry._time_cache
 
-    def _poses_at(self, stamps: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """(P, 4, 4) float64 poses of the mount at the (P,) int64 ns stamps."""
-        if isinstance(self.moving, TransformTrack):
-            return self.moving.lookup_many(stamps)
-        return check_poses([self.moving(int(t)) for t in stamps], "extrinsics(stamp_ns)")
+    def _mount_mode(self) -> str:
+        """How the rays are moved: "track" (a track, the compiled kernels and
+        :attr:`_per_pixel`: each ray's pose interpolated in the kernel when pixel times vary
+        within a column) or "poses" (one pose per distinct pixel time)."""
+        compiled = self._kernel is not None and not self._reference_tables
+        return ("track" if compiled and self._per_pixel and isinstance(self.moving, TransformTrack)
+                else "poses")
 
     def _moving_tables(self, scan: Any, r: np.ndarray[Any, Any]) -> _Tables | _MovingRays:
+        """:meth:`_moving_tables_of` a scan and its flat float32 ranges ``r``."""
+        rays = self._geometry.prepare(scan, _MOUNT[self._mount_mode()])
+        return self._moving_tables_of(dataclasses.replace(rays, metres=r))
+
+    def _moving_tables_of(self, rays: ScanRays) -> _Tables | _MovingRays:
         """Tables of one scan seen by a moving mount: every pixel's ray moved by the mount's
         pose at its time (:meth:`mount_poses`). A mount that holds one pose over the whole
         scan gets fixed-mount tables at that pose (every kernel; kept for the next scan at the
@@ -433,58 +387,42 @@ class SliceConverter:
         the general kernel), without them the full :class:`_Tables` of the scan (numpy: the
         reference). With a track, the compiled kernels and pixel times that vary within a
         column (per-beam offsets, an irregular ``t`` channel: up to one pose per pixel), each
-        ray's pose is interpolated where it is used (:meth:`_track_rays`) instead of
+        ray's pose is interpolated where it is used (the track's samples of
+        :meth:`converters.shared.scan_rays.ScanGeometry.mount`, then
+        :meth:`converters._kernels.slices_numba.Compiled.track_rays`) instead of
         looking up and storing one pose per distinct time."""
-        geometry = self._geometry_key(scan)
-        compiled = self._kernel is not None and not self._reference_tables
-        per_pixel = compiled and self._per_pixel and isinstance(self.moving, TransformTrack)
-        relative, index = self._pose_times(scan, distinct=not per_pixel)
-        stamp = self._stamp(scan)
-        if index is None:
-            return self._track_rays(scan, r, geometry, stamp, relative)
-        poses = self._poses_at(stamp + relative)
-        if np.all(poses == poses[0]):
-            return self._still_tables(scan, geometry, poses[0])
-        d32, o32 = self._sensor_rays(scan, geometry)
-        if compiled:
+        r, mount = cast(np.ndarray, rays.metres), rays.mount
+        if mount is None:                      # unreachable: convert() asks for the mount
+            raise ConversionError("mount", None, "asked of the geometry service")
+        if mount.held is not None:
+            return self._still_tables(rays, mount.held)
+        geometry = self._geometry
+        if mount.samples is not None:          # a track, a time per pixel: the kernel's poses
+            d32, o32 = geometry.sensor_rays(rays, columns=True)
+            moved = self._kernel.track_rays(d32, o32, mount.relative, rays.stamp_ns,
+                                            *mount.samples)
+            return _MovingRays(moved, self._tie_keys(rays.destaggered), r, self._moving_plan())
+        poses, index = cast(np.ndarray, mount.poses), cast(np.ndarray, mount.index)
+        d32, o32 = geometry.sensor_rays(rays)
+        if self._kernel is not None and not self._reference_tables:
             return _MovingRays(self._kernel.transform_rays(d32, o32, poses, index),
-                               self._tie_keys(geometry[1]), r, self._moving_plan())
+                               self._tie_keys(rays.destaggered), r, self._moving_plan())
         d, o = transform_rays(d32, o32, poses, index)
-        return _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
+        return _Tables(d, o, self._tie_keys(rays.destaggered), self.slices, self._grids,
                        self._slice_grid, self._near, self.projector.width)
 
-    def _still_tables(self, scan: Any, geometry: tuple[Any, ...],
-                      pose: np.ndarray[Any, Any]) -> _Tables:
+    def _still_tables(self, rays: ScanRays, pose: np.ndarray[Any, Any]) -> _Tables:
         """Fixed-mount tables at ``pose`` (kept for the next scan of this geometry and pose)."""
+        geometry = rays.key
         key = (geometry, pose.tobytes())
         if self._moving_cache is not None and self._moving_cache[0] == key:
             return self._moving_cache[1]
-        d32, o32 = self._sensor_rays(scan, geometry)
+        d32, o32 = self._geometry.sensor_rays(rays)
         d, o = transform_rays(d32, o32, pose[None], np.zeros(d32.shape[0], np.int64))
         tables = _Tables(d, o, self._tie_keys(geometry[1]), self.slices, self._grids,
                          self._slice_grid, self._near, self.projector.width)
         self._moving_cache = (key, tables)
         return tables
-
-    def _track_rays(self, scan: Any, r: np.ndarray[Any, Any], geometry: tuple[Any, ...],
-                    stamp: np.int64, relative: np.ndarray[Any, Any]) -> _Tables | _MovingRays:
-        """:meth:`_moving_tables` for a track and a time per pixel: the track's samples around
-        the scan, then one compiled pass that interpolates each ray's pose and moves the ray
-        (:meth:`converters._kernels.slices_numba.Compiled.track_rays`: the poses of
-        :meth:`TransformTrack.lookup_many` up to float64 rounding, see there)."""
-        track = self.moving
-        try:
-            times, poses = track.samples(stamp + relative.min(), stamp + relative.max())
-        except OutOfSpanError:
-            self.mount_poses(scan)          # raises what the per-time lookup names
-            raise
-        if np.all(poses == poses[0]):       # one pose held over the scan
-            return self._still_tables(scan, geometry,
-                                      track.lookup_many(stamp + relative[:1])[0])
-        d32, o32 = self._sensor_rays(scan, geometry, columns=True)
-        rays = self._kernel.track_rays(d32, o32, relative, int(stamp), times, poses,
-                                       segment_rotvecs(poses[:-1], poses[1:]))
-        return _MovingRays(rays, self._tie_keys(geometry[1]), r, self._moving_plan())
 
     def _moving_plan(self) -> MovingPlan:
         """What :class:`_MovingRays` reads of this slicer."""
@@ -497,20 +435,6 @@ class SliceConverter:
         if self._inf_thr is None or self._inf_thr.shape != (len(self._grids), n):
             self._inf_thr = np.full((len(self._grids), n), np.inf, np.float32)
         return self._inf_thr
-
-    def _sensor_rays(self, scan: Any, geometry: tuple[Any, ...], columns: bool = False
-                     ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        """(n, 3) float32 C-contiguous sensor-frame directions and origins of a scan, or with
-        ``columns`` the same as (3, n) (one row per component; kept for the next scan of the
-        same geometry)."""
-        if self._rays_cache is None or self._rays_cache[0] != geometry:
-            d32, o32 = self.projector.tables_for(scan, self.range_channel)
-            d32 = np.ascontiguousarray(d32.reshape(-1, 3), np.float32)
-            o32 = np.ascontiguousarray(o32.reshape(-1, 3), np.float32)
-            self._rays_cache = (geometry, (d32, o32, np.ascontiguousarray(d32.T),
-                                           np.ascontiguousarray(o32.T)))
-        rays = self._rays_cache[1]
-        return (rays[2], rays[3]) if columns else (rays[0], rays[1])
 
     # ----------------------------------------------------------------------------- convert
     def convert(self, scan: Any, info: Any = None) -> dict[str, Any]:
@@ -532,22 +456,20 @@ class SliceConverter:
         """
         if info is not None and info_key(info) != self._info_key:
             self._set_info(info)
-        self._check(scan)
-        r = np.ascontiguousarray(range_m(scan, self.info, self.range_channel)).reshape(-1)
-        tables = self._tables_for(scan) if self.moving is None else self._moving_tables(scan, r)
-        intensity = None
-        wanted = resolve_channel(self.intensity_channel, channel_names(scan))
-        if wanted is not None:
-            values = channel(scan, wanted, native=True)
-            intensity = (values[..., 0] if values.ndim == 3 else values).reshape(-1)
+        rays = self._geometry.prepare(scan, self._request if self.moving is None else
+                                      self._mount_requests[self._mount_mode()])
+        r = cast(np.ndarray, rays.metres)
+        tables = self._tables_of(rays) if self.moving is None else self._moving_tables_of(rays)
+        values = rays.views.get("intensity")
+        intensity = None if values is None else values.reshape(-1)
         decoded = self._row_convert(r, tables, intensity)
         if decoded is None:
             best = self._fuse(r, tables)
             if self._holes:
                 self._add_holes(best, r, tables)
             decoded = self._decode_all(best, tables, intensity)
-        stamp = to_ns(scan.header.stamp)
-        period = self._scan_period_ns(self.info, scan)
+        stamp = rays.stamp_ns
+        period = rays.period_ns
         out: dict[str, Any] = {}
         for s, off in zip(self.slices, self._offsets):
             if decoded is not None:
@@ -564,7 +486,7 @@ class SliceConverter:
             out[s.name] = _grid.make_laserscan(
                 stamp_ns=stamp, frame_id=self.frame_id, grid=s.grid, ranges=ranges,
                 intensities=ints, options=s.options, scan_time=period * 1e-9,
-                time_increment=time_inc)
+                time_increment=time_inc, stamp=rays.stamp)
         return out
 
     def _row_convert(self, r: np.ndarray[Any, Any], tables: _Tables,
@@ -607,18 +529,6 @@ class SliceConverter:
         self._kernel.decode_slices(best, b.offset, b.size, b.inf_value, b.fill_value,
                                    *self._decode_inputs(tables, intensity), ranges, ints)
         return ranges, ints
-
-    def _check(self, scan: Any) -> None:
-        if (int(scan.height), int(scan.width)) != (self.projector.height, self.projector.width):
-            raise InfoMismatchError("LidarScan.height x width",
-                                    f"{int(scan.height)}x{int(scan.width)}",
-                                    f"{self.projector.height}x{self.projector.width} "
-                                    "from the LidarInfo")
-        stamp = to_ns(scan.lidar_info_time, field="LidarScan.lidar_info_time")
-        if stamp != self._info_stamp:
-            raise LinkageError("LidarScan.lidar_info_time", stamp,
-                               f"{self._info_stamp} (the converter's LidarInfo; pass the new "
-                               "info to convert(scan, info))")
 
     def _add_holes(self, best: np.ndarray[Any, Any], r: np.ndarray[Any, Any],
                    tables: _Tables) -> None:
@@ -698,6 +608,24 @@ def _as_spec(name: str, spec: SliceSpec | Mapping[str, Any]) -> SliceSpec:
 _CONVERTERS: OrderedDict[Any, SliceConverter] = OrderedDict()
 
 
+def _cache_key(info: Any, spec: SliceSpec, kwargs: dict[str, Any]) -> tuple[Any, ...] | None:
+    """The key of :func:`to_laserscan`'s converter cache, or None when an option cannot be part
+    of one (not a number, not hashable: :func:`converters.shared.options.slice_options` then
+    says what is wrong)."""
+    extrinsics = kwargs["extrinsics"]
+    try:
+        # a moving mount is cached by identity (the cached converter keeps it alive)
+        ext = None if extrinsics is None else ("moving", id(extrinsics)) \
+            if callable(extrinsics) else check_extrinsics(extrinsics).tobytes()
+        # the type tells IfPresent("intensity") (the default) from a required "intensity"
+        key = (info_key(info), float(spec.min_height), float(spec.max_height), ext,
+               tuple((k, type(v), v) for k, v in kwargs.items() if k != "extrinsics"))
+        hash(key)
+    except (TypeError, ValueError):             # ConfigError, ValidationError included
+        return None
+    return key
+
+
 def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
                  extrinsics: Any = None, frame_id: str | None = None,
                  angle_min: float | None = None, angle_max: float | None = None,
@@ -728,19 +656,18 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
               "hole_range_max": hole_range_max, "hole_no_return": hole_no_return,
               "range_channel": range_channel, "backend": backend}
     spec = SliceSpec(min_height, max_height)
-    options.slice_options({"slice": spec}, {**kwargs, "extrinsics": _checkable(extrinsics)})
-    # a moving mount is cached by identity (the cached converter keeps it alive)
-    ext = None if extrinsics is None else ("moving", id(extrinsics)) if callable(extrinsics) \
-        else check_extrinsics(extrinsics).tobytes()
-    # the type tells IfPresent("intensity") (the default) from a required "intensity"
-    key = (info_key(info), float(min_height), float(max_height), ext,
-           tuple((k, type(v), v) for k, v in kwargs.items() if k != "extrinsics"))
-    converter = _CONVERTERS.get(key)
+    key = _cache_key(info, spec, kwargs)
+    converter = None if key is None else _CONVERTERS.get(key)
     if converter is None:
+        # the options of a cached converter were checked when it was built (equal key: equal
+        # values of the same types); the others are checked here, before anything is built
+        options.slice_options({"slice": spec}, {**kwargs, "extrinsics": _checkable(extrinsics)})
         converter = SliceConverter(info, {"slice": spec}, **kwargs)
-        _CONVERTERS[key] = converter
-        while len(_CONVERTERS) > 8:
-            _CONVERTERS.popitem(last=False)
+        key = _cache_key(info, spec, kwargs)
+        if key is not None:
+            _CONVERTERS[key] = converter
+            while len(_CONVERTERS) > 8:
+                _CONVERTERS.popitem(last=False)
     else:
         _CONVERTERS.move_to_end(key)
     return converter.convert(scan)["slice"]

@@ -495,7 +495,7 @@ def decode(best: np.ndarray[Any, Any], options: OutputOptions, kernels: Any = No
 def make_laserscan(*, stamp_ns: int, frame_id: str, grid: AngleGrid,
                    ranges: np.ndarray[Any, Any], intensities: np.ndarray[Any, Any] | None,
                    options: OutputOptions, scan_time: float = 0.0,
-                   time_increment: float = 0.0) -> Any:
+                   time_increment: float = 0.0, stamp: tuple[int, int] | None = None) -> Any:
     """An rclpy ``sensor_msgs.msg.LaserScan`` with array.array fields (the fast path).
 
     Args:
@@ -506,9 +506,10 @@ def make_laserscan(*, stamp_ns: int, frame_id: str, grid: AngleGrid,
         intensities: (N,) float32 or None for an empty field.
         options: range limits published.
         scan_time, time_increment: seconds.
+        stamp: ``stamp_ns`` as (sec, nanosec) when the caller has it already, or None.
     """
     laser_scan, header, time, split_ns = _message_types()
-    sec, nanosec = split_ns(stamp_ns)
+    sec, nanosec = split_ns(stamp_ns) if stamp is None else stamp
     amin, amax, inc = _header_of(grid)
     range_min, range_max = _limits_of(options)
     return bare_message(
