@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from converters.cli.convert import cmd_convert
+from converters.cli.fleet import add_options as add_fleet_options
+from converters.cli.fleet import cmd_convert_many
 from converters.cli.demo import cmd_demo
 from converters.cli.info import cmd_info
 from converters.cli.view import cmd_view
@@ -47,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "convert", help="offline conversion of a recording",
-        usage="lidarscan convert [-h] [options] IN OUT",  # a usage error: two lines, not 15
+        usage="lidarscan convert [-h] [options] IN... OUT",  # a usage error: two lines, not 15
         description="IN is an MCAP file, a rosbag2 directory or .db3 file, or an Ouster "
                     ".pcap/.osf. LidarScan recording: copy every message and add PointCloud2 "
                     "(<ns>/points), slices (<ns>/slices/NAME) and a merged scan. Driver "
@@ -62,9 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "stderr; every good message is written. OUT is written under a temporary "
                     "name and renamed at the end. Exit status 0 all good, 1 some bad, 2 fatal "
                     "(nothing written), 130 Ctrl-C (OUT stays readable).")
-    p.add_argument("input", metavar="IN", help="input recording (.mcap, rosbag2 directory or "
-                                               ".db3, .pcap/.osf with --metadata)")
-    p.add_argument("output", metavar="OUT", help="output MCAP file (a new name, not IN)")
+    p.add_argument("input", metavar="IN", nargs="+",
+                   help="input recording (.mcap, rosbag2 directory or .db3, .pcap/.osf with "
+                        "--metadata); several, a folder of recordings or a quoted glob: each "
+                        "converted into the folder OUT (README, 'Converting many recordings')")
+    p.add_argument("output", metavar="OUT", help="output MCAP file (a new name, not IN); a "
+                                                 "folder for several recordings")
     p.add_argument("--pointcloud2", action="store_true", help="add PointCloud2 per scan")
     p.add_argument("--preset", default="", type=_preset,
                    help="PointCloud2 field preset: a driver's layout, e.g. ouster, velodyne, "
@@ -138,7 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "ahead; 1: everything in one thread (reproducible CPU measurements)")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar, notes or summary (bad messages are still listed)")
-    p.set_defaults(func=cmd_convert)
+    add_fleet_options(p)
+    p.set_defaults(func=cmd_convert_many)
 
     p = sub.add_parser("view", help="PNG views of a recording (MCAP or rosbag2)",
                        description="Range images of a LidarScan, a top view of the LaserScans "

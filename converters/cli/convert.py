@@ -223,8 +223,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
                         codec_coder=codec_coder() if args.compress
                         or SCAN_TYPE in topics.values() else None)
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
-    progress = Progress(size, f"converting {src.name}",
-                        enabled=True if args.progress else (None if not args.quiet else False))
+    # a fleet run (converters.cli.fleet) passes its own progress and takes the counters
+    progress = getattr(args, "make_progress", Progress)(
+        size, f"converting {src.name}",
+        enabled=True if args.progress else (None if not args.quiet else False))
     interrupted = finished = False
     switch = sys.getswitchinterval()
     if args.threads > 1:    # see GIL_SWITCH_S
@@ -258,6 +260,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
     finally:
         if not finished:
             tmp.unlink(missing_ok=True)
+    stats = getattr(args, "stats", None)
+    if stats is not None:
+        stats.update(read=report.read, written=writer.count, bad=len(report.bad))
     if interrupted:
         _err(f"interrupted: {dst} is a valid MCAP file with the {writer.count} messages "
              f"written so far ({report.read} read)")
