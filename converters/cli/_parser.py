@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "convert", help="offline conversion of a recording",
-        usage="lidarscan convert [-h] [options] IN... OUT",  # a usage error: two lines, not 15
+        usage="lidarscan convert [-h] [options] IN OUT",  # a usage error: two lines, not 15
         description="IN is an MCAP file, a rosbag2 directory or .db3 file, or an Ouster "
                     ".pcap/.osf. LidarScan recording: copy every message and add PointCloud2 "
                     "(<ns>/points), slices (<ns>/slices/NAME) and a merged scan. Driver "
