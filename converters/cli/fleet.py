@@ -299,13 +299,19 @@ def options_digest(options: dict[str, Any], calibration: Path | None) -> str:
 
 
 def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this host (a zombie, e.g. a killed worker nobody
+    reaped, does not)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         return True
-    return True
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True
+    return stat.rpartition(")")[2].split()[:1] != ["Z"]
 
 
 def stale_partials(output: Path) -> list[Path]:
@@ -626,6 +632,7 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
     results: dict[int, Result] = {}
     todo: list[Job] = []
     notes: dict[int, str] = {}
+    redo: set[int] = set()
     for job in jobs:
         for tmp in stale_partials(Path(job.output)):
             tmp.unlink(missing_ok=True)
@@ -643,7 +650,8 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
             results[job.index] = Result(job.index, "failed", why)
         else:
             if decision == "redo":
-                notes[job.index] = f"redone: {why}"
+                redo.add(job.index)
+                notes[job.index] = "; ".join(filter(None, (why, notes.get(job.index))))
             Path(job.output).parent.mkdir(parents=True, exist_ok=True)
             todo.append(job)
     workers = max(1, min(args.jobs or os.cpu_count() or 1, len(todo) or 1))
@@ -661,7 +669,7 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
         runner = run_dask(todo, workers, args.dask, on_event) if args.dask is not None \
             else run_local(todo, workers, on_event)
         for result in runner:
-            if result.status == "ok" and result.index in notes:
+            if result.status == "ok" and result.index in redo:
                 result.status = "redone"
             results[result.index] = result
             progress.finish(result.index)
