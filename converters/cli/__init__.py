@@ -12,6 +12,7 @@ Commands::
                                    [--merge] [--merge-topic TOPIC]... [--calibration FILE]
                                    [--cut-angle DEG] [--replace] [--keep-packets] [--progress]
                                    [--compress] [--chunk-compression C] [--zstd-level N] [-q]
+    lidarscan convert IN... OUTDIR [--jobs N | --dask [ADDRESS]] [--force] [options as above]
     lidarscan view REC --out DIR [--index K]
 
 REC is an MCAP file, a rosbag2 directory (``metadata.yaml`` + ``.db3`` or ``.mcap`` storage) or a
@@ -31,7 +32,7 @@ everything written so far).
 
 Only this package prints and exits; everything it calls raises. One module per command
 (:mod:`.demo`, :mod:`.info`, :mod:`.convert` with :mod:`.convert_pipeline` and
-:mod:`.convert_inputs`, :mod:`.view`), shared parts in :mod:`._common` (exit codes, progress,
+:mod:`.convert_inputs`, many recordings in :mod:`.fleet` with :mod:`.progress`, :mod:`.view`), shared parts in :mod:`._common` (exit codes, progress,
 inputs) and the argparse parser in :mod:`._parser`.
 """
 

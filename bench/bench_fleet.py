@@ -1,0 +1,181 @@
+"""``lidarscan convert`` over many recordings (issue 31): scaling, Dask's overhead, memory.
+
+    python bench/bench_fleet.py scaling --data DIR [--count 6] [--grow MB] [--dask]
+    python bench/bench_fleet.py memory [--sizes 128,512] [--seed DB3]
+    python bench/bench_fleet.py malloc [--size 256]
+
+``scaling``: ``--data`` (or $LIDARSCAN_FLEET_DATA) is a folder of raw-packet recordings laid out
+as tests/data/nebula (``<model>/bag`` + its calibration file beside it); ``--count`` recordings
+are made from them in a temporary folder (copies, cycling through the models; ``--grow``: each
+.db3 repeated to about MB megabytes), each with its calibration beside it (``<name>.yaml`` /
+``.csv``, the fleet rule). Timed, wall clock: the serial shell loop of one ``lidarscan convert``
+process per recording (the baseline), the fleet command with ``--jobs 1 .. cores`` and with
+``--dask`` (a LocalCluster of as many workers); every output is compared with the loop's, byte
+for byte. ``memory``: peak RSS of one ``convert`` process for synthetic VLS-128 .db3 bags of the
+given sizes (the real tests/data recording's rows repeated). ``malloc``: user and system CPU of
+one conversion with glibc's default malloc, Dask's ``MALLOC_TRIM_THRESHOLD_=65536`` and the
+fleet's :data:`converters.cli.fleet.WORKER_ENV`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _synthetic_bag import grow_db3  # noqa: E402
+
+ROOT = Path(__file__).parents[1]
+NEBULA = ROOT / "tests" / "data" / "nebula"
+CLI = [sys.executable, "-m", "converters.cli", "convert"]
+
+
+def _run(command: list[str], env: dict[str, str] | None = None) -> tuple[float, int, float, float]:
+    """(wall s, peak RSS kB, user s, sys s) of a child process."""
+    start = time.perf_counter()
+    process = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(process.pid, 0)
+    wall = time.perf_counter() - start
+    err = process.stderr.read().decode() if process.stderr else ""
+    code = os.waitstatus_to_exitcode(status)
+    if code != 0:
+        raise SystemExit(f"{' '.join(command)}: exit {code}\n{err}")
+    return wall, usage.ru_maxrss, usage.ru_utime, usage.ru_stime
+
+
+def _make_fleet(data: Path, folder: Path, count: int, grow: int) -> list[tuple[Path, Path]]:
+    models = sorted(p for p in data.iterdir() if (p / "bag").is_dir())
+    out = []
+    for k in range(count):
+        model = models[k % len(models)]
+        calibration = next(p for p in model.iterdir()
+                           if p.suffix.lower() in (".yaml", ".csv") and p.is_file())
+        bag = folder / f"{k:02d}_{model.name}"
+        shutil.copytree(model / "bag", bag)
+        if grow:
+            for db3 in bag.glob("*.db3"):
+                tmp = db3.with_suffix(".tmp")
+                grow_db3(db3, tmp, grow << 20)
+                tmp.replace(db3)
+            (bag / "metadata.yaml").unlink()   # counts from the grown .db3
+        cal = folder / f"{bag.name}{calibration.suffix}"
+        shutil.copy(calibration, cal)
+        out.append((bag, cal))
+    return out
+
+
+def scaling(args: argparse.Namespace) -> None:
+    data = Path(args.data or os.environ.get("LIDARSCAN_FLEET_DATA", ""))
+    if not data.is_dir():
+        raise SystemExit("scaling: give --data DIR or $LIDARSCAN_FLEET_DATA (a folder laid out "
+                         "as tests/data/nebula)")
+    cores = os.cpu_count() or 1
+    with tempfile.TemporaryDirectory(prefix="bench_fleet_") as tmp:
+        root = Path(tmp)
+        recordings = _make_fleet(data, root / "in", args.count, args.grow)
+        size = sum(f.stat().st_size for b, _ in recordings for f in b.rglob("*") if f.is_file())
+        print(f"{len(recordings)} recordings, {size / 1e6:.1f} MB, {cores} cores, load "
+              f"{os.getloadavg()[0]:.1f}")
+        rows = []
+        for round_ in range(args.rounds):
+            loop = root / f"loop{round_}"
+            loop.mkdir()
+            start = time.perf_counter()
+            for bag, cal in recordings:
+                _run([*CLI, str(bag), str(loop / f"{bag.name}.mcap"), "--calibration",
+                      str(cal), "-q"])
+            rows.append(("serial loop of processes", time.perf_counter() - start, loop))
+            variants = [(f"--jobs {n}", ["--jobs", str(n)]) for n in range(1, cores + 1)]
+            if args.dask:
+                variants.append((f"--dask (LocalCluster, {cores} workers)", ["--dask"]))
+            for name, extra in variants:
+                out = root / f"{name.split()[0].strip('-')}{extra[-1]}_{round_}"
+                wall = _run([*CLI, str(root / "in"), str(out), "-q", *extra])[0]
+                for bag, _ in recordings:
+                    a, b = (loop / f"{bag.name}.mcap").read_bytes(), \
+                        (out / f"{bag.name}.mcap").read_bytes()
+                    if a != b:
+                        raise SystemExit(f"{name}: {bag.name}.mcap differs from the loop's")
+                rows.append((name, wall, out))
+        print(f"{'candidate':40s} {'wall s':>8s} {'vs loop':>8s}   (every output byte-identical "
+              "to the loop's)")
+        for round_ in range(args.rounds):
+            part = rows[round_ * (len(rows) // args.rounds):(round_ + 1) * (len(rows) // args.rounds)]
+            base = part[0][1]
+            for name, wall, _ in part:
+                print(f"{name:40s} {wall:8.2f} {base / wall:7.2f}x")
+
+
+def memory(args: argparse.Namespace) -> None:
+    seed = Path(args.seed) if args.seed else next((NEBULA / "velodyne_vls128" / "bag").glob("*.db3"))
+    calibration = args.calibration or str(NEBULA / "velodyne_vls128" / "VLS128.yaml")
+    with tempfile.TemporaryDirectory(prefix="bench_fleet_") as tmp:
+        print(f"{'input':>12s} {'peak RSS':>10s} {'wall s':>8s} {'user s':>7s} {'sys s':>6s}")
+        for mb in (int(s) for s in args.sizes.split(",")):
+            db3 = grow_db3(seed, Path(tmp) / f"vls128_{mb}.db3", mb << 20)
+            wall, rss, user, system = _run([*CLI, str(db3), str(Path(tmp) / "out.mcap"),
+                                            "--calibration", calibration, "-q"])
+            print(f"{db3.stat().st_size / 1e6:9.0f} MB {rss / 1024:7.0f} MB {wall:8.2f} "
+                  f"{user:7.2f} {system:6.2f}")
+            db3.unlink()
+
+
+def malloc(args: argparse.Namespace) -> None:
+    from converters.cli.fleet import WORKER_ENV
+
+    seed = next((NEBULA / "velodyne_vls128" / "bag").glob("*.db3"))
+    calibration = str(NEBULA / "velodyne_vls128" / "VLS128.yaml")
+    base = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    variants = {"glibc default": {}, "Dask default (TRIM 65536)": {
+        "MALLOC_TRIM_THRESHOLD_": "65536"}, "fleet WORKER_ENV": WORKER_ENV}
+    with tempfile.TemporaryDirectory(prefix="bench_fleet_") as tmp:
+        db3 = grow_db3(seed, Path(tmp) / "in.db3", args.size << 20)
+        times: dict[str, list[tuple[float, float]]] = {k: [] for k in variants}
+        for _ in range(args.rounds):
+            for name, env in variants.items():
+                _, _, user, system = _run([*CLI, str(db3), str(Path(tmp) / "out.mcap"),
+                                           "--calibration", calibration, "-q", "--threads",
+                                           "1"], env={**base, **env})
+                times[name].append((user, system))
+        print(f"{db3.stat().st_size / 1e6:.0f} MB VLS-128 .db3, --threads 1, medians of "
+              f"{args.rounds} interleaved rounds")
+        for name, values in times.items():
+            user = sorted(u for u, _ in values)[len(values) // 2]
+            system = sorted(s for _, s in values)[len(values) // 2]
+            print(f"{name:30s} user {user:6.2f} s  sys {system:6.2f} s")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="what", required=True)
+    p = sub.add_parser("scaling")
+    p.add_argument("--data", default=None)
+    p.add_argument("--count", type=int, default=6)
+    p.add_argument("--grow", type=int, default=0, metavar="MB")
+    p.add_argument("--rounds", type=int, default=1)
+    p.add_argument("--dask", action="store_true")
+    p.set_defaults(func=scaling)
+    p = sub.add_parser("memory")
+    p.add_argument("--sizes", default="128,512")
+    p.add_argument("--seed", default=None, help="a VLS-128 rosbag2 .db3 (default: tests/data)")
+    p.add_argument("--calibration", default=None)
+    p.set_defaults(func=memory)
+    p = sub.add_parser("malloc")
+    p.add_argument("--size", type=int, default=256, metavar="MB")
+    p.add_argument("--rounds", type=int, default=3)
+    p.set_defaults(func=malloc)
+    args = parser.parse_args()
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    args.func(args)
+
+
+if __name__ == "__main__":
+    main()
