@@ -123,6 +123,18 @@ def test_two_recordings_with_one_output_name_are_refused(tmp_path: Path) -> None
         fleet.find_recordings([str(tmp_path / "*.pcap")], tmp_path / "out")
 
 
+def test_several_recordings_into_one_file_name_are_refused(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A folder of .mcap files without metadata.yaml used to be merged into one OUT.mcap (exit
+    0); it is several recordings, and OUT.mcap is no folder name: exit 2, nothing written."""
+    for name in ("a.mcap", "b.mcap"):
+        (tmp_path / name).write_bytes(b"\x89MCAP0\r\n")   # refused before anything is read
+    assert cli.main(["convert", str(tmp_path), str(tmp_path / "all.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert "OUT" in err and "a folder for the outputs of several recordings" in err
+    assert not (tmp_path / "all.mcap").exists()
+
+
 def test_calibration_next_to_each_recording(tmp_path: Path) -> None:
     (tmp_path / "bag").mkdir()
     (tmp_path / "bag" / "metadata.yaml").write_text("x")

@@ -597,6 +597,10 @@ def plan(args: argparse.Namespace, inputs: Sequence[str]) -> tuple[Path, list[Jo
     if out.exists() and not out.is_dir():
         raise ConfigError("OUT", str(out), "a folder for the outputs of several recordings "
                           "(it is a file)")
+    if not out.exists() and out.suffix.lower() in RECORDING_SUFFIXES:
+        raise ConfigError("OUT", str(out), f"a folder for the outputs of several recordings "
+                          f"(IN {' '.join(inputs)} is {len(inputs)} or more recordings; a "
+                          f"folder of {out.suffix} files without metadata.yaml is not one bag)")
     for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
         if value is not None and not Path(value).is_file():
             raise FileNotFoundError(f"{option} {value}: no such file")
