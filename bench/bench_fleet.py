@@ -88,30 +88,35 @@ def scaling(args: argparse.Namespace) -> None:
         for round_ in range(args.rounds):
             loop = root / f"loop{round_}"
             loop.mkdir()
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), 0.0
             for bag, cal in recordings:
-                _run([*CLI, str(bag), str(loop / f"{bag.name}.mcap"), "--calibration",
-                      str(cal), "-q"])
-            rows.append(("serial loop of processes", time.perf_counter() - start, loop))
+                _, _, user, system = _run([*CLI, str(bag), str(loop / f"{bag.name}.mcap"),
+                                           "--calibration", str(cal), "-q"])
+                cpu += user + system
+            rows.append(("serial loop of processes", time.perf_counter() - start, cpu,
+                         os.getloadavg()[0]))
             variants = [(f"--jobs {n}", ["--jobs", str(n)]) for n in range(1, cores + 1)]
             if args.dask:
                 variants.append((f"--dask (LocalCluster, {cores} workers)", ["--dask"]))
             for name, extra in variants:
                 out = root / f"{name.split()[0].strip('-')}{extra[-1]}_{round_}"
-                wall = _run([*CLI, str(root / "in"), str(out), "-q", *extra])[0]
+                wall, _, user, system = _run([*CLI, str(root / "in"), str(out), "-q", *extra])
                 for bag, _ in recordings:
                     a, b = (loop / f"{bag.name}.mcap").read_bytes(), \
                         (out / f"{bag.name}.mcap").read_bytes()
                     if a != b:
                         raise SystemExit(f"{name}: {bag.name}.mcap differs from the loop's")
-                rows.append((name, wall, out))
-        print(f"{'candidate':40s} {'wall s':>8s} {'vs loop':>8s}   (every output byte-identical "
-              "to the loop's)")
+                rows.append((name, wall, user + system, os.getloadavg()[0]))
+                shutil.rmtree(out)
+            shutil.rmtree(loop)
+        print(f"{'candidate':38s} {'wall s':>7s} {'vs loop':>8s} {'CPU s':>7s} {'load':>5s}  "
+              "(every output byte-identical to the loop's)")
+        per = len(rows) // args.rounds
         for round_ in range(args.rounds):
-            part = rows[round_ * (len(rows) // args.rounds):(round_ + 1) * (len(rows) // args.rounds)]
+            part = rows[round_ * per:(round_ + 1) * per]
             base = part[0][1]
-            for name, wall, _ in part:
-                print(f"{name:40s} {wall:8.2f} {base / wall:7.2f}x")
+            for name, wall, cpu, load in part:
+                print(f"{name:38s} {wall:7.2f} {base / wall:7.2f}x {cpu:7.2f} {load:5.1f}")
 
 
 def memory(args: argparse.Namespace) -> None:
