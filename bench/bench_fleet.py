@@ -3,6 +3,7 @@
     python bench/bench_fleet.py scaling --data DIR [--count 6] [--grow MB] [--dask]
     python bench/bench_fleet.py memory [--sizes 128,512] [--seed DB3]
     python bench/bench_fleet.py malloc [--size 256]
+    python bench/bench_fleet.py dask [--workers 2] [--size 128]
 
 ``scaling``: ``--data`` (or $LIDARSCAN_FLEET_DATA) is a folder of raw-packet recordings laid out
 as tests/data/nebula (``<model>/bag`` + its calibration file beside it); ``--count`` recordings
@@ -14,7 +15,8 @@ process per recording (the baseline), the fleet command with ``--jobs 1 .. cores
 for byte. ``memory``: peak RSS of one ``convert`` process for synthetic VLS-128 .db3 bags of the
 given sizes (the real tests/data recording's rows repeated). ``malloc``: user and system CPU of
 one conversion with glibc's default malloc, Dask's ``MALLOC_TRIM_THRESHOLD_=65536`` and the
-fleet's :data:`converters.cli.fleet.WORKER_ENV`.
+fleet's :data:`converters.cli.fleet.WORKER_ENV`. ``dask``: a LocalCluster's start time, a
+worker's RSS idle, the round trip of a trivial task, a worker's peak RSS after one conversion.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))   # this checkout, not an installed one
 from _synthetic_bag import grow_db3  # noqa: E402
 
 ROOT = Path(__file__).parents[1]
@@ -158,6 +161,63 @@ def malloc(args: argparse.Namespace) -> None:
             print(f"{name:30s} user {user:6.2f} s  sys {system:6.2f} s")
 
 
+def _rss() -> int:
+    with open("/proc/self/status") as status:
+        return int(status.read().split("VmRSS:")[1].split()[0]) * 1024
+
+
+def dask_overhead(args: argparse.Namespace) -> None:
+    """LocalCluster start, a worker's RSS idle, per-task round trip of trivial tasks, and a
+    worker's RSS after converting a synthetic VLS-128 .db3 of --size MB."""
+    import logging
+
+    import dask
+    from distributed import Client, LocalCluster, as_completed
+
+    from converters.cli import fleet
+
+    environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **fleet.WORKER_ENV}
+    start = time.perf_counter()
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}), \
+            LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                         dashboard_address=None, silence_logs=logging.ERROR) as cluster, \
+            Client(cluster) as client:
+        started = time.perf_counter() - start
+        idle = client.run(_rss)
+        for _ in range(2):
+            start = time.perf_counter()
+            futures = [client.submit(abs, -k, pure=False) for k in range(args.tasks)]
+            for _ in as_completed(futures):
+                pass
+            per_task = (time.perf_counter() - start) / args.tasks
+        with tempfile.TemporaryDirectory(prefix="bench_fleet_") as tmp:
+            seed = next((NEBULA / "velodyne_vls128" / "bag").glob("*.db3"))
+            db3 = grow_db3(seed, Path(tmp) / "in.db3", args.size << 20)
+            options = dict(vars(fleet_args(str(db3), str(Path(tmp) / "out"))))
+            options["calibration"] = str(NEBULA / "velodyne_vls128" / "VLS128.yaml")
+            options["threads"] = 1
+            job = fleet.Job(0, str(db3), str(Path(tmp) / "out.mcap"), "out.mcap",
+                            db3.stat().st_size, options)
+            result = client.submit(fleet.convert_job, job, pure=False).result()
+            after = client.run(_peak)
+    print(f"LocalCluster of {args.workers} workers: started in {started:.2f} s; worker RSS "
+          f"idle {', '.join(f'{v / 1e6:.0f}' for v in idle.values())} MB; trivial task round "
+          f"trip {per_task * 1e3:.1f} ms ({args.tasks} tasks, as_completed)")
+    print(f"after converting a {args.size} MB VLS-128 .db3 ({result.status}, {result.seconds:.1f} "
+          f"s): worker peak RSS {', '.join(f'{v / 1e6:.0f}' for v in after.values())} MB")
+
+
+def _peak() -> int:
+    with open("/proc/self/status") as status:
+        return int(status.read().split("VmHWM:")[1].split()[0]) * 1024
+
+
+def fleet_args(source: str, out: str) -> argparse.Namespace:
+    from converters.cli._parser import build_parser
+
+    return build_parser().parse_args(["convert", source, out])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -177,6 +237,11 @@ def main() -> None:
     p.add_argument("--size", type=int, default=256, metavar="MB")
     p.add_argument("--rounds", type=int, default=3)
     p.set_defaults(func=malloc)
+    p = sub.add_parser("dask")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--tasks", type=int, default=200)
+    p.add_argument("--size", type=int, default=128, metavar="MB")
+    p.set_defaults(func=dask_overhead)
     args = parser.parse_args()
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     args.func(args)
