@@ -434,8 +434,9 @@ def _rows(con: sqlite3.Connection, path: Path | None = None,
     they are read through connections of this function's own: after every ``chunk_bytes`` of
     data the cursor and its connection are closed and the rest is read through a new one, from
     the last row's key on, so what stays memory-mapped is about one chunk whatever the file's
-    size. ``con`` is the caller's (never closed here; with ``path`` only asked whether the time
-    order can be read)."""
+    size (only when the time order comes from an index, as in rosbag2's files: without one
+    every chunk would sort the rest again, and one cursor reads it all). ``con`` is the
+    caller's (never closed here; with ``path`` only asked how the rows can be ordered)."""
     query = "SELECT id, topic_id, timestamp, data FROM messages "
     order, where, key, last_id = "ORDER BY timestamp, id", "", (), 0
     try:
@@ -444,6 +445,8 @@ def _rows(con: sqlite3.Connection, path: Path | None = None,
         probe.close()
     except _SQL_ERRORS:
         order = "ORDER BY id"
+    if order != "ORDER BY id" and not _time_indexed(con):
+        path = None   # each chunk would sort the rest of the table again: one cursor
     while True:
         own = _connect(path) if path is not None else None
         cursor = (own or con).execute(query + where + order, key)
@@ -471,6 +474,19 @@ def _rows(con: sqlite3.Connection, path: Path | None = None,
             where, key = "WHERE id > ? ", (last[0],)
         else:
             where, key, last_id = "WHERE timestamp >= ? ", (last[2],), last[0]
+
+
+def _time_indexed(con: sqlite3.Connection) -> bool:
+    """Whether the messages table has an index that starts with timestamp (rosbag2's
+    ``timestamp_idx``): then the rows from a timestamp on come without a sort."""
+    try:
+        for index in con.execute("PRAGMA index_list(messages)").fetchall():
+            first = con.execute(f"PRAGMA index_info('{index[1]}')").fetchone()
+            if first is not None and first[2] == "timestamp":
+                return True
+    except _SQL_ERRORS:
+        pass
+    return False
 
 
 def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | None,

@@ -360,3 +360,23 @@ def test_db3_rows_are_streamed_through_bounded_connections(
     for c in opened:
         with pytest.raises(sqlite3.ProgrammingError):
             c.execute("SELECT 1")
+
+
+def test_db3_without_a_time_index_is_read_through_one_cursor(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without rosbag2's timestamp index each chunk would sort the rest of the table again:
+    one cursor then, same rows in the same order."""
+    path = tmp_path / "noindex.db3"
+    expected = _db3(path, 50, 10_000)
+    con = sqlite3.connect(path)
+    con.execute("DROP INDEX timestamp_idx")
+    con.commit()
+    con.close()
+    opened: list[object] = []
+    connect = bags._connect
+    monkeypatch.setattr(bags, "_connect", lambda p: opened.append(p) or connect(p))
+    con = connect(path)
+    got = [r[:3] for r in bags._rows(con, path, chunk_bytes=30_000)]
+    con.close()
+    assert got == [r[:3] for r in expected] and not opened
+
