@@ -54,7 +54,7 @@ bench: install
 	$(PY) bench/run_all.py
 
 evidence: install
-	$(PY) -m converters.evidence
+	$(PY) -m converters.edge.evidence
 
 clean:
 	rm -rf build $(VENV)

@@ -7,7 +7,7 @@ a new random order every round) and the load average; no assertions. Target (iss
 slices >= 3x faster than four runs of the baseline.
 
 Cloud: the real OS-2-128 frame of tests/data/ouster (128 x 1024, 8.7 % of the pixels without
-return, NaN points there), converted with :func:`converters.pointcloud2.to_pointcloud2`
+return, NaN points there), converted with :func:`converters.pointcloud2.converter.to_pointcloud2`
 (x, y, z, intensity float32, 16-byte points) and then treated as an unstructured cloud
 (``height = 1``, ``width = 131072``: no grid, no ray tables). Target frame ``base_link``: the
 sensor 1.8 m above it (the ground of the frame lies about 1.8 m below the sensor). Four slices
@@ -16,7 +16,7 @@ low 0.02-0.3; full circle at 2*pi/1024.
 
 Candidates:
 
-* ``ours``: :meth:`converters.cloud_slices.CloudSliceConverter.convert`, all 4 slices in one
+* ``ours``: :meth:`converters.slices.cloud.CloudSliceConverter.convert`, all 4 slices in one
   pass including the 4 rclpy LaserScan messages (the C kernel, its AVX2 build where the CPU has
   it, and its scalar build; also the numpy reference);
 * baseline: the plain per-point loop for one slice, compiled with numba, run once per slice as
@@ -46,8 +46,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _timing import interleaved_times  # noqa: E402
 
-from converters._grid import CODE_NEG_INF, CODE_POS_INF, EMPTY  # noqa: E402
-from converters.cloud_slices import CloudSliceConverter, cloud_points  # noqa: E402
+from converters.slices.spec import CODE_NEG_INF, CODE_POS_INF, EMPTY  # noqa: E402
+from converters.slices.cloud import CloudSliceConverter, cloud_points  # noqa: E402
 
 BANDS = {"floor_to_knee": (0.05, 0.5), "knee_to_table": (0.5, 0.8),
          "table_to_head": (0.8, 1.8), "low": (0.02, 0.3)}
@@ -57,9 +57,9 @@ MOUNT_Z = 1.8
 
 def make_cloud() -> Any:
     """The real OS-2-128 frame as a height-1 (unstructured) PointCloud2 in os_sensor."""
-    from converters.evidence._common import load_frame, ouster_files, ouster_info
-    from converters.ouster import scan_from_frame
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.edge.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.sources.ouster.metadata import scan_from_frame
+    from converters.pointcloud2.converter import to_pointcloud2
 
     meta, path = next((m, p) for m, p in ouster_files() if p is not None and "OS-2" in m.name)
     info = ouster_info(meta)

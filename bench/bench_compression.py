@@ -56,8 +56,8 @@ from lidarscan import codec  # noqa: E402
 
 def make_scan() -> tuple[Any, Any]:
     """(128 x 2048 LidarScan dataclass, an info-like object with its row shifts)."""
-    from converters.evidence._common import load_frame, ouster_files, ouster_info
-    from converters.ouster import scan_from_frame
+    from converters.edge.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.sources.ouster.metadata import scan_from_frame
     meta, path = next((m, p) for m, p in ouster_files() if p is not None and "128" in m.name)
     info = ouster_info(meta)
     scan = scan_from_frame(load_frame(path), info, as_dataclass=True)

@@ -14,7 +14,7 @@ messages over and over, every copy shifted in time by the recording's length: th
 each message's ``header.stamp`` and packet stamps, and the packets' own clocks (Velodyne
 microseconds past the hour; Hesai UTC date-time + microseconds) so the decoders see one
 continuous recording (with an azimuth jump at each seam). An empty ``serialization_format``
-(the VLS-128 bag) is written as "cdr" (rosbags refuses the empty one; ``converters.bags`` reads
+(the VLS-128 bag) is written as "cdr" (rosbags refuses the empty one; ``converters.sources.bags`` reads
 both).
 
 Candidates (the bag already on disk, page cache warm, one untimed convert of the small
@@ -28,7 +28,7 @@ little; the other threads are the output threads and the thread reading the bag 
 - ``main``: with ``--base DIR``, the default ``convert`` of the source tree DIR (e.g.
   ``git archive main | tar -x -C DIR`` with the compiled modules copied in) in a child process
   that hides this environment's editable install (start-up and a warm-up run excluded).
-- ``convert``: ``converters.cli.main(["convert", BAG, OUT.mcap, "--calibration", FILE, "-q"])``
+- ``convert``: ``converters.edge.cli.main(["convert", BAG, OUT.mcap, "--calibration", FILE, "-q"])``
   in this process (no interpreter start-up), the default options: read the .db3, parse the packet
   messages, decode every rotation to LidarScan + LidarInfo, write the MCAP file (zstd chunks at
   the default level, compressed by two threads beside the main one: ``--threads 3``).
@@ -99,7 +99,7 @@ def _shift_velodyne_clock(buf: bytearray, data: int, shift_ns: int) -> None:
 
 
 def _shift_hesai_clock(buf: bytearray, data: int, size: int, shift_ns: int) -> None:
-    from converters.hesai import detect_format
+    from converters.sources.hesai.decoder import detect_format
     fmt = detect_format(bytes(buf[data:data + size]))
     y, mo, d, h, mi, s = buf[data + fmt.datetime_at:data + fmt.datetime_at + 6]
     us = struct.unpack_from("<I", buf, data + fmt.timestamp_at)[0]
@@ -207,7 +207,7 @@ def _threads(options: list[str]) -> int:
 
 
 def run_convert(bag: Path, calibration: Path, out: Path, extra: list[str] | None = None) -> None:
-    from converters import cli
+    from converters.edge import cli
     out.unlink(missing_ok=True)
     status = cli.main(["convert", str(bag), str(out), "--calibration", str(calibration), "-q",
                        *(extra or [])])
@@ -222,7 +222,7 @@ _BASE_CHILD = """
 import json, sys, time
 sys.meta_path[:] = [f for f in sys.meta_path if "editable" not in repr(f)]
 sys.path.insert(0, sys.argv[1])
-from converters import cli
+from converters.edge import cli
 warm, timed = json.loads(sys.argv[2]), json.loads(sys.argv[3])
 assert cli.main(["convert", *warm, "-q"]) == 0
 c0, t0, w0 = time.process_time(), time.thread_time(), time.perf_counter()
@@ -251,7 +251,7 @@ def run_base(base: Path, folder: str, bag: Path, calibration: Path, out: Path
 def run_decode(bag: Path, calibration: Path) -> int:
     """The decoder alone on every packet message of the bag (parsed beforehand): scans made
     (dataclasses, as ``convert`` asks for)."""
-    from converters.bags import PACKET_TYPES, open_bag
+    from converters.sources.bags import PACKET_TYPES, open_bag
     batches = [(PACKET_TYPES[m.msgtype][1](m.payload)) for m in open_bag(bag).messages()
                if getattr(m, "msgtype", "") in PACKET_TYPES]
     module = __import__(PACKET_TYPES[_packet_type(bag)][0], fromlist=["PacketDecoder"])
@@ -269,7 +269,7 @@ _DECODE_CPU: list[float] = []
 
 
 def _packet_type(bag: Path) -> str:
-    from converters.bags import PACKET_TYPES, open_bag
+    from converters.sources.bags import PACKET_TYPES, open_bag
     return next(t.msgtype for t in open_bag(bag).topics.values() if t.msgtype in PACKET_TYPES)
 
 
@@ -340,12 +340,12 @@ def chunk_compression(out: Path, bag: Path, calibration: Path, rounds: int = 3) 
 
 #: (module, attribute, stage) timed by ``--timeline``: where each thread spends its time
 _STAGES = [
-    ("converters.bags.Bag", "messages", "read (sqlite rows)"),
-    ("converters.cli._common._Input", "items", "wait for the reading thread"),
-    ("converters.velodyne.decoder.PacketDecoder", "__init__", "decoder set-up"),
-    ("converters.velodyne.decoder.PacketDecoder", "push_many", "decode"),
-    ("converters.hesai.PacketDecoder", "__init__", "decoder set-up"),
-    ("converters.hesai.PacketDecoder", "push_many", "decode"),
+    ("converters.sources.bags.Bag", "messages", "read (sqlite rows)"),
+    ("converters.edge.cli._common._Input", "items", "wait for the reading thread"),
+    ("converters.sources.velodyne.decoder.PacketDecoder", "__init__", "decoder set-up"),
+    ("converters.sources.velodyne.decoder.PacketDecoder", "push_many", "decode"),
+    ("converters.sources.hesai.decoder.PacketDecoder", "__init__", "decoder set-up"),
+    ("converters.sources.hesai.decoder.PacketDecoder", "push_many", "decode"),
     ("lidarscan.mcap.McapWriter", "write", "write (serialise, queue)"),
     ("lidarscan.mcap.McapWriter", "close", "close (drain, summary)"),
     ("lidarscan._mcapfile.ChunkedMcapWriter", "_finish_chunk", "hand a chunk over"),

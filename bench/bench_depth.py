@@ -1,4 +1,4 @@
-"""Benchmark: depth image -> LidarScan (converters.depth) at 640x480 and 1280x720.
+"""Benchmark: depth image -> LidarScan (converters.sources.depth) at 640x480 and 1280x720.
 
 Run: ``.venv/bin/python bench/bench_depth.py [--repeat N]``. Prints medians and ratios measured in
 one run (no assertions).
@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _timing import interleaved_times  # noqa: E402
 
-from converters.depth import DepthImageConverter  # noqa: E402
+from converters.sources.depth import DepthImageConverter  # noqa: E402
 from lidarscan import types  # noqa: E402
 
 D = [-0.21, 0.05, 0.0012, -0.0008, -0.004]

@@ -15,7 +15,7 @@ process per recording (the baseline), the fleet command with ``--jobs 1 .. cores
 for byte. ``memory``: peak RSS of one ``convert`` process for synthetic VLS-128 .db3 bags of the
 given sizes (the real tests/data recording's rows repeated). ``malloc``: user and system CPU of
 one conversion with glibc's default malloc, Dask's ``MALLOC_TRIM_THRESHOLD_=65536`` and the
-fleet's :data:`converters.cli.fleet.WORKER_ENV`. ``dask``: a LocalCluster's start time, a
+fleet's :data:`converters.edge.cli.fleet.WORKER_ENV`. ``dask``: a LocalCluster's start time, a
 worker's RSS idle, the round trip of a trivial task, a worker's peak RSS after one conversion.
 """
 
@@ -37,7 +37,7 @@ from _synthetic_bag import grow_db3  # noqa: E402
 
 ROOT = Path(__file__).parents[1]
 NEBULA = ROOT / "tests" / "data" / "nebula"
-CLI = [sys.executable, "-m", "converters.cli", "convert"]
+CLI = [sys.executable, "-m", "converters.edge.cli", "convert"]
 
 
 def _run(command: list[str], env: dict[str, str] | None = None) -> tuple[float, int, float, float]:
@@ -137,7 +137,7 @@ def memory(args: argparse.Namespace) -> None:
 
 
 def malloc(args: argparse.Namespace) -> None:
-    from converters.cli.fleet import WORKER_ENV
+    from converters.edge.cli.fleet import WORKER_ENV
 
     seed = next((NEBULA / "velodyne_vls128" / "bag").glob("*.db3"))
     calibration = str(NEBULA / "velodyne_vls128" / "VLS128.yaml")
@@ -174,7 +174,7 @@ def dask_overhead(args: argparse.Namespace) -> None:
     import dask
     from distributed import Client, LocalCluster, as_completed
 
-    from converters.cli import fleet
+    from converters.edge.cli import fleet
 
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **fleet.WORKER_ENV}
     start = time.perf_counter()
@@ -213,7 +213,7 @@ def _peak() -> int:
 
 
 def fleet_args(source: str, out: str) -> argparse.Namespace:
-    from converters.cli._parser import build_parser
+    from converters.edge.cli._parser import build_parser
 
     return build_parser().parse_args(["convert", source, out])
 

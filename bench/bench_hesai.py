@@ -2,8 +2,8 @@
 
 Run: ``.venv/bin/python bench/bench_hesai.py [--rounds N] [--baseline FILE]``. Prints medians and
 ratios measured in one run (no assertions). Target: >= 50x real time. ``--baseline`` times
-another version of ``converters/hesai.py`` beside this one, interleaved in the same run (e.g.
-``git show main:converters/hesai.py > /tmp/hesai_main.py``; it runs against this tree's
+another version of ``converters/sources/hesai/decoder.py`` beside this one, interleaved in the same run (e.g.
+``git show main:converters/sources/hesai/decoder.py > /tmp/hesai_main.py``; it runs against this tree's
 ``lidarscan``); ``--baseline-kernel FILE`` gives it its own version of
 ``converters/_kernels/hesai.py`` (needed when the kernel's arguments changed, e.g.
 ``git show main:converters/_kernels/hesai.py > /tmp/hesai_kernel_main.py``).
@@ -18,7 +18,7 @@ unless said otherwise:
 * ``push_many``: ``PacketDecoder.push_many`` once per bag message, on the (N, 1198) view
   ``data[:, :size]`` of the message's (N, 1500) packet array (as a bag reader gives it;
   the arrays are built before timing);
-* ``decode_packets``: ``converters.hesai.decode_packets`` on the (stamp, bytes) list (it
+* ``decode_packets``: ``converters.sources.hesai.decoder.decode_packets`` on the (stamp, bytes) list (it
   joins runs of equal-size payloads and calls push_many);
 * ``decode_packets+msg``: the same, built as rclpy messages (what a node publishes);
 * ``loop``: a plain per-point loop (struct.unpack per channel, math.sin/cos per point) that
@@ -51,7 +51,7 @@ from _timing import interleaved_times  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from converters import hesai  # noqa: E402
+from converters.sources.hesai import decoder as hesai  # noqa: E402
 
 DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "nebula" / "hesai_pandar64"
 
@@ -109,7 +109,7 @@ def loop_decode(packets: list[tuple[int, bytes]], elevation: list[float],
 
 
 def load_baseline(path: Path, kernel: Path | None = None) -> Any:
-    """``path`` (another version of converters/hesai.py) imported as a separate module; with
+    """``path`` (another version of converters/sources/hesai/decoder.py) imported as a separate module; with
     ``kernel`` (another version of converters/_kernels/hesai.py), using that kernel."""
     module = _load(path, "hesai_baseline")
     if kernel is not None and module._kernel() is not None:
@@ -128,7 +128,7 @@ def _load(path: Path, name: str) -> Any:
 
 def decoders(mod: Any, packets: list[tuple[int, bytes]],
              messages: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
-    """The four decoding candidates of module ``mod`` (converters.hesai or a baseline)."""
+    """The four decoding candidates of module ``mod`` (converters.sources.hesai.decoder or a baseline)."""
     cal = mod.load_calibration(DATA / "Pandar64.csv")
 
     def decode(as_dataclass: bool = True) -> list[Any]:
@@ -151,7 +151,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--baseline", type=Path, default=None,
-                        help="another version of converters/hesai.py to time beside this one")
+                        help="another version of converters/sources/hesai/decoder.py to time beside this one")
     parser.add_argument("--baseline-kernel", type=Path, default=None,
                         help="the baseline's version of converters/_kernels/hesai.py")
     args = parser.parse_args()

@@ -52,7 +52,7 @@ import bench_slices as scene
 import lidarscan
 from _timing import interleaved_times
 from converters import TransformTrack
-from converters.laserscan import SliceConverter, SliceSpec
+from converters.slices.converter import SliceConverter, SliceSpec
 
 scene.H, scene.W = 128, 1024
 STAMP = 10**9

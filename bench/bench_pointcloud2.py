@@ -5,7 +5,7 @@ Prints, in one run, medians of:
 * xyz only: our projector tables (``Projector.xyz`` with a preallocated ``out``) vs ouster-sdk's
   ``XYZLut`` (float64, its default) and ``XYZLutFloat`` (float32) on the same staggered ranges;
 * a full PointCloud2 (x, y, z, intensity float32, organized, destaggered, rclpy message with its
-  bytes) from :class:`converters.pointcloud2.PointCloud2Converter`, with the optional compiled
+  bytes) from :class:`converters.pointcloud2.converter.PointCloud2Converter`, with the optional compiled
   kernel (converters/_cloudkernel.c, built by ``pip install -e .``) and with the numpy path
   (``kernel=False``; also what runs without a compiler or with ``LIDARSCAN_NO_KERNEL=1``), each
   on 1 and 2 threads, plus the unorganized (dense) cloud. Each cloud is dropped right away (as
@@ -42,8 +42,8 @@ sys.path.insert(0, str(ROOT))
 from _timing import interleaved_times  # noqa: E402 - bench/ is the script's directory
 
 import lidarscan
-from converters.ouster import info_from_metadata
-from converters.pointcloud2 import PointCloud2Converter, kernel_available, to_pointcloud2
+from converters.sources.ouster.metadata import info_from_metadata
+from converters.pointcloud2.converter import PointCloud2Converter, kernel_available, to_pointcloud2
 
 METADATA = ROOT / "tests" / "data" / "ouster" / "2_0_0_os1-992008000494-128_col_win_legacy.json"
 ROUNDS = 100

@@ -4,9 +4,9 @@ Run: ``.venv/bin/python bench/bench_scan.py [--rounds N]``. Prints CPU-time
 (``time.process_time``) medians of interleaved rounds and ratios measured in the same run (no
 assertions), for two real infos, as dataclasses and as rclpy messages (when built):
 
-* the Ouster OS-2-128 1024x10 info of ``tests/data/ouster`` (``converters.ouster``);
+* the Ouster OS-2-128 1024x10 info of ``tests/data/ouster`` (``converters.sources.ouster.metadata``);
 * a 128-row Velodyne info, the VLS-128 calibration of ``tests/data/nebula`` with 1 800 columns
-  (``converters.velodyne.calibration``).
+  (``converters.sources.velodyne.calibration``).
 
 Candidates per info: ``validate_info(info)``; ``make_info(**fields)`` (which validates); the same
 ``make_info`` with validation switched off (the baseline: building the info alone). The ratio
@@ -38,8 +38,8 @@ DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
 
 def infos() -> dict[str, Any]:
     """name -> dataclass LidarInfo of the two real sensors."""
-    from converters.ouster import info_from_metadata
-    from converters.velodyne.calibration import info_from_calibration
+    from converters.sources.ouster.metadata import info_from_metadata
+    from converters.sources.velodyne.calibration import info_from_calibration
     return {
         "OS-2-128 1024x10": info_from_metadata(
             DATA / "ouster" / "OS-2-128-U1_v2.3.0_1024x10.json", stamp_ns=1, as_dataclass=True),

@@ -43,7 +43,7 @@ import numpy as np
 
 import lidarscan
 from _timing import interleaved_times
-from converters.laserscan import SliceConverter, SliceSpec
+from converters.slices.converter import SliceConverter, SliceSpec
 
 H, W = 128, 2048
 BANDS = {"floor_to_knee": (0.05, 0.5), "knee_to_table": (0.5, 0.8),

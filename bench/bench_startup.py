@@ -55,7 +55,7 @@ def _frames(info: Any, count: int) -> list[bytes]:
     import numpy as np
 
     import lidarscan
-    from converters.ouster import scan_from_frame
+    from converters.sources.ouster.metadata import scan_from_frame
 
     frame = dict(np.load(FRAME))
     return [lidarscan.encode(scan_from_frame(frame, info, stamp_ns=10**9 + k * 10**8,
@@ -71,7 +71,7 @@ def child_library() -> dict[str, Any]:
     import converters
     import lidarscan
     t_import = time.perf_counter() - t0
-    from converters.ouster import info_from_metadata
+    from converters.sources.ouster.metadata import info_from_metadata
 
     info = info_from_metadata(META, stamp_ns=1, as_dataclass=True)
     scans = [lidarscan.decode_scan(raw) for raw in _frames(info, STEADY + 1)]
@@ -103,8 +103,8 @@ def child_node(config: dict[str, Any]) -> dict[str, Any]:
     import rclpy
     from rclpy.parameter import Parameter
 
-    from converters.nodes.converter_node import ConverterNode
-    from converters.ouster import info_from_metadata
+    from converters.edge.nodes.converter_node import ConverterNode
+    from converters.sources.ouster.metadata import info_from_metadata
 
     info = info_from_metadata(META, stamp_ns=1, frame_id="os_lidar", as_dataclass=True)
     raws = _frames(info, STEADY + 1)

@@ -1,4 +1,4 @@
-"""Benchmark: Velodyne packet decoding (converters.velodyne.decode_packets) vs real time.
+"""Benchmark: Velodyne packet decoding (converters.sources.velodyne.decode_packets) vs real time.
 
 Run: ``.venv/bin/python bench/bench_velodyne.py [--seconds S] [--repeat N]``. Prints CPU-time
 medians of interleaved rounds (the machine may be shared: wall times only beside them), the
@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from converters.velodyne import MODELS, PacketDecoder, decode_packets
+from converters.sources.velodyne import MODELS, PacketDecoder, decode_packets
 
 SEQUENCE_S = 53.3e-6                                # one VLS-128 firing sequence
 

@@ -99,12 +99,12 @@ def mutate_bytes(rnd: random.Random, data: bytes) -> bytes:
 # --------------------------------------------------------------------------- exercise code
 
 _ENTRY_POINTS = {
-    "to_pointcloud2": ("converters.pointcloud2", "to_pointcloud2"),
-    "from_pointcloud2": ("converters.pointcloud2", "from_pointcloud2"),
-    "to_laserscan": ("converters.laserscan", "to_laserscan"),
+    "to_pointcloud2": ("converters.pointcloud2.converter", "to_pointcloud2"),
+    "from_pointcloud2": ("converters.pointcloud2.converter", "from_pointcloud2"),
+    "to_laserscan": ("converters.slices.converter", "to_laserscan"),
     "merger": ("converters.merger", None),
-    "info_from_metadata": ("converters.ouster", "info_from_metadata"),
-    "from_laserscan_sweep": ("converters.sweep", "from_laserscan_sweep"),
+    "info_from_metadata": ("converters.sources.ouster.metadata", "info_from_metadata"),
+    "from_laserscan_sweep": ("converters.sources.sweep", "from_laserscan_sweep"),
 }
 MISSING: dict[str, str] = {}
 

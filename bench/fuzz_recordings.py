@@ -209,12 +209,12 @@ def _packet_scan_cdr(kind: str, count: int, frame: str = "velo") -> bytes:
 
 
 class PacketCdr(Target):
-    """VelodyneScan / PandarScan CDR (converters.bags): mutated, truncated, huge counts; only
+    """VelodyneScan / PandarScan CDR (converters.sources.bags): mutated, truncated, huge counts; only
     DecodeError may escape and every payload lies inside the message."""
     name = "packet_cdr"
 
     def setup(self) -> None:
-        from converters import bags
+        from converters.sources import bags
         self.seeds = [(bags.velodyne_packets, _packet_scan_cdr("velodyne", 3, "v")),
                       (bags.pandar_packets, _packet_scan_cdr("pandar", 3, "hesai_x"))]
 
@@ -259,7 +259,7 @@ class BagDb3(Target):
         self.tmp = fuzz_common.ROOT / "build" / "fuzz" / f"bag-case-{os.getpid()}.db3"
 
     def case(self, rnd: random.Random) -> tuple[bytes, Callable[[], str]]:
-        from converters import bags
+        from converters.sources import bags
         from lidarscan.mcap import McapMessage
         data = mutate_bytes(rnd, self.seed)
         if rnd.random() < 0.5:

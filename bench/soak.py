@@ -6,9 +6,9 @@ Processes (each its own python, all on a private ROS_DOMAIN_ID):
   LidarScans of H x W (default 128 x 2048, range float32 + intensity uint16) at ``--rate`` Hz
   (default 40 Hz: twice a 128 x 2048 sensor at 20 Hz) on ``/lidar_scan`` (sensor data QoS), and
   a 2D LaserScan with the same stamp on ``/laser``. Stamps are the wall clock at publication.
-* ``converter``: ``python -m converters.nodes.converter_node`` -> ``/points`` (PointCloud2) and
+* ``converter``: ``python -m converters.edge.nodes.converter_node`` -> ``/points`` (PointCloud2) and
   ``/slices/mid`` (LaserScan slice).
-* ``merger``: ``python -m converters.nodes.merger_node`` merging ``/slices/mid`` and ``/laser``
+* ``merger``: ``python -m converters.edge.nodes.merger_node`` merging ``/slices/mid`` and ``/laser``
   -> ``/scan_merged``.
 * ``monitor``: raw subscriptions to the three outputs; latency = receive wall clock - header
   stamp (same machine, same clock).
@@ -75,7 +75,7 @@ def run_publisher(args: argparse.Namespace) -> int:
     from sensor_msgs.msg import LaserScan
 
     import lidarscan as ls
-    from converters.nodes.params import qos_profile
+    from converters.edge.nodes.params import qos_profile
 
     height, width = args.height, args.width
     info = ls.make_info(stamp_ns=INFO_STAMP_NS, frame_id="lidar",
@@ -182,7 +182,7 @@ def run_monitor(args: argparse.Namespace) -> int:
     import rclpy
     from sensor_msgs.msg import LaserScan, PointCloud2
 
-    from converters.nodes.params import qos_profile
+    from converters.edge.nodes.params import qos_profile
 
     rclpy.init()
     node = rclpy.create_node("soak_monitor")
@@ -210,11 +210,11 @@ def run_monitor(args: argparse.Namespace) -> int:
 
 def _node_cmd(kind: str, qos: str) -> list[str]:
     if kind == "converter":
-        return [PY, "-m", "converters.nodes.converter_node", "--ros-args",
+        return [PY, "-m", "converters.edge.nodes.converter_node", "--ros-args",
                 "-p", "slice_names:=[mid]", "-p", "slices.mid.min_height:=-0.3",
                 "-p", "slices.mid.max_height:=0.3", "-p", f"scan_qos:={qos}",
                 "-p", f"output_qos:={qos}", "--log-level", "warn"]
-    return [PY, "-m", "converters.nodes.merger_node", "--ros-args",
+    return [PY, "-m", "converters.edge.nodes.merger_node", "--ros-args",
             "-p", f"inputs.mid.qos:={qos}", "-p", f"inputs.laser.qos:={qos}",
             "-p", f"output_qos:={qos}",
             "-p", "input_names:=[mid, laser]", "-p", "inputs.mid.topic:=/slices/mid",

@@ -51,7 +51,7 @@ def capture() -> tuple[list[tuple[Any, ...]], float]:
     """The fill calls of one full rotation (arguments, views) and the seconds of data a
     rotation is."""
     import converters._kernels.velodyne as kv
-    from converters.velodyne import PacketDecoder
+    from converters.sources.velodyne import PacketDecoder
 
     bench = _bench_module()
     packets = bench.make_packets(0.35)
@@ -118,7 +118,7 @@ def push_many_runner() -> Callable[[tuple[Any, int]], None]:
     call, a new decoder each time) with a candidate (library, simd flag) as the kernel."""
     import converters._kernels.velodyne as kv
     from converters._kernels import _loader
-    from converters.velodyne import PacketDecoder
+    from converters.sources.velodyne import PacketDecoder
 
     bench = _bench_module()
     packets = bench.make_packets(1.0)

@@ -10,7 +10,7 @@ output frame, so rays of an offset sensor that cross each other land where they 
 special case: every ray lands in exactly one bin (minimum when down-sampling, no duplicated rays
 when up-sampling: finer output bins without a ray get ``fill``). Grid, binning, REP 117 classes,
 precedence (finite > -Inf > +Inf > NaN > empty) and ties (first input in configuration order,
-then first ray) are those of :mod:`converters._grid`.
+then first ray) are those of :mod:`converters.slices.spec`.
 
 **Input classes.** A finite range below the scan's own ``range_min`` (e.g. 0.0, which Hokuyo and
 other drivers use for "no valid echo") and any range ``<= 0`` are invalid (NaN class); above ``min(scan.range_max,
@@ -75,8 +75,8 @@ a sensor on a pan unit turning during its sweep is de-skewed ray by ray. (The sl
 ``to_laserscan`` do not follow that convention: their ray ``i`` is not measured at ``stamp + i *
 time_increment``; give such an input ``deskew=False``.) A callable is called once per distinct
 ray time and its result checked (rigid 4x4); a track computes them in one batch. A pose that
-cannot be found (outside the track's span, :class:`converters.transforms.OutOfSpanError`, or any
-:class:`~converters.transforms.TransformLookupError` the callable raises) never falls back to
+cannot be found (outside the track's span, :class:`converters.shared.transforms.OutOfSpanError`, or any
+:class:`~converters.shared.transforms.TransformLookupError` the callable raises) never falls back to
 another pose: :meth:`LaserScanMerger.merge` raises it; in :meth:`LaserScanMerger.push` that scan
 is left out of the fused set and counted (``stats["dropped_no_pose"]``,
 :attr:`LaserScanMerger.last_no_pose` says why); the others are merged without it (nothing is
@@ -93,11 +93,15 @@ from typing import Any
 
 import numpy as np
 
-from converters import _grid, _kernels, options
-from converters._grid import AngleGrid, OutputOptions
+from converters import _kernels
+
+from converters.slices import spec as _grid
+
+from converters.shared import options
+from converters.slices.spec import AngleGrid, OutputOptions
 from converters._kernels.slices_numba import Bands, Rays
-from converters.frames import check_extrinsics, check_frame, check_poses
-from converters.transforms import (TransformLookupError, TransformTrack, _quat_to_matrix,
+from converters.shared.frames import check_extrinsics, check_frame, check_poses
+from converters.shared.transforms import (TransformLookupError, TransformTrack, _quat_to_matrix,
                                    interpolate_poses, quaternion_from_matrix)
 from lidarscan.errors import ConfigError, ValidationError
 from lidarscan.scan import as_array
@@ -162,7 +166,7 @@ class Pose:
 def interpolate_pose(stamps: list[int], poses: list[Pose], t: int, max_gap_ns: int
                      ) -> Pose | None:
     """Pose at ``t`` from sorted samples: exact sample, lerp + shortest-arc slerp between two
-    (:func:`converters.transforms.interpolate_poses`),
+    (:func:`converters.shared.transforms.interpolate_poses`),
     the nearest one held outside the window; None if the bracketing gap (or the distance to the
     nearest sample outside the window) exceeds ``max_gap_ns`` or there are no samples."""
     if not stamps:
@@ -352,7 +356,7 @@ class LaserScanMerger:
         frame_id: output frame.
         angle_min, angle_max, angle_increment: output grid (default full circle at 0.25 deg).
         range_min, range_max: inclusive planar limits in the output frame.
-        use_inf, inf_epsilon, fill: output values (:class:`converters._grid.OutputOptions`).
+        use_inf, inf_epsilon, fill: output values (:class:`converters.slices.spec.OutputOptions`).
         intensities: publish intensities (0 where the winner had none) or an empty field.
         slop_ns: synchronisation tolerance, inclusive.
         policy: ``"wait"`` (all inputs needed) or ``"timeout"`` (dead inputs left out).
@@ -496,7 +500,7 @@ class LaserScanMerger:
             ConfigError: an unknown input name.
             ValidationError: no scan, or a scan with a bad header / wrong frame.
             TransformLookupError: a moving mount's pose is unknown at a ray's time
-                (:class:`converters.transforms.OutOfSpanError` outside a track's span).
+                (:class:`converters.shared.transforms.OutOfSpanError` outside a track's span).
         """
         for name in scans:
             if name not in self._inputs:

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters import pointcloud2 as pc
+from converters.pointcloud2 import converter as pc
 from converters._kernels import cloud as kc
 
 DATA = Path(__file__).parent / "data" / "ouster"
@@ -89,9 +89,9 @@ def load_frame(name: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
 
 
 def ouster_info(meta: dict[str, Any], stamp_ns: int = 1) -> Any:
-    """LidarInfo of the metadata: converters.ouster when present, else built here."""
-    if importlib.util.find_spec("converters.ouster") is not None:
-        from converters.ouster import info_from_metadata
+    """LidarInfo of the metadata: converters.sources.ouster.metadata when present, else built here."""
+    if importlib.util.find_spec("converters.sources.ouster.metadata") is not None:
+        from converters.sources.ouster.metadata import info_from_metadata
         return info_from_metadata(meta, stamp_ns=stamp_ns)
     alt = np.radians(meta["beam_altitude_angles"])
     beta = -np.radians(meta["beam_azimuth_angles"])

@@ -1,6 +1,6 @@
 """Real lidar clouds in the point layouts of the ROS drivers, built from decoded Nebula recordings.
 
-The packet decoders (converters.velodyne, converters.hesai; checked against Nebula's ground-truth
+The packet decoders (converters.sources.velodyne, converters.sources.hesai.decoder; checked against Nebula's ground-truth
 PCDs in tests/test_velodyne_packets.py and tests/test_hesai.py) turn the bags of
 tests/data/nebula into (LidarScan, LidarInfo); :func:`driver_cloud` writes one decoded scan as the
 unorganized PointCloud2 a driver publishes:
@@ -58,7 +58,7 @@ def decoded(name: str) -> tuple[tuple[Any, Any], ...]:
 
         from test_velodyne_packets import RECORDINGS, _read_bag
 
-        from converters import velodyne
+        from converters.sources import velodyne
         calib_name, _, settings = RECORDINGS[name]
         with tempfile.TemporaryDirectory() as tmp:
             messages = _read_bag(DATA / name, Path(tmp))

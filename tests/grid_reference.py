@@ -1,6 +1,6 @@
 """Plain-loop reference code shared by the slice and merger tests (the documented grid rules).
 
-Written from the conventions in converters/_grid.py's docstring, not from its code.
+Written from the conventions in converters/slices/spec.py's docstring, not from its code.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""rosbag2 recordings in (converters.bags) and through the CLI.
+"""rosbag2 recordings in (converters.sources.bags) and through the CLI.
 
 * Packet messages of real bags (Nebula's VLP-32C and PandarQT64 recordings, tests/data/nebula)
   parse exactly as ``rosbags`` deserialises them; synthetic ones (both byte orders, odd counts)
@@ -25,7 +25,8 @@ import numpy as np
 import pytest
 
 import lidarscan as ls
-from converters import bags, cli
+from converters.sources import bags
+from converters.edge import cli
 from lidarscan.errors import DecodeError, LidarScanError
 from lidarscan.mcap import BadMessage, McapMessage, McapWriter, read_messages
 
@@ -320,7 +321,7 @@ def test_convert_lidarscan_bag_like_mcap(tmp_path: Path) -> None:
 
 
 def test_convert_pointcloud2_bag_like_mcap(tmp_path: Path) -> None:
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.pointcloud2.converter import to_pointcloud2
 
     info = _info()
     rows = []
@@ -351,7 +352,7 @@ def test_info_on_a_real_bag(capsys: pytest.CaptureFixture[str]) -> None:
 def test_convert_packets_without_a_decoder_fails_clearly(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:
-    monkeypatch.setitem(sys.modules, "converters.hesai", None)  # import fails
+    monkeypatch.setitem(sys.modules, "converters.sources.hesai.decoder", None)  # import fails
     out = tmp_path / "out.mcap"
     assert cli.main(["convert", str(QT64), str(out)]) == 2
     err = capsys.readouterr().err
@@ -402,9 +403,9 @@ class _StandInDecoder:
 def test_convert_packets_through_the_decoder_contract(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:
-    module = types.ModuleType("converters.hesai")
+    module = types.ModuleType("converters.sources.hesai.decoder")
     module.PacketDecoder = _StandInDecoder  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "converters.hesai", module)
+    monkeypatch.setitem(sys.modules, "converters.sources.hesai.decoder", module)
     _StandInDecoder.created = []
     src = _copy_bag(QT64, tmp_path / "bag")
     # damage one packet of the second message: reported, the others decoded

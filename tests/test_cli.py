@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters import cli
+from converters.edge import cli
 from lidarscan.mcap import McapWriter, read_messages, read_scans
 
 from helpers import messages_by_topic
@@ -22,7 +22,7 @@ PNG = b"\x89PNG\r\n\x1a\n"
 
 @pytest.fixture(scope="module")
 def demo_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from converters.demo import run_demo
+    from converters.edge.demo.run import run_demo
 
     out = tmp_path_factory.mktemp("demo")
     return run_demo(out, frames=3, images=False).mcap_path
@@ -72,9 +72,9 @@ def test_info_reports_problems(tmp_path: Path, demo_mcap: Path,
 
 
 def test_convert_adds_cloud_slices_and_merged_scan(tmp_path: Path, demo_mcap: Path) -> None:
-    from converters.laserscan import SliceConverter
-    from converters.nodes.tf import TransformBuffer
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.slices.converter import SliceConverter
+    from converters.edge.nodes.tf import TransformBuffer
+    from converters.pointcloud2.converter import to_pointcloud2
 
     src, dst = tmp_path / "in.mcap", tmp_path / "out.mcap"
     copied = copy_topics(demo_mcap, src, SCAN_TOPICS)
@@ -193,7 +193,7 @@ def test_argparse_usage_error_exits_2(capsys: pytest.CaptureFixture[str]) -> Non
 
 def test_console_script_help() -> None:
     exe = Path(sys.executable).parent / "lidarscan"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "converters.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "converters.edge.cli"]
     done = subprocess.run(cmd + ["--help"], check=False, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0
     for command in ("demo", "info", "convert", "view"):
@@ -204,7 +204,7 @@ def test_info_into_a_closed_pipe_exits_quietly() -> None:
     """`lidarscan info REC | head -1` with the reader gone before the text is written: exit 0,
     nothing on stderr (it printed "error: [Errno 32] Broken pipe" and exited 2)."""
     exe = Path(sys.executable).parent / "lidarscan"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "converters.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "converters.edge.cli"]
     bag = Path(__file__).parent / "data" / "nebula" / "velodyne_vls128" / "bag"
     read_end, write_end = os.pipe()
     os.close(read_end)                                   # nobody reads: the first write fails
@@ -441,7 +441,7 @@ def test_zstd_level_is_checked_and_written(tmp_path: Path, demo_mcap: Path,
 def test_read_ahead_gives_every_item_in_order_then_the_error_of_its_iterator() -> None:
     import threading
 
-    from converters.cli._common import _read_ahead
+    from converters.edge.cli._common import _read_ahead
 
     threads: set[str] = set()
 
@@ -462,7 +462,7 @@ def test_read_ahead_gives_every_item_in_order_then_the_error_of_its_iterator() -
 def test_leaving_a_read_ahead_early_closes_its_iterator_in_its_thread() -> None:
     import threading
 
-    from converters.cli._common import _read_ahead
+    from converters.edge.cli._common import _read_ahead
 
     before = threading.active_count()
     closed: list[str] = []
@@ -483,7 +483,7 @@ def test_leaving_a_read_ahead_early_closes_its_iterator_in_its_thread() -> None:
 def test_prepared_items_come_in_pairs_with_the_error_in_place_of_the_value() -> None:
     import threading
 
-    from converters.cli._common import _open_input
+    from converters.edge.cli._common import _open_input
     from lidarscan.errors import DecodeError
 
     bag = Path(__file__).parent / "data" / "nebula" / "velodyne_vls128" / "bag"

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from converters import cli
+from converters.edge import cli
 
 DATA = Path(__file__).parent / "data" / "nebula"
 VLP32 = DATA / "velodyne_vlp32"

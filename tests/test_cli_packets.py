@@ -12,7 +12,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from converters import cli, hesai, velodyne
+from converters.edge import cli
+
+from converters.sources.hesai import decoder as hesai
+
+from converters.sources import velodyne
 from lidarscan.mcap import read_scans
 
 DATA = Path(__file__).parent / "data" / "nebula"
@@ -117,7 +121,7 @@ def test_converted_velodyne_bag_reproduces_nebula_through_to_pointcloud2(
     180 deg in the blind part of the VLP-32C's 270..90 deg field of view) on the bag, re-read,
     projected by to_pointcloud2 (compiled kernel and numpy path): every return within 2 mm of
     Nebula's points, both ways (>= 99 % / >= 95 %)."""
-    from converters.pointcloud2 import PointCloud2Converter, read_points
+    from converters.pointcloud2.converter import PointCloud2Converter, read_points
     from pcd import read_pcd
     from test_velodyne_packets import RECORDINGS as TRUTH
     from test_velodyne_packets import _nearest, _within
@@ -220,7 +224,7 @@ def test_a_failing_output_stops_the_threads_and_leaves_no_file(
 
 def test_the_input_is_read_ahead_by_a_thread_unless_threads_is_1(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from converters.cli import _common
+    from converters.edge.cli import _common
 
     real = _common._read_ahead
     calls: list[int] = []

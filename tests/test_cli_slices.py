@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from converters import cli
-from converters.laserscan import SliceConverter
-from converters.nodes.tf import TransformBuffer
+from converters.edge import cli
+from converters.slices.converter import SliceConverter
+from converters.edge.nodes.tf import TransformBuffer
 from lidarscan.errors import ConfigError
 from lidarscan.mcap import McapWriter, read_messages, read_scans
 from lidarscan.stamps import to_ns
@@ -25,7 +25,7 @@ HOLES = {"min_height": -0.3, "max_height": 0.3, "holes": True, "floor_height": 0
 
 @pytest.fixture(scope="module")
 def demo_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from converters.demo import run_demo
+    from converters.edge.demo.run import run_demo
 
     return run_demo(tmp_path_factory.mktemp("demo"), frames=2, images=False).mcap_path
 

@@ -1,5 +1,5 @@
-"""PointCloud2 -> LidarScan + estimated LidarInfo (converters.cloud_import, re-exported by
-converters.pointcloud2): real ouster-ros clouds of real Ouster frames and our own driver-style
+"""PointCloud2 -> LidarScan + estimated LidarInfo (converters.sources.clouds.importer, re-exported by
+converters.pointcloud2.converter): real ouster-ros clouds of real Ouster frames and our own driver-style
 clouds re-estimated, big-endian float64 padded input, size and layout errors, a VLP-16-like ring
 cloud generated here from the Velodyne beam model (prior-art (b)).
 """
@@ -19,7 +19,7 @@ from lidarscan.errors import (
 
 pytest.importorskip("sensor_msgs.msg")
 
-from converters import pointcloud2 as pc
+from converters.pointcloud2 import converter as pc
 from cloud_oracles import (  # noqa: E402  (os2, tiny: fixtures)
     OS0,
     load_frame,

@@ -1,4 +1,4 @@
-"""Slices of unstructured PointCloud2s (converters.cloud_slices): against a plain per-point loop
+"""Slices of unstructured PointCloud2s (converters.slices.cloud): against a plain per-point loop
 written from the documented rules, against the structured slicer on a scan's own cloud, on
 every point layout (Livox 26-byte points, big-endian, float64 xyz), empty and all-NaN clouds,
 configuration errors, the compiled kernel's binning, and Hypothesis cases.
@@ -17,8 +17,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from converters._kernels import cloud_slices as cloud_kernel
-from converters.cloud_slices import CloudSliceConverter, cloud_points, cloud_to_laserscan
-from converters.laserscan import SliceSpec
+from converters.slices.cloud import CloudSliceConverter, cloud_points, cloud_to_laserscan
+from converters.slices.converter import SliceSpec
 from grid_reference import RANK, pose, ref_bin, ref_grid, ref_output
 from helpers import messages_by_topic
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
@@ -109,7 +109,7 @@ def ref_cloud_slice(xyz: Any, intensity: Any, *, zmin: float, zmax: float, ext: 
                     inc: float = math.pi / 360, rmin: float = 0.0, rmax: float = math.inf,
                     use_inf: bool = True, eps: float = 1.0, fill: float | None = None
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """One slice, point by point, from the rules of converters/cloud_slices.py's docstring.
+    """One slice, point by point, from the rules of converters/slices/cloud.py's docstring.
 
     ``xyz``: the coordinates as stored in the cloud (float32 or float64 values)."""
     m = np.eye(4) if ext is None else np.asarray(ext, float)
@@ -193,9 +193,9 @@ def test_slices_match_the_loop_oracle(case: str, backend: str,
 def os2_cloud() -> Any:
     """The real OS-2-128 frame (tests/data/ouster) as one unstructured (height 1) cloud: x, y,
     z, intensity float32 in 16-byte points, NaN points where there is no return."""
-    from converters.evidence._common import load_frame, ouster_files, ouster_info
-    from converters.ouster import scan_from_frame
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.edge.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.sources.ouster.metadata import scan_from_frame
+    from converters.pointcloud2.converter import to_pointcloud2
 
     meta, path = next((m, p) for m, p in ouster_files() if p is not None and "OS-2" in m.name)
     info = ouster_info(meta)
@@ -306,8 +306,8 @@ def test_agrees_with_to_laserscan_on_a_structured_scans_own_cloud() -> None:
     beyond that (here: none or a handful of 128 * 3). No-return pixels are +Inf in the scan's
     slices and missing (NaN points) in the cloud, whose empty bins get the default fill, +Inf:
     the published values agree there too."""
-    from converters.laserscan import SliceConverter
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.slices.converter import SliceConverter
+    from converters.pointcloud2.converter import to_pointcloud2
     from test_laserscan import BANDS, MOUNTS, make_sensor, room_scan
 
     info = make_sensor()
@@ -492,7 +492,7 @@ def test_atan2_polynomial_is_within_its_bound() -> None:
 def test_kernel_bins_equal_atan2_bins_at_the_edges(grid: tuple[float, float, float]) -> None:
     """Points exactly on, and 1e-12 .. 1e-6 rad around, every bin edge and the wrap point
     get the bin of the exact atan2 (the approximation defers to it near edges)."""
-    from converters._grid import AngleGrid
+    from converters.slices.spec import AngleGrid
     amin, amax, inc = grid
     g = AngleGrid.create(amin, amax, inc)
     edges = g.angle_min + (np.arange(-1, g.size + 1) + 0.5) * g.increment
@@ -563,7 +563,7 @@ def test_import_is_cheap() -> None:
 def test_cloud_slicer_of_the_node_parameters() -> None:
     """The node's parameters -> CloudSlicer (per cloud frame and extrinsics), the same slices
     as the library; a gridless cloud is no error for it."""
-    from converters.nodes import cloud_to_scan_node as c2s
+    from converters.edge.nodes import cloud_to_scan_node as c2s
 
     node, per_slice = c2s._specs()
     values = {s.name: s.default for s in node}
@@ -613,15 +613,15 @@ def _livox_mcap(path: Any, demo: Any) -> list[Any]:
 
 @pytest.fixture(scope="module")
 def demo_mcap(tmp_path_factory: pytest.TempPathFactory) -> Any:
-    from converters.demo import run_demo
+    from converters.edge.demo.run import run_demo
 
     return run_demo(tmp_path_factory.mktemp("demo"), frames=2, images=False).mcap_path
 
 
 def test_convert_slices_clouds_without_a_grid(tmp_path: Any, demo_mcap: Any,
                                               capsys: pytest.CaptureFixture[str]) -> None:
-    from converters import cli
-    from converters.nodes.tf import TransformBuffer
+    from converters.edge import cli
+    from converters.edge.nodes.tf import TransformBuffer
     from lidarscan.mcap import read_messages
 
     src, dst = tmp_path / "in.mcap", tmp_path / "out.mcap"
@@ -662,7 +662,7 @@ def test_cloud_to_scan_node_publishes_slices_of_a_gridless_cloud(graph: Any) -> 
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import LaserScan, PointCloud2
 
-    from converters.nodes.cloud_to_scan_node import CloudToScanNode
+    from converters.edge.nodes.cloud_to_scan_node import CloudToScanNode
 
     node = graph.add(CloudToScanNode(context=graph.context, parameter_overrides=[
         Parameter("slice_names", value=["low"]),

@@ -441,8 +441,8 @@ def test_compiled_coder_writes_the_reference_bytes_and_roundtrips(scan: Any,
 
 def test_compiled_coder_on_a_real_frame_and_its_switch(monkeypatch: Any) -> None:
     from converters._kernels import select
-    from converters.evidence._common import load_frame, ouster_files, ouster_info
-    from converters.ouster import scan_from_frame
+    from converters.edge.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.sources.ouster.metadata import scan_from_frame
     coder = _compiled()
     meta, path = next((m, p) for m, p in ouster_files() if p is not None)
     info = ouster_info(meta)
@@ -483,8 +483,8 @@ def test_real_frames_roundtrip_and_beat_zstd_of_the_buffer(range_encoding: str,
                                                            destagger: bool) -> None:
     import zstandard
 
-    from converters.evidence._common import load_frame, ouster_files, ouster_info
-    from converters.ouster import scan_from_frame
+    from converters.edge.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.sources.ouster.metadata import scan_from_frame
     for meta, frame_path in ouster_files():
         if frame_path is None:
             continue
@@ -552,8 +552,8 @@ def test_float_metres_of_coarser_units_use_the_coarser_grid(rng: np.random.Gener
 # ------------------------------------------------------------- MCAP channel and the CLI
 
 def _ouster_pair() -> tuple[Any, Any]:
-    from converters.evidence._common import load_frame, ouster_files, ouster_info
-    from converters.ouster import scan_from_frame
+    from converters.edge.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.sources.ouster.metadata import scan_from_frame
     meta, path = next((m, p) for m, p in ouster_files() if p is not None)
     info = ouster_info(meta)
     return info, scan_from_frame(load_frame(path), info, as_dataclass=True)
@@ -606,7 +606,7 @@ def test_mcap_writer_refuses_another_encoding_or_a_compressed_non_scan(tmp_path:
 
 def test_cli_convert_compress_and_back_is_bit_exact(tmp_path: Any,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
-    from converters import cli
+    from converters.edge import cli
     from lidarscan.mcap import CODEC_ENCODING, McapWriter, read_messages
     info, scan = _ouster_pair()
     plain = tmp_path / "plain.mcap"
@@ -631,7 +631,7 @@ def test_cli_convert_compress_and_back_is_bit_exact(tmp_path: Any,
 
 
 def test_a_rosbag2_directory_keeps_the_encoding(tmp_path: Any) -> None:
-    from converters.bags import open_bag
+    from converters.sources.bags import open_bag
     from lidarscan.mcap import CODEC_ENCODING, SCAN_TYPE, McapWriter
     info, scan = _ouster_pair()
     (tmp_path / "bag").mkdir()

@@ -431,7 +431,7 @@ def test_blocks_without_xpredict_sources_are_coded_as_version_2(case: str) -> No
 
 
 def test_real_ouster_frames_are_smaller_in_version_3_and_roundtrip() -> None:
-    from converters.evidence.compression import real_scans
+    from converters.edge.evidence.compression import real_scans
     coder = _compiled_x()
     for label, info, scan, _ in real_scans():
         v2 = codec.compress_scan(scan, info, coder=coder, version=2)

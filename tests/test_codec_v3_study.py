@@ -1,4 +1,4 @@
-"""The codec study compares like with like (converters.evidence.codec_study).
+"""The codec study compares like with like (converters.edge.evidence.codec_study).
 
 A dual-return frame's channels (both returns) are divided by every cloud the driver publishes
 for it (ouster-ros: ``points`` + ``points2``, two messages; the others: one cloud of every
@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 
 import lidarscan as ls
-from converters.evidence import codec_study
+from converters.edge.evidence import codec_study
 
 
 def test_second_return_view_and_first_return_scan() -> None:
-    from converters.evidence.compression import real_scans
+    from converters.edge.evidence.compression import real_scans
     label, info, scan, _ = next(r for r in real_scans() if r[0].endswith("dual"))
     assert ("range", "range2") in codec_study.second_return_pairs(scan)
     view = codec_study.second_return_view(scan)

@@ -299,7 +299,7 @@ def test_colcon_install_runs_from_its_own_prefix(installed: Path) -> None:
     ament = os.pathsep.join([str(installed / "lidarscan"), str(installed / "lidarscan_msgs"),
                              sys.prefix])
     env = clean_env(PYTHONPATH=paths, AMENT_PREFIX_PATH=ament)
-    code = ("import lidarscan, converters, lidarscan_msgs.msg, converters.nodes.converter_node;"
+    code = ("import lidarscan, converters, lidarscan_msgs.msg, converters.edge.nodes.converter_node;"
             "from ament_index_python.packages import get_package_prefix, "
             "get_package_share_directory as share;"
             "print(lidarscan.__file__); print(lidarscan_msgs.msg.__file__);"

@@ -1,4 +1,4 @@
-"""``lidarscan convert IN... OUT`` over many recordings (converters.cli.fleet): which paths are
+"""``lidarscan convert IN... OUT`` over many recordings (converters.edge.cli.fleet): which paths are
 recordings, the output names, calibration found next to each recording, outputs byte-identical
 to converting each recording alone whatever --jobs (and on Dask), resumable runs (a run killed
 half way, then run again), failure isolation, --force and no silent overwrite; and the .db3
@@ -19,8 +19,9 @@ from pathlib import Path
 
 import pytest
 
-from converters import bags, cli
-from converters.cli import fleet
+from converters import cli
+from converters.sources import bags
+from converters.edge.cli import fleet
 from lidarscan.errors import ConfigError
 
 DATA = Path(__file__).parent / "data" / "nebula"
@@ -292,7 +293,7 @@ def test_a_run_stopped_half_way_is_finished_by_running_it_again(
     removes the temporary files, skips what was done and converts the rest."""
     root, out = tmp_path / "in", tmp_path / "out"
     _slow_fleet(root, 4)
-    command = [sys.executable, "-m", "converters.cli", "convert", str(root), str(out), "-j", "2"]
+    command = [sys.executable, "-m", "converters.edge.cli", "convert", str(root), str(out), "-j", "2"]
     run = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.PIPE, text=True,
                            start_new_session=True)
     deadline = time.monotonic() + 120

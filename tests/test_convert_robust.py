@@ -31,7 +31,7 @@ H, W = 8, 64
 BASE = 1_700_000_000_000_000_000
 SCAN_T, INFO_T = "lidarscan_msgs/msg/LidarScan", "lidarscan_msgs/msg/LidarInfo"
 
-cli = pytest.importorskip("converters.cli")
+cli = pytest.importorskip("converters.edge.cli")
 
 
 def _info(stamp_ns: int = BASE, **fields: Any) -> Any:
@@ -145,7 +145,7 @@ def test_damaged_recording_loses_no_good_message_and_reports_every_bad_one(
     assert [ls.to_ns(c.header.stamp) for c in clouds] == scan_stamps
     assert [ls.to_ns(s.header.stamp) for s in slices] == scan_stamps
     # and with the right geometry: a cloud of the first good scan equals the exact projection
-    from converters.pointcloud2 import read_points
+    from converters.pointcloud2.converter import read_points
     pts = read_points(clouds[0])
     scan0 = ls.decode_scan(inputs[good[1][0]].payload)
     expected = ls.geometry.exact_xyz(_info(), ls.range_m(scan0))
@@ -179,7 +179,7 @@ def _big_recording(path: Path, scans: int) -> None:
                          log_time_ns=BASE + (k + 1) * 10_000_000)
 
 
-_MAIN = "import sys; from converters.cli import main; sys.exit(main(sys.argv[1:]))"
+_MAIN = "import sys; from converters.edge.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
 def _partial_size(folder: Path) -> int:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from converters import cli
+from converters.edge import cli
 from lidarscan.mcap import BadMessage, read_messages
 
 DATA = Path(__file__).parent / "data" / "nebula"
@@ -66,7 +66,7 @@ def test_same_messages_for_every_thread_count(name: str, tmp_path: Path) -> None
 def test_same_messages_with_a_reading_thread_that_waits(tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """A read-ahead of one message (the reader blocks on every put) changes nothing."""
-    from converters.cli import _common
+    from converters.edge.cli import _common
 
     monkeypatch.setattr(_common, "READ_AHEAD", 1)
     monkeypatch.setattr(_common._read_ahead, "__defaults__", (1,))

@@ -2,7 +2,7 @@
 pixel's time (a TransformTrack filled from the node's TransformBuffer), a scan is held until /tf
 covers its sweep, and dropped (counted, logged) when it cannot be.
 
-Oracles: :class:`converters.laserscan.SliceConverter` with an independently built
+Oracles: :class:`converters.slices.converter.SliceConverter` with an independently built
 TransformTrack (the composed chain looked up at the same /tf stamps: bit-identical slices); the
 mount's analytic pose (the track's poses match it); the fixed-mount slices (the motion must
 change them).
@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from converters.laserscan import SliceConverter
-from converters.nodes.converter_node import ConverterCore
-from converters.nodes.params import SliceConfig
-from converters.nodes.tf import TransformBuffer
-from converters.transforms import TransformTrack
+from converters.slices.converter import SliceConverter
+from converters.edge.nodes.converter_node import ConverterCore
+from converters.edge.nodes.params import SliceConfig
+from converters.edge.nodes.tf import TransformBuffer
+from converters.shared.transforms import TransformTrack
 from grid_reference import pose
 from lidarscan.errors import ConfigError
 from test_laserscan import make_sensor
@@ -185,7 +185,7 @@ def test_moving_needs_a_target_frame_and_hold_is_transparent_when_fixed() -> Non
 
 
 def test_node_parameters_document_moving_and_tf_wait() -> None:
-    from converters.nodes import converter_node
+    from converters.edge.nodes import converter_node
 
     text = converter_node.usage()
     assert "moving" in text and "tf_wait" in text and "tf_tolerance" in text
@@ -247,7 +247,7 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import LaserScan, PointCloud2
 
-    from converters.nodes.converter_node import ConverterNode
+    from converters.edge.nodes.converter_node import ConverterNode
     from test_nodes import overrides, same_floats, small_info, small_scan
 
     tf2_msgs = pytest.importorskip("tf2_msgs.msg")

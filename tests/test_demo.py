@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters import demo
+from converters.edge.demo import run as demo
 
 from helpers import messages_by_topic
 
@@ -31,7 +31,7 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     """The console script, as a new user runs it (a fresh process, default settings)."""
     out = tmp_path_factory.mktemp("demo_out")
     exe = Path(sys.executable).parent / "lidarscan"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "converters.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "converters.edge.cli"]
     env = {k: v for k, v in os.environ.items() if k != "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}
     done = subprocess.run(cmd + ["demo", "--out", str(out), "--frames", str(FRAMES)],
                           check=False, capture_output=True, text=True, timeout=120, env=env, cwd=out)
@@ -61,7 +61,7 @@ def test_demo_writes_recording_views_and_summary(demo_run: tuple[Path, str]) -> 
 
 def recording(demo_run: tuple[Path, str]) -> tuple[dict[str, list[Any]], Any]:
     """(messages by topic, a TransformBuffer filled from /tf_static and /tf) of the demo run."""
-    from converters.nodes.tf import TransformBuffer
+    from converters.edge.nodes.tf import TransformBuffer
 
     out, _ = demo_run
     topics = messages_by_topic(out / "demo.mcap")
@@ -130,7 +130,7 @@ def test_ray_casting_matches_a_loop_reference() -> None:
 
 def test_the_table_top_is_missed_by_the_2d_lidar_and_seen_by_the_slices(
         demo_run: tuple[Path, str]) -> None:
-    from converters import viz
+    from converters.edge.demo import viz
     topics, tf = recording(demo_run)
     scene = demo.room_scene()
     top = next(b for b in scene.boxes if b.name == "table" and b.lo[2] > 0.5)
@@ -164,8 +164,8 @@ def test_the_depth_camera_reports_the_stair_edge_that_no_band_sees(
     was cut from; the slice's hole edges lie on the stairwell's rim (at most a few cm beyond it,
     never in front of it), the same slice without holes sees only farther things there, and the
     merged scan carries the edge too."""
-    from converters import viz
-    from converters.depth import from_depth_image
+    from converters.edge.demo import viz
+    from converters.sources.depth import from_depth_image
     topics, tf = recording(demo_run)
     image = topics["/camera/depth/image_rect_raw"][-1].decode()
     scan, info = from_depth_image(image, topics["/camera/depth/camera_info"][-1].decode())
@@ -209,10 +209,9 @@ def test_demo_ships_its_metadata_with_provenance() -> None:
 
 
 def test_nothing_reads_the_shared_folder_at_run_time() -> None:
-    sources = [ROOT / "converters" / n for n in ("demo.py", "viz.py")]
-    sources += list((ROOT / "converters" / "cli").glob("*.py"))
-    sources += list((ROOT / "converters" / "nodes").glob("*.py"))
+    sources = list((ROOT / "converters").rglob("*.py")) + list((ROOT / "lidarscan").rglob("*.py"))
     sources += list((ROOT / "examples").glob("*.py"))
+    assert ROOT / "converters" / "edge" / "demo" / "run.py" in sources
     for source in sources:
         assert "/work/shared" not in source.read_text(), source
         assert "../shared" not in source.read_text(), source

@@ -1,4 +1,4 @@
-"""converters.depth: depth images -> LidarScan, against a plain per-pixel loop reference.
+"""converters.sources.depth: depth images -> LidarScan, against a plain per-pixel loop reference.
 
 Reference (written from the CameraInfo / OpenCV model definitions with ``math`` only): pixel
 (u, v) of the published image is full-sensor pixel (u*bx + roi_x, v*by + roi_y); rectified:
@@ -22,7 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import converters
-from converters.depth import DepthImageConverter, from_depth_image, pixel_rays
+from converters.sources.depth import DepthImageConverter, from_depth_image, pixel_rays
 from lidarscan import channel, geometry, types
 from lidarscan.stamps import to_ns
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
@@ -456,7 +456,7 @@ def test_plain_python_inputs_without_ros_types() -> None:
 
 def test_lazy_registration() -> None:
     assert converters.from_depth_image is from_depth_image
-    assert converters.depth.DepthImageConverter is DepthImageConverter
+    assert converters.sources.depth.DepthImageConverter is DepthImageConverter
 
 
 def test_lidar_info_fields() -> None:
@@ -567,7 +567,7 @@ def test_tilted_camera_slice_sees_the_box_not_the_floor(encoding: str) -> None:
     ci = camera_info(height=h, width=w, d=PLUMB_BOB,
                      k=[65.0, 0, 40.5, 0, 65.0, 29.5, 0, 0, 1])
     body_from_optical = np.eye(4)
-    body_from_optical[:3, :3] = converters.depth.OPTICAL_FROM_BODY.T
+    body_from_optical[:3, :3] = converters.sources.depth.OPTICAL_FROM_BODY.T
     base_from_optical = pose(x=0.1, z=0.6, pitch=math.radians(35)) @ body_from_optical
     box = ((1.0, 1.4), (-0.2, 0.3), (0.0, 0.4))
     rot, origin = base_from_optical[:3, :3], base_from_optical[:3, 3]

@@ -1,5 +1,5 @@
 """The converter node's depth-image input: Image + CameraInfo paired by exact stamps
-(:class:`converters.nodes.common.ExactSync`), converted by :mod:`converters.depth` and sliced
+(:class:`converters.edge.nodes.common.ExactSync`), converted by :mod:`converters.sources.depth` and sliced
 like a lidar, over real rclpy publishers and subscribers."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from converters.nodes.common import ExactSync
+from converters.edge.nodes.common import ExactSync
 from lidarscan.errors import ConfigError
 
 from test_nodes import Graph, graph, overrides, same_floats  # noqa: F401 - graph is a fixture
@@ -84,9 +84,9 @@ def _image(stamp_ns: int, depth_mm: np.ndarray[Any, Any]) -> Any:
 def test_converter_node_slices_a_depth_camera(graph: Graph) -> None:  # noqa: F811
     from sensor_msgs.msg import CameraInfo, Image, LaserScan
 
-    from converters.depth import DepthImageConverter
-    from converters.laserscan import SliceConverter
-    from converters.nodes.converter_node import ConverterNode
+    from converters.sources.depth import DepthImageConverter
+    from converters.slices.converter import SliceConverter
+    from converters.edge.nodes.converter_node import ConverterNode
 
     from lidarscan_msgs.msg import LidarInfo, LidarScan
 
@@ -159,7 +159,7 @@ def test_converter_node_slices_a_depth_camera(graph: Graph) -> None:  # noqa: F8
 @pytest.mark.ros
 def test_depth_input_needs_a_target_frame_and_refuses_bad_parameters(
         graph: Graph) -> None:  # noqa: F811
-    from converters.nodes.converter_node import ConverterNode
+    from converters.edge.nodes.converter_node import ConverterNode
 
     with pytest.raises(ConfigError, match="target_frame"):
         ConverterNode(context=graph.context, parameter_overrides=overrides(

@@ -1,4 +1,4 @@
-"""Motion compensation (converters.deskew) against slow references written from the definitions.
+"""Motion compensation (converters.shared.deskew) against slow references written from the definitions.
 
 * constant velocity: a loop over points with the closed-form SE(3) exponential written out with
   ``math``, and, independently of any closed form, a numerical integration of the body twist;
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters import deskew
+from converters.shared import deskew
 from lidarscan.errors import ConfigError, ValidationError
 
 # ----------------------------------------------------------------------------- references
@@ -184,7 +184,7 @@ def scan_info() -> tuple[Any, Any]:
 @pytest.mark.parametrize("preset", [None, "ouster", "velodyne"])
 def test_to_pointcloud2_deskews_every_pixel_with_its_time(scan_info: tuple[Any, Any],
                                                           preset: str | None) -> None:
-    from converters.pointcloud2 import read_points, to_pointcloud2
+    from converters.pointcloud2.converter import read_points, to_pointcloud2
     info, scan = scan_info
     proj = lidarscan.make_projector(info)
     motion = deskew.ConstantVelocity(LIN, ANG)
@@ -209,9 +209,9 @@ def test_to_pointcloud2_deskews_every_pixel_with_its_time(scan_info: tuple[Any, 
 
 
 def test_zero_motion_is_identity(scan_info: tuple[Any, Any]) -> None:
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.pointcloud2.converter import to_pointcloud2
     info, scan = scan_info
-    from converters.pointcloud2 import PointCloud2Converter
+    from converters.pointcloud2.converter import PointCloud2Converter
     still = to_pointcloud2(scan, info, motion=((0, 0, 0), (0, 0, 0)))
     # deskew works on the projector's r * D + O, like the numpy path (the compiled kernel's
     # factored form is a few float32 ulps away)

@@ -19,8 +19,8 @@ pytest.importorskip("rosbags")
 pytest.importorskip("sensor_msgs.msg")
 
 import lidarscan  # noqa: E402
-from converters import pointcloud2 as pc  # noqa: E402
-from converters import velodyne  # noqa: E402
+from converters.pointcloud2 import converter as pc  # noqa: E402
+from converters.sources import velodyne  # noqa: E402
 from lidarscan.errors import ConversionError  # noqa: E402
 
 import driver_clouds as dc  # noqa: E402

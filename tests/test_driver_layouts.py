@@ -27,7 +27,7 @@ pytest.importorskip("rosbags")
 pytest.importorskip("sensor_msgs.msg")
 
 import lidarscan  # noqa: E402
-from converters import pointcloud2 as pc  # noqa: E402
+from converters.pointcloud2 import converter as pc  # noqa: E402
 
 import driver_clouds as dc  # noqa: E402
 from cloud_oracles import make_cloud  # noqa: E402

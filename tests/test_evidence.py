@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from converters import evidence
-from converters.evidence import (
+from converters.edge import evidence
+from converters.edge.evidence import (
     _common,
     codec_study,
     compression,
@@ -95,7 +95,7 @@ def test_check_skips_library_dependent_blocks_when_versions_differ(tmp_path: Any
 
 
 def test_core_evidence_import_does_not_import_rclpy() -> None:
-    code = ("import sys, converters.evidence as e; from converters.evidence import sizes;"
+    code = ("import sys, converters.edge.evidence as e; from converters.edge.evidence import sizes;"
             "sizes.scan_bytes(sizes.LAYOUTS[0]); print('rclpy' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60, check=True)
@@ -319,7 +319,7 @@ def test_codec_study_has_every_real_sensor_and_every_driver_layout() -> None:
 
 def test_nebula_cloud_is_32_bytes_per_return_with_our_points() -> None:
     import lidarscan as ls
-    from converters.evidence import sensors
+    from converters.edge.evidence import sensors
     rec = next(r for r in sensors.measure() if r["sensor"] == "Hesai PandarQT64")
     scan, info = rec["scan"], rec["info"]
     raw = codec_study.nebula_cloud(scan, info)
@@ -375,10 +375,10 @@ def test_units_cover_every_real_sensor_and_recover_every_integer() -> None:
 
 
 def summary_codec_facts() -> list[dict[str, Any]]:
-    from converters.evidence import summary
+    from converters.edge.evidence import summary
     return summary.codec_facts()
 
 
 def fmt(n: int) -> str:
-    from converters.evidence._common import fmt_int
+    from converters.edge.evidence._common import fmt_int
     return fmt_int(n)

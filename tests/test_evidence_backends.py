@@ -2,7 +2,7 @@
 
 ``make evidence --check`` must give the same answer on a machine with the C kernels built and on
 one without (``LIDARSCAN_NO_KERNEL=1``): the deterministic sections run on the reference paths
-(:func:`converters.evidence.reference_backends`). Checked on the ``slicing`` section (a couple
+(:func:`converters.edge.evidence.reference_backends`). Checked on the ``slicing`` section (a couple
 of seconds), whose bin-by-bin comparison of slices from the scan and from a PointCloud2 changes
 when the cloud is written by the C kernel instead of numpy (a few float32 ulps per point); each
 backend runs in its own interpreter, so nothing is shared between them.
@@ -18,13 +18,13 @@ from typing import Any
 
 import pytest
 
-from converters.pointcloud2 import kernel_available
+from converters.pointcloud2.converter import kernel_available
 
 CHILD = """
 import json
-from converters import evidence
-from converters.evidence import slicing
-from converters.pointcloud2 import kernel_available
+from converters.edge import evidence
+from converters.edge.evidence import slicing
+from converters.pointcloud2.converter import kernel_available
 
 outside = slicing.slice_agreement()          # the enabled backend, outside the reference paths
 blocks = evidence.generate(fast=True, sections=["slicing"])
@@ -71,7 +71,7 @@ def test_numpy_reference_builds_numpy_converters_inside_only() -> None:
     import numpy as np
 
     import lidarscan
-    from converters.pointcloud2 import PointCloud2Converter, numpy_reference, to_pointcloud2
+    from converters.pointcloud2.converter import PointCloud2Converter, numpy_reference, to_pointcloud2
 
     info = lidarscan.make_info(stamp_ns=1_000, frame_id="lidar",
                                vertical_angles=np.radians([10.0, 0.0, -10.0]),

@@ -15,8 +15,8 @@ from typing import Any
 
 import pytest
 
-from converters import evidence
-from converters.evidence import codec_study, decision, summary
+from converters.edge import evidence
+from converters.edge.evidence import codec_study, decision, summary
 
 NAMES = ("decision-msgs", "decision-answers", "decision-compression", "decision-rejected")
 

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from converters import evidence
-from converters.evidence import linkage, vendor_mapping
+from converters.edge import evidence
+from converters.edge.evidence import linkage, vendor_mapping
 
 
 @pytest.fixture(scope="module")
@@ -162,7 +162,7 @@ def test_point_type_sizes() -> None:
     assert vendor_mapping.point_bytes("ouster-ros `original`") == (30, 48)
     assert vendor_mapping.point_bytes("velodyne XYZIRT") == (22, 22)
     assert vendor_mapping.point_bytes("Nebula PointXYZIRCAEDT") == (32, None)
-    from converters.evidence._common import PC2_LAYOUTS
+    from converters.edge.evidence._common import PC2_LAYOUTS
     # the same published steps as the layouts §1 sizes with
     assert PC2_LAYOUTS["ouster-ros original"][1] == 48
     assert PC2_LAYOUTS["velodyne XYZIRT"][1] == 22

@@ -1,4 +1,4 @@
-"""Section 4b of docs/proposal.md (real sensors, converters/evidence/sensors.py).
+"""Section 4b of docs/proposal.md (real sensors, converters/edge/evidence/sensors.py).
 
 Oracles: brute-force nearest distances, the Ouster vendor formula of tests/test_ouster.py, the
 PointCloud2 size of ``_common.pointcloud2_bytes`` for a layout it knows, and the check mode
@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from converters import evidence
-from converters.evidence import _common, sensors
+from converters.edge import evidence
+from converters.edge.evidence import _common, sensors
 
 NAMES = ("sensors-error", "sensors-claims", "sensors-fields", "sensors-size")
 

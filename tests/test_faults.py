@@ -604,7 +604,7 @@ def test_merger_node_core_restarts_after_a_clock_jump_backwards() -> None:
     assert all(o["a"] == o["b"] for o in after)
 
 
-# DEFECT FOUND (D11, fixed in converters/nodes/merger_node.py; this is its regression test), by
+# DEFECT FOUND (D11, fixed in converters/edge/nodes/merger_node.py; this is its regression test), by
 # bench/soak.py (2 % malformed LaserScans with a zero stamp): MergerCore.push used to take ONE
 # scan older than the newest stamp by more than jump_back (1 s) as a clock jump and restart the
 # merger, dropping every input's queue. Expected: such a scan is dropped as late, nothing resets.

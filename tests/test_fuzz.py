@@ -418,7 +418,7 @@ def test_schema_name_with_a_nul_byte_is_a_bad_message_not_a_crash() -> None:
 # ----------------------------------------------------------------------------- converters
 
 def _ouster() -> Any:
-    return pytest.importorskip("converters.ouster")
+    return pytest.importorskip("converters.sources.ouster.metadata")
 
 
 METADATA = ROOT / "converters" / "data" / "2_0_0_os1-992008000494-128_col_win_legacy.json"
@@ -482,7 +482,7 @@ def test_mutated_ouster_metadata_raises_only_our_errors(meta: Any) -> None:
         tracemalloc.stop()
 
 
-# DEFECTS FOUND (fixed meanwhile in converters/ouster.py; these are their regression tests). Found by bench/fuzz.py
+# DEFECTS FOUND (fixed meanwhile in converters/sources/ouster/metadata.py; these are their regression tests). Found by bench/fuzz.py
 # (ouster_json) and the property test above:
 # 1. Infinity (valid JSON for Python's json) in an integer field escapes as OverflowError
 #    from int(inf) in ouster._int (NaN is caught: int(nan) raises ValueError).
@@ -540,7 +540,7 @@ _ODD_FLOATS = st.sampled_from([math.nan, math.inf, -math.inf, 0.0, -0.1, 1e-300,
 def test_laserscan_sweep_inputs_raise_only_our_errors(count: int, rays: int, increment: float,
                                                       angle_min: float, inten_delta: int,
                                                       specials: list[float]) -> None:
-    sweep = pytest.importorskip("converters.sweep")
+    sweep = pytest.importorskip("converters.sources.sweep")
     ranges = np.linspace(0.5, 10, rays).astype(np.float32)
     for i, value in enumerate(specials):
         if rays:
@@ -554,10 +554,10 @@ def test_laserscan_sweep_inputs_raise_only_our_errors(count: int, rays: int, inc
 
 
 # DEFECT FOUND by test_laserscan_sweep_inputs_raise_only_our_errors, fixed meanwhile in
-# converters/sweep.py by its owner (kept as a regression test): a finite but huge angle_increment
+# converters/sources/sweep.py by its owner (kept as a regression test): a finite but huge angle_increment
 # made the last ray's angle overflow to inf, and math.cos(inf) raised ValueError.
 def test_sweep_huge_increment_is_a_validation_error() -> None:
-    sweep = pytest.importorskip("converters.sweep")
+    sweep = pytest.importorskip("converters.sources.sweep")
     with pytest.raises(LidarScanError):
         sweep.from_laserscan_sweep([_laser([1.0, 2.0, 3.0], angle_min=0.0,
                                            angle_increment=1e308)], [0.0], as_dataclass=True)
@@ -595,7 +595,7 @@ def _cloud(height: int, width: int, *, names: tuple[str, ...] = ("x", "y", "z", 
 
 
 def _from_pointcloud2() -> Any:
-    return pytest.importorskip("converters.pointcloud2").from_pointcloud2
+    return pytest.importorskip("converters.pointcloud2.converter").from_pointcloud2
 
 
 def _known_pc2_defect(cloud: Any) -> bool:
@@ -655,7 +655,7 @@ def test_inconsistent_pointcloud2_raises_only_our_errors(data: Any) -> None:
     _only_ours(run)
 
 
-# DEFECTS FOUND by bench/fuzz.py (target pointcloud2), fixed meanwhile in converters/pointcloud2.py
+# DEFECTS FOUND by bench/fuzz.py (target pointcloud2), fixed meanwhile in converters/pointcloud2/converter.py
 # by its owner (kept as regression tests). Each input is a well-formed empty or oversized cloud
 # that must give ConversionError/ValidationError, not a numpy exception:
 def test_empty_organized_cloud_with_time_field_is_a_conversion_error() -> None:
@@ -702,7 +702,7 @@ def test_inconsistent_rclpy_pointcloud2_raises_only_our_errors(changes: dict[str
     assert bytes(msg.data) == before  # never mutates the caller's message
 
 
-# DEFECT FOUND (fixed meanwhile in converters/pointcloud2.py; this is its regression test). Found by
+# DEFECT FOUND (fixed meanwhile in converters/pointcloud2/converter.py; this is its regression test). Found by
 # bench/fuzz.py (pointcloud2 case 4113): a 672-byte ring cloud (28 points, 4 rings) whose x field
 # is declared FLOAT64 at offset 0, overlapping y (so x holds garbage from 1e-315 to 1e10), makes
 # from_pointcloud2 run for ~70 s and allocate ~9.4 GB (tracemalloc peak) on this machine.
@@ -728,7 +728,7 @@ _GARBAGE_X_CLOUD = (
 
 
 def test_garbage_coordinates_cloud_is_bounded_in_time_and_memory() -> None:
-    pytest.importorskip("converters.pointcloud2")
+    pytest.importorskip("converters.pointcloud2.converter")
     code = """
 import resource, sys
 resource.setrlimit(resource.RLIMIT_AS, (3 * 2**29, 3 * 2**29))
@@ -736,7 +736,7 @@ resource.setrlimit(resource.RLIMIT_CPU, (20, 20))
 import numpy as np
 from lidarscan import types as lt
 from lidarscan.errors import LidarScanError
-from converters.pointcloud2 import from_pointcloud2
+from converters.pointcloud2.converter import from_pointcloud2
 PC = lt.message_class("sensor_msgs/msg/PointCloud2")
 PF = lt.message_class("sensor_msgs/msg/PointField")
 fields = tuple(PF(name=n, offset=o, datatype=d, count=1) for n, o, d in (
@@ -771,13 +771,13 @@ _UNSET: Any = object()
 
 
 def _slicer(*, slices: Any = _UNSET, **kw: Any) -> Any:
-    from converters.laserscan import SliceConverter
+    from converters.slices.converter import SliceConverter
     band = {"a": {"min_height": 0.0, "max_height": 1.0}}
     return SliceConverter(_slice_info(), band if slices is _UNSET else slices, **kw)
 
 
 def _one_slice(**kw: Any) -> Any:
-    from converters.laserscan import to_laserscan
+    from converters.slices.converter import to_laserscan
     info = _slice_info()
     scan = ls.make_scan(info, {"range": np.ones((H, W), np.float32)}, 5, as_dataclass=True)
     kw = {"min_height": 0.0, "max_height": 1.0, **kw}
@@ -790,7 +790,7 @@ def _merger(*, inputs: Any = _UNSET, **kw: Any) -> Any:
 
 
 def _spec(*args: Any, **kw: Any) -> Any:
-    from converters.laserscan import SliceSpec
+    from converters.slices.converter import SliceSpec
     return {"a": SliceSpec(*args, **kw)}
 
 
@@ -967,8 +967,8 @@ def test_byte_order_fuzz(seed: int, height: int, width: int, range_dtype: str,
     import importlib.util
 
     from converters._kernels import slices as _slicec
-    from converters.laserscan import SliceConverter
-    from converters.pointcloud2 import PointCloud2Converter, kernel_available
+    from converters.slices.converter import SliceConverter
+    from converters.pointcloud2.converter import PointCloud2Converter, kernel_available
     rng = np.random.default_rng(seed)
     fields: dict[str, Any] = {"range_multiplier": 0.001, "range_max": 40.0}
     if per_pixel:

@@ -375,8 +375,8 @@ def test_tables_destaggered_match_definition() -> None:
 
 def test_geometry_and_importers_do_not_import_rclpy() -> None:
     import subprocess
-    code = ("import sys, lidarscan.geometry, converters.ouster, converters.velodyne, "
-            "converters.sweep; sys.exit('rclpy' in sys.modules)")
+    code = ("import sys, lidarscan.geometry, converters.sources.ouster.metadata, converters.sources.velodyne, "
+            "converters.sources.sweep; sys.exit('rclpy' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 
 

@@ -1,4 +1,4 @@
-"""converters.hesai: real recordings against Nebula's ground truth, a loop oracle, edge cases.
+"""converters.sources.hesai.decoder: real recordings against Nebula's ground truth, a loop oracle, edge cases.
 
 The oracle (``_oracle``) is a plain per-packet, per-block, per-channel loop written from the
 vendor manuals' "point cloud data packet" layouts and firing-time appendices (byte offsets and
@@ -24,7 +24,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan
-from converters import _hesai_rotation, hesai
+from converters.sources.hesai import rotation as _hesai_rotation
+from converters.sources.hesai import decoder as hesai
 from lidarscan.errors import ConfigError, DecodeError
 from pcd import read_pcd
 

@@ -1,4 +1,4 @@
-"""converters.hesai with a vendor "Firetime Correction File": parser, built-in tables, pixel times.
+"""converters.sources.hesai.decoder with a vendor "Firetime Correction File": parser, built-in tables, pixel times.
 
 The vendor files in ``tests/data/hesai_firetimes`` are copies from Hesai's SDK (provenance and
 licence: ``HESAI_SDK_NOTICE.md`` there). The loop oracle of the 128 series' per-pixel times
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters import hesai
+from converters.sources.hesai import decoder as hesai
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from test_hesai import (DATA as NEBULA, RECORDINGS, _calibration_csv, _compare, _decoded,
                         _packets, _rows, _same)
@@ -337,7 +337,7 @@ def test_convert_takes_firetimes(tmp_path: Path, capsys: pytest.CaptureFixture[s
     """`lidarscan convert --firetimes FILE`: the decoder gets the file (the Pandar64 vendor
     file agrees with the built-in table: same scans, the info says so); a file that cannot
     be read or packets whose decoder takes none: exit 2 naming the problem."""
-    from converters import cli
+    from converters.edge import cli
     from lidarscan.mcap import read_scans
 
     bag, calib = NEBULA / "hesai_pandar64" / "bag", NEBULA / "hesai_pandar64" / "Pandar64.csv"

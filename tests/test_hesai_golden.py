@@ -31,7 +31,9 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from converters import _hesai_rotation, hesai  # noqa: E402
+from converters.sources.hesai import rotation as _hesai_rotation  # noqa: E402
+
+from converters.sources.hesai import decoder as hesai
 from test_velodyne_golden import digest  # noqa: E402  (the same hash of every field)
 
 DATA = Path(__file__).parent / "data" / "nebula"

@@ -1,4 +1,4 @@
-"""converters.hesai on the models without a recording in tests/data: PandarXT16, PandarXT32M
+"""converters.sources.hesai.decoder on the models without a recording in tests/data: PandarXT16, PandarXT32M
 (incl. triple return), PandarQT128, Pandar128E3X/E4X/OT128.
 
 Each golden packet is written here field by field from the manuals' byte tables (chapter 3
@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters import hesai
+from converters.sources.hesai import decoder as hesai
 from lidarscan.errors import DecodeError
 from test_hesai import _calibration_csv, _compare, _decoded, _one_by_one, _rows, _same
 

@@ -1,4 +1,4 @@
-"""converters.hesai on models, modes and packet options no recording covers.
+"""converters.sources.hesai.decoder on models, modes and packet options no recording covers.
 
 For every format of the decoder's table (Pandar40P, Pandar64, PandarXT16/XT32/XT32M,
 PandarQT64, PandarQT128, Pandar128E3X/E4X in standard and high resolution mode) and every
@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters import hesai
+from converters.sources.hesai import decoder as hesai
 from lidarscan.errors import ConfigError, DecodeError
 import test_hesai as old
 import test_hesai_models as new

@@ -1,4 +1,4 @@
-"""converters.hesai: the Pandar128's older firmware (protocol 1.3), synthetic packets built field
+"""converters.sources.hesai.decoder: the Pandar128's older firmware (protocol 1.3), synthetic packets built field
 by field from the Pandar128 user manual's layout (3.2.2 "UDP Data", Appendix II.1) against a
 plain loop oracle written here.
 
@@ -21,7 +21,7 @@ import struct
 import numpy as np
 import pytest
 
-from converters import hesai
+from converters.sources.hesai import decoder as hesai
 from lidarscan.errors import ConfigError, DecodeError
 from test_hesai import _calibration_csv, _compare, _decoded, _rows, _same
 

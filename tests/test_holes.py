@@ -3,10 +3,10 @@ seen by a lidar and by a depth camera with the reported edge checked analyticall
 default (bit-identical to the slicer without holes), a tilted sensor with target-frame limits,
 backend parity, validation, and a Hypothesis property against the oracle.
 
-``ref_slice`` below is written from the rules in the docstrings of converters/_holes.py and
-converters/_grid.py (the conventions a hole edge follows), one pixel at a time. Scenes are
+``ref_slice`` below is written from the rules in the docstrings of converters/slices/holes.py and
+converters/slices/spec.py (the conventions a hole edge follows), one pixel at a time. Scenes are
 axis-aligned boxes ray-cast from the projector's own beam tables
-(:meth:`converters.demo.Scene.cast`), so every geometry is exact.
+(:meth:`converters.edge.demo.run.Scene.cast`), so every geometry is exact.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import lidarscan
-from converters.demo import Box, Scene
-from converters.depth import OPTICAL_FROM_BODY, from_depth_image
-from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
+from converters.edge.demo.run import Box, Scene
+from converters.sources.depth import OPTICAL_FROM_BODY, from_depth_image
+from converters.slices.converter import SliceConverter, SliceSpec, to_laserscan
 from lidarscan.errors import ConfigError, LidarScanError
 from grid_reference import pose, ref_slice
 from test_laserscan import SPECIALS, draw_image
@@ -490,8 +490,8 @@ def test_property_matches_the_loop_oracle(case: Any) -> None:
 def test_node_parameters_and_slices_file_pass_the_hole_options(small_info: Any) -> None:
     from pathlib import Path
 
-    from converters.nodes import converter_node
-    from converters.nodes.params import load_slices_file
+    from converters.edge.nodes import converter_node
+    from converters.edge.nodes.params import load_slices_file
 
     node, per_slice = converter_node._specs()
     values = {s.name: s.default for s in node}

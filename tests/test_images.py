@@ -113,8 +113,8 @@ def test_encodings_header_and_step_per_rep_118(small_info: Any) -> None:
 
 def test_real_frames_roundtrip_through_rclpy_images() -> None:
     pytest.importorskip("sensor_msgs.msg")
-    from converters.evidence._common import load_frame, ouster_files, ouster_info
-    from converters.ouster import scan_from_frame
+    from converters.edge.evidence._common import load_frame, ouster_files, ouster_info
+    from converters.sources.ouster.metadata import scan_from_frame
     for meta, frame_path in ouster_files():
         if frame_path is None:
             continue

@@ -117,8 +117,8 @@ def test_the_install_is_plain_pip_without_message_packages(installed: Installed)
 @pytest.mark.slow
 def test_make_info_and_make_scan_work_without_lidarscan_msgs(installed: Installed) -> None:
     done = installed.python(
-        _MAKE + "from converters.demo import METADATA_PATH\n"
-        "from converters.ouster import info_from_metadata\n"
+        _MAKE + "from converters.edge.demo.run import METADATA_PATH\n"
+        "from converters.sources.ouster.metadata import info_from_metadata\n"
         "same = ls.decode_scan(ls.encode(scan))\n"
         "assert ls.encode(same) == ls.encode(scan) and ls.channel(same, 'range').max() == 4\n"
         "ouster = info_from_metadata(METADATA_PATH, stamp_ns=1)\n"
@@ -226,7 +226,7 @@ def test_with_lidarscan_msgs_make_scan_still_makes_the_rclpy_message() -> None:
 
 
 def test_a_node_without_lidarscan_msgs_prints_one_line() -> None:
-    done = _here(_HIDE + "from converters.nodes.converter_node import main\n"
+    done = _here(_HIDE + "from converters.edge.nodes.converter_node import main\n"
                          "sys.exit(main(['lidarscan-converter']))\n")
     assert done.returncode == 2, done.stderr
     line = _one_line(done.stderr)

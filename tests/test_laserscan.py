@@ -1,7 +1,7 @@
 """Height slices of LidarScans: against a plain-loop oracle, physics of a synthetic room, and
 every convention (REP 117 classes, inclusive limits, ties, staggering, time fields, errors).
 
-``ref_slice`` below is written from the rules in converters/_grid.py, one pixel at a time.
+``ref_slice`` below is written from the rules in converters/slices/spec.py, one pixel at a time.
 Scenes are ray-cast analytically from the projector's own beam tables, so a point's height and
 range are known exactly.
 """
@@ -19,7 +19,7 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 import lidarscan
-from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
+from converters.slices.converter import SliceConverter, SliceSpec, to_laserscan
 from lidarscan.errors import ConfigError, InfoMismatchError, LinkageError, UnknownChannelError
 from grid_reference import pose, ref_slice
 
@@ -214,7 +214,7 @@ def test_level_mount_sees_walls_and_table(sensor: Any) -> None:
 
 
 def test_laserscan_messages_equal_normally_built_ones(sensor: Any) -> None:
-    """Slices fill message slots directly (converters._rosmsg.bare_message): each must equal
+    """Slices fill message slots directly (converters.shared.rosmsg.bare_message): each must equal
     the message rosidl's constructor builds from the same values, and serialize alike."""
     from sensor_msgs.msg import LaserScan
 
@@ -698,7 +698,7 @@ def test_numba_is_optional() -> None:
     import sys
     code = ("import numpy as np, math, lidarscan\n"
             "from converters._kernels import slices_numba\n"
-            "from converters.laserscan import to_laserscan\n"
+            "from converters.slices.converter import to_laserscan\n"
             "from converters._kernels import slices as _slicec\n"
             "assert slices_numba.kernels() is None and not _slicec.available()\n"
             "info = lidarscan.make_info(stamp_ns=1, frame_id='l', vertical_angles=[0.0],\n"
@@ -726,7 +726,7 @@ def test_band_intervals_are_exact_float32_intervals() -> None:
     the interval ends and at random, including bands whose limits are exactly the height of
     some float32 range (inclusive boundaries), flat rays (+-0), downward rays, open and empty
     bands; non-points (+-Inf, NaN, 0, negative) are never inside."""
-    from converters import _grid
+    from converters.slices import spec as _grid
     rng = np.random.default_rng(5)
     n = 400
     dz = rng.normal(0.0, 0.5, n).astype(np.float32)
@@ -785,7 +785,7 @@ def test_row_kernel_matches_general_kernel_and_oracle(mount: str, n_slices: int,
     slice counts that are not a multiple of 4 or above 4, staggered or destaggered scans, and
     an off-axis mount (points closer than their far-field threshold: the atan2 path). One band
     ends exactly at the height of a pixel (inclusive boundaries)."""
-    from converters import _grid
+    from converters.slices import spec as _grid
     sensor = make_sensor(shifts=True)
     ext = MOUNTS[mount]
     scan = room_scan(sensor, ext, destagger=destagger)
@@ -829,7 +829,7 @@ def test_row_kernel_matches_general_kernel_and_oracle(mount: str, n_slices: int,
 def test_row_kernel_per_position_qualifiers() -> None:
     """The row kernel reads +Inf/NaN/-Inf qualifiers per row when they are the same in every
     bin, else per position; both give the same slices (here forced on the same tables)."""
-    from converters import _grid
+    from converters.slices import spec as _grid
     sensor = make_sensor()
     ext = MOUNTS["level"]
     scan = room_scan(sensor, ext)

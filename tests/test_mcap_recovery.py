@@ -221,7 +221,7 @@ def test_not_an_mcap_file_says_what_it_is(head: bytes, words: str) -> None:
 
 def test_convert_copies_every_good_message_and_lists_the_damage(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from converters import cli
+    from converters.edge import cli
 
     data = _recording()
     truth, chunks = _truth(data)

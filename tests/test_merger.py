@@ -1,7 +1,7 @@
 """LaserScanMerger and the shared angle grid: conventions, value classes, sync, odometry.
 
 Oracles: ``ref_grid`` / ``ref_bin`` / ``ref_merge`` below are plain loops written from the
-documented rules (converters/_grid.py and converters/merger.py docstrings).
+documented rules (converters/slices/spec.py and converters/merger.py docstrings).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import lidarscan
-from converters import _grid
-from converters._grid import AngleGrid
+from converters.slices import spec as _grid
+from converters.slices.spec import AngleGrid
 from converters.merger import LaserScanMerger, MergerInput, Pose, interpolate_pose
 from lidarscan.errors import ConfigError, ValidationError
 from lidarscan.types import Header, Time, message_class
@@ -1162,7 +1162,7 @@ class TestOdometry:
 def test_import_does_not_import_rclpy() -> None:
     import subprocess
     import sys
-    code = ("import sys, converters.merger, converters.laserscan; "
+    code = ("import sys, converters.merger, converters.slices.converter; "
             "sys.exit(1 if 'rclpy' in sys.modules else 0)")
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 

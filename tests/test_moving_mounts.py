@@ -2,7 +2,7 @@
 de-skew of a 2D laser on a pan unit turning during its sweep, in a static synthetic scene.
 
 Oracles: quaternion slerp written out with its sine formula (the track uses the rotation-vector
-form of :mod:`converters.deskew`), the normalised quaternion sum for the geodesic midpoint, and an
+form of :mod:`converters.shared.deskew`), the normalised quaternion sum for the geodesic midpoint, and an
 analytic ray caster that knows the pan unit's true angle at every ray's time.
 """
 
@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 
 import converters
 from converters.merger import LaserScanMerger, MergerInput
-from converters.nodes.tf import matrix_from_quaternion, matrix_from_xyz_rpy, quaternion_from_matrix
-from converters.transforms import OutOfSpanError, TransformLookupError, TransformTrack
+from converters.edge.nodes.tf import matrix_from_quaternion, matrix_from_xyz_rpy, quaternion_from_matrix
+from converters.shared.transforms import OutOfSpanError, TransformLookupError, TransformTrack
 from lidarscan.errors import ConfigError, LidarScanError, ValidationError
 from lidarscan.types import Header, Time, message_class
 from grid_reference import ref_bin, ref_grid
@@ -428,7 +428,7 @@ def test_moving_mount_with_odometry_compensation() -> None:
 
 def tf_buffer_with_pan(stamps: range) -> Any:
     """TransformBuffer: base_link -> pan_link (moving, /tf) -> pan_laser (static arm)."""
-    from converters.nodes.tf import TransformBuffer
+    from converters.edge.nodes.tf import TransformBuffer
 
     buf = TransformBuffer()
     arm = np.eye(4)
@@ -454,7 +454,7 @@ def test_transform_buffer_samples_chain_static_and_moving_edges() -> None:
 def test_transform_buffer_samples_two_moving_joints() -> None:
     """Stamps of both joints, each composite from the other joint interpolated; a stamp the
     other joint cannot reach (beyond the buffer's tolerance) is left out."""
-    from converters.nodes.tf import TransformBuffer
+    from converters.edge.nodes.tf import TransformBuffer
 
     buf = TransformBuffer(tolerance_ns=5)
     for t in (0, 100):
@@ -468,8 +468,8 @@ def test_transform_buffer_samples_two_moving_joints() -> None:
 
 
 def test_merger_core_moving_input_waits_for_tf_then_matches_truth() -> None:
-    from converters.nodes.merger_node import MergerCore
-    from converters.nodes.tf import TransformBuffer
+    from converters.edge.nodes.merger_node import MergerCore
+    from converters.edge.nodes.tf import TransformBuffer
 
     buf = TransformBuffer()
     arm = np.eye(4)
@@ -542,7 +542,7 @@ def test_merger_node_merges_a_moving_input_from_tf(graph: Any) -> None:
     laser's sweeps; the merged scan equals the static-scene truth."""
     from sensor_msgs.msg import LaserScan
 
-    from converters.nodes.merger_node import MergerNode
+    from converters.edge.nodes.merger_node import MergerNode
     from test_nodes import overrides
 
     tf2_msgs = pytest.importorskip("tf2_msgs.msg")

@@ -21,8 +21,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan
-from converters.laserscan import SliceConverter, SliceSpec, to_laserscan
-from converters.transforms import OutOfSpanError, TransformLookupError, TransformTrack
+from converters.slices.converter import SliceConverter, SliceSpec, to_laserscan
+from converters.shared.transforms import OutOfSpanError, TransformLookupError, TransformTrack
 from lidarscan.errors import ConfigError, ValidationError
 from grid_reference import pose, ref_slice
 from test_laserscan import BACKENDS, arrays, assert_same, make_sensor, raycast
@@ -290,11 +290,11 @@ MOVING_SPECS = {
 @pytest.mark.parametrize("specs", list(MOVING_SPECS))
 @pytest.mark.parametrize("variant", ["plain", "destaggered", "beam_times", "t_channel"])
 def test_per_scan_rays_equal_the_full_tables(specs: str, variant: str) -> None:
-    """The moving mount's per-scan path (:class:`converters.laserscan._MovingRays`: rays moved
+    """The moving mount's per-scan path (:class:`converters.slices.converter._MovingRays`: rays moved
     by the compiled transform, atan2 for every in-band point, qualifiers of the specials only)
     gives the slices of the full per-scan tables (the path before it, kept as the oracle) and
     of the numpy reference, bit for bit, over several scans of one converter."""
-    from converters.laserscan import _MovingRays
+    from converters.slices.converter import _MovingRays
 
     fields: dict[str, Any] = {}
     if variant == "beam_times":
@@ -322,7 +322,7 @@ def test_per_scan_rays_equal_the_full_tables(specs: str, variant: str) -> None:
 @NUMBA
 def test_compiled_transform_gives_the_bits_of_transform_rays() -> None:
     from converters._kernels.slices_numba import kernels
-    from converters.frames import transform_rays
+    from converters.shared.frames import transform_rays
 
     rng = np.random.default_rng(11)
     n, p = 5000, 37
@@ -369,8 +369,8 @@ def test_slice_warm_up_leaves_nothing_to_compile_for_a_moving_mount() -> None:
         import json, numpy as np, lidarscan
         from converters import TransformTrack
         from converters._kernels import warm
-        from converters.laserscan import SliceConverter
-        from converters.ouster import info_from_metadata, scan_from_frame
+        from converters.slices.converter import SliceConverter
+        from converters.sources.ouster.metadata import info_from_metadata, scan_from_frame
 
         warm.warm(("slices",))
         warmed = warm.specialisations()
@@ -397,10 +397,10 @@ def test_slice_warm_up_leaves_nothing_to_compile_for_a_moving_mount() -> None:
 @NUMBA
 def test_compiled_special_tables_equal_far_field_and_qualify() -> None:
     """The moving path's far-field bins and qualifiers of the special pixels equal the numpy
-    functions of the fixed-mount tables (converters._grid.far_field, qualify) on random rays
+    functions of the fixed-mount tables (converters.slices.spec.far_field, qualify) on random rays
     with horizontal, vertical and axis-aligned ones, open bands, sectors and range limits."""
-    from converters import _grid
-    from converters._grid import AngleGrid, OutputOptions
+    from converters.slices import spec as _grid
+    from converters.slices.spec import AngleGrid, OutputOptions
     from converters._kernels.slices_numba import Bands, kernels
 
     rng = np.random.default_rng(5)

@@ -14,9 +14,9 @@ from typing import Any
 
 import pytest
 
-from converters.nodes import cloud_to_scan_node, converter_node, merger_node
-from converters.nodes.common import ERROR, OK, WARN, LatencyWindow, RateMeter, Status
-from converters.nodes.params import ParamSpec
+from converters.edge.nodes import cloud_to_scan_node, converter_node, merger_node
+from converters.edge.nodes.common import ERROR, OK, WARN, LatencyWindow, RateMeter, Status
+from converters.edge.nodes.params import ParamSpec
 from lidarscan.errors import ConfigError
 
 MODULES = {"lidarscan-converter": converter_node, "lidarscan-merger": merger_node,

@@ -24,9 +24,9 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters.nodes import params as P
-from converters.nodes.common import LogLimiter
-from converters.nodes.tf import (
+from converters.edge.nodes import params as P
+from converters.edge.nodes.common import LogLimiter
+from converters.edge.nodes.tf import (
     TransformBuffer,
     TransformLookupError,
     matrix_from_quaternion,
@@ -154,9 +154,9 @@ def same_floats(a: Any, b: Any) -> bool:
 # ------------------------------------------------------------------------------ TF buffer
 
 def test_importing_nodes_cli_and_demo_does_not_import_rclpy() -> None:
-    code = ("import sys, converters.cli, converters.demo, converters.viz, converters.nodes, "
-            "converters.nodes.converter_node, converters.nodes.merger_node, "
-            "converters.nodes.cloud_to_scan_node, converters.nodes.tf, converters.nodes.params; "
+    code = ("import sys, converters.edge.cli, converters.edge.demo.run, converters.edge.demo.viz, converters.edge.nodes, "
+            "converters.edge.nodes.converter_node, converters.edge.nodes.merger_node, "
+            "converters.edge.nodes.cloud_to_scan_node, converters.edge.nodes.tf, converters.edge.nodes.params; "
             "assert 'rclpy' not in sys.modules, 'rclpy imported'; "
             "assert 'matplotlib' not in sys.modules, 'matplotlib imported'")
     env = {k: v for k, v in os.environ.items() if k != "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}
@@ -219,7 +219,7 @@ def test_transform_buffer_chains_interpolates_and_bounds() -> None:
 def test_transform_buffer_reads_tf_messages_and_rejects_bad_ones() -> None:
     from geometry_msgs.msg import TransformStamped
 
-    from converters.demo import tf_message
+    from converters.edge.demo.run import tf_message
 
     good = TransformStamped()
     good.header.frame_id, good.child_frame_id = "base_link", "laser"
@@ -296,7 +296,7 @@ def test_guard_counts_logs_and_swallows_errors_of_a_callback() -> None:
     """The one guard of the nodes' callbacks: a project error is counted as bad and logged in
     one line; any other exception is counted as internal and logged with its traceback; the
     rest of the callback is skipped (``failed``); KeyboardInterrupt is not swallowed."""
-    from converters.nodes.common import Guard
+    from converters.edge.nodes.common import Guard
     from lidarscan.errors import ValidationError
 
     lines: list[tuple[str, str]] = []
@@ -337,9 +337,9 @@ def test_guard_counts_logs_and_swallows_errors_of_a_callback() -> None:
 # ---------------------------------------------------------------------------------- cores
 
 def test_converter_core_matches_direct_converters_and_counts_bad_input() -> None:
-    from converters.laserscan import SliceConverter
-    from converters.nodes.converter_node import ConverterCore
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.slices.converter import SliceConverter
+    from converters.edge.nodes.converter_node import ConverterCore
+    from converters.pointcloud2.converter import to_pointcloud2
 
     info = small_info()
     scan = small_scan(info, 10**9)
@@ -369,7 +369,7 @@ def test_converter_core_matches_direct_converters_and_counts_bad_input() -> None
 
 def test_merger_core_resolves_mounts_and_rebuilds_on_change() -> None:
     from converters.merger import LaserScanMerger, MergerInput
-    from converters.nodes.merger_node import MergerCore
+    from converters.edge.nodes.merger_node import MergerCore
 
     scan_a = laser_scan("a_frame", 10**9, 2.0)
     scan_b = laser_scan("b_frame", 10**9 + 10**7, 3.0)
@@ -422,8 +422,8 @@ def laser_scan(frame: str, stamp_ns: int, value: float, n: int = 360) -> Any:
 
 
 def test_cloud_to_scan_core_keeps_one_info_until_the_geometry_changes() -> None:
-    from converters.nodes.cloud_to_scan_node import CloudToScanCore, geometry_matches
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.edge.nodes.cloud_to_scan_node import CloudToScanCore, geometry_matches
+    from converters.pointcloud2.converter import to_pointcloud2
 
     info = small_info()
     core = CloudToScanCore()
@@ -459,7 +459,7 @@ CONFIG = Path(__file__).resolve().parent.parent / "config"
 @pytest.mark.parametrize("name", ["converter", "merger", "cloud_to_scan"])
 def test_config_yaml_files_start_the_nodes(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     rclpy = pytest.importorskip("rclpy")
-    from converters.nodes import cloud_to_scan_node, converter_node, merger_node
+    from converters.edge.nodes import cloud_to_scan_node, converter_node, merger_node
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     module = {"converter": converter_node, "merger": merger_node,
@@ -492,9 +492,9 @@ def test_converter_node_end_to_end(graph: Graph) -> None:
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import LaserScan, PointCloud2
 
-    from converters.laserscan import SliceConverter
-    from converters.nodes.converter_node import ConverterNode
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.slices.converter import SliceConverter
+    from converters.edge.nodes.converter_node import ConverterNode
+    from converters.pointcloud2.converter import to_pointcloud2
 
     info = small_info()
     # the info is latched: published BEFORE the node exists, it still reaches it
@@ -539,7 +539,7 @@ def test_converter_node_end_to_end(graph: Graph) -> None:
 def test_converter_node_is_lazy_without_subscribers(graph: Graph) -> None:
     from lidarscan_msgs.msg import LidarInfo, LidarScan
 
-    from converters.nodes.converter_node import ConverterNode
+    from converters.edge.nodes.converter_node import ConverterNode
 
     info = small_info()
     graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
@@ -556,8 +556,8 @@ def test_converter_node_takes_extrinsics_from_tf_static(graph: Graph) -> None:
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import LaserScan
 
-    from converters.laserscan import SliceConverter
-    from converters.nodes.converter_node import ConverterNode
+    from converters.slices.converter import SliceConverter
+    from converters.edge.nodes.converter_node import ConverterNode
 
     tf2_msgs = pytest.importorskip("tf2_msgs.msg")
     info = small_info()
@@ -591,7 +591,7 @@ def test_merger_node_merges_and_survives_bad_input(graph: Graph) -> None:
     from sensor_msgs.msg import LaserScan
 
     from converters.merger import LaserScanMerger, MergerInput
-    from converters.nodes.merger_node import MergerNode
+    from converters.edge.nodes.merger_node import MergerNode
 
     out = graph.collect(LaserScan, "scan_merged")
     pub_a = graph.publisher(LaserScan, "front/scan", "sensor_data")
@@ -632,8 +632,8 @@ def test_cloud_to_scan_node_latches_one_info(graph: Graph) -> None:
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import PointCloud2
 
-    from converters.nodes.cloud_to_scan_node import CloudToScanNode
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.edge.nodes.cloud_to_scan_node import CloudToScanNode
+    from converters.pointcloud2.converter import to_pointcloud2
 
     info = small_info()
     cloud_pub = graph.publisher(PointCloud2, "points", "sensor_data")
@@ -672,9 +672,9 @@ def _script(name: str) -> list[str]:
     path = VENV_BIN / name
     if path.exists():
         return [str(path)]
-    module = {"lidarscan-converter": "converters.nodes.converter_node",
-              "lidarscan-merger": "converters.nodes.merger_node",
-              "lidarscan-cloud-to-scan": "converters.nodes.cloud_to_scan_node"}[name]
+    module = {"lidarscan-converter": "converters.edge.nodes.converter_node",
+              "lidarscan-merger": "converters.edge.nodes.merger_node",
+              "lidarscan-cloud-to-scan": "converters.edge.nodes.cloud_to_scan_node"}[name]
     return [sys.executable, "-m", module]
 
 
@@ -708,7 +708,7 @@ def test_console_script_stops_cleanly_on_ctrl_c(script: str, tmp_path: Path) -> 
 _CTRL_C_WHILE_BUILDING = """
 import os, signal, sys, time
 import rclpy
-from converters.nodes.common import run_node
+from converters.edge.nodes.common import run_node
 
 def make_node():
     node = rclpy.create_node("ctrl_c_while_building")
@@ -748,7 +748,7 @@ def test_console_script_rejects_bad_parameters() -> None:
 
 
 def test_merger_core_restarts_after_a_clock_jump_back() -> None:
-    from converters.nodes.merger_node import MergerCore
+    from converters.edge.nodes.merger_node import MergerCore
 
     events: list[str] = []
     core = MergerCore({"a": {}, "b": {}}, frame_id="base_link", on_event=events.append,
@@ -796,8 +796,8 @@ def test_converter_parameters_are_checked_and_applied_live(graph: Graph) -> None
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import LaserScan
 
-    from converters.laserscan import SliceConverter
-    from converters.nodes.converter_node import ConverterNode
+    from converters.slices.converter import SliceConverter
+    from converters.edge.nodes.converter_node import ConverterNode
 
     info = small_info()
     graph.publisher(LidarInfo, "lidar_info", "latched").publish(info)
@@ -843,7 +843,7 @@ def test_converter_parameters_are_checked_and_applied_live(graph: Graph) -> None
 def test_merger_parameters_are_checked_and_applied_live(graph: Graph) -> None:
     from sensor_msgs.msg import LaserScan
 
-    from converters.nodes.merger_node import MergerNode
+    from converters.edge.nodes.merger_node import MergerNode
 
     out = graph.collect(LaserScan, "scan_merged")
     pub_a = graph.publisher(LaserScan, "a")
@@ -884,8 +884,8 @@ def test_nodes_publish_diagnostics_with_linkage_state(graph: Graph) -> None:
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import PointCloud2
 
-    from converters.nodes.cloud_to_scan_node import CloudToScanNode
-    from converters.nodes.converter_node import ConverterNode
+    from converters.edge.nodes.cloud_to_scan_node import CloudToScanNode
+    from converters.edge.nodes.converter_node import ConverterNode
 
     arrays = graph.collect(DiagnosticArray, "/diagnostics", "reliable")
     scan_pub = graph.publisher(LidarScan, "lidar_scan")

@@ -1,4 +1,4 @@
-"""converters.ouster on real Ouster metadata and frames (tests/data/ouster, see NOTICE.md).
+"""converters.sources.ouster.metadata on real Ouster metadata and frames (tests/data/ouster, see NOTICE.md).
 
 The oracle is the vendor's "lidar range to XYZ" formula (prior-art.md section (b)), written here
 directly from the metadata JSON (degrees, millimetres) without any project code::
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters import ouster
+from converters.sources.ouster import metadata as ouster
 from lidarscan import geometry
 from lidarscan.errors import DecodeError, LidarScanError, ValidationError
 

@@ -1,4 +1,4 @@
-"""LidarScan <-> PointCloud2 (converters.pointcloud2).
+"""LidarScan <-> PointCloud2 (converters.pointcloud2.converter).
 
 Layers: exact preset layouts (pinned from the driver sources named in prior-art); a slow
 struct.unpack reader written here as the oracle for values; an independent numpy version of the
@@ -31,7 +31,7 @@ from lidarscan.errors import (
 
 pytest.importorskip("sensor_msgs.msg")
 
-from converters import pointcloud2 as pc
+from converters.pointcloud2 import converter as pc
 from converters._kernels import cloud as kc
 from cloud_oracles import (  # noqa: E402  (os2, tiny: fixtures)
     F32,
@@ -339,7 +339,7 @@ def test_errors(tiny: tuple[Any, Any]) -> None:
 
 
 def test_import_does_not_load_rclpy() -> None:
-    code = ("import sys, converters.pointcloud2, converters.deskew; "
+    code = ("import sys, converters.pointcloud2.converter, converters.shared.deskew; "
             "assert 'rclpy' not in sys.modules, 'rclpy imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).parents[1])
 
@@ -519,11 +519,11 @@ def test_layouts_with_padding_never_recycle(tiny: tuple[Any, Any]) -> None:
 
 
 def test_cloud_messages_equal_normally_built_ones(tiny: tuple[Any, Any]) -> None:
-    """The converter fills message slots directly (converters._rosmsg.bare_message): the result
+    """The converter fills message slots directly (converters.shared.rosmsg.bare_message): the result
     must equal the message rosidl's constructor builds from the same values."""
     from sensor_msgs.msg import PointCloud2
 
-    from converters._rosmsg import bare_message
+    from converters.shared.rosmsg import bare_message
 
     info, scan = tiny
     cloud = pc.to_pointcloud2(scan, info, preset="ouster")

@@ -1,5 +1,5 @@
 """The compiled PointCloud2 kernel (converters._kernels.cloud, arguments from
-converters._cloud_kernel) against the numpy reference: bit-identical clouds for every preset,
+converters.pointcloud2.kernel) against the numpy reference: bit-identical clouds for every preset,
 field, source dtype and order, the canonical NaN, its C contract against a loop oracle, the
 factored beam model against its float32 oracle, the switches (kernel=, LIDARSCAN_NO_KERNEL).
 """
@@ -23,7 +23,7 @@ from lidarscan.errors import ConfigError
 
 pytest.importorskip("sensor_msgs.msg")
 
-from converters import pointcloud2 as pc
+from converters.pointcloud2 import converter as pc
 from converters._kernels import cloud as kc
 from cloud_oracles import (  # noqa: E402  (os2, tiny: fixtures)
     Spy,
@@ -312,7 +312,7 @@ _NO_KERNEL_SCRIPT = """
 import hashlib, sys
 import numpy as np
 import lidarscan
-from converters import pointcloud2 as pc
+from converters.pointcloud2 import converter as pc
 from converters._kernels import cloud as kc
 from lidarscan.errors import ConfigError
 sys.path.insert(0, sys.argv[1])

@@ -211,7 +211,7 @@ def replay(mcap_path: Path, channels: dict[str, tuple[str, QosProfile]],
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
 
-    from converters.nodes import converter_node
+    from converters.edge.nodes import converter_node
 
     types = {INFO_TYPE: LidarInfo, SCAN_TYPE: LidarScan}
     messages = [m for m in read_messages(mcap_path) if m.topic in channels]

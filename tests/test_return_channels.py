@@ -77,7 +77,7 @@ TRIPLE = ("range", "intensity", "range2", "intensity2", "range3", "intensity3")
 def test_the_codec_study_drops_every_later_return_from_the_first_return_scan() -> None:
     """A triple-return scan's (Hesai PandarXT32M mode 0x3D) first-return channels exclude the
     third return too (they used to keep ``range3`` and ``intensity3``)."""
-    from converters.evidence import codec_study
+    from converters.edge.evidence import codec_study
 
     scan, info = _scan(TRIPLE)
     first = codec_study.first_return_scan(scan, info)
@@ -90,8 +90,8 @@ def test_the_codec_study_drops_every_later_return_from_the_first_return_scan() -
 def test_the_nebula_cloud_carries_every_return() -> None:
     """Nebula publishes every return of every firing: the third return's points too, with
     return_type 3 and the third return's intensity (it used to stop at ``range2``)."""
-    from converters.evidence import codec_study
-    from converters.evidence.sensors import NEBULA_STEP
+    from converters.edge.evidence import codec_study
+    from converters.edge.evidence.sensors import NEBULA_STEP
 
     scan, info = _scan(TRIPLE)
     cloud = np.frombuffer(codec_study.nebula_cloud(scan, info), np.uint8).reshape(-1, NEBULA_STEP)

@@ -19,9 +19,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan
-from converters import _grid
+from converters.slices import spec as _grid
 from converters._kernels import slices as _slicec
-from converters.laserscan import SliceConverter, SliceSpec
+from converters.slices.converter import SliceConverter, SliceSpec
 from grid_reference import pose
 from test_laserscan import (MOUNTS, SPECIALS, TWO_PI, arrays, draw_image, make_sensor,
                             ref_slice, room_scan)

@@ -4,7 +4,7 @@ interpolated in the compiled pass (``Compiled.track_rays``) instead of one
 ``TransformTrack.lookup_many`` pose per distinct pixel time.
 
 Oracles: the per-time path (``SliceConverter._per_pixel = False``: ``np.unique`` of the pixel
-times, ``lookup_many``, :func:`converters.frames.transform_rays`' arithmetic), which the
+times, ``lookup_many``, :func:`converters.shared.frames.transform_rays`' arithmetic), which the
 pixel-loop oracle of tests/test_moving_slices.py checks, and the numpy backend. The stated bound:
 the kernel's float64 rotation may differ from numpy's in its last bits, so a float32 ray
 component is the reference's or its float32 neighbour (1 ulp), and almost always the same bits.
@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 import lidarscan
-from converters.frames import transform_rays
-from converters.laserscan import SliceConverter, SliceSpec
-from converters.transforms import (
+from converters.shared.frames import transform_rays
+from converters.slices.converter import SliceConverter, SliceSpec
+from converters.shared.transforms import (
     OutOfSpanError,
     TransformTrack,
     interpolate_poses,
@@ -96,7 +96,7 @@ def test_per_pixel_poses_give_the_slices_of_the_per_time_path(specs: str) -> Non
     converter (its kept pixel times reused). Beam offsets and a ``t`` channel without
     destaggering: tests/test_moving_slices.py::test_per_scan_rays_equal_the_full_tables,
     whose compiled converter takes this path too (asserted here)."""
-    from converters._slice_tables import _MovingRays
+    from converters.slices.tables import _MovingRays
 
     info = make_sensor(16, 256, shifts=True,
                        beam_time_offsets=(np.arange(16) * 31_000).astype(np.int64))

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from converters.nodes.common import Startup, warm_up
+from converters.edge.nodes.common import Startup, warm_up
 from lidarscan.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,7 +48,7 @@ def _numba() -> None:
 _SCANS = """
 import json, numpy as np, lidarscan, converters
 from converters._kernels import warm
-from converters.ouster import info_from_metadata, scan_from_frame
+from converters.sources.ouster.metadata import info_from_metadata, scan_from_frame
 
 D = "tests/data/ouster/"
 info = info_from_metadata(D + "OS-2-128-U1_v2.3.0_1024x10.json", stamp_ns=1, as_dataclass=True)
@@ -201,8 +201,8 @@ _NODE = """
 import json, time, os, numpy as np, rclpy, lidarscan
 from rclpy.parameter import Parameter
 from converters._kernels import warm
-from converters.nodes.converter_node import ConverterNode
-from converters.ouster import info_from_metadata, scan_from_frame
+from converters.edge.nodes.converter_node import ConverterNode
+from converters.sources.ouster.metadata import info_from_metadata, scan_from_frame
 
 D = "tests/data/ouster/"
 info = info_from_metadata(D + "OS-2-128-U1_v2.3.0_1024x10.json", stamp_ns=7, as_dataclass=True)
@@ -267,10 +267,10 @@ def test_cloud_slicer_warm_up_leaves_nothing_to_compile_for_a_driver_cloud() -> 
         import json, sys, numpy as np
         from converters import _kernels
         from converters._kernels.warm import probe_cloud
-        from converters.nodes.cloud_to_scan_node import CloudSlicer
-        from converters.nodes.params import SliceConfig
-        from converters.ouster import info_from_metadata, scan_from_frame
-        from converters.pointcloud2 import to_pointcloud2
+        from converters.edge.nodes.cloud_to_scan_node import CloudSlicer
+        from converters.edge.nodes.params import SliceConfig
+        from converters.sources.ouster.metadata import info_from_metadata, scan_from_frame
+        from converters.pointcloud2.converter import to_pointcloud2
 
         kernel = _kernels.select("cloud_slices").c
         slicer = CloudSlicer([SliceConfig("mid", -0.5, 0.5, "slices/mid"),

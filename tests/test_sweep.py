@@ -1,4 +1,4 @@
-"""converters.sweep: tilting-laser LaserScans -> LidarScan, against a per-ray loop reference.
+"""converters.sources.sweep: tilting-laser LaserScans -> LidarScan, against a per-ray loop reference.
 
 Reference: ray i of scan k at angle a = angle_min + i*inc, range r, joint angle q about a unit
 axis k (Rodrigues, written with math only): P = R(q) (laser_offset + r (cos a, sin a, 0)).
@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan
-from converters.sweep import from_laserscan_sweep, rotation_matrix
+from converters.sources.sweep import from_laserscan_sweep, rotation_matrix
 from lidarscan import geometry, types
 from lidarscan.errors import ValidationError
 

@@ -1,4 +1,4 @@
-"""One pose interpolation (converters.transforms.interpolate_poses) behind every user: the
+"""One pose interpolation (converters.shared.transforms.interpolate_poses) behind every user: the
 TransformTrack, OdometryPair de-skew, the nodes' TransformBuffer and the merger's odometry.
 
 Oracle: quaternion slerp written out with its sine formula and a plain lerp of the translation
@@ -16,11 +16,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from converters import deskew, transforms
+from converters.shared import deskew
+
+from converters.shared import transforms
 from converters.merger import Pose, interpolate_pose
-from converters.nodes.tf import (TransformBuffer, matrix_from_quaternion, quaternion_from_matrix,
+from converters.edge.nodes.tf import (TransformBuffer, matrix_from_quaternion, quaternion_from_matrix,
                                  slerp)
-from converters.transforms import TransformTrack, interpolate_poses
+from converters.shared.transforms import TransformTrack, interpolate_poses
 from lidarscan.errors import ConfigError
 from test_moving_mounts import ref_slerp
 
@@ -107,7 +109,7 @@ def test_tf_slerp_is_the_shared_slerp() -> None:
 
 
 def test_helpers_moved_with_their_old_names() -> None:
-    """pose_matrix stays importable from converters.deskew (moved to converters.transforms)."""
+    """pose_matrix stays importable from converters.shared.deskew (moved to converters.shared.transforms)."""
     assert deskew.pose_matrix is transforms.pose_matrix
     with pytest.raises(ConfigError):
         transforms.pose_matrix(np.diag([2.0, 1, 1, 1]))

@@ -1,4 +1,4 @@
-"""converters.velodyne against a per-point reference of the velodyne_pointcloud formula.
+"""converters.sources.velodyne against a per-point reference of the velodyne_pointcloud formula.
 
 ``_rawdata_point`` follows the point computation of ros-drivers/velodyne ``rawdata.cpp`` as
 described in prior-art.md (b) (re-derived here, math only): distance = raw * resolution, plus
@@ -20,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lidarscan
-from converters import velodyne
+from converters.sources import velodyne
 from lidarscan import geometry
 from lidarscan.errors import DecodeError, ValidationError
 

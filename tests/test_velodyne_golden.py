@@ -27,7 +27,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from converters.velodyne import MODELS, PacketDecoder, decode_packets  # noqa: E402
+from converters.sources.velodyne import MODELS, PacketDecoder, decode_packets  # noqa: E402
 
 DATA = Path(__file__).parent / "data" / "nebula"
 REAL = {"velodyne_vlp32": ("VLP32.yaml", 180.0), "velodyne_vls128": ("VLS128.yaml", 0.0)}
@@ -73,7 +73,7 @@ def _real_packets(folder: str, tmp_path: Path) -> list[tuple[int, bytes]]:
 
 
 def _synthetic(name: str, mode: str) -> tuple[list[tuple[int, bytes]], dict[str, Any]]:
-    from converters.velodyne.packets import _layout
+    from converters.sources.velodyne.packets import _layout
     from test_velodyne_packets import _random_calibration, synthetic_stream
     product = PRODUCTS[name]
     per_packet = _layout(product, MODES[mode]).sequences       # ~3.3 turns, then a slower one
@@ -149,7 +149,7 @@ def _compute(case: str, tmp_path: Path) -> list[str]:
     parts = case.split("/")
     if parts[0] in REAL:
         calib_name, cut = REAL[parts[0]]
-        from converters.velodyne import load_calibration
+        from converters.sources.velodyne import load_calibration
         calib = load_calibration(DATA / parts[0] / calib_name)
         packets = _real_packets(parts[0], tmp_path)
         return _three_ways(packets, calib, cut_angle_deg=cut, azimuth_model=parts[1])

@@ -1,4 +1,4 @@
-"""converters.velodyne packet decoding: real recordings vs ground truth, a loop oracle, edge cases.
+"""converters.sources.velodyne packet decoding: real recordings vs ground truth, a loop oracle, edge cases.
 
 The oracle (``_oracle``) is a plain per-packet, per-sequence, per-laser loop written from the
 user manuals (VLP-16, VLP-32C, HDL-32E, VLS-128 "data packet structure" and "timing"
@@ -36,9 +36,9 @@ from hypothesis import strategies as st
 import lidarscan
 import lidarscan.geometry
 import lidarscan.stamps
-from converters import velodyne
-from converters.velodyne import MODELS, PacketDecoder, decode_packets
-from converters.velodyne.packets import _layout
+from converters.sources import velodyne
+from converters.sources.velodyne import MODELS, PacketDecoder, decode_packets
+from converters.sources.velodyne.packets import _layout
 from lidarscan.errors import ConfigError, DecodeError, LidarScanError
 from pcd import read_pcd
 from test_velodyne import _rawdata_point    # the ros-drivers point formula (per point)
@@ -621,7 +621,7 @@ def test_model_and_return_mode_change_make_a_new_info_version() -> None:
 
 
 def test_a_packet_of_another_model_mid_stream_raises_and_is_dropped() -> None:
-    """One decoder per sensor (as converters.hesai): a valid packet of another model in the
+    """One decoder per sensor (as converters.sources.hesai.decoder): a valid packet of another model in the
     middle of a VLP-32C stream raises a DecodeError naming both models and is dropped; the
     rotation in progress is not split (push, decode_packets, push_many with and without an
     error list, by rows or by a table of the payloads)."""
@@ -745,7 +745,7 @@ def test_push_many_equals_push_and_keeps_no_view(name: str) -> None:
 
 
 def test_push_many_keeps_bytes_backed_rows_by_reference() -> None:
-    from converters.velodyne.decoder import _immutable
+    from converters.sources.velodyne.decoder import _immutable
     product = PRODUCTS[sorted(PRODUCTS)[0]]
     calib = _random_calibration(MODELS[product].lasers, 13)
     packets = synthetic_stream(product, 0x39, 150, deg_per_sequence=1.3)
@@ -814,7 +814,7 @@ def test_c_header_check_equals_the_numpy_checks(name: str) -> None:
     pass per model and mode, over rows, strided rows or a table of separate payloads) against
     its numpy checks (the decoder without a kernel): one defect at a time, in a random row."""
     from converters._kernels import velodyne as kernel
-    from converters.velodyne.packets import _Table
+    from converters.sources.velodyne.packets import _Table
     lib = kernel.library()
     if lib is None:
         pytest.skip("converters._kernels._velokernel is not built")
@@ -870,8 +870,8 @@ def test_c_header_check_equals_the_numpy_checks(name: str) -> None:
 
 def test_vls128_edges_favour_the_manual_firing_times() -> None:
     """Real VLS-128 rotations: vertical edges line up across adjacent beams under the manual's
-    firing times, not under Nebula's (converters.evidence.velodyne_timing)."""
-    from converters.evidence import velodyne_timing
+    firing times, not under Nebula's (converters.edge.evidence.velodyne_timing)."""
+    from converters.edge.evidence import velodyne_timing
 
     root = DATA / "velodyne_vls128"
     r = velodyne_timing.measure(velodyne_timing.read_bag(root),
@@ -886,8 +886,8 @@ def test_azimuth_channel_drives_every_projection() -> None:
     """The per-pixel azimuth channel replaces column azimuth + beam offset in the projector,
     exact_xyz, to_pointcloud2 (kernel and numpy) and the LaserScan slicer: turning the channel
     by 90 deg turns every point by 90 deg about z."""
-    from converters.laserscan import to_laserscan
-    from converters.pointcloud2 import PointCloud2Converter, read_points
+    from converters.slices.converter import to_laserscan
+    from converters.pointcloud2.converter import PointCloud2Converter, read_points
     from lidarscan.scan import make_scan
 
     packets = synthetic_stream(0x22, 0x39, 60, deg_per_sequence=0.4, zero_fraction=0.1)
@@ -937,7 +937,7 @@ def test_decode_packets_batches_mixed_payload_types(monkeypatch: pytest.MonkeyPa
     """bytes, bytearray, memoryview and 1-D uint8 ndarray payloads in one chunk: the batch path
     (every payload as push() takes it) gives what push() one by one gives, across chunks."""
     from converters._kernels import velodyne as kernel
-    from converters.velodyne import decoder as module
+    from converters.sources.velodyne import decoder as module
     monkeypatch.setattr(module, "_CHUNK", 64)
     calib = _random_calibration(32, 21)
     packets = synthetic_stream(0x28, 0x39, 300, deg_per_sequence=1.7)
@@ -977,7 +977,7 @@ def test_decode_packets_bad_packet_in_a_batch(defect: str, monkeypatch: pytest.M
                                               ) -> None:
     """A defect in the third chunk: decode_packets yields exactly the rotations the packets
     before it complete (push() one by one), then raises that packet's DecodeError."""
-    from converters.velodyne import decoder as module
+    from converters.sources.velodyne import decoder as module
     monkeypatch.setattr(module, "_CHUNK", 64)
     calib = _random_calibration(16, 22)
     packets = synthetic_stream(0x22, 0x37, 400, deg_per_sequence=1.1)
@@ -1011,7 +1011,7 @@ def test_push_array_of_an_address_table_names_the_bad_packet(defect: str) -> Non
     raises the DecodeError push() gives, with its index, before anything is consumed; with an
     error list it is skipped and reported, the others decoded as without it."""
     from converters._kernels import velodyne as kernel
-    from converters.velodyne.decoder import _as_table
+    from converters.sources.velodyne.decoder import _as_table
     lib = kernel.library()
     if lib is None:
         pytest.skip("converters._kernels._velokernel is not built")
@@ -1046,7 +1046,7 @@ def test_fill_writes_every_pixel(kernel: str, azimuth_model: str,
     """The decoder's ScanBuffers start uninitialised (``zeroed=False``): filled with junk
     instead, every channel of every model and return mode (short rotations with padding
     columns included) comes out as from a zeroed buffer."""
-    from converters.velodyne import decoder as module
+    from converters.sources.velodyne import decoder as module
     from lidarscan.scan import ScanBuffer
 
     if kernel == "C":
@@ -1109,7 +1109,7 @@ def test_scan_buffer_not_zeroed_keeps_the_padding_zero() -> None:
                                                    float("nan"), float("inf")])),
     min_size=0, max_size=12))
 def test_wrap_is_np_mod_bit_for_bit(values: list[float]) -> None:
-    from converters.velodyne.decoder import _wrap
+    from converters.sources.velodyne.decoder import _wrap
     x = np.array(values, np.float64)
     finite = x[np.isfinite(x)]
     for sub in (x, x[(x > -36000) & (x < 72000)], np.abs(finite) % 36000,

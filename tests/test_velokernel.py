@@ -22,7 +22,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 
 from converters._kernels import velodyne as kv  # noqa: E402
-from converters.velodyne import packets as vp  # noqa: E402
+from converters.sources.velodyne import packets as vp  # noqa: E402
 
 pytestmark = pytest.mark.skipif(kv.library() is None,
                                 reason="converters._kernels._velokernel is not built")

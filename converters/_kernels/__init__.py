@@ -13,7 +13,7 @@ C cloud     ``_cloudkernel.c`` via          a C compiler at          LidarScan -
                                                                      channel field)
 C velodyne  ``_velokernel.c`` via           a C compiler at          Velodyne packets -> channel
             :mod:`.velodyne` (ctypes)       ``pip install``          views and header checks
-                                                                     (converters.velodyne)
+                                                                     (converters.sources.velodyne)
 C slices    ``_slicekernel.c`` via          a C compiler at          slices, row-ordered case
             :mod:`.slices` (ctypes)         ``pip install``;         (full circle at the column
                                             AVX-512 to be chosen     resolution, upright mount)
@@ -21,14 +21,14 @@ C slices    ``_slicekernel.c`` via          a C compiler at          slices, row
                                             numba is installed
 C cloud     ``_cloudslicekernel.c`` via     a C compiler at          unstructured PointCloud2 ->
 slices      :mod:`.cloud_slices` (ctypes)   ``pip install``          slices
-                                                                     (converters.cloud_slices;
+                                                                     (converters.slices.cloud;
                                                                      AVX2 build chosen at run
                                                                      time)
 numba       :mod:`.slices_numba`            ``pip install numba``    slices (row-ordered,
                                             (extra ``fast``)         bin-ordered and general
                                                                      kernels) and the merger
 numba       :mod:`.hesai`                   ``pip install numba``    Hesai packets -> grids
-                                            (extra ``fast``)         (converters.hesai)
+                                            (extra ``fast``)         (converters.sources.hesai.decoder)
 numba       :mod:`.codec`                   ``pip install numba``    residual coding of
             (:mod:`.codec3`: format         (extra ``fast``)         lidarscan.codec (passed as
             version 3's fit and                                      its ``coder=``)
@@ -55,23 +55,13 @@ nodes call it before they report ready, and ``python -m converters._kernels.warm
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Any
 
+from converters._kernels._switches import c_enabled, numba_enabled
 from lidarscan.errors import ConfigError
 
 __all__ = ["Backends", "c_enabled", "numba_enabled", "select", "warm_up"]
-
-
-def c_enabled() -> bool:
-    """Whether the C kernels may be loaded (``LIDARSCAN_NO_KERNEL`` unset, "" or "0")."""
-    return os.environ.get("LIDARSCAN_NO_KERNEL", "") in ("", "0")
-
-
-def numba_enabled() -> bool:
-    """Whether the numba kernels may be compiled (``LIDARSCAN_NUMBA`` not "0")."""
-    return os.environ.get("LIDARSCAN_NUMBA", "1") != "0"
 
 
 @dataclass(frozen=True)

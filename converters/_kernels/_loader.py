@@ -20,7 +20,7 @@ def load_library(module: str, abi_symbol: str, abi: int) -> ctypes.CDLL | None:
     """The shared object of extension ``module`` (e.g. ``"converters._kernels._slicekernel"``)
     if it is built, enabled and both its module constant ``ABI`` and its C function
     ``abi_symbol()`` equal ``abi``; else None."""
-    from converters._kernels import c_enabled
+    from converters._kernels._switches import c_enabled
     if not c_enabled():
         return None
     try:

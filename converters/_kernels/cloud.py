@@ -5,7 +5,7 @@ into the cloud's point buffer, from either the per-pixel direction/offset tables
 (``lsk_project``) or the factored beam model (``lsk_project_rc``,
 :func:`lidarscan.geometry.beam_factors`). Its arithmetic is deterministic (no fused
 multiply-add): the AVX-512, AVX2 and baseline builds it picks from at load time give the same
-bits. The converter that drives it is :class:`converters.pointcloud2.PointCloud2Converter`.
+bits. The converter that drives it is :class:`converters.pointcloud2.converter.PointCloud2Converter`.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
-"""Python side of the optional compiled kernel of :mod:`converters.cloud_slices`
+"""Python side of the optional compiled kernel of :mod:`converters.slices.cloud`
 (``converters/_kernels/_cloudslicekernel.c``): unstructured cloud -> several LaserScan slices in
 one pass over the points, fusion and decoding in one call.
 
-The kernel does exactly what ``converters.cloud_slices._fuse_numpy`` (the reference) and
-:func:`converters._grid.decode` do, reading the cloud's x, y, z fields (float32 or float64,
+The kernel does exactly what ``converters.slices.cloud._fuse_numpy`` (the reference) and
+:func:`converters.slices.spec.decode` do, reading the cloud's x, y, z fields (float32 or float64,
 native byte order, any offsets and steps) and its intensity field (any element type) in place.
 Per point, its target-frame height first (from z alone for an upright target), dropped unless
 it lies in the hull of the bands; only a kept point has its x, y read and transformed and its

@@ -1,6 +1,6 @@
-"""Optional compiled (numba) path of converters.hesai: packet units -> grid rows.
+"""Optional compiled (numba) path of converters.sources.hesai.decoder: packet units -> grid rows.
 
-One kernel, ``fill_units``, doing exactly what ``converters._hesai_rotation._units_numpy`` does (the
+One kernel, ``fill_units``, doing exactly what ``converters.sources.hesai.rotation._units_numpy`` does (the
 reference): copy the raw distance (uint16 little-endian) and reflectivity (uint8) of each laser
 in block ``r`` of firings ``first .. first + count - 1`` of a run of packets into columns
 ``col ..`` of the (lasers, width) grids of that return, laser ``l`` to row ``row_of[l]``.

@@ -1,7 +1,7 @@
 """Python side of the compiled slicing kernel ``converters/_slicekernel.c``.
 
 The kernel computes all height slices of one scan in the *row-ordered* configuration of
-:mod:`converters._grid` (one full-circle grid at the sensor's column resolution, an upright
+:mod:`converters.slices.spec` (one full-circle grid at the sensor's column resolution, an upright
 sensor, every row mapping its columns onto the bins as ``start + step*c mod W``), bit-identical
 to the numba kernel :func:`converters._kernels.slices_numba._row_convert`, but streaming the
 scan in pixel order instead of gathering it bin by bin. :class:`SlicePlan` holds the per-table-version arguments
@@ -80,7 +80,7 @@ class SlicePlan:
     Args:
         dx, dy, ox, oy: (H*W,) float32 rays in the target frame, pixel order.
         r_thr: (H*W,) float32 far-field thresholds, rounded up, pixel order.
-        bins: (start, step) of the far-field bins per row (:func:`converters._grid.aligned_rows`).
+        bins: (start, step) of the far-field bins per row (:func:`converters.slices.spec.aligned_rows`).
         keys: (start, step) of the tie-key columns per row (key = u*W + column).
         qf, qn: uint bit masks of the qualifiers, (H,) per row or (H*W,) in pixel order.
         lo, hi: (>= S, H) float32 band intervals (rows beyond S ignored).

@@ -1,9 +1,9 @@
 """numba kernels of the slices and the merger, and their loader.
 
 Each kernel does, in compiled loops, exactly what the numpy reference of
-:mod:`converters._grid` does (:func:`~converters._grid.point_codes`,
-:func:`~converters._grid.special_codes`, :func:`~converters._grid.reduce_min`,
-:func:`~converters._grid.decode`) for several slices at once; results equal it except for
+:mod:`converters.slices.spec` does (:func:`~converters.slices.spec.point_codes`,
+:func:`~converters.slices.spec.special_codes`, :func:`~converters.slices.spec.reduce_min`,
+:func:`~converters.slices.spec.decode`) for several slices at once; results equal it except for
 points within one ulp of a bin edge (numpy's SIMD atan2 and libm's may differ in the last bit).
 Selected by :func:`converters._kernels.select` (``LIDARSCAN_NUMBA=0`` disables them).
 
@@ -17,10 +17,10 @@ Kernels (drivers in :class:`Compiled`):
   per-row float32 band intervals, fusion, hole edges and decoding in one call (these two live
   in :mod:`converters._kernels.slices_numba_ordered`, imported here);
 * moving mounts: :func:`_transform_rays` (each ray moved by its pixel's pose, the arithmetic of
-  :func:`converters.frames.transform_rays`) or, with a pose per pixel, :func:`_track_rays`
+  :func:`converters.shared.frames.transform_rays`) or, with a pose per pixel, :func:`_track_rays`
   (each ray's pose interpolated from a track's samples where it is used),
   :func:`_special_tables` (far-field bins and qualifiers of the pixels without a finite range:
-  :func:`converters._grid.far_field`'s bin and :func:`converters._grid.qualify`), then the
+  :func:`converters.slices.spec.far_field`'s bin and :func:`converters.slices.spec.qualify`), then the
   general kernel.
 
 The kernels call each other through module globals (``_J_*``, of this module and of
@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
-from converters._holes import HolePlan
+from converters.slices.spec import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
+from converters.slices.holes import HolePlan
 from converters._kernels import slices_numba_ordered as _ordered
 from converters._kernels.slices_numba_ordered import (
     _angle_bin,
@@ -70,7 +70,7 @@ def kernels() -> Compiled | None:
     if _KERNELS_TRIED:
         return _KERNELS
     _KERNELS_TRIED = True
-    from converters._kernels import numba_enabled
+    from converters._kernels._switches import numba_enabled
     if not numba_enabled():
         return None
     try:
@@ -171,7 +171,7 @@ class Bands:
     @classmethod
     def create(cls, slices: list[tuple[float, float, Any, int]], grids: list[Any]) -> Bands:
         """From (min_z, max_z, OutputOptions, grid index) per slice and the distinct
-        :class:`converters._grid.AngleGrid` objects."""
+        :class:`converters.slices.spec.AngleGrid` objects."""
         sizes = np.array([grids[g].size for _, _, _, g in slices], np.int64)
         pad = -len(slices) % 4
         zmin = np.array([lo for lo, _, _, _ in slices], np.float64)
@@ -276,7 +276,7 @@ class Compiled:
                       bin_far, qual)
 
     def transform_rays(self, d: Any, o: Any, poses: Any, index: Any) -> tuple[Any, ...]:
-        """:func:`converters.frames.transform_rays` with one pose per ray, compiled (same bits).
+        """:func:`converters.shared.frames.transform_rays` with one pose per ray, compiled (same bits).
 
         Args:
             d, o: (n, 3) float32 C-contiguous sensor-frame directions and origins.
@@ -301,9 +301,9 @@ class Compiled:
                 per component).
             relative: (n,) int64 ns each ray's time after ``stamp`` (int ns).
             times, poses: (K,) int64 ascending and (K, 4, 4) float64 the track's samples around
-                every ray time (:meth:`converters.transforms.TransformTrack.samples`).
+                every ray time (:meth:`converters.shared.transforms.TransformTrack.samples`).
             deltas: (K - 1, 3) float64 rotation vector of each pair of consecutive samples
-                (:func:`converters.transforms.segment_rotvecs`).
+                (:func:`converters.shared.transforms.segment_rotvecs`).
 
         Returns:
             (dx, dy, dz, ox, oy, oz): (n,) float32 each, in the target frame.
@@ -390,7 +390,7 @@ def _transform_rays(d: Any, o: Any, rows: Any, index: Any,
                     out: Any) -> None:  # pragma: no cover - compiled
     """``out[0:3]`` = directions, ``out[3:6]`` = origins (float32) of the rays moved by
     ``rows[index[i]]`` (the top 3x4 of each pose, row-major), in float64 left to right as
-    :func:`converters.frames.transform_rays` writes it (no fused multiply-add)."""
+    :func:`converters.shared.frames.transform_rays` writes it (no fused multiply-add)."""
     for i in range(d.shape[0]):
         m = rows[index[i]]
         x = np.float64(d[i, 0])
@@ -415,9 +415,9 @@ def _track_rays(d: Any, o: Any, relative: Any, stamp: Any, times: Any, rows: Any
     """``out[0:3]`` = directions, ``out[3:6]`` = origins (float32) of the rays ``d``, ``o``
     ((3, n) float32 each, sensor frame) moved by the pose at ``stamp + relative[i]``,
     interpolated between the samples ``rows`` (top 3x4 of each pose, row-major) at ``times``:
-    the pose of :meth:`converters.transforms.TransformTrack.lookup_many` at that stamp (the
+    the pose of :meth:`converters.shared.transforms.TransformTrack.lookup_many` at that stamp (the
     sample at its own stamp or held after the newest one; else
-    :func:`converters.transforms.interpolate_poses`'s formula ``R0 exp(u log(R0^T R1))``,
+    :func:`converters.shared.transforms.interpolate_poses`'s formula ``R0 exp(u log(R0^T R1))``,
     Rodrigues, ``t0 + u (t1 - t0)``), written per element in float64, then the arithmetic of
     :func:`_transform_rays`. The translation and ``u`` are the reference's bits; the rotation's
     ``sin(theta)/theta`` and ``(1-cos(theta))/theta^2`` come from their series when every
@@ -526,7 +526,7 @@ def _track_rays(d: Any, o: Any, relative: Any, stamp: Any, times: Any, rows: Any
 
 
 def _rho_at(dx: Any, dy: Any, ox: Any, oy: Any, r: Any) -> Any:  # pragma: no cover - compiled
-    """:func:`converters._grid._rho` of one ray (float64)."""
+    """:func:`converters.slices.spec._rho` of one ray (float64)."""
     if math.isinf(r):
         if dx != 0.0 or dy != 0.0:
             return np.inf
@@ -540,9 +540,9 @@ def _special_tables(special: Any, fdx: Any, fdy: Any, fdz: Any, fox: Any, foy: A
                     zmin: Any, zmax: Any, rmin: Any, rmax: Any, slice_grid: Any, g_min: Any,
                     g_inc: Any, g_size: Any, g_full: Any, near: Any, bin_far: Any,
                     qual: Any) -> None:  # pragma: no cover - compiled
-    """Per ray of ``special``: the far-field bin of every grid (:func:`converters._grid.
+    """Per ray of ``special``: the far-field bin of every grid (:func:`converters.slices.spec.
     far_field`'s ``bin_far``; libm's atan2, which may differ from numpy's in the last bit) and
-    the qualifiers of every slice (:func:`converters._grid.qualify`, the same float64
+    the qualifiers of every slice (:func:`converters.slices.spec.qualify`, the same float64
     operations; bits only where the slice's far-field bin exists, as :class:`Rays` holds
     them)."""
     n_grids = g_min.shape[0]

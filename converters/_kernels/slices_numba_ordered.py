@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from converters._grid import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
+from converters.slices.spec import CODE_NAN, CODE_NEG_INF, CODE_POS_INF, EMPTY
 
 _J_NEAR: Any = None      # compiled helpers, set by slices_numba.kernels()
 _J_BIN: Any = None
@@ -168,7 +168,7 @@ def _value(rv: Any, dx: Any, dy: Any, ox: Any, oy: Any, key: Any, lim_lo: Any,
 def _angle_bin(theta: Any, g_min: Any, g_inc: Any, g_size: Any,
                g_full: Any) -> Any:  # pragma: no cover - compiled
     """The bin of angle ``theta`` (radians, float64) on a grid (the rule of
-    :meth:`converters._grid.AngleGrid`: nearest bin, half-bin to the lower index; a full
+    :meth:`converters.slices.spec.AngleGrid`: nearest bin, half-bin to the lower index; a full
     circle wraps, a sector's angle is taken modulo 2*pi around it), or -1 outside a sector.
     The one binning step of the numba kernels (inlined into them)."""
     d = theta - g_min
@@ -320,8 +320,8 @@ def _row_convert(r: Any, src: Any, keys: Any, dx: Any, dy: Any, ox: Any, oy: Any
                  h_slice: Any, h_pixel: Any, h_bin: Any, h_value: Any, h_dz: Any,
                  h_oz: Any) -> Any:  # pragma: no cover - compiled
     """:func:`_row_fuse` into a fresh reduction array of ``total`` elements, the hole edges
-    (``h_*``: the arrays of :class:`converters._holes.HolePlan`, empty without holes; the rule
-    of :func:`converters._holes.hole_hits`), then :func:`_decode_slices`, in one compiled call
+    (``h_*``: the arrays of :class:`converters.slices.holes.HolePlan`, empty without holes; the rule
+    of :func:`converters.slices.holes.hole_hits`), then :func:`_decode_slices`, in one compiled call
     (one dispatch less per scan).
 
     Returns:

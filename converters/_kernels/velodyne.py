@@ -1,7 +1,7 @@
 """Python side of the optional C kernel of the Velodyne packet decoder (``_velokernel.c``).
 
 :func:`fill` writes, in one pass over the packets, what the numpy reference of
-``converters.velodyne.packets`` computes in several: the ``range``/``intensity`` grids of
+``converters.sources.velodyne.packets`` computes in several: the ``range``/``intensity`` grids of
 ``_fill_numpy`` (integer copies) and the ``azimuth`` channel of ``_nebula_azimuths`` (the same
 float32 and float64 operations in the same order, so the same integers), straight into the
 channel views of a :class:`lidarscan.scan.ScanBuffer`; :func:`good` is the per-packet header
@@ -69,7 +69,7 @@ def library() -> Any:
     """The loaded kernel (ctypes library), or None: not built, stale or disabled
     (``LIDARSCAN_NO_KERNEL``, read at each call). Callers go through
     :func:`converters._kernels.select`."""
-    from converters._kernels import c_enabled
+    from converters._kernels._switches import c_enabled
     return _library.get() if c_enabled() else None
 
 
@@ -135,7 +135,7 @@ class Plan:
 
     Args:
         offsets: (R, S, H) byte offset in a packet of the distance of return slot r, sequence
-            s, row h (``converters.velodyne.packets._offsets``).
+            s, row h (``converters.sources.velodyne.packets._offsets``).
         factor: (12, 32) float32 firing factor of each point slot's laser (block, k).
         rotation: (12, 32) float64 rot_correction of each slot's laser, 0.01 deg.
         family: 0 VLP-16, 1 VLP-32C/HDL-32E, 2 VLS-128 (``VelodyneModel.nebula``).

@@ -95,10 +95,10 @@ def probe_scan(info: Any, *, stamp_ns: int = 2, range_dtype: Any = np.float32,
 def probe_cloud(frame_id: str = "warm") -> Any:
     """A synthetic unorganized PointCloud2 (x, y, z float32 + intensity, as drivers publish
     them) of :func:`probe_scan`'s 32 x 1024 sensor: what warms the kernels of
-    :class:`converters.cloud_slices.CloudSliceConverter` (its C kernel loads at the first
+    :class:`converters.slices.cloud.CloudSliceConverter` (its C kernel loads at the first
     call; the per-layout validation is kept per field layout, so a cloud of another layout
     pays only that check)."""
-    from converters.pointcloud2 import to_pointcloud2
+    from converters.pointcloud2.converter import to_pointcloud2
 
     info = probe_info(32, 1024, frame_id=frame_id)
     return to_pointcloud2(probe_scan(info), info, fields=("x", "y", "z", "intensity"),
@@ -113,7 +113,7 @@ def _tilt(angle: float) -> np.ndarray[Any, Any]:
 
 
 def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any]) -> None:
-    from converters.laserscan import SliceConverter
+    from converters.slices.converter import SliceConverter
 
     specs = dict(slices) if slices else {"warm": {"min_height": -0.5, "max_height": 0.5}}
     opts = {k: v for k, v in options.items() if k not in ("extrinsics", "frame_id")}
@@ -123,7 +123,7 @@ def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any]) -
                                    **opts)
         converter.convert(probe_scan(info))
     # a moving mount (per-scan rays: the transform kernel, then the general kernel's passes)
-    from converters.transforms import TransformTrack
+    from converters.shared.transforms import TransformTrack
 
     info = probe_info(*_GEOMETRIES[0][:2])
     track = TransformTrack()
@@ -138,14 +138,14 @@ def _warm_slices(slices: Mapping[str, Any] | None, options: Mapping[str, Any]) -
 
 
 def _warm_cloud(options: Mapping[str, Any]) -> None:
-    from converters.pointcloud2 import PointCloud2Converter
+    from converters.pointcloud2.converter import PointCloud2Converter
 
     info = probe_info(8, 64)
     PointCloud2Converter(info, **options).convert(probe_scan(info))
 
 
 def _warm_merger() -> None:
-    from converters.laserscan import SliceConverter
+    from converters.slices.converter import SliceConverter
     from converters.merger import LaserScanMerger, MergerInput
 
     info = probe_info(8, 64)
@@ -187,7 +187,7 @@ def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = Non
             numba kernels the configuration can reach), "merger" (the merger's kernels),
             "codec" (the residual coder of :mod:`lidarscan.codec`).
         slices: the slice configuration a node will use (name -> SliceSpec or dict), as
-            :class:`converters.laserscan.SliceConverter` takes it; None = one slice.
+            :class:`converters.slices.converter.SliceConverter` takes it; None = one slice.
         slice_options, cloud_options: keyword options of the slice / PointCloud2 converters
             (e.g. ``intensity_channel``, ``backend``; ``preset``, ``fields``).
 

@@ -1,7 +1,0 @@
-"""``python -m converters.evidence [--check]``: regenerate (or check) docs/proposal.md."""
-
-import sys
-
-from converters.evidence import main
-
-sys.exit(main())
