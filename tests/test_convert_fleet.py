@@ -247,6 +247,28 @@ def test_a_failing_recording_does_not_stop_the_others(
     assert not _leftovers(out)
 
 
+def test_bad_messages_are_reported_with_their_recording_and_again_when_skipped(
+        fleet_in: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording with a bad message is converted (its good messages written), its reports
+    prefixed by its name, status bad, exit 1; run again it is up to date and still counts."""
+    db3 = next((fleet_in / "velo" / "vlp32").glob("*.db3"))
+    con = sqlite3.connect(db3)
+    con.execute("UPDATE messages SET data = ? WHERE id = (SELECT min(id) + 1 FROM messages)",
+                (b"junk",))
+    con.commit()
+    con.close()
+    out = tmp_path / "out"
+    assert cli.main(["convert", str(fleet_in), str(out), "-j", "2"]) == 1
+    lines = capsys.readouterr().err.splitlines()
+    assert any(x.startswith("velo/vlp32.mcap: bad message #1 topic") for x in lines), lines
+    row = next(x for x in lines if x.startswith("velo/vlp32.mcap "))
+    assert " bad: 1 bad message(s)" in row and _outputs(out) == OUTPUTS
+    assert cli.main(["convert", str(fleet_in), str(out), "-j", "2"]) == 1
+    row = next(x for x in capsys.readouterr().err.splitlines()
+               if x.startswith("velo/vlp32.mcap "))
+    assert "skipped-bad: up to date; 1 bad message(s)" in row
+
+
 def test_the_quiet_table_lists_only_what_went_wrong(
         fleet_in: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     _bag("hesai_xt32", fleet_in / "hesai" / "xt32")

@@ -663,14 +663,13 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
             tmp.unlink(missing_ok=True)
             notes[job.index] = f"removed {tmp.name} (left by a killed run)"
         decision, why = state(job, args.force)
-        if decision == "skip":
-            status = "bad" if why == "bad" else "skipped"
+        if decision == "skip":   # as converted then; with its bad messages then (exit 1)
             done = json.loads(sidecar_path(Path(job.output)).read_text())
-            results[job.index] = Result(job.index, "skipped", "up to date" + (
-                f"; {done.get('reason')}" if status == "bad" else ""), [],
+            bad = why == "bad"
+            results[job.index] = Result(
+                job.index, "skipped-bad" if bad else "skipped",
+                "up to date" + (f"; {done.get('reason')}" if bad else ""), [],
                 done.get("read", 0), done.get("written", 0), 0.0, done.get("output_size", 0))
-            if status == "bad":
-                results[job.index].status = "skipped-bad"
         elif decision == "refuse":
             results[job.index] = Result(job.index, "failed", why)
         else:
@@ -691,8 +690,8 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
 
     started = time.perf_counter()
     try:
-        runner = run_dask(todo, workers, args.dask, on_event) if args.dask is not None \
-            else run_local(todo, workers, on_event)
+        runner = iter(()) if not todo else run_dask(todo, workers, args.dask, on_event) \
+            if args.dask is not None else run_local(todo, workers, on_event)
         for result in runner:
             if result.status == "ok" and result.index in redo:
                 result.status = "redone"
