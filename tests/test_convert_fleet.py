@@ -248,6 +248,28 @@ def test_a_failing_recording_does_not_stop_the_others(
     assert not _leftovers(out)
 
 
+def test_bad_messages_are_reported_with_their_recording_and_again_when_skipped(
+        fleet_in: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording with a bad message is converted (its good messages written), its reports
+    prefixed by its name, status bad, exit 1; run again it is up to date and still counts."""
+    db3 = next((fleet_in / "velo" / "vlp32").glob("*.db3"))
+    con = sqlite3.connect(db3)
+    con.execute("UPDATE messages SET data = ? WHERE id = (SELECT min(id) + 1 FROM messages)",
+                (b"junk",))
+    con.commit()
+    con.close()
+    out = tmp_path / "out"
+    assert cli.main(["convert", str(fleet_in), str(out), "-j", "2"]) == 1
+    lines = capsys.readouterr().err.splitlines()
+    assert any(x.startswith("velo/vlp32.mcap: bad message #1 topic") for x in lines), lines
+    row = next(x for x in lines if x.startswith("velo/vlp32.mcap "))
+    assert " bad: 1 bad message(s)" in row and _outputs(out) == OUTPUTS
+    assert cli.main(["convert", str(fleet_in), str(out), "-j", "2"]) == 1
+    row = next(x for x in capsys.readouterr().err.splitlines()
+               if x.startswith("velo/vlp32.mcap "))
+    assert "skipped-bad: up to date; 1 bad message(s)" in row
+
+
 def test_the_quiet_table_lists_only_what_went_wrong(
         fleet_in: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     _bag("hesai_xt32", fleet_in / "hesai" / "xt32")
@@ -317,6 +339,47 @@ def test_a_run_stopped_half_way_is_finished_by_running_it_again(
     assert not _leftovers(out)               # ... and the next run removes it
     assert _outputs(out) == [f"run{k}.mcap" for k in range(4)]
     assert f"{len(finished)} skipped" in again.stderr or not finished, again.stderr
+
+
+def test_a_killed_worker_is_replaced_and_its_recording_converted_again(tmp_path: Path) -> None:
+    """kill -9 of one worker process (its pid is in its temporary file's name): the run goes on
+    with new workers, converts that recording again and ends with every output, exit 0."""
+    root, out = tmp_path / "in", tmp_path / "out"
+    _slow_fleet(root, 3)
+    command = [sys.executable, "-m", "converters.cli", "convert", str(root), str(out), "-j", "2"]
+    run = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.PIPE, text=True,
+                           start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not (out.is_dir() and _leftovers(out)) and time.monotonic() < deadline \
+            and run.poll() is None:
+        time.sleep(0.02)
+    partial = _leftovers(out)[0]
+    worker = int(partial.name[:-len(".partial")].rpartition(".")[2])
+    assert worker != run.pid
+    os.kill(worker, signal.SIGKILL)
+    _, err = run.communicate(timeout=300)
+    assert run.returncode == 0, err
+    assert _outputs(out) == [f"run{k}.mcap" for k in range(3)] and not _leftovers(out)
+    assert "3 recordings: 3 ok" in err
+
+
+def test_dask_at_an_address(fleet_in: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                            capsys: pytest.CaptureFixture[str]) -> None:
+    """An existing cluster: its scheduler's address from DASK_SCHEDULER_ADDRESS or --dask=."""
+    import logging
+
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None, silence_logs=logging.ERROR) as cluster:
+        monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", cluster.scheduler_address)
+        assert cli.main(["convert", str(fleet_in), str(tmp_path / "a"), "--dask"]) == 0
+        monkeypatch.delenv("DASK_SCHEDULER_ADDRESS")
+        assert cli.main(["convert", str(fleet_in), str(tmp_path / "b"),
+                         f"--dask={cluster.scheduler_address}"]) == 0
+    assert capsys.readouterr().err.count("3 recordings: 3 ok") == 2
+    for name in OUTPUTS:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
 
 
 # --------------------------------------------------------------------------- .db3 streaming

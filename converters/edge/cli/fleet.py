@@ -479,9 +479,11 @@ def run_local(jobs: Sequence[Job], workers: int, on_event: Event) -> Iterator[Re
                                    initializer=_init_worker, initargs=(events,))
         broken = False
         try:
-            # largest first: the last recordings to finish are small ones
-            futures = {pool.submit(convert_job, job): job for job in
-                       sorted(pending.values(), key=lambda j: (-j.size, j.index))}
+            # largest first: the last recordings to finish are small ones; the workers start
+            # here, ignoring Ctrl-C from their first instruction (it is this process's)
+            with _sigint_ignored():
+                futures = {pool.submit(convert_job, job): job for job in
+                           sorted(pending.values(), key=lambda j: (-j.size, j.index))}
             waiting = set(futures)
             while waiting:
                 done, waiting = wait(waiting, timeout=0.1, return_when=FIRST_COMPLETED)
@@ -525,6 +527,21 @@ def _stop(pool: Any) -> None:
             process.terminate()
 
 
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored meanwhile (in the main thread; elsewhere nothing changes)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def run_dask(jobs: Sequence[Job], workers: int, address: str, on_event: Event
              ) -> Iterator[Result]:
     """The results of ``jobs`` converted on Dask distributed (futures, ``as_completed``): the
@@ -544,9 +561,13 @@ def run_dask(jobs: Sequence[Job], workers: int, address: str, on_event: Event
             environ.update(WORKER_ENV)
             stack.enter_context(dask.config.set({"distributed.nanny.pre-spawn-environ":
                                                  environ}))
-            cluster = stack.enter_context(LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True,
-                dashboard_address=None, silence_logs=logging.ERROR))
+            # the workers ignore Ctrl-C (inherited): it is this process's, which cancels the
+            # work and closes the cluster (a worker of its own ended in a traceback)
+            with _sigint_ignored():
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
+                                       processes=True, dashboard_address=None,
+                                       silence_logs=logging.ERROR)
+            stack.enter_context(cluster)
             client = stack.enter_context(Client(cluster))
         token = f"{os.getpid()}-{time.time_ns()}"
         futures = [client.submit(convert_job, job, key=f"lidarscan-convert-{token}-{job.index}",
@@ -642,14 +663,13 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
             tmp.unlink(missing_ok=True)
             notes[job.index] = f"removed {tmp.name} (left by a killed run)"
         decision, why = state(job, args.force)
-        if decision == "skip":
-            status = "bad" if why == "bad" else "skipped"
+        if decision == "skip":   # as converted then; with its bad messages then (exit 1)
             done = json.loads(sidecar_path(Path(job.output)).read_text())
-            results[job.index] = Result(job.index, "skipped", "up to date" + (
-                f"; {done.get('reason')}" if status == "bad" else ""), [],
+            bad = why == "bad"
+            results[job.index] = Result(
+                job.index, "skipped-bad" if bad else "skipped",
+                "up to date" + (f"; {done.get('reason')}" if bad else ""), [],
                 done.get("read", 0), done.get("written", 0), 0.0, done.get("output_size", 0))
-            if status == "bad":
-                results[job.index].status = "skipped-bad"
         elif decision == "refuse":
             results[job.index] = Result(job.index, "failed", why)
         else:
@@ -670,8 +690,8 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
 
     started = time.perf_counter()
     try:
-        runner = run_dask(todo, workers, args.dask, on_event) if args.dask is not None \
-            else run_local(todo, workers, on_event)
+        runner = iter(()) if not todo else run_dask(todo, workers, args.dask, on_event) \
+            if args.dask is not None else run_local(todo, workers, on_event)
         for result in runner:
             if result.status == "ok" and result.index in redo:
                 result.status = "redone"
