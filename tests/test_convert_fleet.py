@@ -346,7 +346,7 @@ def test_a_killed_worker_is_replaced_and_its_recording_converted_again(tmp_path:
     with new workers, converts that recording again and ends with every output, exit 0."""
     root, out = tmp_path / "in", tmp_path / "out"
     _slow_fleet(root, 3)
-    command = [sys.executable, "-m", "converters.cli", "convert", str(root), str(out), "-j", "2"]
+    command = [sys.executable, "-m", "converters.edge.cli", "convert", str(root), str(out), "-j", "2"]
     run = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.PIPE, text=True,
                            start_new_session=True)
     deadline = time.monotonic() + 120
