@@ -307,14 +307,9 @@ def _slow_fleet(root: Path, count: int) -> None:
         shutil.copy(DATA / "velodyne_vls128" / "VLS128.yaml", root / f"run{k}.yaml")
 
 
-@pytest.mark.parametrize("how", [signal.SIGINT, signal.SIGKILL])
-def test_a_run_stopped_half_way_is_finished_by_running_it_again(
-        how: signal.Signals, tmp_path: Path) -> None:
-    """Stopped while writing (Ctrl-C to the process group, or kill -9 of everything): no
-    output under a final name is partial (each has its sidecar); the same command again
-    removes the temporary files, skips what was done and converts the rest."""
-    root, out = tmp_path / "in", tmp_path / "out"
-    _slow_fleet(root, 4)
+def _writing(root: Path, out: Path) -> tuple[list[str], subprocess.Popen[str]]:
+    """The fleet command of ``root`` -> ``out`` (--jobs 2) and its process (a session of its
+    own) once a temporary output file exists."""
     command = [sys.executable, "-m", "converters.edge.cli", "convert", str(root), str(out), "-j", "2"]
     run = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.PIPE, text=True,
                            start_new_session=True)
@@ -323,6 +318,18 @@ def test_a_run_stopped_half_way_is_finished_by_running_it_again(
             and run.poll() is None:
         time.sleep(0.02)
     assert run.poll() is None, "the run ended before it could be stopped"
+    return command, run
+
+
+@pytest.mark.parametrize("how", [signal.SIGINT, signal.SIGKILL])
+def test_a_run_stopped_half_way_is_finished_by_running_it_again(
+        how: signal.Signals, tmp_path: Path) -> None:
+    """Stopped while writing (Ctrl-C to the process group, or kill -9 of everything): no
+    output under a final name is partial (each has its sidecar); the same command again
+    removes the temporary files, skips what was done and converts the rest."""
+    root, out = tmp_path / "in", tmp_path / "out"
+    _slow_fleet(root, 4)
+    command, run = _writing(root, out)
     os.killpg(run.pid, how)
     _, err = run.communicate(timeout=60)
     if how == signal.SIGINT:
@@ -346,13 +353,7 @@ def test_a_killed_worker_is_replaced_and_its_recording_converted_again(tmp_path:
     with new workers, converts that recording again and ends with every output, exit 0."""
     root, out = tmp_path / "in", tmp_path / "out"
     _slow_fleet(root, 3)
-    command = [sys.executable, "-m", "converters.edge.cli", "convert", str(root), str(out), "-j", "2"]
-    run = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.PIPE, text=True,
-                           start_new_session=True)
-    deadline = time.monotonic() + 120
-    while not (out.is_dir() and _leftovers(out)) and time.monotonic() < deadline \
-            and run.poll() is None:
-        time.sleep(0.02)
+    _, run = _writing(root, out)
     partial = _leftovers(out)[0]
     worker = int(partial.name[:-len(".partial")].rpartition(".")[2])
     assert worker != run.pid
