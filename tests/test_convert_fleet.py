@@ -310,7 +310,8 @@ def _slow_fleet(root: Path, count: int) -> None:
 def _writing(root: Path, out: Path) -> tuple[list[str], subprocess.Popen[str]]:
     """The fleet command of ``root`` -> ``out`` (--jobs 2) and its process (a session of its
     own) once a temporary output file exists."""
-    command = [sys.executable, "-m", "converters.edge.cli", "convert", str(root), str(out), "-j", "2"]
+    command = [sys.executable, "-m", "converters.edge.cli", "convert", str(root), str(out),
+               "-j", "2"]
     run = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.PIPE, text=True,
                            start_new_session=True)
     deadline = time.monotonic() + 120
