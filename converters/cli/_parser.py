@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
+from converters.cli.demo import cmd_demo
 from converters.cli.fleet import add_options as add_fleet_options
 from converters.cli.fleet import cmd_convert_many
-from converters.cli.demo import cmd_demo
 from converters.cli.info import cmd_info
 from converters.cli.view import cmd_view
 
