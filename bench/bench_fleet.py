@@ -33,7 +33,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).parents[1]))   # this checkout, not an installed one
-from _synthetic_bag import grow_db3  # noqa: E402
+from _synthetic_bag import grow_db3
 
 ROOT = Path(__file__).parents[1]
 NEBULA = ROOT / "tests" / "data" / "nebula"

@@ -360,9 +360,10 @@ def _init_worker(events: Any) -> None:
     global _EVENTS
     _EVENTS = events
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    import converters.bags  # noqa: F401
-    import converters.edge.cli.convert  # noqa: F401
-    import lidarscan.mcap  # noqa: F401
+    import importlib
+
+    for name in ("converters.sources.bags", "converters.edge.cli.convert", "lidarscan.mcap"):
+        importlib.import_module(name)
 
 
 class _QueueProgress:
@@ -647,7 +648,7 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
     """Convert every recording of ``inputs`` into the folder OUT (module docstring)."""
     from converters.edge.cli.progress import FleetProgress, table
 
-    out, jobs = plan(args, inputs)
+    _, jobs = plan(args, inputs)
     if args.dask is not None:
         try:
             import distributed  # noqa: F401
