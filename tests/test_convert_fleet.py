@@ -20,8 +20,8 @@ from pathlib import Path
 import pytest
 
 from converters import cli
-from converters.sources import bags
 from converters.edge.cli import fleet
+from converters.sources import bags
 from lidarscan.errors import ConfigError
 
 DATA = Path(__file__).parent / "data" / "nebula"
