@@ -16,7 +16,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml setup.py $(wildcard converters/_kernels/*.c) msgs/CMakeLists.txt msgs/package.xml $(wildcard msgs/msg/*.msg)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,viz,fast,msgs-build]'
+	$(PY) -m pip install --quiet -e '.[test,viz,fast,msgs-build,dask]'
 	$(MAKE) msgs
 	$(MAKE) tf2msgs
 	$(PY) -m converters.warmup  # fill numba's cache: nodes start ready (bench/README.md)

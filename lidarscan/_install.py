@@ -35,6 +35,8 @@ _PROVIDERS: dict[str, str] = {
     "ouster": "it is an extra: `pip install '.[ouster]'` in the lidarscan checkout",
     "DracoPy": "it is an extra: `pip install '.[evidence]'` in the lidarscan checkout",
     "imagecodecs": "it is an extra: `pip install '.[evidence]'` in the lidarscan checkout",
+    "dask": "it is an extra: `pip install '.[dask]'` in the lidarscan checkout",
+    "distributed": "it is an extra: `pip install '.[dask]'` in the lidarscan checkout",
 }
 for _name in ("rclpy", "rosidl_runtime_py", "rpyutils", "builtin_interfaces", "std_msgs",
               "sensor_msgs", "geometry_msgs", "nav_msgs", "diagnostic_msgs", "rcl_interfaces"):

@@ -432,20 +432,76 @@ def _register_definitions(con: sqlite3.Connection) -> None:
             continue  # a type we cannot parse is reported when a message needs it
 
 
-def _rows(con: sqlite3.Connection) -> Iterator[Any]:
+#: bytes of message data read through one sqlite3 connection before the next rows are read
+#: through a new one: the pages a connection reads through its memory map stay mapped (and in
+#: the process's RSS) until it is closed, so a bag read through one connection grew the RSS by
+#: its whole size (bench/README.md, bench_fleet memory)
+CHUNK_BYTES = 32 << 20
+
+
+def _rows(con: sqlite3.Connection, path: Path | None = None,
+          chunk_bytes: int = CHUNK_BYTES) -> Iterator[Any]:
     """(id, topic_id, timestamp, data) in time order; when the time order cannot be read (a
     damaged or truncated file), in row order, i.e. as recorded, as far as the rows can be read
-    (an error after the first row is raised to the caller)."""
-    query = "SELECT id, topic_id, timestamp, data FROM messages ORDER BY "
+    (an error after the first row is raised to the caller).
+
+    The rows are streamed, one at a time from the cursor. With ``path`` (the file of ``con``)
+    they are read through connections of this function's own: after every ``chunk_bytes`` of
+    data the cursor and its connection are closed and the rest is read through a new one, from
+    the last row's key on, so what stays memory-mapped is about one chunk whatever the file's
+    size (only when the time order comes from an index, as in rosbag2's files: without one
+    every chunk would sort the rest again, and one cursor reads it all). ``con`` is the
+    caller's (never closed here; with ``path`` only asked how the rows can be ordered)."""
+    query = "SELECT id, topic_id, timestamp, data FROM messages "
+    order, where, key, last_id = "ORDER BY timestamp, id", "", (), 0
     try:
-        cursor = con.execute(query + "timestamp, id")
-        first = cursor.fetchone()
+        probe = con.execute(query + order + " LIMIT 1")
+        probe.fetchone()
+        probe.close()
     except _SQL_ERRORS:
-        cursor = con.execute(query + "id")
-        first = cursor.fetchone()
-    if first is not None:
-        yield first
-        yield from cursor
+        order = "ORDER BY id"
+    if order != "ORDER BY id" and not _time_indexed(con):
+        path = None   # each chunk would sort the rest of the table again: one cursor
+    while True:
+        own = _connect(path) if path is not None else None
+        cursor = (own or con).execute(query + where + order, key)
+        try:
+            size, last = 0, None
+            for row in cursor:
+                # ties of the timestamp resumed from: the rows up to the last id were given
+                if key and order != "ORDER BY id" and row[2] == key[0] \
+                        and isinstance(row[0], int) and row[0] <= last_id:
+                    continue
+                yield row
+                size += len(row[3]) if isinstance(row[3], bytes) else 0
+                # a chunk ends only after a row with integer keys (damaged rows stay in it)
+                if own is not None and size >= chunk_bytes and isinstance(row[0], int) \
+                        and (isinstance(row[2], int) or order == "ORDER BY id"):
+                    last = row
+                    break
+        finally:
+            cursor.close()   # before its connection: close() of a connection with a live
+            if own is not None:   # statement only marks it (its map stays)
+                own.close()
+        if last is None:
+            return
+        if order == "ORDER BY id":
+            where, key = "WHERE id > ? ", (last[0],)
+        else:
+            where, key, last_id = "WHERE timestamp >= ? ", (last[2],), last[0]
+
+
+def _time_indexed(con: sqlite3.Connection) -> bool:
+    """Whether the messages table has an index that starts with timestamp (rosbag2's
+    ``timestamp_idx``): then the rows from a timestamp on come without a sort."""
+    try:
+        for index in con.execute("PRAGMA index_list(messages)").fetchall():
+            first = con.execute(f"PRAGMA index_info('{index[1]}')").fetchone()
+            if first is not None and first[2] == "timestamp":
+                return True
+    except _SQL_ERRORS:
+        pass
+    return False
 
 
 def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | None,
@@ -470,7 +526,7 @@ def _db3_messages(path: Path, known: dict[str, TopicInfo], wanted: set[str] | No
     ids = {tid for tid, t in topics.items() if wanted is None or t.name in wanted}
     done = 0
     try:
-        for row_id, topic_id, stamp, data in _rows(con):
+        for row_id, topic_id, stamp, data in _rows(con, path):
             done += 1
             topic = topics.get(topic_id)
             if topic is not None and topic_id not in ids:

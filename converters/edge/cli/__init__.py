@@ -14,6 +14,7 @@ Commands::
                                    [--compress] [--chunk-compression C] [--zstd-level N] [-q]
                                    [--start TIME] [--end TIME] [--topics T1,T2]
                                    [--rename-topic OLD=NEW]...
+    lidarscan convert IN... OUTDIR [--jobs N | --dask [ADDRESS]] [--force] [options as above]
     lidarscan view REC --out DIR [--index K]
 
 (each command's ``--help`` ends with examples: :mod:`._examples`). ``convert`` writes an MCAP
@@ -40,7 +41,7 @@ everything written so far: the first Ctrl-C only asks it to stop between two mes
 
 Only this package prints and exits; everything it calls raises. One module per command
 (:mod:`.demo`, :mod:`.info`, :mod:`.convert` with :mod:`.convert_pipeline` and
-:mod:`.convert_inputs`, :mod:`.view`), shared parts in :mod:`._common` (exit codes, progress,
+:mod:`.convert_inputs`, many recordings in :mod:`.fleet` with :mod:`.progress`, :mod:`.view`), shared parts in :mod:`._common` (exit codes, progress,
 inputs) and the argparse parser in :mod:`._parser`.
 """
 

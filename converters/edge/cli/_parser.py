@@ -7,8 +7,9 @@ from collections.abc import Callable
 from typing import Any
 
 from converters.edge.cli._examples import EXAMPLES, HelpFormatter
-from converters.edge.cli.convert import cmd_convert
 from converters.edge.cli.demo import cmd_demo
+from converters.edge.cli.fleet import add_options as add_fleet_options
+from converters.edge.cli.fleet import cmd_convert_many
 from converters.edge.cli.info import cmd_info
 from converters.edge.cli.view import cmd_view
 
@@ -72,11 +73,15 @@ def build_parser() -> argparse.ArgumentParser:
                     "stderr; every good message is written. OUT is written under a temporary "
                     "name and renamed at the end. Exit status 0 all good, 1 some bad, 2 fatal "
                     "(nothing written), 130 Ctrl-C (OUT stays readable).")
-    p.add_argument("input", metavar="IN", help="input recording (.mcap, rosbag2 directory or "
-                                               ".db3, .pcap/.pcapng/.osf with --metadata)")
+    p.add_argument("input", metavar="IN", nargs="+",
+                   help="input recording (.mcap, rosbag2 directory or .db3, .pcap/.pcapng/.osf "
+                        "with --metadata); several, a folder of recordings or a quoted glob: "
+                        "each converted into the folder OUT (README, 'Converting many "
+                        "recordings')")
     p.add_argument("output", metavar="OUT", help="output: an MCAP file (a new name, not IN), "
                    "or a folder (OUT/ or an existing empty one) for a rosbag2 bag with MCAP "
-                   "storage and metadata.yaml; .db3 is refused (not written)")
+                   "storage and metadata.yaml (.db3 is refused: not written); the folder of "
+                   "the outputs for several recordings")
     p.add_argument("--pointcloud2", action="store_true", help="add PointCloud2 per scan")
     p.add_argument("--preset", default="", type=_preset,
                    help="PointCloud2 field preset: a driver's layout, e.g. ouster, velodyne, "
@@ -165,7 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "ahead; 1: everything in one thread (reproducible CPU measurements)")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar, notes or summary (bad messages are still listed)")
-    p.set_defaults(func=cmd_convert)
+    add_fleet_options(p)
+    p.set_defaults(func=cmd_convert_many)
 
     p = sub.add_parser("view", formatter_class=HelpFormatter, epilog=EXAMPLES["view"],
                        help="PNG views of a recording (MCAP or rosbag2)",

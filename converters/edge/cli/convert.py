@@ -250,8 +250,10 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     if renames:
         writer = RenamingWriter(writer, renames)
     size = sum(f.stat().st_size for f in source.bag.files) if source.bag else src.stat().st_size
-    progress = Progress(size, f"converting {src.name}",
-                        enabled=True if args.progress else (None if not args.quiet else False))
+    # a fleet run (converters.edge.cli.fleet) passes its own progress and takes the counters
+    progress = getattr(args, "make_progress", Progress)(
+        size, f"converting {src.name}",
+        enabled=True if args.progress else (None if not args.quiet else False))
     interrupted = finished = False
     switch = sys.getswitchinterval()
     if args.threads > 1:    # see GIL_SWITCH_S
@@ -290,6 +292,9 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     finally:
         if not finished:
             output.discard()
+    stats = getattr(args, "stats", None)
+    if stats is not None:
+        stats.update(read=report.read, written=writer.count, bad=len(report.bad))
     if interrupted:
         _err(f"interrupted: {dst} is a valid {'rosbag2 folder' if output.bag else 'MCAP file'}"
              f" with the {writer.count} messages written so far ({report.read} read)")
