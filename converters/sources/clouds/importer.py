@@ -75,6 +75,7 @@ from converters.sources.clouds.grid import (
     _time_ns,
     _wrap,
 )
+from converters.sources.clouds.block_pairs import block_pair_grid
 from converters.shared.cloud_layout import read_points
 from lidarscan.datatypes import datatype_of
 from lidarscan.errors import ConfigError, ConversionError, InfoMismatchError, ValidationError
@@ -186,8 +187,15 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
         grid = _ring_grid(pts, names, time_name, header_ns, range_name, scale,
                           time_columns=False)
         fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
-    _check_fit(grid, fit, chosen, ring_name, time_name)
-    return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass)
+    theta = None
+    if chosen == "ring" and not _fits(grid, fit):
+        # velodyne_pointcloud's dual-return VLP-16 clouds: a block pair's first echoes share
+        # one azimuth; every pixel then carries its own point's azimuth
+        paired = block_pair_grid(pts, names, time_name, header_ns, range_name, scale)
+        if paired is not None and _fits(paired[0], paired[1], paired[2]):
+            grid, fit, theta = paired
+    _check_fit(grid, fit, chosen, ring_name, time_name, theta)
+    return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass, theta)
 
 
 #: A beam model that leaves more than this share of points out, or re-projects the median point
@@ -195,11 +203,13 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
 MAX_LOST_SHARE, MAX_MEDIAN_ERROR_M = 0.02, 0.02
 
 
-def _fit_figures(grid: _Grid, fit: _Fit) -> tuple[int, float]:
-    """(points of the cloud, median re-projection error in metres) of a grid and its fit."""
+def _fit_figures(grid: _Grid, fit: _Fit, pixel_theta: Any = None) -> tuple[int, float]:
+    """(points of the cloud, median re-projection error in metres) of a grid and its fit
+    (with per-pixel azimuths ``pixel_theta`` (H, G) rad instead of column + beam, if given)."""
     u, g = np.nonzero(grid.valid)
     points = u.size + grid.dropped
-    theta = fit.alpha[grid.cidx[u, g]] + fit.beta[u]
+    theta = (fit.alpha[grid.cidx[u, g]] + fit.beta[u] if pixel_theta is None
+             else pixel_theta[u, g])
     ct, st = np.cos(theta), np.sin(theta)
     o = fit.origins[u]
     rho = fit.rho[u, g]
@@ -213,25 +223,26 @@ def _fit_figures(grid: _Grid, fit: _Fit) -> tuple[int, float]:
     return points, median
 
 
-def _fits(grid: _Grid, fit: _Fit) -> bool:
+def _fits(grid: _Grid, fit: _Fit, pixel_theta: Any = None) -> bool:
     """The grid holds the cloud: at most MAX_LOST_SHARE of its points without a pixel and a
     median re-projection error of at most MAX_MEDIAN_ERROR_M."""
-    points, median = _fit_figures(grid, fit)
+    points, median = _fit_figures(grid, fit, pixel_theta)
     return grid.dropped <= MAX_LOST_SHARE * points and median <= MAX_MEDIAN_ERROR_M
 
 
 def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
-               time_name: str | None) -> None:
+               time_name: str | None, pixel_theta: Any = None) -> None:
     """Raise instead of returning a scan that silently loses points or misplaces them."""
-    if _fits(grid, fit):
+    if _fits(grid, fit, pixel_theta):
         return
-    points, median = _fit_figures(grid, fit)
+    points, median = _fit_figures(grid, fit, pixel_theta)
     if layout == "organized":
         tried = "rows as beams (organized cloud), columns in cloud order"
     else:
         tried = (f"rows from the {ring_name!r} field, columns (firings) from "
                  + (f"the {time_name!r} times, then " if time_name is not None else "")
-                 + "the point order and azimuth steps")
+                 + "the point order and azimuth steps, then dual-return block pairs whose "
+                 "first echoes share one azimuth")
     raise ConversionError(
         "cloud", f"{grid.dropped} of {points} points without a pixel, median re-projection "
                  f"error {median:.3g} m on a {grid.points.shape[0]} x {grid.width} grid",
@@ -241,7 +252,8 @@ def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
 
 
 def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: int | None,
-              frame_id: str | None, as_dataclass: bool) -> tuple[Any, Any]:
+              frame_id: str | None, as_dataclass: bool, pixel_theta: Any = None
+              ) -> tuple[Any, Any]:
     width = grid.width
     order = np.argsort(-fit.phi, kind="stable")           # rows top -> bottom
 
@@ -281,6 +293,10 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
         img = np.ascontiguousarray(img).astype(img.dtype.newbyteorder("="))
         for k in range(grid.returns):
             channels[return_channel(name, k + 1)] = rows(img[:, k * width:(k + 1) * width])
+    if pixel_theta is not None:          # each return's own azimuths (msgs/README.md)
+        for k in range(grid.returns):
+            channels[return_channel("azimuth", k + 1)] = rows(
+                pixel_theta[:, k * width:(k + 1) * width].astype(np.float32))
     scan = make_scan(info, channels, scan_stamp, frame_id=frame,
                      is_destaggered=bool(np.any(shifts)),
                      column_time_offsets=col_offsets,
