@@ -121,7 +121,37 @@ def block_pair_columns(psi: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], he
         j_all[order[lo:hi]] = j
     k_all += _beam_pair_offsets(k_all, rows, height)
     k_all -= k_all.min()
+    _lone_first_echoes(k_all, j_all, rows, order)
     return 2 * k_all + (j_all % 2)
+
+
+def _lone_first_echoes(k: np.ndarray[Any, Any], j: np.ndarray[Any, Any],
+                       rows: np.ndarray[Any, Any], order: np.ndarray[Any, Any]) -> None:
+    """Set the firing of each lone first echo (the only one of its beam in its pair, at the
+    pair's azimuth: slot 0 or 1 alike) from the cloud order: a pair's first firing sequence
+    (every beam) is published before its second, so a lone echo after another beam's sure
+    slot-1 echo of the pair is in slot 1, one before a sure slot-0 echo in slot 0. In place."""
+    kk, jj, rr = k[order], j[order], rows[order]
+    same = (rr[1:] == rr[:-1]) & (kk[1:] == kk[:-1])
+    sure_a = np.zeros(k.size, bool)
+    sure_b = np.zeros(k.size, bool)
+    pair01 = same & (jj[:-1] == 0) & (jj[1:] == 1)
+    sure_a[order[:-1][pair01]] = True
+    sure_b[order[1:][pair01]] = True
+    lone = (j <= 1) & ~sure_a & ~sure_b
+    if not lone.any() or not sure_a.any():
+        return
+    idx = np.arange(k.size)
+    size = int(k.max()) + 1
+    first_b = np.full(size, k.size, np.int64)
+    np.minimum.at(first_b, k[sure_b], idx[sure_b])
+    last_a = np.full(size, -1, np.int64)
+    np.maximum.at(last_a, k[sure_a], idx[sure_a])
+    sel = np.flatnonzero(lone)
+    after_b = first_b[k[sel]] < sel
+    before_a = last_a[k[sel]] > sel
+    j[sel[after_b]] = 1
+    j[sel[~after_b & before_a]] = 0
 
 
 def _beam_delay(x: np.ndarray[Any, Any], flat: np.ndarray[Any, Any]) -> float:
