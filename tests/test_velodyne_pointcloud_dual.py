@@ -337,3 +337,26 @@ def test_generated_packets_decode_like_the_source() -> None:
     scan, _ = max(scans, key=lambda s: s[0].width)
     r1, r2 = (np.asarray(lidarscan.scan.channel(scan, n)) for n in ("range", "range2"))
     assert np.array_equal(r1, r2)
+
+
+def test_runs_of_one_azimuth_without_a_firing_structure_are_refused() -> None:
+    """Every point twice in a row (runs of one azimuth, as a block pair's first echoes) on a
+    ring cloud that follows no firing pattern: the block-pair layout does not hold it either,
+    and the refusal says everything that was tried."""
+    rng = np.random.default_rng(4)
+    n = 6000
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    pitch = np.radians(rng.uniform(-15, 15, n))
+    rho = rng.uniform(2, 40, n)
+    xyz = np.repeat(np.stack([rho * np.cos(pitch) * np.cos(yaw),
+                              rho * np.cos(pitch) * np.sin(yaw), rho * np.sin(pitch)], -1),
+                    2, axis=0)
+    pts = np.zeros(2 * n, np.dtype({"names": ["x", "y", "z", "intensity", "ring"],
+                                    "formats": ["<f4"] * 4 + ["<u2"]}))
+    for j, a in enumerate("xyz"):
+        pts[a] = xyz[:, j]
+    pts["ring"] = np.repeat(np.arange(n) % 8, 2)
+    with pytest.raises(lidarscan.errors.ConversionError) as exc:
+        pc.from_pointcloud2(make_cloud(pts, height=1, width=2 * n, stamp_ns=STAMP))
+    text = str(exc.value)
+    assert "without a pixel" in text and "block pairs" in text and "info=" in text, text

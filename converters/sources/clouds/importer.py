@@ -24,7 +24,13 @@ ring's consecutive points counts the firings between them. Times that do not giv
 packet with its single-return table, a firing's second echo two firings after its first, the
 packet's offsets overrunning the next packet) leave the columns to the point order and time
 them by their first returns; negative times (a cloud stamped after its last firing) and jittery
-packet stamps are taken as they are. Two points in one pixel (same ring,
+packet stamps are taken as they are. ROS 2's velodyne_pointcloud also gives a VLP-16
+dual-return block pair's first echoes no interpolation (``unpack_vlp16`` takes the gap to the
+next block, which in a dual packet has the same azimuth): they sit at the pair's azimuth, up to
+1.6 firings from their firing. No column + beam azimuth holds them, so such a cloud (runs of one
+azimuth in a ring; :mod:`converters.sources.clouds.block_pairs`) gets its firings from the
+cloud order and each return a per-pixel azimuth channel (``azimuth``, ``azimuth2``, float32
+rad, msgs/README.md) with every point's own azimuth. Two points in one pixel (same ring,
 same firing: dual return) become ``range`` and ``range2`` (and ``intensity``/``intensity2``...)
 in cloud order; Nebula's ``distance`` is used as the range along the beam when it fits. With a
 known LidarInfo (``info=``, e.g. from the calibration file) any cloud, xyz only too, is placed by
@@ -37,8 +43,9 @@ tests/data re-project to <= 0.03 mm (float32 rounding; OS-2-128 0.015 mm max wit
 field, 0.03 mm from xyz alone; OS-0-32 0.005 mm), times exactly; a noise-free VLP-16-like ring
 cloud to 0.006 mm, times to 4 ns (f32 relative) or ~0.27 us (f64 absolute seconds: that is the
 float64 resolution of an epoch time); VLP-16 dual-return clouds made by velodyne_pointcloud's
-rules from real echoes (tests/test_velodyne_pointcloud_dual.py): > 99 % of the points within
-2 mm, with and without ``time``. Real Velodyne output is bounded by the driver itself:
+rules from real echoes (tests/test_velodyne_pointcloud_dual.py, organized and not): 100 % of
+the points within 2 mm, with and without ``time``; the echoes of ~2 % of the firings land in a
+neighbouring firing of their pair (a lone first echo at its pair's azimuth fits either). Real Velodyne output is bounded by the driver itself:
 velodyne_pointcloud rounds every laser's interpolated azimuth to 0.01 deg, a per-point pattern a
 per-column + per-beam model cannot hold, so expect up to ~1.3e-4 rad x range (simulated VLP-16:
 7.6 mm max at 60 m, 1.5 mm RMS). Very sparse clouds (most columns with < 2 points, e.g. second
@@ -120,7 +127,9 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
         field's second-return channel (``intensity2``, ...). Organized clouds keep their column
         order (``is_destaggered`` true with the estimated ``pixel_shift_by_row`` when times
         reveal a stagger); ring clouds are in firing order with per-scan
-        ``column_azimuth_angles``. ``beam_ids`` = ring values.
+        ``column_azimuth_angles`` (and float32 ``azimuth``/``azimuth2`` per-pixel azimuths for
+        dual-return block pairs whose first echoes share one azimuth). ``beam_ids`` = ring
+        values.
 
     Raises:
         ConversionError: no x/y/z, too few points, a layout that cannot be inferred, or a cloud
