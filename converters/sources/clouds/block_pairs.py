@@ -58,8 +58,8 @@ def _next_slot(k: int, j: int, delta: float, offsets: tuple[float, ...]
             kn = max(lowest, k + int(np.rint((delta - off) / 2)))
             cands.append((abs(delta - 2 * (kn - k) - off), kn, jn, off))
     best = min(c[0] for c in cands)
-    err, kn, jn, off = min((c for c in cands if c[0] <= best + SLOT_MARGIN),
-                           key=lambda c: (c[1], c[2], c[0]))
+    _, kn, jn, off = min((c for c in cands if c[0] <= best + SLOT_MARGIN),
+                         key=lambda c: (c[1], c[2], c[0]))
     return kn, jn, off
 
 
@@ -250,11 +250,11 @@ def block_pair_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: 
     try:
         grid = _ring_grid(pts, names, time_name, header_ns, range_name, range_scale,
                           columns=block_pair_columns)
+        if grid.returns != 2:
+            return None
+        fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
     except ConversionError:
         return None
-    if grid.returns != 2:
-        return None
-    fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
     placed = block_pair_fit(grid, fit)
     if placed is None:
         return None

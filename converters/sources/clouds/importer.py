@@ -64,6 +64,8 @@ from typing import Any
 
 import numpy as np
 
+from converters.shared.cloud_layout import read_points
+from converters.sources.clouds.block_pairs import block_pair_grid
 from converters.sources.clouds.grid import (
     _RANGE_FIELDS,
     _RING_FIELDS,
@@ -82,8 +84,6 @@ from converters.sources.clouds.grid import (
     _time_ns,
     _wrap,
 )
-from converters.sources.clouds.block_pairs import block_pair_grid
-from converters.shared.cloud_layout import read_points
 from lidarscan.datatypes import datatype_of
 from lidarscan.errors import ConfigError, ConversionError, InfoMismatchError, ValidationError
 from lidarscan.scan import as_array, make_info, make_scan, return_channel, return_channels
