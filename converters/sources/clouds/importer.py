@@ -45,10 +45,10 @@ cloud to 0.006 mm, times to 4 ns (f32 relative) or ~0.27 us (f64 absolute second
 float64 resolution of an epoch time); VLP-16 dual-return clouds made by velodyne_pointcloud's
 rules from real echoes (tests/test_velodyne_pointcloud_dual.py, organized and not): 100 % of
 the points within 2 mm, with and without ``time``; the echoes of ~2 % of the firings land in a
-neighbouring firing of their pair (a lone first echo at its pair's azimuth fits either). Real Velodyne output is bounded by the driver itself:
-velodyne_pointcloud rounds every laser's interpolated azimuth to 0.01 deg, a per-point pattern a
-per-column + per-beam model cannot hold, so expect up to ~1.3e-4 rad x range (simulated VLP-16:
-7.6 mm max at 60 m, 1.5 mm RMS). Very sparse clouds (most columns with < 2 points, e.g. second
+neighbouring firing of their pair (a lone first echo at its pair's azimuth fits either). Real
+Velodyne output is bounded by the driver itself: velodyne_pointcloud rounds every laser's
+interpolated azimuth to 0.01 deg, a per-point pattern a per-column + per-beam model cannot
+hold, so expect up to ~1.3e-4 rad x range (simulated VLP-16: 7.6 mm max at 60 m, 1.5 mm RMS). Very sparse clouds (most columns with < 2 points, e.g. second
 returns) are fitted with evenly spaced column azimuths.
 
 The grid (rows, columns, returns, times) and the beam model fit live in
