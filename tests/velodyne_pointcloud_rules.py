@@ -1,10 +1,11 @@
 """The clouds ROS 2's ``velodyne_pointcloud`` publishes for a VLP-16, made from packets by its
 rules; and VLP-16 dual-return packets made from the real VLP-32C recording in tests/data.
 
-The rules (facts read from the driver's public sources, ros-drivers/velodyne branch ``ros2``:
-``velodyne_pointcloud/src/lib/rawdata.cpp`` (``buildTimings``, ``unpack_vlp16``),
-``calibration.cpp``, ``pointcloudXYZIRT.cpp``, ``velodyne_driver/src/driver/driver.cpp``; this
-code is our own):
+The rules (facts read from the driver's public sources, ros-drivers/velodyne branch ``ros2``
+(04a7ca7): ``velodyne_pointcloud/src/lib/rawdata.cpp`` (``buildTimings``, ``unpack_vlp16``),
+``calibration.cpp``, ``pointcloudXYZIRT.cpp``, ``organized_cloudXYZIRT.cpp``,
+``datacontainerbase.hpp``, ``conversions/transform.cpp``,
+``velodyne_driver/src/driver/driver.cpp``; this code is our own):
 
 1. ``ring`` = rank of the laser's ``vert_correction``, rising (0 = the lowest beam).
 2. The VelodyneScan, hence the cloud, is stamped with its LAST packet's stamp
@@ -18,23 +19,29 @@ code is our own):
    firing is stamped 110.592 us after the first and a packet's offsets reach 1.306 ms (twice
    the 663.5 us the packet covers).
 4. Azimuth of a point: ``block azimuth + diff * (2.304 d + 55.296 f) / 110.592``, rounded to
-   0.01 deg, ``diff`` = next block's azimuth - this block's (the previous diff for the last
-   block; a negative diff takes the previous one, or skips the block when that was 0). In a
-   dual packet the even blocks' diff is 0 (both blocks of a pair have one azimuth): those points
-   all sit at their block's azimuth. ``ros2_dual_azimuths=False`` gives them their pair's diff
-   instead (what the sensor's firing times say; the clouds the importer tests use).
-   With the driver's own azimuths the last echo of a firing lies up to half a pair's rotation
-   plus 15 laser steps (~0.32 deg at 600 rpm) from the strongest echo of the same firing, and
-   the last echoes of a pair's two firings share one azimuth: no grid of one direction per
-   pixel and a per-beam azimuth offset holds both echoes. On the real-echo clouds below, the
-   strongest echoes exact and each last echo in its firing's pixel put 65.5 % of the points
-   within 2 mm (measured on messages 1 and 3); from_pointcloud2 refuses such clouds.
+   0.01 deg, ``diff`` = the NEXT BLOCK's azimuth - this block's, in every return mode
+   (``raw->blocks[block + 1].rotation - raw->blocks[block].rotation`` in ``unpack_vlp16`` on
+   ``ros2`` d2304ce and ``humble-devel`` d8cf623, as on ROS 1 ``master``; only the VLS-128
+   path looks ``1 + dual_return`` blocks ahead); the last block takes the previous diff; a
+   negative diff takes the previous one, or skips the block when that was 0. In a dual packet
+   both blocks of a pair carry one azimuth, so an even block's diff is 0: all its points (both
+   firing sequences, every laser) sit at the pair's azimuth, the odd block's points at their
+   firings' azimuths, and the last pair of a packet (block 11 takes block 10's zero diff) has
+   all four echoes at its pair's azimuth; an odd block whose next pair wraps past 0 deg is
+   skipped. No grid of one direction per pixel and a per-beam azimuth offset holds the
+   first echoes (up to 1.6 firing steps off); from_pointcloud2 gives each pixel its own
+   azimuth (channels ``azimuth``, ``azimuth2``).
 5. x, y, z from the calibration (distance = raw * 0.002 m + dist_correction, vertical and
    horizontal offsets, ROS axes x = y', y = -x'), float32, sin/cos from a 0.01 deg table;
-   points outside [0.9, 130] m (the default min_range / max_range) and no-returns are left out;
-   every other point is published, both points of an identical pair (a single echo is reported
-   in both blocks of a pair) included.
-6. Fields (``PointcloudXYZIRT``, packed as ``setPointCloud2Fields`` lays them out): x, y, z,
+   points outside [0.9, 130] m (the default min_range / max_range) and no-returns are out of
+   range; every other point is published, both points of an identical pair (a single echo is
+   reported in both blocks of a pair) included. ``organize_cloud`` (default true,
+   ``transform.cpp``): ``OrganizedCloudXYZIRT``, one row of 16 points per firing sequence of
+   a block, the point of ring r in column r, out-of-range points NaN x/y/z/intensity with
+   their ring and time (so the silent laser's ring is in the cloud, with NaN points only);
+   false: ``PointcloudXYZIRT``, the in-range points in packet / block / firing / laser order,
+   height 1.
+6. Fields (both containers, packed as ``setPointCloud2Fields`` lays them out): x, y, z,
    intensity float32, ring uint16, time float32: 22 bytes a point. ``with_time=False`` leaves
    ``time`` out (clouds whose time field was dropped).
 
@@ -88,9 +95,10 @@ def _laser_table(calibration: Mapping[str, Any]) -> dict[str, np.ndarray[Any, An
             for k in keys}
 
 
-def _azimuth_units(blocks: np.ndarray[Any, Any], ros2_dual_azimuths: bool, dual: bool
+def _azimuth_units(blocks: np.ndarray[Any, Any]
                    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """(12, 32) int azimuth (0.01 deg) of each point of one packet, (12,) block kept."""
+    """(12, 32) int azimuth (0.01 deg) of each point of one packet, (12,) block kept: the
+    driver's gap to the NEXT block, whatever the return mode."""
     out = np.zeros((12, 32), np.int64)
     kept = np.ones(12, bool)
     last_diff = 0.0
@@ -98,10 +106,8 @@ def _azimuth_units(blocks: np.ndarray[Any, Any], ros2_dual_azimuths: bool, dual:
     frac = (VLP16_LASER_US * (k % 16) + VLP16_FIRING_US * (k // 16)) / VLP16_BLOCK_US
     for b in range(12):
         az = float(blocks[b])
-        # the driver: the next block; the firing times: the next pair's first block
-        nxt = b + 1 if ros2_dual_azimuths or not dual else b + 2 - b % 2
-        if nxt <= 11:
-            raw = int(blocks[nxt]) - int(blocks[b])
+        if b < 11:
+            raw = int(blocks[b + 1]) - int(blocks[b])
             diff = float((36000 + raw) % 36000)
             if raw < 0:
                 if last_diff > 0:
@@ -117,17 +123,22 @@ def _azimuth_units(blocks: np.ndarray[Any, Any], ros2_dual_azimuths: bool, dual:
 
 
 def velodyne_cloud(packets: Sequence[tuple[int, bytes]], calibration: Mapping[str, Any], *,
-                   with_time: bool = True, ros2_dual_azimuths: bool = True,
+                   with_time: bool = True, organize_cloud: bool = True,
                    frame_id: str = "velodyne") -> tuple[Any, dict[str, np.ndarray[Any, Any]]]:
-    """The unorganized ``sensor_msgs/PointCloud2`` velodyne_pointcloud makes of one VelodyneScan
-    of VLP-16 packets (the rules in the module docstring), and per point its source.
+    """The ``sensor_msgs/PointCloud2`` velodyne_pointcloud makes of one VelodyneScan of VLP-16
+    packets (the rules in the module docstring), and the source of each of its finite points.
 
     Args:
         packets: [(packet stamp ns, 1206-byte payload)] of one scan message, in order.
         calibration: ros-drivers calibration (``lasers`` with ``laser_id``, corrections).
+        with_time: publish the ``time`` field (False: a cloud whose time field was dropped).
+        organize_cloud: the driver's ``organize_cloud`` (default true): one row a firing
+            sequence of a block (16 points by ring, NaN x/y/z/intensity out of range); false:
+            the in-range points only, height 1.
 
     Returns:
-        (cloud dataclass, {"packet", "block", "firing", "laser", "xyz" (N, 3) float64}).
+        (cloud dataclass, {"packet", "block", "firing", "laser", "xyz" (N, 3) float64} of the
+        finite points in cloud order).
     """
     from cloud_oracles import make_cloud
 
@@ -138,58 +149,65 @@ def velodyne_cloud(packets: Sequence[tuple[int, bytes]], calibration: Mapping[st
     offsets = timing_offsets()
     stamp = int(packets[-1][0])
     f32 = np.float32
-    cols: dict[str, list[Any]] = {n: [] for n in ("x", "y", "z", "intensity", "ring", "time",
-                                                  "packet", "block", "firing", "laser")}
+    nan = f32("nan")
+    names = ("x", "y", "z", "intensity", "ring", "time", "packet", "block", "firing", "laser")
+    cols: dict[str, list[Any]] = {n: [] for n in names}
+    rows = 0
     for p, (pkt_stamp, data) in enumerate(packets):
         blocks = np.array([struct.unpack_from("<H", data, 100 * b + 2)[0] for b in range(12)])
-        dual = data[1204] == 0x39
-        az_units, kept = _azimuth_units(blocks, ros2_dual_azimuths, dual)
+        az_units, kept = _azimuth_units(blocks)
         rel = f32((pkt_stamp - stamp) * 1e-9)
         for b in range(12):
             if struct.unpack_from("<H", data, 100 * b)[0] != 0xEEFF:
                 break                                    # bad packet: the rest is skipped
             if not kept[b]:
                 continue
-            for k in range(32):
-                raw, refl = struct.unpack_from("<HB", data, 100 * b + 4 + 3 * k)
-                d = k % 16
-                distance = f32(f32(raw * 0.002) + f32(table["dist_correction"][d]))
-                if not (MIN_RANGE <= distance <= MAX_RANGE):
-                    continue
-                cv, sv = f32(math.cos(table["vert_correction"][d])), f32(
-                    math.sin(table["vert_correction"][d]))
-                cr, sr = f32(math.cos(table["rot_correction"][d])), f32(
-                    math.sin(table["rot_correction"][d]))
-                a = int(az_units[b, k])
-                cos_rot = cos_t[a] * cr + sin_t[a] * sr
-                sin_rot = sin_t[a] * cr - cos_t[a] * sr
-                h, v = f32(table["horiz_offset_correction"][d]), f32(
-                    table["vert_offset_correction"][d])
-                xy = distance * cv - v * sv
-                x = xy * sin_rot - h * cos_rot
-                y = xy * cos_rot + h * sin_rot
-                z = distance * sv + v * cv
-                cols["x"].append(y)
-                cols["y"].append(-x)
-                cols["z"].append(z)
-                cols["intensity"].append(f32(refl))
-                cols["ring"].append(rings[d])
-                cols["time"].append(f32(f32(offsets[b, k]) + rel))
-                cols["packet"].append(p)
-                cols["block"].append(b)
-                cols["firing"].append(k // 16)
-                cols["laser"].append(d)
-    names = [n for n, _, _ in FIELDS if with_time or n != "time"]
-    dtype = np.dtype({"names": names,
-                      "formats": ["<u2" if n == "ring" else "<f4" for n in names],
-                      "offsets": [o for n, o, _ in FIELDS if n in names],
+            for f in range(2):
+                line = [None] * 16
+                for d in range(16):
+                    k = 16 * f + d
+                    raw, refl = struct.unpack_from("<HB", data, 100 * b + 4 + 3 * k)
+                    distance = f32(f32(raw * 0.002) + f32(table["dist_correction"][d]))
+                    point = (nan, nan, nan, nan)
+                    if MIN_RANGE <= distance <= MAX_RANGE:
+                        cv, sv = f32(math.cos(table["vert_correction"][d])), f32(
+                            math.sin(table["vert_correction"][d]))
+                        cr, sr = f32(math.cos(table["rot_correction"][d])), f32(
+                            math.sin(table["rot_correction"][d]))
+                        a = int(az_units[b, k])
+                        cos_rot = cos_t[a] * cr + sin_t[a] * sr
+                        sin_rot = sin_t[a] * cr - cos_t[a] * sr
+                        h, v = f32(table["horiz_offset_correction"][d]), f32(
+                            table["vert_offset_correction"][d])
+                        xy = distance * cv - v * sv
+                        x = xy * sin_rot - h * cos_rot
+                        y = xy * cos_rot + h * sin_rot
+                        z = distance * sv + v * cv
+                        point = (y, -x, z, f32(refl))
+                    elif not organize_cloud:
+                        continue
+                    line[rings[d]] = (*point, rings[d], f32(f32(offsets[b, k]) + rel),
+                                      p, b, f, d)
+                rows += 1                # organized: one row a firing sequence, by ring
+                seq = line if organize_cloud else [v for d in range(16)
+                                                   for v in [line[rings[d]]] if v is not None]
+                for v in seq:
+                    for n, value in zip(names, v):
+                        cols[n].append(value)
+    names_out = [n for n, _, _ in FIELDS if with_time or n != "time"]
+    dtype = np.dtype({"names": names_out,
+                      "formats": ["<u2" if n == "ring" else "<f4" for n in names_out],
+                      "offsets": [o for n, o, _ in FIELDS if n in names_out],
                       "itemsize": 22 if with_time else 18})
     pts = np.zeros(len(cols["x"]), dtype)
-    for n in names:
+    for n in names_out:
         pts[n] = cols[n]
-    cloud = make_cloud(pts, height=1, width=pts.size, stamp_ns=stamp, frame_id=frame_id)
-    source = {n: np.asarray(cols[n], np.int64) for n in ("packet", "block", "firing", "laser")}
-    source["xyz"] = np.stack([np.asarray(cols[a], np.float64) for a in "xyz"], -1)
+    height, width = (rows, 16) if organize_cloud else (1, pts.size)
+    cloud = make_cloud(pts, height=height, width=width, stamp_ns=stamp, frame_id=frame_id)
+    finite = np.isfinite(np.asarray(cols["x"], np.float64))
+    source = {n: np.asarray(cols[n], np.int64)[finite]
+              for n in ("packet", "block", "firing", "laser")}
+    source["xyz"] = np.stack([np.asarray(cols[a], np.float64)[finite] for a in "xyz"], -1)
     return cloud, source
 
 

@@ -397,14 +397,16 @@ def _check_grid_size(height: int, width: int, points: int, source: str) -> None:
 
 def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str | None,
                stamp_ns: int, range_name: str | None, range_scale: float, *,
-               time_columns: bool = True) -> _Grid:
+               time_columns: bool = True, columns: Any = None) -> _Grid:
     """Unorganized (or ring-mixed) cloud -> grid of rings x firings, up to two returns a pixel.
 
     Columns come from the per-point times when the cloud has them (and ``time_columns``), else
     from the cloud's own point order and each ring's azimuth steps (:func:`_order_times`); the
     times then give only the firings' times (their first returns') and the beams' offsets.
     Points sharing a pixel (same ring, same firing: dual return) become the pixel's first and
-    second return in cloud order; a third is dropped and counted.
+    second return in cloud order; a third is dropped and counted. ``columns``: a function
+    (azimuths (N,) rad, rows (N,), height) -> (N,) columns or None, used instead of the times
+    and the azimuth steps (None from it: ConversionError).
     """
     ring_name = _ring_name(names) or "ring"
     flat = pts.reshape(-1)
@@ -432,9 +434,14 @@ def _ring_grid(pts: np.ndarray[Any, Any], names: Sequence[str], time_name: str |
     column_times = None
     t_abs = _time_ns(flat[None, :], time_name, stamp_ns)[0] if time_name else None
     cols = None
-    if time_columns and t_abs is not None and np.ptp(t_abs) > 0:
+    if columns is not None:
+        cols = columns(psi, rows, height)
+        if cols is None:
+            raise ConversionError("cloud", "no firing layout found by the given rule",
+                                  "points in that layout")
+    elif time_columns and t_abs is not None and np.ptp(t_abs) > 0:
         cols, beam_times = _columns_from_times(t_abs, rows, height)
-    time_cols = cols is not None
+    time_cols = cols is not None and columns is None
     if cols is not None:
         # times shared by several firings (a driver stamping per packet or block) put more than
         # two points in a pixel: then the times do not resolve firings, the point order does

@@ -24,7 +24,13 @@ ring's consecutive points counts the firings between them. Times that do not giv
 packet with its single-return table, a firing's second echo two firings after its first, the
 packet's offsets overrunning the next packet) leave the columns to the point order and time
 them by their first returns; negative times (a cloud stamped after its last firing) and jittery
-packet stamps are taken as they are. Two points in one pixel (same ring,
+packet stamps are taken as they are. ROS 2's velodyne_pointcloud also gives a VLP-16
+dual-return block pair's first echoes no interpolation (``unpack_vlp16`` takes the gap to the
+next block, which in a dual packet has the same azimuth): they sit at the pair's azimuth, up to
+1.6 firings from their firing. No column + beam azimuth holds them, so such a cloud (runs of one
+azimuth in a ring; :mod:`converters.sources.clouds.block_pairs`) gets its firings from the
+cloud order and each return a per-pixel azimuth channel (``azimuth``, ``azimuth2``, float32
+rad, msgs/README.md) with every point's own azimuth. Two points in one pixel (same ring,
 same firing: dual return) become ``range`` and ``range2`` (and ``intensity``/``intensity2``...)
 in cloud order; Nebula's ``distance`` is used as the range along the beam when it fits. With a
 known LidarInfo (``info=``, e.g. from the calibration file) any cloud, xyz only too, is placed by
@@ -37,11 +43,12 @@ tests/data re-project to <= 0.03 mm (float32 rounding; OS-2-128 0.015 mm max wit
 field, 0.03 mm from xyz alone; OS-0-32 0.005 mm), times exactly; a noise-free VLP-16-like ring
 cloud to 0.006 mm, times to 4 ns (f32 relative) or ~0.27 us (f64 absolute seconds: that is the
 float64 resolution of an epoch time); VLP-16 dual-return clouds made by velodyne_pointcloud's
-rules from real echoes (tests/test_velodyne_pointcloud_dual.py): > 99 % of the points within
-2 mm, with and without ``time``. Real Velodyne output is bounded by the driver itself:
-velodyne_pointcloud rounds every laser's interpolated azimuth to 0.01 deg, a per-point pattern a
-per-column + per-beam model cannot hold, so expect up to ~1.3e-4 rad x range (simulated VLP-16:
-7.6 mm max at 60 m, 1.5 mm RMS). Very sparse clouds (most columns with < 2 points, e.g. second
+rules from real echoes (tests/test_velodyne_pointcloud_dual.py, organized and not): 100 % of
+the points within 2 mm, with and without ``time``; the echoes of ~2 % of the firings land in a
+neighbouring firing of their pair (a lone first echo at its pair's azimuth fits either). Real
+Velodyne output is bounded by the driver itself: velodyne_pointcloud rounds every laser's
+interpolated azimuth to 0.01 deg, a per-point pattern a per-column + per-beam model cannot
+hold, so expect up to ~1.3e-4 rad x range (simulated VLP-16: 7.6 mm max at 60 m, 1.5 mm RMS). Very sparse clouds (most columns with < 2 points, e.g. second
 returns) are fitted with evenly spaced column azimuths.
 
 The grid (rows, columns, returns, times) and the beam model fit live in
@@ -57,6 +64,8 @@ from typing import Any
 
 import numpy as np
 
+from converters.shared.cloud_layout import read_points
+from converters.sources.clouds.block_pairs import block_pair_grid
 from converters.sources.clouds.grid import (
     _RANGE_FIELDS,
     _RING_FIELDS,
@@ -75,7 +84,6 @@ from converters.sources.clouds.grid import (
     _time_ns,
     _wrap,
 )
-from converters.shared.cloud_layout import read_points
 from lidarscan.datatypes import datatype_of
 from lidarscan.errors import ConfigError, ConversionError, InfoMismatchError, ValidationError
 from lidarscan.scan import as_array, make_info, make_scan, return_channel, return_channels
@@ -119,7 +127,9 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
         field's second-return channel (``intensity2``, ...). Organized clouds keep their column
         order (``is_destaggered`` true with the estimated ``pixel_shift_by_row`` when times
         reveal a stagger); ring clouds are in firing order with per-scan
-        ``column_azimuth_angles``. ``beam_ids`` = ring values.
+        ``column_azimuth_angles`` (and float32 ``azimuth``/``azimuth2`` per-pixel azimuths for
+        dual-return block pairs whose first echoes share one azimuth). ``beam_ids`` = ring
+        values.
 
     Raises:
         ConversionError: no x/y/z, too few points, a layout that cannot be inferred, or a cloud
@@ -186,8 +196,15 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
         grid = _ring_grid(pts, names, time_name, header_ns, range_name, scale,
                           time_columns=False)
         fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
-    _check_fit(grid, fit, chosen, ring_name, time_name)
-    return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass)
+    theta = None
+    if chosen == "ring" and not _fits(grid, fit):
+        # velodyne_pointcloud's dual-return VLP-16 clouds: a block pair's first echoes share
+        # one azimuth; every pixel then carries its own point's azimuth
+        paired = block_pair_grid(pts, names, time_name, header_ns, range_name, scale)
+        if paired is not None and _fits(paired[0], paired[1], paired[2]):
+            grid, fit, theta = paired
+    _check_fit(grid, fit, chosen, ring_name, time_name, theta)
+    return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass, theta)
 
 
 #: A beam model that leaves more than this share of points out, or re-projects the median point
@@ -195,11 +212,13 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
 MAX_LOST_SHARE, MAX_MEDIAN_ERROR_M = 0.02, 0.02
 
 
-def _fit_figures(grid: _Grid, fit: _Fit) -> tuple[int, float]:
-    """(points of the cloud, median re-projection error in metres) of a grid and its fit."""
+def _fit_figures(grid: _Grid, fit: _Fit, pixel_theta: Any = None) -> tuple[int, float]:
+    """(points of the cloud, median re-projection error in metres) of a grid and its fit
+    (with per-pixel azimuths ``pixel_theta`` (H, G) rad instead of column + beam, if given)."""
     u, g = np.nonzero(grid.valid)
     points = u.size + grid.dropped
-    theta = fit.alpha[grid.cidx[u, g]] + fit.beta[u]
+    theta = (fit.alpha[grid.cidx[u, g]] + fit.beta[u] if pixel_theta is None
+             else pixel_theta[u, g])
     ct, st = np.cos(theta), np.sin(theta)
     o = fit.origins[u]
     rho = fit.rho[u, g]
@@ -213,25 +232,26 @@ def _fit_figures(grid: _Grid, fit: _Fit) -> tuple[int, float]:
     return points, median
 
 
-def _fits(grid: _Grid, fit: _Fit) -> bool:
+def _fits(grid: _Grid, fit: _Fit, pixel_theta: Any = None) -> bool:
     """The grid holds the cloud: at most MAX_LOST_SHARE of its points without a pixel and a
     median re-projection error of at most MAX_MEDIAN_ERROR_M."""
-    points, median = _fit_figures(grid, fit)
+    points, median = _fit_figures(grid, fit, pixel_theta)
     return grid.dropped <= MAX_LOST_SHARE * points and median <= MAX_MEDIAN_ERROR_M
 
 
 def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
-               time_name: str | None) -> None:
+               time_name: str | None, pixel_theta: Any = None) -> None:
     """Raise instead of returning a scan that silently loses points or misplaces them."""
-    if _fits(grid, fit):
+    if _fits(grid, fit, pixel_theta):
         return
-    points, median = _fit_figures(grid, fit)
+    points, median = _fit_figures(grid, fit, pixel_theta)
     if layout == "organized":
         tried = "rows as beams (organized cloud), columns in cloud order"
     else:
         tried = (f"rows from the {ring_name!r} field, columns (firings) from "
                  + (f"the {time_name!r} times, then " if time_name is not None else "")
-                 + "the point order and azimuth steps")
+                 + "the point order and azimuth steps, then dual-return block pairs whose "
+                 "first echoes share one azimuth")
     raise ConversionError(
         "cloud", f"{grid.dropped} of {points} points without a pixel, median re-projection "
                  f"error {median:.3g} m on a {grid.points.shape[0]} x {grid.width} grid",
@@ -241,7 +261,8 @@ def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
 
 
 def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: int | None,
-              frame_id: str | None, as_dataclass: bool) -> tuple[Any, Any]:
+              frame_id: str | None, as_dataclass: bool, pixel_theta: Any = None
+              ) -> tuple[Any, Any]:
     width = grid.width
     order = np.argsort(-fit.phi, kind="stable")           # rows top -> bottom
 
@@ -281,6 +302,10 @@ def _assemble(cloud: Any, grid: _Grid, fit: _Fit, header_ns: int, info_stamp: in
         img = np.ascontiguousarray(img).astype(img.dtype.newbyteorder("="))
         for k in range(grid.returns):
             channels[return_channel(name, k + 1)] = rows(img[:, k * width:(k + 1) * width])
+    if pixel_theta is not None:          # each return's own azimuths (msgs/README.md)
+        for k in range(grid.returns):
+            channels[return_channel("azimuth", k + 1)] = rows(
+                pixel_theta[:, k * width:(k + 1) * width].astype(np.float32))
     scan = make_scan(info, channels, scan_stamp, frame_id=frame,
                      is_destaggered=bool(np.any(shifts)),
                      column_time_offsets=col_offsets,
