@@ -482,8 +482,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     for task, took in warm(("cloud", "merger", "codec")).items():
         print(f"  {task}: {took:.1f} s", flush=True)
     compiled = specialisations()
-    print(f"kernels ready in {time.perf_counter() - total:.1f} s"
-          + (": " + ", ".join(f"{k} {v}" for k, v in compiled.items()) if compiled else ""))
+    print(f"kernels ready in {time.perf_counter() - total:.1f} s: "
+          + (", ".join(f"{k} {v}" for k, v in compiled.items()) if compiled else
+             "numba not installed or disabled (nothing to compile)"))
     return 0
 
 
