@@ -45,47 +45,60 @@ def many_scans(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def _interrupt(argv: list[str], out: Path, delay: float) -> tuple[int, str]:
-    """Run ``lidarscan`` ``argv``; once its temporary output exists wait ``delay`` s, send
-    SIGINT; (exit status, stderr)."""
+def _partial_bytes(out: Path) -> int | None:
+    """Bytes written so far under the temporary name of ``out`` (a file, or a folder's files),
+    or None before it exists."""
+    parts = list(out.parent.glob(f".{out.name}.*.partial"))
+    if not parts:
+        return None
+    files = [parts[0]] if parts[0].is_file() else [f for f in parts[0].rglob("*") if f.is_file()]
+    total = 0
+    for f in files:
+        try:
+            total += f.stat().st_size
+        except FileNotFoundError:          # renamed or removed meanwhile
+            pass
+    return total
+
+
+def _interrupt(argv: list[str], out: Path, at_bytes: int) -> tuple[int, str]:
+    """Run ``lidarscan`` ``argv``; once its temporary output holds ``at_bytes`` bytes (0: once
+    it exists), send SIGINT; (exit status, stderr). Progress, not a clock, decides when: the
+    signal lands at the same point of the run on a fast machine as on a slow one."""
     proc = subprocess.Popen([sys.executable, "-c", MAIN, *argv], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
-    while not list(out.parent.glob(f".{out.name}.*.partial")) and proc.poll() is None:
-        assert time.monotonic() < deadline, "no temporary output after 120 s"
-        time.sleep(0.01)
-    time.sleep(delay)
+    while proc.poll() is None:
+        done = _partial_bytes(out)
+        if done is not None and done >= at_bytes:
+            break
+        assert time.monotonic() < deadline, f"fewer than {at_bytes} bytes written after 120 s"
+        time.sleep(0.005)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=300)
     return proc.returncode, err
 
 
 @pytest.fixture(scope="module")
-def full_run_seconds(many_scans: Path, tmp_path_factory: pytest.TempPathFactory) -> float:
-    """Seconds one uninterrupted conversion of ``many_scans`` takes on this machine (from its
-    temporary output's appearance to the end): the Ctrl-C delays are fractions of it, so the
-    signal lands in the middle on a fast machine as on a slow one."""
+def full_output_bytes(many_scans: Path, tmp_path_factory: pytest.TempPathFactory) -> int:
+    """Size of the uninterrupted conversion's output (the Ctrl-C points are fractions of it)."""
     out = tmp_path_factory.mktemp("full") / "out.mcap"
-    proc = subprocess.Popen([sys.executable, "-c", MAIN, "convert", str(many_scans), str(out),
-                             "--compress", "--pointcloud2"], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    while not list(out.parent.glob(f".{out.name}.*.partial")) and proc.poll() is None:
-        time.sleep(0.01)
-    start = time.monotonic()
-    proc.communicate(timeout=300)
-    assert proc.returncode == 0
-    return time.monotonic() - start
+    done = subprocess.run([sys.executable, "-c", MAIN, "convert", str(many_scans), str(out),
+                           "--compress", "--pointcloud2"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return out.stat().st_size
 
 
 @pytest.mark.parametrize("threads", ["1", "3"])
 @pytest.mark.parametrize("fraction", [0.0, 0.15, 0.5])
 def test_ctrl_c_exits_130_with_a_valid_partial_output(
         many_scans: Path, tmp_path: Path, fraction: float, threads: str,
-        full_run_seconds: float) -> None:
+        full_output_bytes: int) -> None:
     out = tmp_path / "out.mcap"
     status, err = _interrupt(["convert", str(many_scans), str(out), "--compress",
                               "--pointcloud2", "--threads", threads], out,
-                             fraction * full_run_seconds)
+                             int(fraction * full_output_bytes))
     assert status == 130, err
     assert "Traceback" not in err and "SystemError" not in err, err
     assert "interrupted: " in err and "is a valid MCAP file" in err, err
@@ -98,15 +111,15 @@ def test_ctrl_c_exits_130_with_a_valid_partial_output(
     assert f"with the {sum(map(len, got.values()))} messages" in summary[0], summary
 
 
-def test_a_second_ctrl_c_still_closes_the_output(many_scans: Path, tmp_path: Path) -> None:
+def test_a_second_ctrl_c_still_closes_the_output(many_scans: Path, tmp_path: Path,
+                                                 full_output_bytes: int) -> None:
     """Twice Ctrl-C (a user who will not wait): still 130 and a readable file."""
     out = tmp_path / "out.mcap"
     proc = subprocess.Popen([sys.executable, "-c", MAIN, "convert", str(many_scans),
                              str(out), "--compress", "--pointcloud2"], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    while not list(tmp_path.glob(".out.mcap.*.partial")) and proc.poll() is None:
-        time.sleep(0.01)
-    time.sleep(0.3)
+    while (_partial_bytes(out) or 0) < full_output_bytes // 10 and proc.poll() is None:
+        time.sleep(0.005)
     proc.send_signal(signal.SIGINT)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=300)
@@ -136,13 +149,14 @@ def test_the_stop_request_restores_the_previous_handler() -> None:
     assert not is_interrupt(SystemError("other"))
 
 
-def test_ctrl_c_leaves_a_readable_rosbag2_folder(many_scans: Path, tmp_path: Path) -> None:
+def test_ctrl_c_leaves_a_readable_rosbag2_folder(many_scans: Path, tmp_path: Path,
+                                                 full_output_bytes: int) -> None:
     """OUT/ (a rosbag2 folder): interrupted, it still has its MCAP and metadata.yaml."""
     from converters.bags import open_bag
 
     out = tmp_path / "bag"
     status, err = _interrupt(["convert", str(many_scans), f"{out}/", "--compress",
-                              "--pointcloud2"], out, 0.4)
+                              "--pointcloud2"], out, full_output_bytes // 5)
     assert status == 130 and "is a valid rosbag2 folder" in err, err
     assert sorted(p.name for p in out.iterdir()) == ["bag_0.mcap", "metadata.yaml"]
     got = messages_by_topic(out / "bag_0.mcap")
