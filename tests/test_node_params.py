@@ -280,3 +280,23 @@ def test_merger_defaults_match_the_library_units() -> None:
     options = merger_node.settings(values)["options"]
     assert options["angle_increment"] == pytest.approx(math.radians(0.25))
     assert options["slop_ns"] == 50_000_000 and options["timeout_ns"] == 10**9
+
+
+def test_a_ctrl_c_inside_a_compiled_callback_of_the_warm_up_is_not_reported() -> None:
+    """The report of a KeyboardInterrupt that a C callback could not raise (numba's cache hook
+    during a node's warm-up) is dropped; any other unraisable exception is still reported."""
+    import sys
+
+    from converters.edge.nodes.common import _interrupts_in_callbacks_quiet
+
+    seen: list[type] = []
+    previous = sys.unraisablehook
+    sys.unraisablehook = lambda u: seen.append(type(u.exc_value))
+    try:
+        with _interrupts_in_callbacks_quiet():
+            sys.unraisablehook(type("U", (), {"exc_value": KeyboardInterrupt()})())
+            sys.unraisablehook(type("U", (), {"exc_value": ValueError()})())
+        assert sys.unraisablehook is not previous
+    finally:
+        sys.unraisablehook = previous
+    assert seen == [ValueError]

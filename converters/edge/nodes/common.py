@@ -23,7 +23,7 @@ import os
 import sys
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 __all__ = ["OK", "WARN", "ERROR", "Diagnostics", "ExactSync", "Guard", "LatencyWindow",
@@ -192,6 +192,26 @@ class Startup:
         return st
 
 
+@contextlib.contextmanager
+def _interrupts_in_callbacks_quiet() -> Iterator[None]:
+    """A Ctrl-C that lands inside a compiled library's callback during the warm-up (numba's
+    object-cache hook in llvmlite) cannot propagate from there: Python reports it as an
+    "Exception ignored" traceback. rclpy's SIGINT handler has already shut the context down by
+    then, so the node stops once the warm-up returns (:func:`run_node`); only the report is
+    dropped. Every other unraisable exception is reported as before."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable: Any) -> None:
+        if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
 def warm_up(node: Any, steps: dict[str, Callable[[], Any]],
             diagnostics: Diagnostics | None = None,
             describe: Callable[[], tuple[str, dict[str, Any]]] | None = None) -> Startup:
@@ -203,8 +223,9 @@ def warm_up(node: Any, steps: dict[str, Callable[[], Any]],
     log clause and status values (the backends that run).
     """
     startup = Startup()
-    for name, step in steps.items():
-        startup.run(name, step)
+    with _interrupts_in_callbacks_quiet():
+        for name, step in steps.items():
+            startup.run(name, step)
     startup.ready = True
     line, values = describe() if describe is not None else ("", {})
     startup.values.update(values)
