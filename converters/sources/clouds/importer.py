@@ -189,21 +189,24 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
     build = _organized_grid if chosen == "organized" else _ring_grid
     grid = build(pts, names, time_name, header_ns, range_name, scale)
     fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
-    if chosen == "ring" and grid.time_columns and not _fits(grid, fit):
+    fits = _fits(grid, fit)
+    if chosen == "ring" and grid.time_columns and not fits:
         # times that are not the firings' (velodyne_pointcloud's single-return table on
         # dual-return packets stamps a firing's second echo two firings later): the point order
         # gives the firings, the times then only their times
         grid = _ring_grid(pts, names, time_name, header_ns, range_name, scale,
                           time_columns=False)
         fit = _fit_geometry(grid.points, grid.valid, grid.cidx, grid.width, grid.known_range)
+        fits = _fits(grid, fit)
     theta = None
-    if chosen == "ring" and not _fits(grid, fit):
+    if chosen == "ring" and not fits:
         # velodyne_pointcloud's dual-return VLP-16 clouds: a block pair's first echoes share
         # one azimuth; every pixel then carries its own point's azimuth
         paired = block_pair_grid(pts, names, time_name, header_ns, range_name, scale)
         if paired is not None and _fits(paired[0], paired[1], paired[2]):
-            grid, fit, theta = paired
-    _check_fit(grid, fit, chosen, ring_name, time_name, theta)
+            (grid, fit, theta), fits = paired, True
+    if not fits:
+        _refuse_fit(grid, fit, chosen, ring_name, time_name, theta)
     return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass, theta)
 
 
@@ -239,11 +242,10 @@ def _fits(grid: _Grid, fit: _Fit, pixel_theta: Any = None) -> bool:
     return grid.dropped <= MAX_LOST_SHARE * points and median <= MAX_MEDIAN_ERROR_M
 
 
-def _check_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
-               time_name: str | None, pixel_theta: Any = None) -> None:
-    """Raise instead of returning a scan that silently loses points or misplaces them."""
-    if _fits(grid, fit, pixel_theta):
-        return
+def _refuse_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
+                time_name: str | None, pixel_theta: Any = None) -> None:
+    """Raise (a grid that :func:`_fits` refused) instead of returning a scan that silently
+    loses points or misplaces them: the error names the layouts tried and the figures."""
     points, median = _fit_figures(grid, fit, pixel_theta)
     if layout == "organized":
         tried = "rows as beams (organized cloud), columns in cloud order"
