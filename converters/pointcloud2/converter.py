@@ -108,7 +108,7 @@ from converters.shared.cloud_layout import (
 from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
 from lidarscan.datatypes import dtype_of
 from lidarscan.errors import ConfigError, ConversionError, UnknownChannelError
-from lidarscan.geometry import info_key
+from lidarscan.geometry import info_key, pixel_delays
 from lidarscan.scan import as_array
 from lidarscan.stamps import split_ns
 
@@ -251,7 +251,6 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
         self.projector = self._geometry.projector
         proj = self.projector
         self.height, self.width = proj.height, proj.width
-        self._info_stamp = proj.info_stamp_ns
         self._has_shift = bool(np.any(proj.shifts % max(self.width, 1)))
         want = p.destagger if p and destagger is None else (True if destagger is None
                                                             else destagger)
@@ -385,7 +384,7 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
                 _roll_into(grid, times, self._groups, 1)
                 times = grid
             self._times_cache = (cols.copy(), times)
-        delays = rays.delays
+        delays = pixel_delays(rays.scan)
         if delays is None:
             return np.asarray(times, dtype=np.int64)
         roll = self._roll(rays.destaggered)

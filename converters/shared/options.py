@@ -33,8 +33,7 @@ from converters.shared.frames import check_extrinsics
 from lidarscan.errors import ConfigError
 
 __all__ = ["HOLE_DEFAULTS", "HOLE_KEYS", "IfPresent", "choice", "flag", "integer",
-           "merger_input", "merger_options", "name", "number", "resolve_channel",
-           "slice_options"]
+           "merger_input", "merger_options", "name", "number", "slice_options"]
 
 BACKENDS = ("auto", "numba", "numpy", "c")
 #: The hole-detection options of a slice and their defaults
@@ -54,15 +53,6 @@ class IfPresent(str):
 
     def __repr__(self) -> str:
         return f"IfPresent({str.__repr__(self)})"
-
-
-def resolve_channel(wanted: str | None, names: Sequence[str]) -> str | None:
-    """The channel to read for an option (``wanted``) among a scan's channel ``names``: None
-    when ``wanted`` is None or an :class:`IfPresent` name the scan lacks; else the name (a
-    missing required name is reported by the channel lookup itself)."""
-    if wanted is None or (isinstance(wanted, IfPresent) and wanted not in names):
-        return None
-    return str(wanted)
 
 
 def number(field: str, value: Any, *, minimum: float | None = None, positive: bool = False,

@@ -39,7 +39,7 @@ import numpy as np
 from converters.shared.frames import check_poses, transform_rays
 from converters.shared.transforms import OutOfSpanError, TransformTrack, segment_rotvecs
 from lidarscan.errors import InfoMismatchError, LinkageError, ValidationError
-from lidarscan.geometry import azimuth_channel, make_projector, pixel_delays
+from lidarscan.geometry import azimuth_channel, make_projector
 from lidarscan.scan import as_array, channel, range_m, return_channel, return_of
 from lidarscan.stamps import split_ns, to_ns
 
@@ -76,7 +76,7 @@ class RayRequest:
         raw: the range channel as a native (H, W) view (first element of a count > 1 channel).
         metres: the range channel decoded to float32 metres, flat (H*W,) C-contiguous.
         channels: the channel images to publish (:class:`ChannelWant`).
-        column_times: (W,) int64 ns of each measurement column (and the scan's ``t`` delays).
+        column_times: (W,) int64 ns of each measurement column.
         factors: the factored beam model for this scan's geometry, or None where it does not
             factor (per-pixel angles in the info, a per-pixel azimuth channel).
         mount: a moving mount's poses (:class:`MountPoses`): "poses" (one pose per distinct
@@ -130,7 +130,6 @@ class ScanRays:
         metres: (H*W,) float32 metres or None (not requested).
         views: :attr:`ChannelWant.key` -> native view (None: missing, not required).
         column_times: (W,) int64 ns since the stamp of each measurement column, or None.
-        delays: (H, W) int64 ns of the scan's ``t`` channel (scan column order), or None.
         factors: the factored beam model (float32 rows (H, 6), columns (6, W), constant (6,))
             of this geometry, or None (not requested, or it does not factor).
         period_ns: the scan period (``W * column_time_increment``, or from the column times).
@@ -146,7 +145,6 @@ class ScanRays:
     metres: np.ndarray[Any, Any] | None
     views: dict[str, np.ndarray[Any, Any] | None]
     column_times: np.ndarray[Any, Any] | None
-    delays: np.ndarray[Any, Any] | None
     factors: tuple[np.ndarray[Any, Any], ...] | None
     period_ns: float
     mount: MountPoses | None = None
@@ -232,14 +230,11 @@ class ScanGeometry:
         azimuths = (azimuth_channel(scan, self.range_channel)
                     if any(n.startswith("azimuth") for n in names) else None)
         key = self._key(scan, measured, azimuths, destaggered)
-        column_times = delays = None
-        if request.column_times:
-            column_times = self.projector.column_times(scan)
-            delays = pixel_delays(scan) if "t" in names else None
+        column_times = self.projector.column_times(scan) if request.column_times else None
         factors = self._factors_of(key, measured) if request.factors else None
         rays = ScanRays(scan=scan, stamp_ns=stamp_ns, stamp=stamp, destaggered=destaggered,
                         key=key, raw=raw, metres=metres, views=views, column_times=column_times,
-                        delays=delays, factors=factors, period_ns=self._period_ns(offsets))
+                        factors=factors, period_ns=self._period_ns(offsets))
         if request.mount is not None:
             rays.mount = self.mount(rays, request.mount)
         return rays

@@ -663,7 +663,6 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
         # values of the same types); the others are checked here, before anything is built
         options.slice_options({"slice": spec}, {**kwargs, "extrinsics": _checkable(extrinsics)})
         converter = SliceConverter(info, {"slice": spec}, **kwargs)
-        key = _cache_key(info, spec, kwargs)
         if key is not None:
             _CONVERTERS[key] = converter
             while len(_CONVERTERS) > 8:
