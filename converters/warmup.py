@@ -59,7 +59,7 @@ from typing import Any
 
 import numpy as np
 
-from converters._kernels._switches import numba_enabled
+from lidarscan._backends import numba_enabled
 
 __all__ = ["TASKS", "NotCached", "Prepared", "describe", "prepare", "probe_cloud", "probe_info",
            "probe_scan", "specialisations", "warm"]

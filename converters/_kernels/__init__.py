@@ -63,7 +63,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from converters._kernels._switches import c_enabled, numba_enabled
+from lidarscan._backends import c_enabled, numba_enabled
 from lidarscan.errors import ConfigError
 
 __all__ = ["Backends", "c_enabled", "numba_enabled", "select"]

@@ -4,7 +4,7 @@ Each kernel is built by ``pip install [-e] .`` when a C compiler is available (s
 an importable, otherwise empty, extension module whose shared object exports plain C functions.
 A kernel is not used when it was not built, when its ABI number differs from the one the
 Python side was written for (a stale build), or when the C kernels are switched off
-(:func:`converters._kernels._switches.c_enabled`). :class:`LoadOnce` and :func:`numba_jit` live in
+(:func:`lidarscan._backends.c_enabled`). :class:`LoadOnce` and :func:`numba_jit` live in
 :mod:`lidarscan._backends` (the core's compiled codec uses them too) and are re-exported here.
 """
 
@@ -14,8 +14,7 @@ import ctypes
 import importlib
 from typing import Any
 
-from converters._kernels._switches import c_enabled
-from lidarscan._backends import LoadOnce, numba_jit
+from lidarscan._backends import LoadOnce, c_enabled, numba_jit
 
 __all__ = ["TYPE_CODES", "LoadOnce", "load_library", "load_planned", "numba_jit", "type_code"]
 

@@ -70,7 +70,7 @@ def kernels() -> Compiled | None:
     if _KERNELS_TRIED:
         return _KERNELS
     _KERNELS_TRIED = True
-    from converters._kernels._switches import numba_enabled
+    from lidarscan._backends import numba_enabled
     if not numba_enabled():
         return None
     try:

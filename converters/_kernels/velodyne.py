@@ -69,7 +69,7 @@ def library() -> Any:
     """The loaded kernel (ctypes library), or None: not built, stale or disabled
     (``LIDARSCAN_NO_KERNEL``, read at each call). Callers go through
     :func:`converters._kernels.select`."""
-    from converters._kernels._switches import c_enabled
+    from lidarscan._backends import c_enabled
     return _library.get() if c_enabled() else None
 
 
