@@ -236,7 +236,7 @@ class PacketDecoder:
         if not (cols.times[cols.valid] != 0).any():
             return []                       # no valid, timed column: nothing to make a scan of
         if self.destagger:
-            scan = _meta.scan_from_frame(frame_arrays(self.layout, rows), self.info,
+            scan = _meta.scan_from_frame(frame_arrays(self.layout, rows, cols), self.info,
                                          range_encoding=self.range_encoding, destagger=True,
                                          as_dataclass=self.as_dataclass)
         else:
@@ -347,10 +347,11 @@ def _scan(layout: PacketLayout, cols: _Columns, info: Any, range_encoding: str,
     return buffer.build(int(full[0]), column_time_offsets=full - full[0])
 
 
-def frame_arrays(layout: PacketLayout, rows: np.ndarray[Any, Any]) -> dict[str, Any]:
+def frame_arrays(layout: PacketLayout, rows: np.ndarray[Any, Any],
+                 cols: _Columns | None = None) -> dict[str, Any]:
     """The ouster-sdk style frame of N packets of one frame (rows (N, packet size) uint8): the
     readable numpy reference of the decoder (:func:`converters.ouster.scan_from_frame` of it
-    is the scan the decoder makes).
+    is the scan the decoder makes). ``cols``: the rows' columns when the caller has them.
 
     Returns:
         dict: the profile's staggered images (H, W) (``range_mm`` uint32 mm, ``signal``,
@@ -360,7 +361,7 @@ def frame_arrays(layout: PacketLayout, rows: np.ndarray[Any, Any]) -> dict[str, 
         leaves them.
     """
     h, w = layout.height, layout.width
-    cols = _Columns(layout, rows)
+    cols = _Columns(layout, rows) if cols is None else cols
     data = cols.data.reshape(w, -1)
     hdr, pix = layout.column_header_bytes, layout.pixel_bytes
     pixels = data[:, hdr:hdr + h * pix].reshape(w, h, pix)
