@@ -105,13 +105,13 @@ def block_pair_columns(psi: np.ndarray[Any, Any], rows: np.ndarray[Any, Any], he
         lo, hi = int(bounds[u]), int(bounds[u + 1])
         if hi <= lo:
             continue
-        steps = np.concatenate([[0.0], sign * _wrap(np.diff(pp[lo:hi])) / step])
-        x = np.cumsum(steps)
-        e = _beam_delay(x, np.abs(d[lo:hi - 1]) < SAME_AZIMUTH)
+        run = flat[lo:hi - 1]                    # within one beam: `same` holds throughout
+        x = np.cumsum(np.concatenate([[0.0], sign * d[lo:hi - 1] / step]))
+        e = _beam_delay(x, run)
         offsets = (0.0, 0.0, e, 1.0 + e)
         k, j = np.zeros(hi - lo, np.int64), np.zeros(hi - lo, np.int64)
         base = x[0]                              # the azimuth of the current pair
-        runs = np.concatenate([np.abs(d[lo:hi - 1]) < SAME_AZIMUTH, [False]])
+        runs = np.concatenate([run, [False]])
         for i in range(1, hi - lo):
             k[i], j[i], off = _next_slot(int(k[i - 1]), int(j[i - 1]), x[i] - base, offsets)
             if runs[i] and j[i] >= 2 and k[i] > k[i - 1]:
