@@ -324,29 +324,30 @@ def stale_partials(output: Path) -> list[Path]:
     return out
 
 
-def state(job: Job, force: bool) -> tuple[str, str]:
+def state(job: Job, force: bool) -> tuple[str, str, dict[str, Any]]:
     """``("skip", why)``, ``("convert", "")``, ``("redo", why)`` or ``("refuse", why)`` for a
-    job whose output may exist (module docstring)."""
+    job whose output may exist (module docstring), with the output's sidecar record as read
+    (``{}`` when none was read)."""
     output = Path(job.output)
     if not output.exists():
-        return "convert", ""
+        return "convert", "", {}
     if force:
-        return "redo", "--force"
+        return "redo", "--force", {}
     if output.is_dir():
-        return "refuse", f"OUT {output} is a directory"
+        return "refuse", f"OUT {output} is a directory", {}
     try:
         done = json.loads(sidecar_path(output).read_text())
     except (OSError, ValueError):
         return "refuse", (f"{output} exists and was not written by a run of this command (no "
                           f"{sidecar_path(output).name}): not overwritten; --force to convert "
-                          "again")
+                          "again"), {}
     for key, why in (("input", "another input"), ("input_signature", "input changed"),
                      ("options", "options changed")):
         if done.get(key) != job.sidecar.get(key):
-            return "redo", why
+            return "redo", why, done
     if done.get("output_size") != output.stat().st_size:
-        return "redo", "output changed"
-    return "skip", done.get("status", "ok")
+        return "redo", "output changed", done
+    return "skip", done.get("status", "ok"), done
 
 
 # ---------------------------------------------------------------------------- the worker
@@ -571,11 +572,11 @@ def run_dask(jobs: Sequence[Job], workers: int, address: str, on_event: Event
             stack.enter_context(cluster)
             client = stack.enter_context(Client(cluster))
         token = f"{os.getpid()}-{time.time_ns()}"
+        largest_first = sorted(jobs, key=lambda j: (-j.size, j.index))
         futures = [client.submit(convert_job, job, key=f"lidarscan-convert-{token}-{job.index}",
                                  pure=False, retries=TRIES - 1)
-                   for job in sorted(jobs, key=lambda j: (-j.size, j.index))]
-        index = {future.key: job.index for future, job in
-                 zip(futures, sorted(jobs, key=lambda j: (-j.size, j.index)))}
+                   for job in largest_first]
+        index = {future.key: job.index for future, job in zip(futures, largest_first)}
         try:
             for future in as_completed(futures):
                 try:
@@ -663,9 +664,8 @@ def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
         for tmp in stale_partials(Path(job.output)):
             tmp.unlink(missing_ok=True)
             notes[job.index] = f"removed {tmp.name} (left by a killed run)"
-        decision, why = state(job, args.force)
+        decision, why, done = state(job, args.force)
         if decision == "skip":   # as converted then; with its bad messages then (exit 1)
-            done = json.loads(sidecar_path(Path(job.output)).read_text())
             bad = why == "bad"
             results[job.index] = Result(
                 job.index, "skipped-bad" if bad else "skipped",

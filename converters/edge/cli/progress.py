@@ -10,15 +10,7 @@ from collections.abc import Sequence
 from typing import IO, Any
 
 from converters.edge.cli._common import Progress
-
-
-def human(size: float) -> str:
-    """Bytes as ``"12.3 MB"`` (powers of 1000)."""
-    for unit in ("B", "kB", "MB", "GB", "TB"):
-        if abs(size) < 1000 or unit == "TB":
-            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
-        size /= 1000
-    return f"{size:.1f} TB"
+from converters.edge.cli._describe import human_size as human
 
 
 def clock(seconds: float) -> str:
