@@ -148,8 +148,10 @@ class OusterInput:
             self.ouster_stats["frames"] += 1
             if self.ouster_scan_pub is not None:
                 self.ouster_scan_pub.publish(scan)
-            ready = self.core.add_info(info) if self.core.last_info is not info else []
-            self._prepare(info)
+            ready = []
+            if self.core.last_info is not info:     # the decoder's info: one object a version
+                ready = self.core.add_info(info)
+                self._prepare(info)
             self._publish(ready + self.core.add_scan(scan))
 
     def _diagnose_ouster(self) -> Any:
