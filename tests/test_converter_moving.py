@@ -244,6 +244,7 @@ def test_tf_tolerance_holds_the_newest_pose_and_drops_beyond_it() -> None:
 def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # noqa: F811
     """The real node: /tf_static (arm) + /tf (pan joint, 200 Hz) published after each sweep;
     every slice equals SliceConverter's with the track of the same /tf messages."""
+    from diagnostic_msgs.msg import DiagnosticArray
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import LaserScan, PointCloud2
 
@@ -296,14 +297,26 @@ def test_converter_node_slices_a_moving_mount_from_tf(graph: Any) -> None:  # no
     assert node.stats.dropped_no_pose == 0 and not node.core.held
     status = {s.name: s for s in node._diagnose()}["moving mount"]
     assert status.message == "ok" and status.values["held"] == 0
+    # the node's own 1 Hz timer also takes each period's counts: read what it publishes
+    arrays = graph.collect(DiagnosticArray, "/diagnostics", "reliable")
+
+    def moving_statuses() -> list[dict[str, str]]:
+        return [{"message": st.message, **{kv.key: kv.value for kv in st.values}}
+                for array in list(arrays) for st in array.status
+                if st.name.endswith("lidarscan_converter: moving mount")]
+
+    assert graph.wait(lambda: moving_statuses() != [], timeout=5.0)   # subscribed before the drop
     # a sweep /tf never covers: held, then dropped once data time is tf_wait past it
     late = STAMP + 3 * SCAN_NS
     scan_pub.publish(small_scan(info, late))
     assert graph.wait(lambda: len(node.core.held) == 1)
     scan_pub.publish(small_scan(info, late + 12 * SCAN_NS))      # 1.2 s later > tf_wait
     assert graph.wait(lambda: node.stats.dropped_no_pose == 1)
-    status = {s.name: s for s in node._diagnose()}["moving mount"]
-    assert status.values["dropped_last_period"] == 1 and "did not cover" in status.message
+    assert graph.wait(lambda: any(st["dropped_no_pose"] == "1" for st in moving_statuses()),
+                      timeout=5.0)
+    after = [st for st in moving_statuses() if st["dropped_no_pose"] == "1"]
+    assert after[0]["dropped_last_period"] == "1" and "did not cover" in after[0]["message"]
+    assert all(st["dropped_last_period"] == "0" for st in after[1:])
     assert node.stats.reasons["no pose"] == 1 and len(out) == 3
     # the clouds never wait for /tf: one per scan at its arrival, the dropped one's included
     assert graph.wait(lambda: len(clouds) == 5)
