@@ -106,7 +106,8 @@ class ScanRays:
         raw: the native range channel view (H, W) or None (not requested).
         metres: (H*W,) float32 metres or None (not requested).
         views: :attr:`ChannelWant.key` -> native view (None: missing, not required).
-        column_times: (W,) int64 ns since the stamp of each measurement column, or None.
+        column_times: (W,) int64 ns since the stamp of each measurement column (asked for, or
+            a moving mount's), or None.
         factors: the factored beam model (float32 rows (H, 6), columns (6, W), constant (6,))
             of this geometry, or None (not requested, or it does not factor).
         period_ns: the scan period (``W * column_time_increment``, or from the column times).
@@ -206,8 +207,8 @@ class ScanGeometry:
         if request.factors:
             factors = (self._factors_of(key, measured) if measured_key
                        else self.projector.factors())
-        column_times = (self.projector.column_times(offsets=offsets) if request.column_times
-                        else None)
+        column_times = (self.projector.column_times(offsets=offsets)
+                        if request.column_times or request.mount is not None else None)
         period = (float(width * self._increment) if self._increment > 0
                   else self._period_ns(offsets))
         rays = ScanRays(scan=scan, stamp_ns=stamp_ns, stamp=stamp, destaggered=destaggered,
@@ -304,7 +305,8 @@ class ScanGeometry:
             TransformLookupError: raised by the callable.
             ValidationError: the callable returned something other than a finite rigid 4x4.
         """
-        relative, index = self.pose_times(rays.scan, distinct=mode != "track")
+        relative, index = self.pose_times(rays.scan, distinct=mode != "track",
+                                          columns=rays.column_times)
         stamp = np.int64(rays.stamp_ns)
         if index is None:
             track = self.moving
@@ -322,7 +324,8 @@ class ScanGeometry:
         held = poses[0] if np.all(poses == poses[0]) else None
         return MountPoses(relative, index, poses, None, held)
 
-    def pose_times(self, scan: Any, distinct: bool = True
+    def pose_times(self, scan: Any, distinct: bool = True,
+                   columns: np.ndarray[Any, Any] | None = None
                    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
         """The distinct pixel times of a scan relative to its stamp and each pixel's one.
 
@@ -330,6 +333,9 @@ class ScanGeometry:
         ``t`` channel constant along each column: tested exactly) the distinct times are those
         of the W columns; otherwise those of all pixels (``np.unique`` of H*W times), or, with
         ``distinct=False``, none are computed.
+
+        ``columns``: the scan's (W,) int64 column times when already known
+        (:attr:`ScanRays.column_times`).
 
         Returns:
             (times, index): (P,) int64 ns sorted, and (H*W,) int64 the time of each pixel
@@ -340,7 +346,9 @@ class ScanGeometry:
         """
         key = None
         if not any(c.name == "t" for c in scan.channels):   # pixel_delays(scan) is None
-            key = (self.projector.column_times(scan).tobytes(), bool(scan.is_destaggered))
+            if columns is None:
+                columns = self.projector.column_times(scan)
+            key = (columns.tobytes(), bool(scan.is_destaggered))
             if self._time_cache is not None and self._time_cache[0] == key:
                 kept = self._time_cache[1]
                 if kept[1] is None and distinct:     # kept per pixel: not kept again
