@@ -22,6 +22,7 @@ __all__ = [
     "FLOAT32",
     "FLOAT64",
     "DATATYPE_NAMES",
+    "DTYPES",
     "dtype_of",
     "datatype_of",
     "itemsize_of",
@@ -34,6 +35,11 @@ _CODES = {INT8: "i1", UINT8: "u1", INT16: "i2", UINT16: "u2",
 DATATYPE_NAMES = {INT8: "INT8", UINT8: "UINT8", INT16: "INT16", UINT16: "UINT16",
                   INT32: "INT32", UINT32: "UINT32", FLOAT32: "FLOAT32", FLOAT64: "FLOAT64"}
 _IDS = {code: ident for ident, code in _CODES.items()}
+#: (datatype id, is_bigendian) -> numpy dtype: the table :func:`dtype_of` reads (a lookup for
+#: hot paths; :func:`dtype_of` is the checked form that names a bad id)
+DTYPES: dict[tuple[int, bool], np.dtype[Any]] = {
+    (ident, big): np.dtype((">" if big else "<") + code)
+    for ident, code in _CODES.items() for big in (False, True)}
 
 
 def dtype_of(datatype: int, is_bigendian: bool = False, *,
@@ -44,12 +50,11 @@ def dtype_of(datatype: int, is_bigendian: bool = False, *,
         UnknownDatatypeError: ``datatype`` is not 1..8.
     """
     try:
-        code = _CODES[int(datatype)]
+        return DTYPES[int(datatype), bool(is_bigendian)]
     except (KeyError, TypeError, ValueError):
         raise UnknownDatatypeError(field, datatype, "a PointField datatype id 1..8 "
                                    "(INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64)"
                                    ) from None
-    return np.dtype((">" if is_bigendian else "<") + code)
 
 
 def itemsize_of(datatype: int, *, field: str = "datatype") -> int:

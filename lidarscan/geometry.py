@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from lidarscan.errors import ValidationError
-from lidarscan.scan import as_array, channel, range_m, validate_info
+from lidarscan.scan import as_array, azimuth_channel, channel, range_m, validate_info
 from lidarscan.stamps import to_ns
 
 __all__ = [
@@ -120,20 +120,6 @@ def _angles(info: Any, column_azimuth_angles: Any) -> tuple[np.ndarray[Any, Any]
     beta = _per_beam(info, "beam_azimuth_offsets", height)
     phi = as_array(info.vertical_angles, np.float64).astype(np.float64)
     return alpha, beta, phi
-
-
-def azimuth_channel(scan: Any, range_channel: str = "range") -> str | None:
-    """Name of the scan's per-pixel azimuth channel for ``range_channel``, or None.
-
-    ``azimuth`` followed by the return suffix of the range channel (``range2`` -> ``azimuth2``),
-    else ``azimuth`` itself (one azimuth for every return).
-    """
-    names = {c.name for c in scan.channels}
-    suffix = range_channel[len("range"):] if range_channel.startswith("range") else ""
-    for name in (f"azimuth{suffix}", "azimuth"):
-        if name in names:
-            return name
-    return None
 
 
 def pixel_delays(scan: Any) -> np.ndarray[Any, np.dtype[np.int64]] | None:
@@ -487,9 +473,12 @@ class Projector:
                         tables=self.tables_for(scan, channel))
 
     # ------------------------------------------------------------------------------- time
-    def column_times(self, scan: Any) -> np.ndarray[Any, np.dtype[np.int64]]:
-        """(W,) int64 ns of each measurement column relative to ``scan.header.stamp``."""
-        times = as_array(scan.column_time_offsets, np.int64)
+    def column_times(self, scan: Any = None, *, offsets: Any = None
+                     ) -> np.ndarray[Any, np.dtype[np.int64]]:
+        """(W,) int64 ns of each measurement column relative to ``scan.header.stamp``: the
+        scan's ``column_time_offsets`` (or ``offsets``, that array already read), or from the
+        info's ``column_time_increment`` when empty."""
+        times = as_array(scan.column_time_offsets if offsets is None else offsets, np.int64)
         if times.size:
             if times.size != self.width:
                 raise ValidationError("LidarScan.column_time_offsets", f"length {times.size}",

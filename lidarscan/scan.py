@@ -10,13 +10,13 @@ import array
 import dataclasses
 import itertools
 import math
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from lidarscan._install import have_messages
-from lidarscan.datatypes import FLOAT32, FLOAT64, datatype_of, dtype_of
+from lidarscan.datatypes import DTYPES, FLOAT32, FLOAT64, datatype_of, dtype_of
 from lidarscan.errors import (
     ChannelLayoutError,
     InfoMismatchError,
@@ -27,7 +27,10 @@ from lidarscan.errors import (
 from lidarscan.stamps import split_ns, to_ns
 
 __all__ = [
+    "ChannelWant",
+    "ScanViews",
     "as_array",
+    "azimuth_channel",
     "make_scan",
     "ScanBuffer",
     "make_info",
@@ -35,6 +38,7 @@ __all__ = [
     "channel_names",
     "data_view",
     "range_m",
+    "read_views",
     "validate",
     "validate_info",
     "to_native",
@@ -135,7 +139,10 @@ def channel(scan: Any, name: str, *, native: bool = False) -> np.ndarray[Any, An
         ChannelLayoutError / UnknownDatatypeError: the descriptor does not fit ``data``.
     """
     desc = _find(scan, name)
-    dtype = dtype_of(desc.datatype, bool(scan.is_bigendian), field=f"channels[{name!r}].datatype")
+    big = bool(scan.is_bigendian)
+    dtype = DTYPES.get((desc.datatype, big))
+    if dtype is None:                      # not an id: dtype_of names the bad value
+        dtype = dtype_of(desc.datatype, big, field=f"channels[{name!r}].datatype")
     height, width, count = int(scan.height), int(scan.width), int(desc.count)
     if count < 1:
         raise ChannelLayoutError(f"channels[{name!r}].count", count, "count >= 1")
@@ -189,6 +196,126 @@ def range_m(scan: Any, info: Any = None, name: str = "range") -> np.ndarray[Any,
     out = out.astype(np.float32)
     out[raw == 0] = np.inf
     return out
+
+
+def azimuth_channel(scan: Any, range_channel: str = "range") -> str | None:
+    """Name of the scan's per-pixel azimuth channel for ``range_channel``, or None.
+
+    ``azimuth`` followed by the return suffix of the range channel (``range2`` -> ``azimuth2``),
+    else ``azimuth`` itself (one azimuth for every return).
+    """
+    names = {c.name for c in scan.channels}
+    suffix = range_channel[len("range"):] if range_channel.startswith("range") else ""
+    for name in (f"azimuth{suffix}", "azimuth"):
+        if name in names:
+            return name
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class ChannelWant:
+    """One channel image a reader wants of each scan (:func:`read_views`).
+
+    Attributes:
+        key: the name the reader knows it by (a field name, ``"intensity"``).
+        names: candidate channel names, first found wins (aliases).
+        per_return: for the N-th return's range channel (``range2``), first look for that
+            return's channel of each candidate (``intensity2``), then the candidates themselves
+            (a channel measured once per pixel, such as ``ambient``, serves every return).
+        required: a missing channel raises :class:`lidarscan.errors.UnknownChannelError`
+            (naming the first candidate); else its view is None.
+        first: a channel with count > 1 gives its first element (an (H, W) view).
+    """
+
+    key: str
+    names: tuple[str, ...]
+    per_return: bool = False
+    required: bool = False
+    first: bool = True
+
+
+@dataclasses.dataclass
+class ScanViews:
+    """What a reader asked of one scan (:func:`read_views`), native byte order, scan column
+    order.
+
+    Attributes:
+        raw: the range channel (H, W), its native datatype (first element of a count > 1
+            channel), or None (not asked for).
+        metres: the range channel as (H*W,) float32 metres, C-contiguous (:func:`range_m`),
+            or None (not asked for).
+        channels: :attr:`ChannelWant.key` -> (H, W) or (H, W, count) view, None when missing
+            and not required.
+        column_azimuth_angles: the scan's measured column azimuths, float64 radians (W,) or
+            empty (the info's apply).
+        column_time_offsets: the scan's column times, ns since the stamp (W,) or empty.
+        azimuth: the per-pixel azimuth channel of the range channel (:func:`azimuth_channel`),
+            or None.
+    """
+
+    raw: np.ndarray[Any, Any] | None
+    metres: np.ndarray[Any, Any] | None
+    channels: dict[str, np.ndarray[Any, Any] | None]
+    column_azimuth_angles: np.ndarray[Any, Any]
+    column_time_offsets: np.ndarray[Any, Any]
+    azimuth: str | None
+
+
+def read_views(scan: Any, channels: Sequence[ChannelWant] = (), *, range_channel: str = "range",
+               info: Any = None, raw: bool = False, metres: bool = False) -> ScanViews:
+    """Everything a converter reads of one scan's channels and column arrays, in one call.
+
+    Args:
+        scan: a LidarScan (rclpy message or dataclass).
+        channels: the channel images wanted (:class:`ChannelWant`).
+        range_channel: the range channel ("range", "range2", ...): its return number selects
+            the channels of :attr:`ChannelWant.per_return` and the azimuth channel.
+        info: the scan's LidarInfo, to decode an integer range channel for ``metres``.
+        raw, metres: whether to read the range channel natively, as metres.
+
+    Returns:
+        :class:`ScanViews` (views alias ``scan.data`` where its byte order is native).
+
+    Raises:
+        UnknownChannelError: the range channel (when asked for) or a required channel is
+            missing.
+        InfoMismatchError: ``metres`` of an integer range channel without a multiplier > 0.
+    """
+    names = [c.name for c in scan.channels]
+    raw_view = metres_view = None
+    if raw:
+        raw_view = channel(scan, range_channel, native=True)
+        if raw_view.ndim == 3:
+            raw_view = raw_view[..., 0]
+    if metres:
+        metres_view = np.ascontiguousarray(range_m(scan, info, range_channel)).reshape(-1)
+    number = 1
+    for want in channels:
+        if want.per_return:
+            number = return_of(range_channel, names)[1]
+            break
+    views: dict[str, np.ndarray[Any, Any] | None] = {}
+    for want in channels:
+        candidates = list(want.names)
+        if want.per_return and number != 1:
+            candidates = [return_channel(n, number) for n in want.names] + candidates
+        found = None
+        for name in candidates:
+            if name in names:
+                found = name
+                break
+        if found is None and not want.required:
+            views[want.key] = None
+            continue
+        # a missing required channel is reported by the channel lookup itself
+        image = channel(scan, candidates[0] if found is None else found, native=True)
+        if image.ndim == 3 and want.first:
+            image = image[..., 0]
+        views[want.key] = image
+    return ScanViews(raw=raw_view, metres=metres_view, channels=views,
+                     column_azimuth_angles=as_array(scan.column_azimuth_angles, np.float64),
+                     column_time_offsets=as_array(scan.column_time_offsets, np.int64),
+                     azimuth=azimuth_channel(scan, range_channel))
 
 
 def _block(values: np.ndarray[Any, Any], name: str, height: int, width: int,

@@ -215,7 +215,7 @@ def test_level_mount_sees_walls_and_table(sensor: Any) -> None:
 
 
 def test_laserscan_messages_equal_normally_built_ones(sensor: Any) -> None:
-    """Slices fill message slots directly (converters.shared.rosmsg.bare_message): each must equal
+    """Slices fill message slots directly (lidarscan.rosmsg.bare_message): each must equal
     the message rosidl's constructor builds from the same values, and serialize alike."""
     from sensor_msgs.msg import LaserScan
 

@@ -519,11 +519,11 @@ def test_layouts_with_padding_never_recycle(tiny: tuple[Any, Any]) -> None:
 
 
 def test_cloud_messages_equal_normally_built_ones(tiny: tuple[Any, Any]) -> None:
-    """The converter fills message slots directly (converters.shared.rosmsg.bare_message): the result
+    """The converter fills message slots directly (lidarscan.rosmsg.bare_message): the result
     must equal the message rosidl's constructor builds from the same values."""
     from sensor_msgs.msg import PointCloud2
 
-    from converters.shared.rosmsg import bare_message
+    from lidarscan.rosmsg import bare_message
 
     info, scan = tiny
     cloud = pc.to_pointcloud2(scan, info, preset="ouster")

@@ -14,9 +14,11 @@ import ctypes
 import importlib
 from typing import Any
 
+import numpy as np
+
 from lidarscan._backends import LoadOnce, c_enabled, numba_jit
 
-__all__ = ["TYPE_CODES", "LoadOnce", "load_library", "load_planned", "numba_jit", "type_code"]
+__all__ = ["DTYPE_CODES", "TYPE_CODES", "LoadOnce", "load_library", "load_planned", "numba_jit", "type_code"]
 
 
 def load_library(module: str, abi_symbol: str, abi: int) -> ctypes.CDLL | None:
@@ -57,10 +59,10 @@ def load_planned(module: str, prefix: str, abi: int, plan: type[ctypes.Structure
 #: Element type codes shared by the C kernels (native byte order only: the converters convert
 #: at the message boundary).
 TYPE_CODES = {"f4": 0, "f8": 1, "u1": 2, "u2": 3, "u4": 4, "i1": 5, "i2": 6, "i4": 7}
+#: The same keyed by native numpy dtype (a dtype of the other byte order is not a key).
+DTYPE_CODES = {np.dtype("=" + code): value for code, value in TYPE_CODES.items()}
 
 
 def type_code(image: Any) -> int | None:
     """The kernels' type code of a numpy array, or None (another dtype, or non-native order)."""
-    if not image.dtype.isnative:
-        return None
-    return TYPE_CODES.get(image.dtype.str[1:])
+    return DTYPE_CODES.get(image.dtype)

@@ -19,12 +19,14 @@ import numpy as np
 from converters._kernels import _loader
 from lidarscan.errors import ConversionError
 
-__all__ = ["ABI", "Job", "Kernels", "available", "kernel", "load"]
+__all__ = ["ABI", "DTYPE_CODES", "Job", "Kernels", "addr", "available", "kernel", "load"]
 
 #: ABI of _cloudkernel.c (its LSK_ABI): a stale build is ignored, not called.
 ABI = 3
 #: Flags of the range decoding (integer ranges: multiplier, offset).
 MULTIPLY, OFFSET = 1, 2
+#: The kernel's element type code of a native numpy dtype (other dtypes: not readable).
+DTYPE_CODES = _loader.DTYPE_CODES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,46 +76,47 @@ _once = _loader.LoadOnce(load)
 
 @dataclasses.dataclass
 class Job:
-    """One kernel call over the whole grid, as named fields (addresses as ints); built per
-    layout by the converter, :meth:`run` over row blocks."""
+    """One kernel call over the whole grid, as named fields; built per scan by the converter,
+    :meth:`run` over row blocks. The arrays are held here (their addresses are taken by
+    :meth:`run`), so they live as long as the job."""
 
     fn: Any
-    out: int
+    out: Any                                  # the point buffer: array.array('B') or ndarray
     step: int
     xyz_offset: int
-    range: int
+    range: np.ndarray[Any, Any]               # (H, W) native, C-contiguous, aligned
     range_type: int
-    roll: int | None
+    roll: np.ndarray[Any, Any] | None         # (H,) int64 scan -> grid column rotation
     width: int
     scale: int
     mult: float
     offset: float
-    geometry: tuple[int | None, ...]          # (D, O) tables or (colshift, rows, cols, g)
-    extra: int | None
+    geometry: tuple[np.ndarray[Any, Any] | None, ...]   # (D, O) tables or (colshift, rows,
+    extra: np.ndarray[Any, Any] | None                  # cols, constant) factors
     extra_type: int
     extra_offset: int
-    r_out: int | None
+    r_out: np.ndarray[Any, Any] | None        # (H, W) float32 decoded ranges, or None
     done: frozenset[str]                      # field names the kernel writes
-    keep: tuple[Any, ...]                     # arrays the addresses point into
     factored: bool = False                    # fn is lsk_project_rc
 
     def run(self, start: int, count: int, dense: bool = False) -> int:
         """Points ``start .. start+count`` (pixel order); returns how many are valid
         (``dense``: the valid ones are packed at the front)."""
+        out, rng, roll = addr(self.out), addr(self.range), addr(self.roll)
+        extra, r_out = addr(self.extra), addr(self.r_out)
+        geometry = [addr(a) for a in self.geometry]
         if self.factored:
-            colshift, rows, cols, const = self.geometry
-            valid = int(self.fn(self.out, self.step, self.xyz_offset, start, count, self.range,
-                                self.range_type, self.roll, colshift, self.width, self.scale,
+            colshift, rows, cols, const = geometry
+            valid = int(self.fn(out, self.step, self.xyz_offset, start, count, rng,
+                                self.range_type, roll, colshift, self.width, self.scale,
                                 self.mult, self.offset, rows, cols, const,
-                                self.extra, self.extra_type, self.extra_offset,
-                                self.r_out, int(dense)))
+                                extra, self.extra_type, self.extra_offset, r_out, int(dense)))
         else:
-            d, o = self.geometry
-            valid = int(self.fn(self.out, self.step, self.xyz_offset, start, count, self.range,
-                                self.range_type, None, self.roll, self.width, self.scale,
+            d, o = geometry
+            valid = int(self.fn(out, self.step, self.xyz_offset, start, count, rng,
+                                self.range_type, None, roll, self.width, self.scale,
                                 self.mult, self.offset, d, o,
-                                self.extra, self.extra_type, self.extra_offset,
-                                self.r_out, int(dense)))
+                                extra, self.extra_type, self.extra_offset, r_out, int(dense)))
         if valid < 0:                                          # unreachable: types checked
             raise ConversionError("kernel source type", (self.range_type, self.extra_type),
                                   f"one of {sorted(_loader.TYPE_CODES.values())}")
@@ -125,7 +128,12 @@ def available() -> bool:
     return kernel() is not None
 
 
-def addr(a: np.ndarray[Any, Any]) -> int:
-    """Address of an array's first element (``.ctypes.data``: no dtype description is built,
-    unlike ``__array_interface__``, slow for structured dtypes)."""
-    return int(a.ctypes.data)
+def addr(a: Any) -> int | None:
+    """Address of the first element of an ndarray (``.ctypes.data``: no dtype description is
+    built, unlike ``__array_interface__``, slow for structured dtypes) or of an
+    ``array.array``; None for None."""
+    if a is None:
+        return None
+    if isinstance(a, np.ndarray):
+        return int(a.ctypes.data)
+    return int(a.buffer_info()[0])

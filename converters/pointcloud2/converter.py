@@ -71,27 +71,23 @@ import contextlib
 import contextvars
 import itertools
 import sys
-import threading
-from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from typing import Any, cast
 
 import numpy as np
 
 from converters import _kernels
+from converters._kernels import cloud as _ck
 from converters.pointcloud2.fields import (
+    FieldWriter,
     _Block,
-    _FieldWriter,
     _Job,
     _Planes,
     _roll_into,
     _shift_groups,
     _xy_pair,
 )
-from converters.pointcloud2.kernel import _KernelWriter
-from converters._kernels import cloud as _ck
-from converters.shared.rosmsg import bare_message
-from converters.sources.clouds.importer import ReprojectionError, estimation_error, from_pointcloud2
+from converters.pointcloud2.kernel import KernelJobs, kernel_plan
 from converters.shared.cloud_layout import (
     CHANNEL_ALIASES,
     COMPUTED_TYPES,
@@ -105,10 +101,13 @@ from converters.shared.cloud_layout import (
     read_points,
     structured,
 )
+from converters.shared.converter_cache import ConverterCache
 from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
+from converters.sources.clouds.importer import ReprojectionError, estimation_error, from_pointcloud2
 from lidarscan.datatypes import dtype_of
 from lidarscan.errors import ConfigError, ConversionError, UnknownChannelError
-from lidarscan.geometry import info_key, pixel_delays
+from lidarscan.geometry import pixel_delays
+from lidarscan.rosmsg import bare_message
 from lidarscan.scan import as_array
 from lidarscan.stamps import split_ns
 
@@ -163,7 +162,7 @@ def kernel_available() -> bool:
 
 # ================================================================================= converter
 
-class PointCloud2Converter(_FieldWriter, _KernelWriter):
+class PointCloud2Converter:
     """Reusable LidarScan -> PointCloud2 converter for one LidarInfo.
 
     Holds the projector tables split into contiguous float32 planes in the output column order,
@@ -209,7 +208,7 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             raise ConfigError("threads", threads, "an int >= 1")
         if kernel is None and _NUMPY_REFERENCE.get():
             kernel = False
-        self._kfn = _kernels.select("cloud", kernel=kernel).c
+        kernels = _kernels.select("cloud", kernel=kernel).c
         if preset is not None:
             if preset not in PRESETS:
                 raise ConfigError("preset", preset, f"one of {sorted(PRESETS)} or None")
@@ -268,26 +267,57 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             self._pool = ThreadPoolExecutor(len(self._blocks), "pointcloud2")
         self._mult = float(info.range_multiplier)
         self._offset = float(info.range_offset)
+        #: the compiled kernel's calls (None: numpy only)
+        self._jobs = (None if kernels is None
+                      else KernelJobs(kernels, self.width, self._mult, self._offset))
         self._ring_values = self._rings(info)
         self._planes: _Planes | None = None
         self._scan_planes: tuple[tuple[Any, ...], _Planes] | None = None   # measured geometry
         self._requests: dict[tuple[int, bool, bool], RayRequest] = {}
-        self._static_args: tuple[Any, ...] | None = None      # see _kernel_job
         self._times_cache: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None = None
         self._layouts: dict[Any, tuple[tuple[FieldSpec, ...], int, np.dtype[Any]]] = {}
-        shape = (self.height, self.width)
-        self._r = np.empty(shape, np.float32)
-        self._tmp = np.empty(shape, np.float32)
-        self._cplx = np.empty(shape, np.complex64)
-        self._mask = np.empty(shape, bool)
-        self._mask2 = np.empty(shape, bool)
+        #: the numpy field writers, with the scratch images (``r``: the decoded ranges)
+        self._writer = FieldWriter(self.height, self.width, self._mult, self._offset,
+                                   has_shift=self._has_shift,
+                                   grid_destaggered=self._grid_destaggered)
         self._rolls: dict[bool | str, np.ndarray[Any, Any]] = {}
         self._grid: np.ndarray[Any, Any] | None = None
         self._spares: list[array.array[int]] = []            # see _output
         self._coverage: dict[tuple[int, int], bool] = {}
         self._order_index: np.ndarray[Any, Any] | None = None
 
+    @property
+    def _kfn(self) -> _ck.Kernels | None:
+        """The compiled kernel's entry points this converter calls, or None (numpy only)."""
+        return None if self._jobs is None else self._jobs.kernels
+
+    @_kfn.setter
+    def _kfn(self, kernels: _ck.Kernels | None) -> None:
+        self._jobs = (None if kernels is None
+                      else KernelJobs(kernels, self.width, self._mult, self._offset))
+
     # ---------------------------------------------------------------------------- helpers
+    def _roll(self, scan_dest: bool) -> np.ndarray[Any, Any] | None:
+        """Per-row right rotation (0..W-1, int64) taking scan columns to grid columns, or None
+        when both are in the same order."""
+        if not self._has_shift or scan_dest == self._grid_destaggered:
+            return None
+        if scan_dest not in self._rolls:
+            sign = 1 if self._grid_destaggered else -1
+            shifts = np.asarray(self.projector.shifts, np.int64)
+            self._rolls[scan_dest] = np.ascontiguousarray((sign * shifts) % self.width)
+        return self._rolls[scan_dest]
+
+    def _colshift(self) -> np.ndarray[Any, Any] | None:
+        """Per-row right rotation (0..W-1, int64) from measurement columns to grid columns, or
+        None when the grid is in measurement order (the factored kernel's ``colshift``)."""
+        if not self._grid_destaggered:
+            return None
+        if "colshift" not in self._rolls:
+            shifts = np.asarray(self.projector.shifts, np.int64)
+            self._rolls["colshift"] = np.ascontiguousarray(shifts % self.width)
+        return self._rolls["colshift"]
+
     def _rings(self, info: Any) -> np.ndarray[Any, Any]:
         height = self.height
         ids = as_array(info.beam_ids, np.uint16)
@@ -469,9 +499,9 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
         motion = motion if motion is not None else self.motion
         needs_times = motion is not None or any(
             s.source in ("t", "time", "timestamp") for s in specs)
-        use_kernel = self._kfn is not None and motion is None
+        jobs = self._jobs if motion is None else None
         rays = self._geometry.prepare(scan, self._request(
-            specs, needs_times or self.time_reference != "stamp", use_kernel))
+            specs, needs_times or self.time_reference != "stamp", jobs is not None))
         raw = cast(np.ndarray, rays.raw)
         stamp_ns = rays.stamp_ns
         ref = 0
@@ -483,17 +513,20 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
         header_ns = stamp_ns + ref
         scan_dest = bool(scan.is_destaggered)
         images = self._images(rays, specs)
-        plan = self._kernel_plan(specs, raw, images) if use_kernel else None
+        plan = kernel_plan(specs, raw, images) if jobs is not None else None
         factors = rays.factors if plan is not None else None
         # the per-pixel tables: only for the numpy path and the kernel's table form
         tables = self._tables(rays) if factors is None else None
         pixels = self.height * self.width
+        roll = self._roll(scan_dest)
+        colshift = self._colshift() if factors is not None else None
 
-        if plan is not None and plan.covers_all and not self.organized and self.order == "rows":
+        if (jobs is not None and plan is not None and plan.covers_all and not self.organized
+                and self.order == "rows"):
             # the kernel writes every field: valid points straight into the message, compacted
             buf = self._output_buffer(pixels * step)
-            djob = self._kernel_job(plan, buf.buffer_info()[0], step, tables, factors,
-                                    scan_dest, False)
+            djob = jobs.job(plan, buf, step, tables=tables, factors=factors, roll=roll,
+                            colshift=colshift, r_out=None)
             count = djob.run(0, pixels, dense=True)
             del buf[count * step:]
             return self._message(scan, specs, step, (1, count), buf, True, header_ns, rays)
@@ -505,10 +538,10 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
         else:
             grid = self._scratch(dtype)
         kjob = None
-        if plan is not None:
+        if jobs is not None and plan is not None:
             needs_r = not direct or any(s.source == "range" for s in specs)
-            kjob = self._kernel_job(plan, _ck.addr(grid), step, tables, factors, scan_dest,
-                                    needs_r)
+            kjob = jobs.job(plan, grid, step, tables=tables, factors=factors, roll=roll,
+                            colshift=colshift, r_out=self._writer.r if needs_r else None)
         job = _Job(rays=rays, raw=raw, grid=grid,
                    pair=_xy_pair(grid, specs) if kjob is None else None, specs=specs,
                    tables=tables, images=images,
@@ -518,14 +551,15 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
             job.tables.pair()                        # built once, before any worker thread
         if motion is not None:
             self._fill(job, _Block(slice(0, self.height), self._groups), xyz=False)
-            self._deskew(job, motion, header_ns)
+            self._writer.deskew(job, job.times if job.times is not None
+                                else self._pixel_times(rays), motion, header_ns)
             counts: list[int | None] = [None]
         elif self._pool is not None:
             counts = list(self._pool.map(lambda block: self._fill(job, block), self._blocks))
         else:
             counts = [self._fill(job, block) for block in self._blocks]
 
-        r = self._r
+        r = self._writer.r
         if direct:
             if kjob is not None:
                 dense = sum(c or 0 for c in counts) == pixels
@@ -568,7 +602,8 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
 
         Returns the number of valid pixels when the compiled kernel ran, else None."""
         rows = block.rows
-        r, mask, tmp = self._r[rows], self._mask[rows], self._tmp[rows]
+        writer = self._writer
+        r, mask, tmp = writer.scratch(rows)
         kjob = job.kernel
         if kjob is not None and xyz:
             # x, y, z, the extra channel field and (if asked) r in one pass
@@ -576,9 +611,9 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
                                          (rows.stop - rows.start) * self.width)
             done = kjob.done
         else:
-            self._ranges(job, block, r, mask, tmp)
+            writer.ranges(job, block, r, mask, tmp)
             if xyz:
-                self._write_xyz(job.grid[rows], job.specs, r, job.tables, rows, job.pair)
+                writer.write_xyz(job.grid[rows], job.specs, r, job.tables, rows, job.pair)
             valid, done = None, frozenset()
         grid = job.grid[rows]
         for spec in job.specs:
@@ -592,17 +627,17 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
                     field[...] = 0
                 elif field.dtype == np.float32 and image.dtype != np.float32:
                     # a contiguous cast plus a strided float copy beats a strided cast
-                    self._place_rows(tmp, image, block, job.scan_dest)
+                    writer.place_rows(tmp, image, block, job.scan_dest)
                     field[...] = tmp
                 else:
-                    self._place_rows(field, image, block, job.scan_dest)
+                    writer.place_rows(field, image, block, job.scan_dest)
             elif src == "ring":
                 field[...] = self._ring_values[rows, None]
             elif src == "range":
-                self._range_field(field, spec, r, job.raw, block, job.scan_dest)
+                writer.range_field(field, spec, r, job.raw, block, job.scan_dest)
             else:
                 times = job.times if job.times is not None else self._pixel_times(job.rays)
-                self._time_field(field, spec, times[rows], job.ref, job.stamp_ns)
+                writer.time_field(field, spec, times[rows], job.ref, job.stamp_ns)
         return valid
 
     def _message(self, scan: Any, specs: Sequence[FieldSpec], step: int,
@@ -624,8 +659,8 @@ class PointCloud2Converter(_FieldWriter, _KernelWriter):
                             data=buf, is_dense=bool(dense))
 
 
-_CONVERTERS: OrderedDict[Any, PointCloud2Converter] = OrderedDict()
-_CONVERTERS_LOCK = threading.Lock()
+#: :func:`to_pointcloud2`'s converters (module docstring of converters.shared.converter_cache)
+_CACHE = ConverterCache()
 
 
 def to_pointcloud2(scan: Any, info: Any, *, preset: str | None = None,
@@ -650,10 +685,13 @@ def to_pointcloud2(scan: Any, info: Any, *, preset: str | None = None,
     Returns:
         A new ``sensor_msgs.msg.PointCloud2``; points in ``info.header.frame_id`` metres.
     """
-    key = (info_key(info), preset, None if fields is None else tuple(fields), organized,
-           destagger, time_reference, range_channel, frame_id, _NUMPY_REFERENCE.get())
-    with _CONVERTERS_LOCK:
-        conv = _CONVERTERS.pop(key, None)
+    wanted = (preset, None if fields is None else tuple(fields), organized, destagger,
+              time_reference, range_channel, frame_id, _NUMPY_REFERENCE.get())
+    seen = _CACHE.keys.get((id(info), wanted))           # this info object, seen before
+    key = (seen[2] if seen is not None and seen[0] is info and seen[1] == (
+        info.header.stamp.sec, info.header.stamp.nanosec) else _CACHE.key(info, wanted))
+    with _CACHE.lock:
+        conv = None if key is None else _CACHE.idle.pop(key, None)
     if conv is None:
         conv = PointCloud2Converter(info, preset=preset, fields=fields, organized=organized,
                                     destagger=destagger, time_reference=time_reference,
@@ -662,7 +700,5 @@ def to_pointcloud2(scan: Any, info: Any, *, preset: str | None = None,
         return conv.convert(scan, motion=motion)
     finally:
         # checked out while converting: a concurrent call builds its own converter
-        with _CONVERTERS_LOCK:
-            _CONVERTERS[key] = conv
-            while len(_CONVERTERS) > 8:
-                _CONVERTERS.popitem(last=False)
+        if key is not None:
+            _CACHE.give(key, conv)

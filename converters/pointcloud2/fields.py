@@ -4,9 +4,9 @@
 Conventions as in :mod:`converters.pointcloud2.converter`: grids are (H, W) structured arrays over the
 output buffer (little endian, ``point_step`` itemsize); x, y, z float32 metres in the info's
 frame, ``r * D + O`` from the projector's float32 tables; ranges NaN (the canonical quiet NaN)
-where there is no return; times int64 ns. :class:`_FieldWriter` is mixed into the converter and
-uses its buffers (``_r``, ``_mask``, ``_mask2``, ``_tmp``, ``_cplx``), range scaling
-(``_mult``, ``_offset``) and grid order (``_has_shift``, ``_grid_destaggered``).
+where there is no return; times int64 ns. A converter holds one :class:`FieldWriter` (its
+scratch images, range decoding and grid column order) and hands it each conversion's
+:class:`_Job`.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ class _Job:
 
 @dataclasses.dataclass(frozen=True)
 class _Plan:
-    """What the kernel writes for one layout and scan (see PointCloud2Converter._kernel_plan)."""
+    """What the kernel writes for one layout and scan (:func:`converters.pointcloud2.kernel.kernel_plan`)."""
 
     xyz_offset: int
     raw: np.ndarray[Any, Any]                 # the range image, C-contiguous and aligned
@@ -122,16 +122,13 @@ class _Planes:
     def __init__(self, d: list[np.ndarray[Any, Any]], o: list[np.ndarray[Any, Any]]) -> None:
         self.d, self.o = d, o
         self._pair: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None = None
-        self._interleaved: (tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], int, int]
-                            | None) = None
+        self._interleaved: tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]] | None = None
 
-    def interleaved(self) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any], int, int]:
-        """(D, O) as C-contiguous float32 (H, W, 3), the compiled kernel's tables, and their
-        addresses."""
+    def interleaved(self) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+        """(D, O) as C-contiguous float32 (H, W, 3), the compiled kernel's tables."""
         if self._interleaved is None:
-            d = np.ascontiguousarray(np.stack(self.d, -1))
-            o = np.ascontiguousarray(np.stack(self.o, -1))
-            self._interleaved = (d, o, _ck.addr(d), _ck.addr(o))
+            self._interleaved = (np.ascontiguousarray(np.stack(self.d, -1)),
+                                 np.ascontiguousarray(np.stack(self.o, -1)))
         return self._interleaved
 
     def pair(self) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
@@ -146,10 +143,37 @@ class _Planes:
 
 # ======================================================================= field writers
 
-class _FieldWriter:
-    """The numpy field writers of PointCloud2Converter (mixed in; see the module docstring)."""
+class FieldWriter:
+    """The numpy field writers of one converter.
 
-    def _place_rows(self, dst: np.ndarray[Any, Any], src: np.ndarray[Any, Any],
+    Args:
+        height, width: the grid (H, W).
+        mult, offset: the info's range decoding (integer range channels).
+        has_shift: the info has pixel shifts (scan and grid column orders can differ).
+        grid_destaggered: the grid's columns are destaggered.
+
+    Attributes:
+        r: (H, W) float32 decoded ranges of the latest conversion, grid order (NaN: no
+            return); the compiled kernel writes it too.
+    """
+
+    def __init__(self, height: int, width: int, mult: float, offset: float, *,
+                 has_shift: bool, grid_destaggered: bool) -> None:
+        shape = (height, width)
+        self.r = np.empty(shape, np.float32)
+        self._tmp = np.empty(shape, np.float32)
+        self._cplx = np.empty(shape, np.complex64)
+        self._mask = np.empty(shape, bool)
+        self._mask2 = np.empty(shape, bool)
+        self._mult, self._offset = float(mult), float(offset)
+        self._has_shift, self._grid_destaggered = bool(has_shift), bool(grid_destaggered)
+
+    def scratch(self, rows: slice) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any],
+                                            np.ndarray[Any, Any]]:
+        """(r, mask, tmp): the rows ``rows`` of the range image and of two scratch images."""
+        return self.r[rows], self._mask[rows], self._tmp[rows]
+
+    def place_rows(self, dst: np.ndarray[Any, Any], src: np.ndarray[Any, Any],
                     block: _Block, scan_dest: bool) -> None:
         """Rows ``block.rows`` of a scan image (scan column order) into ``dst`` (those rows of
         the grid, grid column order)."""
@@ -159,13 +183,13 @@ class _FieldWriter:
         else:
             _roll_into(dst, src, block.groups, 1 if self._grid_destaggered else -1)
 
-    def _ranges(self, job: _Job, block: _Block, r: np.ndarray[Any, Any],
+    def ranges(self, job: _Job, block: _Block, r: np.ndarray[Any, Any],
                 mask: np.ndarray[Any, Any], tmp: np.ndarray[Any, Any]) -> None:
         """Metres of the rows ``block.rows`` into ``r`` (grid order), NaN (the canonical quiet
         NaN, as the kernel writes) where there is no return: float ranges not in (0, +Inf),
         integer ranges 0 (others: ``raw * multiplier + offset`` in float32)."""
         raw = job.raw
-        self._place_rows(r, raw, block, job.scan_dest)
+        self.place_rows(r, raw, block, job.scan_dest)
         with np.errstate(invalid="ignore"):
             if raw.dtype.kind == "f":
                 ok, bad = mask, self._mask2[block.rows]
@@ -184,17 +208,20 @@ class _FieldWriter:
                 if mask.any():
                     np.copyto(r, np.float32(np.nan), where=mask)
 
-    def _deskew(self, job: _Job, motion: Any, header_ns: int) -> None:
+    def deskew(self, job: _Job, times: np.ndarray[Any, Any], motion: Any,
+               header_ns: int) -> None:
+        """x, y, z of the whole grid moved by ``motion`` to its pose at ``header_ns`` (int64 ns),
+        each pixel from its own time (``times``: (H, W) int64 ns since the scan stamp, grid
+        order); the ranges must be in :attr:`r`."""
         from converters.shared.deskew import deskew_points
-        r, tables, grid = self._r, job.tables, job.grid
+        r, tables, grid = self.r, job.tables, job.grid
         xyz = np.stack([r * d + o for d, o in zip(tables.d, tables.o)], axis=-1)
-        times = job.times if job.times is not None else self._pixel_times(job.rays)
         moved = deskew_points(xyz, times + np.int64(job.stamp_ns), motion, header_ns)
         for k, name in enumerate("xyz"):
             if name in grid.dtype.names:
                 grid[name] = moved[..., k]
 
-    def _write_xyz(self, grid: np.ndarray[Any, Any], specs: Sequence[FieldSpec],
+    def write_xyz(self, grid: np.ndarray[Any, Any], specs: Sequence[FieldSpec],
                    r: np.ndarray[Any, Any], tables: _Planes, rows: slice,
                    pair_full: np.ndarray[Any, Any] | None) -> None:
         """x, y, z = r * D + O for the grid rows ``rows`` (float32 throughout)."""
@@ -214,7 +241,7 @@ class _FieldWriter:
             np.add(tmp, tables.o[k][rows], out=tmp)
             grid[name] = tmp
 
-    def _range_field(self, field: np.ndarray[Any, Any], spec: FieldSpec,
+    def range_field(self, field: np.ndarray[Any, Any], spec: FieldSpec,
                      r: np.ndarray[Any, Any], raw: np.ndarray[Any, Any], block: _Block,
                      scan_dest: bool) -> None:
         if dtype_of(spec.datatype).kind == "f":
@@ -222,7 +249,7 @@ class _FieldWriter:
             return
         # integer millimetres (ouster-ros), 0 = no return
         if raw.dtype.kind in "iu" and math.isclose(self._mult, 0.001) and self._offset == 0:
-            self._place_rows(field, raw, block, scan_dest)
+            self.place_rows(field, raw, block, scan_dest)
             return
         mm = np.rint(r.astype(np.float64) * 1000.0)
         mm[np.isnan(mm)] = 0
@@ -230,8 +257,9 @@ class _FieldWriter:
         np.clip(mm, 0, info.max, out=mm)
         field[...] = mm
 
-    def _time_field(self, field: np.ndarray[Any, Any], spec: FieldSpec,
-                    times: np.ndarray[Any, Any], ref: int, stamp_ns: int) -> None:
+    @staticmethod
+    def time_field(field: np.ndarray[Any, Any], spec: FieldSpec,
+                   times: np.ndarray[Any, Any], ref: int, stamp_ns: int) -> None:
         if spec.source == "timestamp":
             sec, nsec = divmod(stamp_ns, _NS)
             field[...] = (times + np.int64(nsec)) * 1e-9 + float(sec)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-from collections.abc import Sequence
 from typing import Any, cast
 
 import numpy as np
@@ -39,33 +38,11 @@ import numpy as np
 from converters.shared.frames import check_poses, transform_rays
 from converters.shared.transforms import OutOfSpanError, TransformTrack, segment_rotvecs
 from lidarscan.errors import InfoMismatchError, LinkageError, ValidationError
-from lidarscan.geometry import azimuth_channel, make_projector
-from lidarscan.scan import as_array, channel, range_m, return_channel, return_of
+from lidarscan.geometry import make_projector
+from lidarscan.scan import ChannelWant, channel, read_views
 from lidarscan.stamps import split_ns, to_ns
 
 __all__ = ["ChannelWant", "MountPoses", "RayRequest", "ScanGeometry", "ScanRays"]
-
-
-@dataclasses.dataclass(frozen=True)
-class ChannelWant:
-    """One channel image an output publishes.
-
-    Attributes:
-        key: the name the output knows it by (a field name, ``"intensity"``).
-        names: candidate channel names, first found wins (aliases).
-        per_return: for the N-th return's range channel (``range2``), first look for that
-            return's channel of each candidate (``intensity2``), then the candidates themselves
-            (a channel measured once per pixel, such as ``ambient``, serves every return).
-        required: a missing channel raises :class:`lidarscan.errors.UnknownChannelError` (from
-            :func:`lidarscan.channel`, naming the first candidate); else its view is None.
-        first: a channel with count > 1 gives its first element (an (H, W) view).
-    """
-
-    key: str
-    names: tuple[str, ...]
-    per_return: bool = False
-    required: bool = False
-    first: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,7 +106,8 @@ class ScanRays:
         raw: the native range channel view (H, W) or None (not requested).
         metres: (H*W,) float32 metres or None (not requested).
         views: :attr:`ChannelWant.key` -> native view (None: missing, not required).
-        column_times: (W,) int64 ns since the stamp of each measurement column, or None.
+        column_times: (W,) int64 ns since the stamp of each measurement column (asked for, or
+            a moving mount's), or None.
         factors: the factored beam model (float32 rows (H, 6), columns (6, W), constant (6,))
             of this geometry, or None (not requested, or it does not factor).
         period_ns: the scan period (``W * column_time_increment``, or from the column times).
@@ -195,7 +173,10 @@ class ScanGeometry:
 
     # ------------------------------------------------------------------------------ per scan
     def prepare(self, scan: Any, request: RayRequest) -> ScanRays:
-        """The geometry of one scan (see :class:`ScanRays`), what ``request`` asks for."""
+        """The geometry of one scan (see :class:`ScanRays`), what ``request`` asks for.
+
+        The scan is read by one call of the core (:func:`lidarscan.scan.read_views`) after
+        the linkage and size checks; the geometry then comes from the projector."""
         height, width = int(scan.height), int(scan.width)
         if (height, width) != (self.height, self.width):
             raise InfoMismatchError("LidarScan.height x width", f"{height}x{width}",
@@ -206,59 +187,36 @@ class ScanGeometry:
                                f"{self.info_stamp_ns} ({self._linkage_hint})")
         stamp_ns = to_ns(scan.header.stamp, field="LidarScan.header.stamp")
         stamp = split_ns(stamp_ns, field="LidarScan.header.stamp")
-        names = [c.name for c in scan.channels]
-        destaggered = bool(scan.is_destaggered) and self.has_shift
-        # the scan's own arrays, read once
-        measured = as_array(scan.column_azimuth_angles, np.float64)
-        offsets = as_array(scan.column_time_offsets, np.int64)
-        raw = metres = None
-        if request.raw:
-            raw = channel(scan, self.range_channel, native=True)
-            if raw.ndim == 3:
-                raw = raw[..., 0]
-            if raw.dtype.kind != "f" and not (self._mult > 0 and np.isfinite(self._mult)):
-                raise InfoMismatchError(
-                    "LidarInfo.range_multiplier", self._mult,
-                    f"> 0 to decode the integer channel {self.range_channel!r}")
-        if request.metres:
-            metres = np.ascontiguousarray(
-                range_m(scan, self.info, self.range_channel)).reshape(-1)
-        views = self._views(scan, names, request.channels) if request.channels else {}
+        read = read_views(scan, request.channels, range_channel=self.range_channel,
+                          info=self.info, raw=request.raw, metres=request.metres)
+        raw = read.raw
+        if (raw is not None and raw.dtype.kind != "f"
+                and not (self._mult > 0 and np.isfinite(self._mult))):
+            raise InfoMismatchError(
+                "LidarInfo.range_multiplier", self._mult,
+                f"> 0 to decode the integer channel {self.range_channel!r}")
+        measured, offsets = read.column_azimuth_angles, read.column_time_offsets
         if measured.size and measured.size != width:
             raise ValidationError("LidarScan.column_azimuth_angles", f"length {measured.size}",
                                   f"length {width} or 0")
-        azimuths = (azimuth_channel(scan, self.range_channel)
-                    if any(n.startswith("azimuth") for n in names) else None)
-        key = self._key(scan, measured, azimuths, destaggered)
-        column_times = self.projector.column_times(scan) if request.column_times else None
-        factors = self._factors_of(key, measured) if request.factors else None
+        destaggered = bool(scan.is_destaggered) and self.has_shift
+        measured_key = measured.size or read.azimuth is not None
+        key = (self._key(scan, measured, read.azimuth, destaggered) if measured_key
+               else ("info", destaggered))
+        factors = None
+        if request.factors:
+            factors = (self._factors_of(key, measured) if measured_key
+                       else self.projector.factors())
+        column_times = (self.projector.column_times(offsets=offsets)
+                        if request.column_times or request.mount is not None else None)
+        period = (float(width * self._increment) if self._increment > 0
+                  else self._period_ns(offsets))
         rays = ScanRays(scan=scan, stamp_ns=stamp_ns, stamp=stamp, destaggered=destaggered,
-                        key=key, raw=raw, metres=metres, views=views, column_times=column_times,
-                        factors=factors, period_ns=self._period_ns(offsets))
+                        key=key, raw=raw, metres=read.metres, views=read.channels,
+                        column_times=column_times, factors=factors, period_ns=period)
         if request.mount is not None:
             rays.mount = self.mount(rays, request.mount)
         return rays
-
-    def _views(self, scan: Any, names: list[str], wants: Sequence[ChannelWant]
-               ) -> dict[str, np.ndarray[Any, Any] | None]:
-        number = (return_of(self.range_channel, names)[1]
-                  if any(want.per_return for want in wants) else 1)
-        present = set(names)
-        views: dict[str, np.ndarray[Any, Any] | None] = {}
-        for want in wants:
-            candidates = list(want.names)
-            if want.per_return and number != 1:
-                candidates = [return_channel(n, number) for n in want.names] + candidates
-            name = next((n for n in candidates if n in present), None)
-            if name is None and not want.required:
-                views[want.key] = None
-                continue
-            # a missing required channel is reported by the channel lookup itself
-            image = channel(scan, candidates[0] if name is None else name, native=True)
-            if image.ndim == 3 and want.first:
-                image = image[..., 0]
-            views[want.key] = image
-        return views
 
     def _key(self, scan: Any, measured: np.ndarray[Any, Any], azimuths: str | None,
              destaggered: bool) -> tuple[Any, ...]:
@@ -272,9 +230,8 @@ class ScanGeometry:
         return ("measured", destaggered, azimuths is not None, digest.digest())
 
     def _period_ns(self, offsets: np.ndarray[Any, Any]) -> float:
+        """The scan period from its column times (the info has no column time increment)."""
         width = self.width
-        if self._increment > 0:
-            return float(width * self._increment)
         if width >= 2 and offsets.size == width:
             return float(offsets[-1] - offsets[0]) * width / (width - 1)
         return 0.0
@@ -282,9 +239,7 @@ class ScanGeometry:
     # ------------------------------------------------------------------------------- rays
     def _factors_of(self, key: tuple[Any, ...], measured: np.ndarray[Any, Any]
                     ) -> tuple[np.ndarray[Any, Any], ...] | None:
-        """The factored beam model of a geometry (kept for the latest key), or None."""
-        if key[0] == "info":
-            return self.projector.factors()  # type: ignore[no-any-return]
+        """The factored beam model of a measured geometry (kept for the latest key), or None."""
         if key[2]:                      # a per-pixel azimuth channel: does not factor
             return None
         cached = self._factors
@@ -350,7 +305,8 @@ class ScanGeometry:
             TransformLookupError: raised by the callable.
             ValidationError: the callable returned something other than a finite rigid 4x4.
         """
-        relative, index = self.pose_times(rays.scan, distinct=mode != "track")
+        relative, index = self.pose_times(rays.scan, distinct=mode != "track",
+                                          columns=rays.column_times)
         stamp = np.int64(rays.stamp_ns)
         if index is None:
             track = self.moving
@@ -368,7 +324,8 @@ class ScanGeometry:
         held = poses[0] if np.all(poses == poses[0]) else None
         return MountPoses(relative, index, poses, None, held)
 
-    def pose_times(self, scan: Any, distinct: bool = True
+    def pose_times(self, scan: Any, distinct: bool = True,
+                   columns: np.ndarray[Any, Any] | None = None
                    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any] | None]:
         """The distinct pixel times of a scan relative to its stamp and each pixel's one.
 
@@ -376,6 +333,9 @@ class ScanGeometry:
         ``t`` channel constant along each column: tested exactly) the distinct times are those
         of the W columns; otherwise those of all pixels (``np.unique`` of H*W times), or, with
         ``distinct=False``, none are computed.
+
+        ``columns``: the scan's (W,) int64 column times when already known
+        (:attr:`ScanRays.column_times`).
 
         Returns:
             (times, index): (P,) int64 ns sorted, and (H*W,) int64 the time of each pixel
@@ -386,7 +346,9 @@ class ScanGeometry:
         """
         key = None
         if not any(c.name == "t" for c in scan.channels):   # pixel_delays(scan) is None
-            key = (self.projector.column_times(scan).tobytes(), bool(scan.is_destaggered))
+            if columns is None:
+                columns = self.projector.column_times(scan)
+            key = (columns.tobytes(), bool(scan.is_destaggered))
             if self._time_cache is not None and self._time_cache[0] == key:
                 kept = self._time_cache[1]
                 if kept[1] is None and distinct:     # kept per pixel: not kept again

@@ -98,7 +98,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, cast
@@ -106,20 +105,18 @@ from typing import Any, cast
 import numpy as np
 
 from converters import _kernels
-
-from converters.slices import spec as _grid
-
-from converters.slices import holes as _holes
-
-from converters.shared import options
 from converters._kernels.slices_numba import Bands
-from converters.slices.tables import MovingPlan, _MovingRays, _Slice, _Tables
-from converters.slices.spec import AngleGrid, OutputOptions
-from converters.slices.holes import HoleOptions
+from converters.shared import options
+from converters.shared.converter_cache import ConverterCache
 from converters.shared.frames import check_extrinsics, transform_rays
 from converters.shared.options import IfPresent
 from converters.shared.scan_rays import ChannelWant, RayRequest, ScanGeometry, ScanRays
 from converters.shared.transforms import TransformTrack
+from converters.slices import holes as _holes
+from converters.slices import spec as _grid
+from converters.slices.holes import HoleOptions
+from converters.slices.spec import AngleGrid, OutputOptions
+from converters.slices.tables import MovingPlan, _MovingRays, _Slice, _Tables
 from lidarscan.errors import ConfigError, ConversionError
 from lidarscan.geometry import info_key
 from lidarscan.scan import as_array
@@ -605,20 +602,21 @@ def _as_spec(name: str, spec: SliceSpec | Mapping[str, Any]) -> SliceSpec:
     return out
 
 
-_CONVERTERS: OrderedDict[Any, SliceConverter] = OrderedDict()
+#: :func:`to_laserscan`'s converters (module docstring of converters.shared.converter_cache)
+_CACHE = ConverterCache()
 
 
-def _cache_key(info: Any, spec: SliceSpec, kwargs: dict[str, Any]) -> tuple[Any, ...] | None:
-    """The key of :func:`to_laserscan`'s converter cache, or None when an option cannot be part
-    of one (not a number, not hashable: :func:`converters.shared.options.slice_options` then
-    says what is wrong)."""
+def _options_key(spec: SliceSpec, kwargs: dict[str, Any]) -> tuple[Any, ...] | None:
+    """The options part of :func:`to_laserscan`'s cache key, or None when an option cannot be
+    part of one (not a number, not hashable: :func:`converters.shared.options.slice_options`
+    then says what is wrong)."""
     extrinsics = kwargs["extrinsics"]
     try:
         # a moving mount is cached by identity (the cached converter keeps it alive)
         ext = None if extrinsics is None else ("moving", id(extrinsics)) \
             if callable(extrinsics) else check_extrinsics(extrinsics).tobytes()
         # the type tells IfPresent("intensity") (the default) from a required "intensity"
-        key = (info_key(info), float(spec.min_height), float(spec.max_height), ext,
+        key = (float(spec.min_height), float(spec.max_height), ext,
                tuple((k, type(v), v) for k, v in kwargs.items() if k != "extrinsics"))
         hash(key)
     except (TypeError, ValueError):             # ConfigError, ValidationError included
@@ -656,17 +654,21 @@ def to_laserscan(scan: Any, info: Any, *, min_height: float, max_height: float,
               "hole_range_max": hole_range_max, "hole_no_return": hole_no_return,
               "range_channel": range_channel, "backend": backend}
     spec = SliceSpec(min_height, max_height)
-    key = _cache_key(info, spec, kwargs)
-    converter = None if key is None else _CONVERTERS.get(key)
+    wanted = _options_key(spec, kwargs)
+    key, converter = None, None
+    if wanted is not None:
+        seen = _CACHE.keys.get((id(info), wanted))       # this info object, seen before
+        key = (seen[2] if seen is not None and seen[0] is info and seen[1] == (
+            info.header.stamp.sec, info.header.stamp.nanosec) else _CACHE.key(info, wanted))
+        with _CACHE.lock:
+            converter = _CACHE.idle.pop(key, None)
     if converter is None:
         # the options of a cached converter were checked when it was built (equal key: equal
         # values of the same types); the others are checked here, before anything is built
         options.slice_options({"slice": spec}, {**kwargs, "extrinsics": _checkable(extrinsics)})
         converter = SliceConverter(info, {"slice": spec}, **kwargs)
+    try:
+        return converter.convert(scan)["slice"]
+    finally:
         if key is not None:
-            _CONVERTERS[key] = converter
-            while len(_CONVERTERS) > 8:
-                _CONVERTERS.popitem(last=False)
-    else:
-        _CONVERTERS.move_to_end(key)
-    return converter.convert(scan)["slice"]
+            _CACHE.give(key, converter)

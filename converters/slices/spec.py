@@ -64,7 +64,7 @@ from typing import Any
 
 import numpy as np
 
-from converters.shared.rosmsg import bare_message
+from lidarscan.rosmsg import bare_message
 from lidarscan.errors import ConfigError
 
 __all__ = [
