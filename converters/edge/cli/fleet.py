@@ -386,10 +386,12 @@ class _QueueProgress:
 
 
 def _packet_recording(source: str) -> bool:
-    from converters.bags import PACKET_TYPES
+    """Whether ``convert`` decodes packets of the recording (so its companion file is their
+    calibration): the test ``convert`` uses (an IMU packet topic alone is not lidar packets)."""
     from converters.edge.cli._common import _open_input
+    from converters.sources.bags import is_packet_topic
 
-    return bool(set(_open_input(source, "IN").topics().values()) & set(PACKET_TYPES))
+    return any(is_packet_topic(t, k) for t, k in _open_input(source, "IN").topics().items())
 
 
 def convert_job(job: Job) -> Result:
