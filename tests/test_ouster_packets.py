@@ -384,3 +384,18 @@ def test_valid_columns_without_timestamps_give_no_scan() -> None:
         packets.append(bytes(raw))
     results, decoder = _decode(meta, packets)
     assert results == [] and decoder.stats["frames"] == 1
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_header_and_headers_read_the_documented_fields(profile: str) -> None:
+    """One packet's header() and the rows' headers() give the frame id, init_id and serial
+    number the Writer put at the documented offsets (LEGACY: the first column's frame id)."""
+    meta = metadata(profile, 16, 512, init_id=0xABCDEF, serial="1099511627775")
+    writer = Writer(meta)
+    layout = ouster.layout_from_metadata(meta)
+    packets = [writer.packet(frame, 0) for frame in (3, 0xBEEF)]
+    rows = np.stack([np.frombuffer(p, np.uint8) for p in packets])
+    ident = (0, 0) if profile == "LEGACY" else (0xABCDEF, 2**40 - 1)
+    expected = [(3, *ident), (0xBEEF, *ident)]
+    assert [layout.header(p) for p in packets] == expected
+    assert [tuple(int(v) for v in column) for column in zip(*layout.headers(rows))] == expected

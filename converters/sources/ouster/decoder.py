@@ -145,11 +145,7 @@ class PacketDecoder:
             errors.extend((i, err) for i in range(rows.shape[0]))
             return []
         frames, inits, serials = self.layout.headers(rows)
-        lay = self.layout
-        foreign = np.zeros(rows.shape[0], bool)
-        if not lay.legacy:
-            foreign = ((inits != lay.init_id) & (lay.init_id != 0)) | \
-                ((serials != lay.serial) & (lay.serial != 0))
+        foreign = _foreign(self.layout, inits, serials)
         # runs of consecutive packets of one frame id (and one sensor) go in together
         cuts = np.flatnonzero((np.diff(frames) != 0) | foreign[1:] | foreign[:-1]) + 1
         out: list[tuple[Any, Any]] = []
@@ -174,9 +170,7 @@ class PacketDecoder:
     # ------------------------------------------------------------------------------ frames
     def _check_sensor(self, init_id: int, serial: int) -> None:
         lay = self.layout
-        if lay.legacy:
-            return
-        if (lay.init_id and init_id != lay.init_id) or (lay.serial and serial != lay.serial):
+        if _foreign(lay, init_id, serial):
             raise InfoMismatchError(
                 "ouster packet sensor", f"init_id {init_id}, serial {serial}",
                 f"init_id {lay.init_id}, serial {lay.serial} of the metadata (a packet of "
@@ -243,6 +237,16 @@ class PacketDecoder:
             scan = _scan(self.layout, cols, self.info, self.range_encoding, self.as_dataclass,
                          self._scratch)
         return [(scan, self.info)]
+
+
+def _foreign(layout: PacketLayout, init_ids: Any, serials: Any) -> Any:
+    """Whether packets are another sensor's: an init_id or serial number (ints, or (N,) int
+    arrays: then an (N,) bool array) other than the metadata's, where the metadata gives one
+    (non-zero). LEGACY packets carry neither: never foreign."""
+    if layout.legacy:
+        return np.zeros(np.shape(init_ids), bool)
+    return (((init_ids != layout.init_id) & (layout.init_id != 0))
+            | ((serials != layout.serial) & (layout.serial != 0)))
 
 
 #: frame key -> LidarScan channel name, in the order of converters.ouster.scan_from_frame
