@@ -103,10 +103,13 @@ class PacketDecoder:
                 stays usable).
             InfoMismatchError: a packet of another sensor (init_id / serial number).
         """
-        if isinstance(packet, (bytes, bytearray, memoryview)):
-            row = np.frombuffer(packet, np.uint8)       # a view: copied once, into the frame
+        # a view of the caller's buffer, only read: copied once, into the frame
+        if isinstance(packet, np.ndarray) and packet.ndim == 1 and packet.dtype == np.uint8:
+            row = packet
+        elif isinstance(packet, (bytes, bytearray, memoryview)):
+            row = np.frombuffer(packet, np.uint8)
         else:
-            row = np.frombuffer(payload_bytes(packet), np.uint8)
+            row = np.frombuffer(payload_bytes(packet), np.uint8)    # DecodeError: bad type
         if row.size != self._size:
             raise DecodeError("ouster lidar packet size", row.size,
                               f"{self._size} bytes ({self.layout.profile}, "
@@ -399,7 +402,7 @@ def decode_packets(packets: Iterable[tuple[int, Any]], metadata: Any = None, **k
 
     Raises:
         DecodeError: a packet of another size (after the frames completed before it).
-        InfoMismatchError: a packet of another sensor (likewise).
+        InfoMismatchError: a packet of another sensor (likewise: a run is pushed up to it).
     """
     decoder = PacketDecoder(metadata, **kw)
     size = decoder.layout.packet_bytes
@@ -417,7 +420,14 @@ def decode_packets(packets: Iterable[tuple[int, Any]], metadata: Any = None, **k
     yield from decoder.flush()
 
 
-def _push_run(decoder: PacketDecoder, run: list[Any]) -> list[tuple[Any, Any]]:
+def _push_run(decoder: PacketDecoder, run: list[Any]) -> Iterator[tuple[Any, Any]]:
+    """push_many of the packets ``run`` (emptied) up to the first of another sensor, whose
+    push() then raises: the frames completed before it are yielded, as one by one."""
     rows = np.frombuffer(b"".join(run), np.uint8).reshape(len(run), -1)
     del run[:]
-    return decoder.push_many(np.zeros(rows.shape[0], np.int64), rows)
+    _, inits, serials = decoder.layout.headers(rows)
+    foreign = np.flatnonzero(_foreign(decoder.layout, inits, serials))
+    stop = int(foreign[0]) if foreign.size else rows.shape[0]
+    yield from decoder.push_many(np.zeros(stop, np.int64), rows[:stop])
+    if stop < rows.shape[0]:
+        decoder.push(0, rows[stop])                   # raises InfoMismatchError
