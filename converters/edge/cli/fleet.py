@@ -82,7 +82,7 @@ WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(64 << 20), "MALLOC_MMAP_THRESHOLD_":
 
 def add_options(parser: argparse.ArgumentParser) -> None:
     """``--jobs``, ``--dask``, ``--force`` of ``convert`` (fleet runs)."""
-    from converters.edge.cli._parser import _positive_int   # (it imports this module)
+    from converters.edge.cli._parser import _positive_int  # (it imports this module)
 
     parser.add_argument("--jobs", "-j", type=_positive_int, default=None, metavar="N",
                         help="several recordings: convert N at a time in warm worker processes "
