@@ -217,6 +217,7 @@ def test_the_views_slice_the_camera_scan_once(tmp_path: Path,
     assert {p.name for p in result.images} >= {"merged_scan.png", "depth_camera.png"}
     assert made == [False]
 
+
 def test_demo_ships_its_metadata_with_provenance() -> None:
     path = demo.METADATA_PATH
     assert path.is_file() and path.parent == ROOT / "converters" / "data"

@@ -668,6 +668,7 @@ def test_nodes_say_when_numba_s_cache_is_being_filled(
     assert status["numba_cache"] == "filling in the background"
     assert any(k.startswith("kernels_") for k in status), status
 
+
 @pytest.mark.ros
 def test_cloud_to_scan_node_latches_one_info(graph: Graph) -> None:
     from lidarscan_msgs.msg import LidarInfo, LidarScan

@@ -367,6 +367,7 @@ def test_decode_packets_gives_the_frames_before_another_sensors_packet() -> None
     assert len(got) == len(one) == 1
     _same_scan(got[0][0], one[0][0])
 
+
 def test_another_sensors_packet_is_an_error_naming_both() -> None:
     meta = metadata("RNG19_RFL8_SIG16_NIR16", 16, 512, init_id=4242)
     writer = Writer(meta)

@@ -270,6 +270,7 @@ def test_recording_is_decoded_in_bounded_batches(tmp_path: Path,
     assert len(got) == 1 and _scan_bytes(got) == expected
     assert sizes == [10] * 6 + [4]                  # the recording's 64 lidar packets
 
+
 def test_recording_without_metadata_needs_it(tmp_path: Path) -> None:
     path = tmp_path / "rec.mcap"
     _write_mcap(path, _recording_rows(OS0, with_metadata=False))
