@@ -80,8 +80,6 @@ def make_scan() -> tuple[Any, Any]:
     return out, SimpleNamespace(pixel_shift_by_row=np.asarray(info.pixel_shift_by_row) * 2)
 
 
-#: no coder argument (the default of compress_scan / decompress_scan)
-DEFAULT = object()
 #: imports of a compiled coder copied from a revision before the codec moved into the core
 _OLD_LAYOUT = {"from converters._kernels._loader import": "from lidarscan._backends import",
                "from lidarscan._codec_bits import": "from lidarscan.codec._bits import",
@@ -127,10 +125,10 @@ def main(argv: list[str] | None = None) -> int:
     dz = zstandard.ZstdDecompressor()
     default = codec.VERSION
     other = 2 if default == 3 else 3
-    # name -> (codec module, coder (DEFAULT: no coder argument), version written; None: the
-    # module's default)
-    runs: dict[str, tuple[Any, Any, int | None]] = {}
-    runs["lidarscan.codec"] = (codec, DEFAULT, None)
+    # name -> (codec module, coder (None: no coder argument, the default of compress_scan /
+    # decompress_scan), version written (None: the module's default))
+    runs: dict[str, tuple[Any, Any | None, int | None]] = {}
+    runs["lidarscan.codec"] = (codec, None, None)
     runs["codec (numpy)"] = (codec, "numpy", default)
     if compiled is not None:
         runs[f"codec v{other}"] = (codec, compiled, other)
@@ -155,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
            "lz4 (buffer)": lambda: lz4.frame.decompress(packed["lz4 (buffer)"])}
     for name, (core, coder, version) in runs.items():
         options = {} if version is None else {"version": version}
-        given = {} if coder is DEFAULT else {"coder": coder}
+        given = {} if coder is None else {"coder": coder}
         packed[name] = core.compress_scan(scan, info, **given, **options)
         back = core.decompress_scan(packed[name], **given)
         assert ls.encode(back) == ls.encode(scan), name

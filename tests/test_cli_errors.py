@@ -322,3 +322,19 @@ def test_frame_without_tf_says_what_the_file_has_not_a_nested_error(
               "velodyne_front in the file's /tf or /tf_static, or --extrinsics (the file has no "
               "/tf or /tf_static message (so far))")
     assert lines[-1].count("expected") == 1
+
+
+@pytest.mark.parametrize("argv", [["convert", "IN", "OUT", "--jobs"],
+                                  ["convert", "IN", "OUT", "--max-pending"],
+                                  ["demo", "--frames"], ["view", "REC", "--out", "DIR", "--index"]])
+@pytest.mark.parametrize("value", ["-1", "x", "2.5"])
+def test_integer_options_name_the_text_and_the_bound(
+        argv: list[str], value: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """A count option given a number below its bound or no integer: exit 2, one line naming
+    the option, the text and the bound (the fleet's --jobs uses the same check)."""
+    bound = ">= 0" if argv[-1] == "--index" else ">= 1"
+    with pytest.raises(SystemExit) as stop:
+        cli.main([*argv, value])
+    assert stop.value.code == 2
+    one_error(capsys.readouterr().err.splitlines()[1:], argv[0], argv[-1],
+              f"'{value}': expected an integer {bound}")

@@ -155,6 +155,38 @@ def test_calibration_next_to_each_recording(tmp_path: Path) -> None:
     assert fleet.companion(tmp_path / "drive.pcap") == tmp_path / "drive.json"
 
 
+def test_imu_packets_alone_are_not_lidar_packets_for_fleet_and_convert(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """ouster-ros's IMU packets have the lidar packets' type (PacketMsg) but are never
+    decoded: a recording of them alone is copied by ``convert`` (no packets mode), so the fleet
+    does not hand it the file next to it as --calibration, and the topic can be renamed."""
+    import numpy as np
+    from test_ouster_packets_io import PACKET_TYPE, _cdr, _typestore, _write_mcap
+
+    store = _typestore()
+    root = tmp_path / "in"
+    root.mkdir()
+    _write_mcap(root / "imu.mcap", [("/ouster/imu_packets", PACKET_TYPE, 10**18 + 1000 * k,
+                                     _cdr(store, PACKET_TYPE, buf=np.zeros(48, np.uint8)))
+                                    for k in range(4)])
+    (root / "imu.yaml").write_text("calibration: of some other recording\n")
+    assert PACKET_TYPE in bags.PACKET_TYPES                  # the type alone says "packets"
+    assert not fleet._packet_recording(str(root / "imu.mcap"))
+    src, alone = str(root / "imu.mcap"), tmp_path / "alone" / "imu.mcap"   # same name
+    alone.parent.mkdir()
+    assert cli.main(["convert", src, str(alone), "-q"]) == 0
+    assert cli.main(["convert", src, str(tmp_path / "renamed.mcap"), "-q",
+                     "--rename-topic", "/ouster/imu_packets=/imu"]) == 0
+    assert cli.main(["convert", src, str(tmp_path / "x.mcap"), "--calibration",
+                     str(root / "imu.yaml")]) == 2
+    assert cli.main(["convert", src, str(tmp_path / "x.mcap"), "--metadata",
+                     str(root / "imu.yaml")]) == 2            # nothing for it to decode
+    capsys.readouterr()
+    assert cli.main(["convert", str(root), str(tmp_path / "out"), "-j", "1"]) == 0
+    assert "1 ok" in capsys.readouterr().err
+    assert (tmp_path / "out" / "imu.mcap").read_bytes() == alone.read_bytes()
+
+
 # ----------------------------------------------------------------------------- conversion
 
 def test_outputs_equal_converting_each_alone_whatever_jobs(

@@ -198,6 +198,26 @@ def test_the_depth_camera_reports_the_stair_edge_that_no_band_sees(
     assert on_rim.sum() > 10
 
 
+def test_the_views_slice_the_camera_scan_once(tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """The merged-scan view and the depth-camera view share one slice of the last camera scan
+    without hole detection (it was cut once per view)."""
+    pytest.importorskip("matplotlib")
+    from converters.edge.demo import config as demo_config
+
+    made: list[bool] = []
+    slicer = demo_config.camera_slicer
+
+    def counting(*args: Any, holes: bool, **kwargs: Any) -> Any:
+        made.append(holes)
+        return slicer(*args, holes=holes, **kwargs)
+
+    monkeypatch.setattr(demo_config, "camera_slicer", counting)    # what the views call
+    result = demo.run_demo(tmp_path, frames=1)
+    assert {p.name for p in result.images} >= {"merged_scan.png", "depth_camera.png"}
+    assert made == [False]
+
+
 def test_demo_ships_its_metadata_with_provenance() -> None:
     path = demo.METADATA_PATH
     assert path.is_file() and path.parent == ROOT / "converters" / "data"

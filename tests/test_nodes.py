@@ -651,6 +651,32 @@ def test_merger_node_merges_and_survives_bad_input(graph: Graph) -> None:
 
 
 @pytest.mark.ros
+@pytest.mark.parametrize("kind", ["converter", "merger"])
+def test_nodes_say_when_numba_s_cache_is_being_filled(
+        graph: Graph, monkeypatch: pytest.MonkeyPatch, kind: str) -> None:
+    """While numba's cache lacks a kernel (the C kernels run meanwhile), the converter and the
+    merger both report the backend, the kernels and ``numba_cache`` in their startup status."""
+    from converters import warmup
+    from converters.edge.nodes.converter_node import ConverterNode
+    from converters.edge.nodes.merger_node import MergerNode
+
+    def cold(tasks: Any, **_: Any) -> Any:          # no background compiler in a test
+        return warmup.Prepared("c", {}, warmup.describe(tasks, "c"),
+                               "a kernel is not in numba's cache (test)")
+
+    monkeypatch.setattr(warmup, "prepare", cold)
+    if kind == "converter":
+        node = graph.add(ConverterNode(context=graph.context))
+    else:
+        node = graph.add(MergerNode(context=graph.context, parameter_overrides=overrides(
+            input_names=["front"], inputs__front__topic="front/scan", use_tf=False)))
+    status = node.startup.status().values
+    assert status["ready"] is True and status["backend"] == "c"
+    assert status["numba_cache"] == "filling in the background"
+    assert any(k.startswith("kernels_") for k in status), status
+
+
+@pytest.mark.ros
 def test_cloud_to_scan_node_latches_one_info(graph: Graph) -> None:
     from lidarscan_msgs.msg import LidarInfo, LidarScan
     from sensor_msgs.msg import PointCloud2

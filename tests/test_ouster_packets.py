@@ -325,6 +325,49 @@ def test_push_many_equals_push() -> None:
                                                       for p in stream)
 
 
+def test_push_reads_an_ndarray_packet_without_changing_it() -> None:
+    """A packet given as a 1-D uint8 array (contiguous, read-only, or a strided view) decodes
+    as its bytes do, and the caller's array is left as it was."""
+    meta = metadata("RNG19_RFL8_SIG16_NIR16", 16, 512)
+    packets = Writer(meta, seed=9).frame(1)
+    expected, _ = _decode(meta, packets)
+    arrays = [np.frombuffer(p, np.uint8) for p in packets]          # read-only views
+    wide = np.zeros((len(packets), 2 * len(packets[0])), np.uint8)
+    wide[:, ::2] = np.stack(arrays)
+    for given in (arrays, [a.copy() for a in arrays], list(wide[:, ::2])):
+        before = [a.copy() for a in given]
+        got, _ = _decode(meta, given)
+        assert len(got) == len(expected) == 1
+        _same_scan(got[0][0], expected[0][0])
+        for a, b in zip(given, before):
+            np.testing.assert_array_equal(a, b)
+    decoder = ouster.PacketDecoder(meta)
+    with pytest.raises(DecodeError, match="1-D uint8"):
+        decoder.push(0, np.stack(arrays[:2]))
+    with pytest.raises(DecodeError, match="1-D uint8"):
+        decoder.push(0, arrays[0].astype(np.uint16))
+
+
+def test_decode_packets_gives_the_frames_before_another_sensors_packet() -> None:
+    """decode_packets (runs through push_many) stops at another sensor's packet as push()
+    one by one does: the frames completed before it are given, then InfoMismatchError."""
+    meta = metadata("RNG19_RFL8_SIG16_NIR16", 16, 512, init_id=4242)
+    writer = Writer(meta, seed=3)
+    stream = (writer.frame(1) + writer.frame(2)[:3] + [writer.packet(2, 48, init_id=777)]
+              + writer.frame(3))
+    decoder = ouster.PacketDecoder(meta, as_dataclass=True)
+    one: list[Any] = []
+    with pytest.raises(InfoMismatchError):
+        for packet in stream:
+            one += decoder.push(0, packet)
+    got: list[Any] = []
+    with pytest.raises(InfoMismatchError, match="777"):
+        for result in ouster.decode_packets([(0, p) for p in stream], meta, as_dataclass=True):
+            got.append(result)
+    assert len(got) == len(one) == 1
+    _same_scan(got[0][0], one[0][0])
+
+
 def test_another_sensors_packet_is_an_error_naming_both() -> None:
     meta = metadata("RNG19_RFL8_SIG16_NIR16", 16, 512, init_id=4242)
     writer = Writer(meta)
@@ -384,3 +427,18 @@ def test_valid_columns_without_timestamps_give_no_scan() -> None:
         packets.append(bytes(raw))
     results, decoder = _decode(meta, packets)
     assert results == [] and decoder.stats["frames"] == 1
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_header_and_headers_read_the_documented_fields(profile: str) -> None:
+    """One packet's header() and the rows' headers() give the frame id, init_id and serial
+    number the Writer put at the documented offsets (LEGACY: the first column's frame id)."""
+    meta = metadata(profile, 16, 512, init_id=0xABCDEF, serial="1099511627775")
+    writer = Writer(meta)
+    layout = ouster.layout_from_metadata(meta)
+    packets = [writer.packet(frame, 0) for frame in (3, 0xBEEF)]
+    rows = np.stack([np.frombuffer(p, np.uint8) for p in packets])
+    ident = (0, 0) if profile == "LEGACY" else (0xABCDEF, 2**40 - 1)
+    expected = [(3, *ident), (0xBEEF, *ident)]
+    assert [layout.header(p) for p in packets] == expected
+    assert [tuple(int(v) for v in column) for column in zip(*layout.headers(rows))] == expected

@@ -246,6 +246,31 @@ def test_ouster_ros_recording_gives_the_pcap_scans(tmp_path: Path, storage: str,
     assert got[0][1].vendor_metadata == (DATA / f"{name}.json").read_text()
 
 
+def test_recording_is_decoded_in_bounded_batches(tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """scans_from_bag hands the packets to the decoder's batch entry (push_many) in runs of at
+    most decoder._RUN packets, read as they come (never the whole recording at once): the
+    scans are the pcap's, bit for bit."""
+    from converters.sources.ouster import decoder as ouster_decoder
+
+    path = tmp_path / "rec.mcap"
+    _write_mcap(path, _recording_rows(OS0))
+    expected = _scan_bytes(list(ouster.scans_from_pcap(DATA / f"{OS0}.pcap",
+                                                       DATA / f"{OS0}.json", as_dataclass=True)))
+    sizes: list[int] = []
+    push_many = ouster_decoder.PacketDecoder.push_many
+
+    def spy(self: Any, stamps: Any, payloads: Any, errors: Any = None) -> Any:
+        sizes.append(payloads.shape[0])
+        return push_many(self, stamps, payloads, errors)
+
+    monkeypatch.setattr(ouster_decoder.PacketDecoder, "push_many", spy)
+    monkeypatch.setattr(ouster_decoder, "_RUN", 10)
+    got = list(ouster.scans_from_bag(path, as_dataclass=True))
+    assert len(got) == 1 and _scan_bytes(got) == expected
+    assert sizes == [10] * 6 + [4]                  # the recording's 64 lidar packets
+
+
 def test_recording_without_metadata_needs_it(tmp_path: Path) -> None:
     path = tmp_path / "rec.mcap"
     _write_mcap(path, _recording_rows(OS0, with_metadata=False))

@@ -217,20 +217,22 @@ def _fields(text: str) -> tuple[str, ...]:
     return names
 
 
-def _int_at_least(minimum: int, name: str) -> Callable[[str], int]:
-    """An argparse type: an integer >= ``minimum`` (the error names the text and the bound);
-    ``name`` is what argparse calls it in "invalid NAME value" when the text is no integer."""
+def _int_at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse type: an integer >= ``minimum`` (the error names the text and the bound,
+    also for a text that is no integer)."""
     def parse(text: str) -> int:
-        value = int(text)
-        if value < minimum:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
             raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= {minimum}")
         return value
-    parse.__name__ = name
     return parse
 
 
-_positive_int = _int_at_least(1, "_positive_int")
-_non_negative_int = _int_at_least(0, "_non_negative_int")
+_positive_int = _int_at_least(1)
+_non_negative_int = _int_at_least(0)
 
 
 def _zstd_level(text: str) -> int:

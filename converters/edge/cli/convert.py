@@ -320,10 +320,10 @@ def _written_topics(topics: dict[str, str], plan: _Plan, args: argparse.Namespac
                     slices: Sequence[Any], mode: str) -> set[str]:
     """The topics the output will have (before ``--rename-topic``): the copied input topics
     and the new ones."""
-    from converters.sources.bags import PACKET_TYPES
+    from converters.sources.bags import is_packet_topic
 
     copied = {t for t, k in topics.items() if t not in plan.excluded
-              and not (k in PACKET_TYPES and not args.keep_packets)
+              and not (is_packet_topic(t, k) and not args.keep_packets)
               and not (mode == "clouds" and t in plan.prefix and not args.keep_clouds)}
     if mode == "ouster":
         copied = {"/lidar/info", "/lidar/scan"} | ({"/lidar/points"} if args.pointcloud2

@@ -58,10 +58,10 @@ def refuse_unfit_options(args: argparse.Namespace, mode: str, slices: Sequence[A
                ("--pointcloud2", args.pointcloud2 or None, ("packets", "scans", "ouster"),
                 ("LidarScans or raw packets (IN's clouds are PointCloud2 already: "
                  "--keep-clouds copies them)"))]
-    from converters.sources.bags import OUSTER_PACKET_TYPES
+    from converters.sources.bags import OUSTER_PACKET_TYPES, is_packet_topic
 
-    here = {mode} | ({"ouster packets"} if set(topics.values()) & set(OUSTER_PACKET_TYPES)
-                     else set())
+    ouster = any(k in OUSTER_PACKET_TYPES and is_packet_topic(t, k) for t, k in topics.items())
+    here = {mode} | ({"ouster packets"} if ouster else set())
     for option, value, modes, purpose in by_mode:
         if value is not None and not here & set(modes):
             raise ConfigError(option, value, f"{purpose}; IN is {what}")

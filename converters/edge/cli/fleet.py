@@ -82,7 +82,9 @@ WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(64 << 20), "MALLOC_MMAP_THRESHOLD_":
 
 def add_options(parser: argparse.ArgumentParser) -> None:
     """``--jobs``, ``--dask``, ``--force`` of ``convert`` (fleet runs)."""
-    parser.add_argument("--jobs", "-j", type=_jobs, default=None, metavar="N",
+    from converters.edge.cli._parser import _positive_int  # (it imports this module)
+
+    parser.add_argument("--jobs", "-j", type=_positive_int, default=None, metavar="N",
                         help="several recordings: convert N at a time in warm worker processes "
                              "(default: all cores); every output is the one converting that "
                              "recording alone gives")
@@ -96,16 +98,6 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                         help="several recordings: convert every one again, also those whose "
                              "output is up to date, and overwrite outputs this command did not "
                              "write")
-
-
-def _jobs(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a number of processes >= 1")
-    return value
 
 
 # ------------------------------------------------------------------------------ recordings
@@ -386,10 +378,12 @@ class _QueueProgress:
 
 
 def _packet_recording(source: str) -> bool:
-    from converters.bags import PACKET_TYPES
+    """Whether ``convert`` decodes packets of the recording (so its companion file is their
+    calibration): the test ``convert`` uses (an IMU packet topic alone is not lidar packets)."""
     from converters.edge.cli._common import _open_input
+    from converters.sources.bags import is_packet_topic
 
-    return bool(set(_open_input(source, "IN").topics().values()) & set(PACKET_TYPES))
+    return any(is_packet_topic(t, k) for t, k in _open_input(source, "IN").topics().items())
 
 
 def convert_job(job: Job) -> Result:

@@ -56,7 +56,9 @@ def draw(out: Path, scene: Scene, info: Any, last: dict[str, Any], config: DemoC
         panels.append(("3D lidar slice 'full': table top and overhanging shelf", rest))
     paths.append(viz.birdseye(out / "birdseye_slices.png", panels, outlines=outlines,
                               notes=notes, extent=extent))
+    bins = _camera_bins(last, config)          # the camera scan sliced once for both views
     if last["merged"] is not None:
+        xy, edge, _ = bins
         well = ("stairwell (down; below every lidar band)",
                 _footprint_in(base_from_odom, STAIRWELL), "#d9a07a")
         mount = config.camera_mount
@@ -69,21 +71,15 @@ def draw(out: Path, scene: Scene, info: Any, last: dict[str, Any], config: DemoC
                viz.Layer("merged", viz.laserscan_xy(last["merged"]), "tab:purple",
                          size=2.5),
                viz.Layer("of which the camera slice's hole edge (stairwell)",
-                         _hole_edge_xy(last, config), "tab:brown", size=6.0)])],
+                         xy[edge], "tab:brown", size=6.0)])],
             outlines=outlines, notes=notes, extent=extent, areas=[well], markers=[camera]))
-    paths.append(_draw_camera(out / "depth_camera.png", scene, last, config, base_from_odom,
+    paths.append(_draw_camera(out / "depth_camera.png", last, config, bins, base_from_odom,
                               outlines))
     paths.append(viz.cloud_topview(last["cloud"], out / "pointcloud_topview.png",
                                    extrinsics=config.lidar_mount, extent=extent,
                                    title="PointCloud2 (organized 128x2048) in base_link, "
                                          "coloured by height"))
     return paths
-
-
-def _hole_edge_xy(last: dict[str, Any], config: DemoConfig) -> np.ndarray[Any, Any]:
-    """(N, 2) base_link x, y of the camera slice's bins that are a hole edge."""
-    xy, edge, _ = _camera_bins(last, config)
-    return xy[edge]
 
 
 def _camera_bins(last: dict[str, Any], config: DemoConfig
@@ -113,13 +109,14 @@ def hole_bins(with_holes: Any, without: Any) -> np.ndarray[Any, np.dtype[np.bool
         return np.isfinite(a) & ~(a >= b)
 
 
-def _draw_camera(path: Path, scene: Scene, last: dict[str, Any], config: DemoConfig,
-                 base_from_odom: np.ndarray[Any, Any],
+def _draw_camera(path: Path, last: dict[str, Any], config: DemoConfig,
+                 bins: tuple[np.ndarray[Any, Any], ...], base_from_odom: np.ndarray[Any, Any],
                  outlines: list[tuple[str, np.ndarray[Any, Any]]]) -> Path:
-    """The depth image and the camera's slice with the detected stair edge."""
+    """The depth image and the camera's slice with the detected stair edge (``bins``: the
+    slice's :func:`_camera_bins`)."""
     from converters.edge.demo import viz
 
-    xy, edge, band = _camera_bins(last, config)
+    xy, edge, band = bins
     image = last["image"]
     depth = np.frombuffer(bytes(image.data), "<u2").reshape(image.height, image.width)
     x0, y0, x1, y1 = STAIRWELL

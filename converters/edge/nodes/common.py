@@ -27,7 +27,8 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 __all__ = ["OK", "WARN", "ERROR", "Diagnostics", "ExactSync", "Guard", "LatencyWindow",
-           "LogLimiter", "RateMeter", "Startup", "Status", "entry_points", "run_node", "warm_up"]
+           "LogLimiter", "RateMeter", "Startup", "Status", "entry_points", "kernels_status",
+           "run_node", "warm_up"]
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -235,6 +236,19 @@ def warm_up(node: Any, steps: dict[str, Callable[[], Any]],
     if diagnostics is not None:
         diagnostics.startup = startup
     return startup
+
+
+def kernels_status(kernels: Any) -> tuple[str, dict[str, Any]]:
+    """A node's ``describe`` for :func:`warm_up`: (log clause, ``startup`` status values) of
+    the kernels that run, from its :class:`converters.warmup.Prepared` (None: not warmed,
+    nothing to say): the backend, ``kernels_<task>`` per task, and ``numba_cache`` while
+    numba's cache is being filled in the background."""
+    if kernels is None:
+        return "", {}
+    return kernels.summary(), {
+        "backend": kernels.backend,
+        **{f"kernels_{k}": v for k, v in kernels.runs.items()},
+        **({"numba_cache": "filling in the background"} if kernels.missing else {})}
 
 
 class ExactSync:

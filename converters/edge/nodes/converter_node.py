@@ -146,7 +146,7 @@ from typing import Any
 
 import numpy as np
 
-from converters.edge.nodes.common import entry_points
+from converters.edge.nodes.common import entry_points, kernels_status
 from converters.edge.nodes.converter_core import ConverterCore, ConverterStats
 from converters.edge.nodes.depth_input import depth_options  # noqa: F401 - its old home
 from converters.edge.nodes.ouster_input import ouster_specs
@@ -502,13 +502,7 @@ def _node_class() -> type:
 
         def _kernels_line(self) -> tuple[str, dict[str, Any]]:
             """(log line, diagnostics values) of the kernels that run."""
-            if self.kernels is None:
-                return "", {}
-            return self.kernels.summary(), {
-                "backend": self.kernels.backend,
-                **{f"kernels_{k}": v for k, v in self.kernels.runs.items()},
-                **({"numba_cache": "filling in the background"} if self.kernels.missing
-                   else {})}
+            return kernels_status(self.kernels)
 
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:

@@ -86,7 +86,7 @@ from typing import Any
 
 import numpy as np
 
-from converters.edge.nodes.common import Guard, entry_points
+from converters.edge.nodes.common import Guard, entry_points, kernels_status
 from converters.edge.nodes.tf import extend_track
 from lidarscan.errors import ConfigError, ConversionError, LidarScanError
 
@@ -609,11 +609,8 @@ def _node_class() -> type:
             return options
 
         def _kernels_line(self) -> tuple[str, dict[str, Any]]:
-            if self.kernels is None:
-                return "", {}
-            return self.kernels.summary(), {
-                "backend": self.kernels.backend,
-                **{f"kernels_{k}": v for k, v in self.kernels.runs.items()}}
+            """(log line, diagnostics values) of the kernels that run."""
+            return kernels_status(self.kernels)
 
         # ------------------------------------------------------------------ parameters
         def _validate(self, values: dict[str, Any]) -> None:

@@ -89,7 +89,7 @@ def scans_from_bag(path: str | os.PathLike[str], metadata: Any = None, *,
     """
     from converters.sources.bags import (OUSTER_PACKET_TYPES, is_packet_topic, open_bag,
                                          ouster_packets)
-    from converters.sources.ouster.decoder import PacketDecoder
+    from converters.sources.ouster.decoder import decode_packets
     from lidarscan.mcap import McapMessage
 
     bag = open_bag(path)
@@ -108,9 +108,8 @@ def scans_from_bag(path: str | os.PathLike[str], metadata: Any = None, *,
         if metadata is None:
             raise ConfigError("metadata", None, f"the sensor's metadata JSON: {path} has no "
                               f"{_namespace(topic)}/metadata (std_msgs/String) topic")
-    decoder = PacketDecoder(metadata, **kw)
-    for item in bag.messages([topic]):
-        if isinstance(item, McapMessage):
-            yield from decoder.push(item.log_time_ns, ouster_packets(item.payload).data[0])
-    yield from decoder.flush()
+    # decoded in runs of a few hundred packets (the decoder's batch entry), read lazily
+    yield from decode_packets(((item.log_time_ns, ouster_packets(item.payload).data[0])
+                               for item in bag.messages([topic])
+                               if isinstance(item, McapMessage)), metadata, **kw)
 

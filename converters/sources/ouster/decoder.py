@@ -103,10 +103,13 @@ class PacketDecoder:
                 stays usable).
             InfoMismatchError: a packet of another sensor (init_id / serial number).
         """
-        if isinstance(packet, (bytes, bytearray, memoryview)):
-            row = np.frombuffer(packet, np.uint8)       # a view: copied once, into the frame
+        # a view of the caller's buffer, only read: copied once, into the frame
+        if isinstance(packet, np.ndarray) and packet.ndim == 1 and packet.dtype == np.uint8:
+            row = packet
+        elif isinstance(packet, (bytes, bytearray, memoryview)):
+            row = np.frombuffer(packet, np.uint8)
         else:
-            row = np.frombuffer(payload_bytes(packet), np.uint8)
+            row = np.frombuffer(payload_bytes(packet), np.uint8)    # DecodeError: bad type
         if row.size != self._size:
             raise DecodeError("ouster lidar packet size", row.size,
                               f"{self._size} bytes ({self.layout.profile}, "
@@ -145,11 +148,7 @@ class PacketDecoder:
             errors.extend((i, err) for i in range(rows.shape[0]))
             return []
         frames, inits, serials = self.layout.headers(rows)
-        lay = self.layout
-        foreign = np.zeros(rows.shape[0], bool)
-        if not lay.legacy:
-            foreign = ((inits != lay.init_id) & (lay.init_id != 0)) | \
-                ((serials != lay.serial) & (lay.serial != 0))
+        foreign = _foreign(self.layout, inits, serials)
         # runs of consecutive packets of one frame id (and one sensor) go in together
         cuts = np.flatnonzero((np.diff(frames) != 0) | foreign[1:] | foreign[:-1]) + 1
         out: list[tuple[Any, Any]] = []
@@ -174,9 +173,7 @@ class PacketDecoder:
     # ------------------------------------------------------------------------------ frames
     def _check_sensor(self, init_id: int, serial: int) -> None:
         lay = self.layout
-        if lay.legacy:
-            return
-        if (lay.init_id and init_id != lay.init_id) or (lay.serial and serial != lay.serial):
+        if _foreign(lay, init_id, serial):
             raise InfoMismatchError(
                 "ouster packet sensor", f"init_id {init_id}, serial {serial}",
                 f"init_id {lay.init_id}, serial {lay.serial} of the metadata (a packet of "
@@ -243,6 +240,16 @@ class PacketDecoder:
             scan = _scan(self.layout, cols, self.info, self.range_encoding, self.as_dataclass,
                          self._scratch)
         return [(scan, self.info)]
+
+
+def _foreign(layout: PacketLayout, init_ids: Any, serials: Any) -> Any:
+    """Whether packets are another sensor's: an init_id or serial number (ints, or (N,) int
+    arrays: then an (N,) bool array) other than the metadata's, where the metadata gives one
+    (non-zero). LEGACY packets carry neither: never foreign."""
+    if layout.legacy:
+        return np.zeros(np.shape(init_ids), bool)
+    return (((init_ids != layout.init_id) & (layout.init_id != 0))
+            | ((serials != layout.serial) & (layout.serial != 0)))
 
 
 #: frame key -> LidarScan channel name, in the order of converters.ouster.scan_from_frame
@@ -395,7 +402,7 @@ def decode_packets(packets: Iterable[tuple[int, Any]], metadata: Any = None, **k
 
     Raises:
         DecodeError: a packet of another size (after the frames completed before it).
-        InfoMismatchError: a packet of another sensor (likewise).
+        InfoMismatchError: a packet of another sensor (likewise: a run is pushed up to it).
     """
     decoder = PacketDecoder(metadata, **kw)
     size = decoder.layout.packet_bytes
@@ -413,7 +420,14 @@ def decode_packets(packets: Iterable[tuple[int, Any]], metadata: Any = None, **k
     yield from decoder.flush()
 
 
-def _push_run(decoder: PacketDecoder, run: list[Any]) -> list[tuple[Any, Any]]:
+def _push_run(decoder: PacketDecoder, run: list[Any]) -> Iterator[tuple[Any, Any]]:
+    """push_many of the packets ``run`` (emptied) up to the first of another sensor, whose
+    push() then raises: the frames completed before it are yielded, as one by one."""
     rows = np.frombuffer(b"".join(run), np.uint8).reshape(len(run), -1)
     del run[:]
-    return decoder.push_many(np.zeros(rows.shape[0], np.int64), rows)
+    _, inits, serials = decoder.layout.headers(rows)
+    foreign = np.flatnonzero(_foreign(decoder.layout, inits, serials))
+    stop = int(foreign[0]) if foreign.size else rows.shape[0]
+    yield from decoder.push_many(np.zeros(stop, np.int64), rows[:stop])
+    if stop < rows.shape[0]:
+        decoder.push(0, rows[stop])                   # raises InfoMismatchError

@@ -97,6 +97,15 @@ PIXEL_BYTES = {"LEGACY": 12, "RNG19_RFL8_SIG16_NIR16": 12, "RNG19_RFL8_SIG16_NIR
                "RNG15_RFL8_NIR8": 4, "FUSA_RNG15_RFL8_NIR8_DUAL": 8}
 PROFILES = tuple(FIELDS)
 
+#: (byte offset, size) of the little-endian frame id, init_id and serial number in a lidar
+#: packet, per header kind (the module header's layouts; LEGACY: the first column's frame id,
+#: no init_id or serial number)
+_HEADER_WORDS: dict[str, tuple[tuple[int, int] | None, ...]] = {
+    "standard": ((2, 2), (4, 3), (7, 5)),
+    "fusa": ((4, 4), (1, 3), (11, 5)),
+    "legacy": ((10, 2), None, None),
+}
+
 #: UDP payload size of an Ouster IMU packet (LEGACY IMU profile): never a lidar packet
 IMU_PACKET_BYTES = 48
 
@@ -170,17 +179,20 @@ class PacketLayout:
             return (ids >= first) & (ids <= last)
         return (ids >= first) | (ids <= last)           # a window across column 0
 
+    @property
+    def _header_words(self) -> tuple[tuple[int, int] | None, ...]:
+        """(byte offset, size) of the frame id, init_id and serial number in a packet
+        (``_HEADER_WORDS`` of this header kind; None: the packet has no such field)."""
+        return _HEADER_WORDS["legacy" if self.legacy else "fusa" if self.fusa else "standard"]
+
     def header(self, packet: Any) -> tuple[int, int, int]:
         """(frame id, init_id, serial) of one packet (bytes-like of ``packet_bytes``); LEGACY:
         the first column's frame id and 0, 0."""
-        if self.legacy:
-            return int.from_bytes(bytes(packet[10:12]), "little"), 0, 0
         head = bytes(packet[:16])
-        if self.fusa:
-            return (int.from_bytes(head[4:8], "little"), int.from_bytes(head[1:4], "little"),
-                    int.from_bytes(head[11:16], "little"))
-        return (int.from_bytes(head[2:4], "little"), int.from_bytes(head[4:7], "little"),
-                int.from_bytes(head[7:12], "little"))
+        frame, init_id, serial = (0 if word is None else
+                                  int.from_bytes(head[word[0]:word[0] + word[1]], "little")
+                                  for word in self._header_words)
+        return frame, init_id, serial
 
     def headers(self, rows: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], ...]:
         """:meth:`header` of every row of an (N, packet_bytes) uint8 array: three (N,) int64."""
@@ -190,12 +202,8 @@ class PacketLayout:
                 out |= rows[:, at + k].astype(np.int64) << (8 * k)
             return out
 
-        if self.legacy:
-            zero = np.zeros(rows.shape[0], np.int64)
-            return word(10, 2), zero, zero
-        if self.fusa:
-            return word(4, 4), word(1, 3), word(11, 5)
-        return word(2, 2), word(4, 3), word(7, 5)
+        return tuple(np.zeros(rows.shape[0], np.int64) if at is None else word(*at)
+                     for at in self._header_words)
 
 
 def _window(value: Any, width: int) -> tuple[int, int]:
