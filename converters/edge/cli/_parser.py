@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 from typing import Any
 
+from converters.edge.cli._argtypes import _non_negative_int, _positive_int
 from converters.edge.cli._examples import EXAMPLES, HelpFormatter
 from converters.edge.cli.demo import cmd_demo
 from converters.edge.cli.fleet import add_options as add_fleet_options
@@ -215,24 +215,6 @@ def _fields(text: str) -> tuple[str, ...]:
     if not {"x", "y", "z"} <= set(names):
         raise argparse.ArgumentTypeError(f"{text!r}: expected x, y and z among the fields")
     return names
-
-
-def _int_at_least(minimum: int) -> Callable[[str], int]:
-    """An argparse type: an integer >= ``minimum`` (the error names the text and the bound,
-    also for a text that is no integer)."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or value < minimum:
-            raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= {minimum}")
-        return value
-    return parse
-
-
-_positive_int = _int_at_least(1)
-_non_negative_int = _int_at_least(0)
 
 
 def _zstd_level(text: str) -> int:

@@ -61,6 +61,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from converters.edge.cli._argtypes import _positive_int
 from converters.edge.cli._common import EXIT_BAD, EXIT_INTERRUPTED, EXIT_OK, _err
 
 #: files that are recordings of their own in a folder without metadata.yaml
@@ -82,7 +83,6 @@ WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(64 << 20), "MALLOC_MMAP_THRESHOLD_":
 
 def add_options(parser: argparse.ArgumentParser) -> None:
     """``--jobs``, ``--dask``, ``--force`` of ``convert`` (fleet runs)."""
-    from converters.edge.cli._parser import _positive_int  # (it imports this module)
 
     parser.add_argument("--jobs", "-j", type=_positive_int, default=None, metavar="N",
                         help="several recordings: convert N at a time in warm worker processes "
