@@ -11,7 +11,7 @@ numba and the per-info caches done by a first call) and prints two figures:
 * ``calls`` (the issue's figure): the sequence of rooms of the called functions, consecutive
   repeats merged; a climb is a room that appears again after another room. It also counts a
   room calling one of its own functions after a lower room returned (the converter's own
-  helper after the kernel), which says little about where the data travels.
+  helper after the kernel, the converter cache taking its converter back).
 * ``entries``: only calls that cross a room boundary count (the caller's room -- the nearest
   frame on the stack that lies in a room -- differs from the callee's); a room asking the same
   room again, with nothing asked of another room in between (what the callee asked of the
