@@ -18,7 +18,8 @@ import numpy as np
 
 from lidarscan._backends import LoadOnce, c_enabled, numba_jit
 
-__all__ = ["DTYPE_CODES", "TYPE_CODES", "LoadOnce", "load_library", "load_planned", "numba_jit", "type_code"]
+__all__ = ["DTYPE_CODES", "TYPE_CODES", "LoadOnce", "load_library", "load_planned", "numba_jit",
+           "type_code"]
 
 
 def load_library(module: str, abi_symbol: str, abi: int) -> ctypes.CDLL | None:

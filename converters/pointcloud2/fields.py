@@ -103,7 +103,8 @@ class _Job:
 
 @dataclasses.dataclass(frozen=True)
 class _Plan:
-    """What the kernel writes for one layout and scan (:func:`converters.pointcloud2.kernel.kernel_plan`)."""
+    """What the kernel writes for one layout and scan
+    (:func:`converters.pointcloud2.kernel.kernel_plan`)."""
 
     xyz_offset: int
     raw: np.ndarray[Any, Any]                 # the range image, C-contiguous and aligned
