@@ -540,3 +540,41 @@ def test_per_pixel_angles_use_the_table_kernel_bit_identical_to_numpy(
         assert (spies[0].calls, spies[1].calls) == (1, 0)
         assert_identical(cloud, pc.PointCloud2Converter(pinfo, kernel=False,
                                                         organized=organized).convert(scan))
+
+
+def test_vectorised_names_the_path_this_cpu_runs() -> None:
+    """kc.vectorised() is true exactly where the CPU has AVX-512 (and the kernel is built): the
+    path the test below compares with the portable one."""
+    if kc.kernel() is None:
+        pytest.skip("the PointCloud2 kernel is not built (or switched off)")
+    flags = set()
+    cpuinfo = Path("/proc/cpuinfo")
+    if not cpuinfo.exists():
+        pytest.skip("no /proc/cpuinfo to read the CPU's flags from")
+    for line in cpuinfo.read_text().splitlines():
+        if line.startswith("flags"):
+            flags = set(line.split(":", 1)[1].split())
+            break
+    assert kc.vectorised() == ("avx512f" in flags)
+
+
+@needs_kernel
+def test_avx512_path_writes_the_portable_paths_bytes(os2: Any,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The factored kernel's 16-pixel AVX-512 path (organized clouds whose channel field follows
+    z, 16 or more pixels per run) and its portable code (``SIMD = 0``,
+    ``LIDARSCAN_CLOUD_SIMD=0``) write the same bytes, on the real frame: float and integer
+    ranges, both column orders, threads."""
+    if not kc.vectorised():
+        pytest.skip("no AVX-512 on this CPU: only the portable path runs here")
+    _, frame, info, scan = os2
+    mm = with_channels(scan, info, range=frame["range_mm"].astype(np.uint32))
+    cases = [(scan, {}), (destaggered(scan, info), {}), (scan, {"destagger": False}),
+             (scan, {"threads": 2}), (mm, {}), (scan, {"preset": "ouster_xyzi"}),
+             (scan, {"fields": ("x", "y", "z", "reflectivity")})]
+    for source, options in cases:
+        clouds = []
+        for simd in (1, 0):
+            monkeypatch.setattr(kc, "SIMD", simd)
+            clouds.append(pc.PointCloud2Converter(info, kernel=True, **options).convert(source))
+        assert_identical(*clouds)

@@ -10,7 +10,8 @@ oracles) in a subprocess with the switches of :mod:`converters._kernels` set, as
 machine would run them:
 
 * ``no-numba``: ``LIDARSCAN_NUMBA=0``, what a plain ``pip install`` without the ``fast`` extra
-  runs (the C kernels where built, numpy elsewhere);
+  runs (the C kernels where built, numpy elsewhere), with the PointCloud2 kernel's portable
+  code (``LIDARSCAN_CLOUD_SIMD=0``: what a CPU without AVX-512 runs);
 * ``baseline-cpu``: no numba, no C kernel (``LIDARSCAN_NO_KERNEL=1``), the Velodyne kernel's
   portable path (``LIDARSCAN_VELODYNE_SIMD=0``) and numpy without its run-time SIMD targets
   (``NPY_DISABLE_CPU_FEATURES``: the code numpy runs on a CPU without AVX2 / AVX-512).
@@ -59,7 +60,7 @@ def _numpy_dispatch_targets() -> str:
 
 
 CASES = {
-    "no-numba": {"LIDARSCAN_NUMBA": "0"},
+    "no-numba": {"LIDARSCAN_NUMBA": "0", "LIDARSCAN_CLOUD_SIMD": "0"},
     "baseline-cpu": {"LIDARSCAN_NUMBA": "0", "LIDARSCAN_NO_KERNEL": "1",
                      "LIDARSCAN_VELODYNE_SIMD": "0",
                      "NPY_DISABLE_CPU_FEATURES": _numpy_dispatch_targets()},

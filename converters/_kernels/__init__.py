@@ -41,7 +41,9 @@ Switches, read by :mod:`lidarscan._backends` (the lowest layer, so that the core
 them too) and asked here (at the first use of a backend in the process):
 ``LIDARSCAN_NO_KERNEL`` set to anything but "" / "0" disables the C kernels (the Velodyne one
 is re-checked at each ``select``, the others at their first use);
-``LIDARSCAN_NUMBA=0`` disables numba. Per object, ``kernel=`` (PointCloud2: None = when built,
+``LIDARSCAN_NUMBA=0`` disables numba; ``LIDARSCAN_CLOUD_SIMD=0`` / ``LIDARSCAN_VELODYNE_SIMD=0``
+(read when :mod:`.cloud` / :mod:`.velodyne` are loaded; their ``SIMD`` attributes) force the
+PointCloud2 / Velodyne kernels' portable code where the CPU has AVX-512 / AVX2. Per object, ``kernel=`` (PointCloud2: None = when built,
 False = numpy, True = required) and ``backend=`` (slices and merger: ``"auto"``, ``"numba"``,
 ``"numpy"``, ``"c"``) choose among what is enabled. ``"c"`` never compiles at run time: the C
 kernels (built at install) where they apply, else numpy; the nodes run it while numba's cache

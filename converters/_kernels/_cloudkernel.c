@@ -31,7 +31,7 @@
 #include <string.h>
 
 /* Bump with any change of lsk_project's signature or semantics (checked by pointcloud2.py). */
-#define LSK_ABI 3
+#define LSK_ABI 4
 
 /* Source element types (the codes pointcloud2.py passes). */
 enum {
@@ -530,6 +530,16 @@ static int lsk_avx512_ok(void)
 }
 #endif
 
+/* Whether lsk_project_rc's AVX-512 path runs on this CPU when called with simd = 1. */
+LSK_EXPORT int32_t lsk_vectorised(void)
+{
+#if LSK_AVX512
+    return lsk_avx512_ok();
+#else
+    return 0;
+#endif
+}
+
 /* One run: pixels first .. first + count - 1 of one grid row, measurement columns c0 .. */
 LSK_CLONES
 static int64_t lsk_rc_run(char *out, int64_t point_step, int64_t xyz_offset, int64_t first,
@@ -537,14 +547,15 @@ static int64_t lsk_rc_run(char *out, int64_t point_step, int64_t xyz_offset, int
                           int64_t src_first, int32_t scale, float mult, float offset,
                           const float *row, const float *cols, int64_t width, int64_t c0,
                           const float *g, const void *extra, int32_t extra_type,
-                          int64_t extra_offset, float *r_out, int32_t dense, int64_t valid)
+                          int64_t extra_offset, float *r_out, int32_t dense, int32_t simd,
+                          int64_t valid)
 {
     float rbuf[LSK_RC_CHUNK], ebuf[LSK_RC_CHUNK], x[LSK_RC_CHUNK], y[LSK_RC_CHUNK];
     float z[LSK_RC_CHUNK];
     const int mode = !extra ? LSK_NO_EXTRA
                      : extra_offset == xyz_offset + 12 ? LSK_EXTRA_AFTER_Z : LSK_EXTRA_APART;
 #if LSK_AVX512
-    if (!dense && mode == LSK_EXTRA_AFTER_Z && count >= 16 && lsk_avx512_ok()) {
+    if (simd && !dense && mode == LSK_EXTRA_AFTER_Z && count >= 16 && lsk_avx512_ok()) {
         const int64_t done = count - count % 16;
         /* the 16-pixel path reads the sources itself (no staging buffers) */
         valid += lsk_rc_avx512(out + first * point_step + xyz_offset, point_step, range,
@@ -582,7 +593,7 @@ LSK_EXPORT int64_t lsk_project_rc(char *out, int64_t point_step, int64_t xyz_off
                                   float mult, float offset, const float *rows,
                                   const float *cols, const float *g, const void *extra,
                                   int32_t extra_type, int64_t extra_offset, float *r_out,
-                                  int32_t dense)
+                                  int32_t dense, int32_t simd)
 {
     int64_t valid = 0;
     int64_t j = start;
@@ -601,7 +612,7 @@ LSK_EXPORT int64_t lsk_project_rc(char *out, int64_t point_step, int64_t xyz_off
         if (run > LSK_RC_CHUNK) run = LSK_RC_CHUNK;
         valid = lsk_rc_run(out, point_step, xyz_offset, j, run, range, range_type,
                            u * width + sc, scale, mult, offset, rows + 6 * u, cols, width, c, g,
-                           extra, extra_type, extra_offset, r_out, dense, valid);
+                           extra, extra_type, extra_offset, r_out, dense, simd, valid);
         if (valid < 0) return -1;
         j += run;
     }

@@ -5,13 +5,15 @@ into the cloud's point buffer, from either the per-pixel direction/offset tables
 (``lsk_project``) or the factored beam model (``lsk_project_rc``,
 :func:`lidarscan.geometry.beam_factors`). Its arithmetic is deterministic (no fused
 multiply-add): the AVX-512, AVX2 and baseline builds it picks from at load time give the same
-bits. The converter that drives it is :class:`converters.pointcloud2.converter.PointCloud2Converter`.
+bits, and so does the factored form's hand-written AVX-512 path (16 pixels at a time, where
+:func:`vectorised`) against its portable code (:data:`SIMD` 0). The converter that drives it is :class:`converters.pointcloud2.converter.PointCloud2Converter`.
 """
 
 from __future__ import annotations
 
 import ctypes
 import dataclasses
+import os
 from typing import Any
 
 import numpy as np
@@ -19,10 +21,15 @@ import numpy as np
 from converters._kernels import _loader
 from lidarscan.errors import ConversionError
 
-__all__ = ["ABI", "DTYPE_CODES", "Job", "Kernels", "addr", "available", "kernel", "load"]
+__all__ = ["ABI", "DTYPE_CODES", "SIMD", "Job", "Kernels", "addr", "available", "kernel", "load",
+           "vectorised"]
 
 #: ABI of _cloudkernel.c (its LSK_ABI): a stale build is ignored, not called.
-ABI = 3
+ABI = 4
+#: 1: the factored form's AVX-512 path where the CPU has it (:func:`vectorised`); 0 forces the
+#: portable code (``LIDARSCAN_CLOUD_SIMD=0`` when this module is loaded; tests set the
+#: attribute). Both write the same bytes (tests/test_pointcloud2_kernel.py).
+SIMD = int(os.environ.get("LIDARSCAN_CLOUD_SIMD", "") != "0")
 #: Flags of the range decoding (integer ranges: multiplier, offset).
 MULTIPLY, OFFSET = 1, 2
 #: The kernel's element type code of a native numpy dtype (other dtypes: not readable).
@@ -35,6 +42,7 @@ class Kernels:
 
     project: Any        # lsk_project: per-pixel direction / offset tables
     project_rc: Any     # lsk_project_rc: the factored beam model (per-beam, per-column factors)
+    vectorised: Any = None    # lsk_vectorised: whether project_rc's AVX-512 path can run
 
 
 def kernel() -> Kernels | None:
@@ -50,7 +58,8 @@ def load() -> Kernels | None:
     lib = _loader.load_library("converters._kernels._cloudkernel", "lsk_abi", ABI)
     if lib is None:
         return None
-    fn, rc = lib.lsk_project, lib.lsk_project_rc
+    fn, rc, vec = lib.lsk_project, lib.lsk_project_rc, lib.lsk_vectorised
+    vec.restype, vec.argtypes = ctypes.c_int32, []
     i64, i32, f32, ptr = ctypes.c_int64, ctypes.c_int32, ctypes.c_float, ctypes.c_void_p
     fn.restype = i64
     fn.argtypes = [ptr, i64, i64, i64, i64,          # out, point_step, xyz_offset, start, n
@@ -67,8 +76,8 @@ def load() -> Kernels | None:
                    i32, f32, f32,                    # scale flags, multiplier, offset
                    ptr, ptr, ptr,                    # beam, column factors, constant
                    ptr, i32, i64,                    # extra, extra_type, extra_offset
-                   ptr, i32]                         # r_out, dense
-    return Kernels(fn, rc)
+                   ptr, i32, i32]                    # r_out, dense, simd
+    return Kernels(fn, rc, vec)
 
 
 _once = _loader.LoadOnce(load)
@@ -110,7 +119,8 @@ class Job:
             valid = int(self.fn(out, self.step, self.xyz_offset, start, count, rng,
                                 self.range_type, roll, colshift, self.width, self.scale,
                                 self.mult, self.offset, rows, cols, const,
-                                extra, self.extra_type, self.extra_offset, r_out, int(dense)))
+                                extra, self.extra_type, self.extra_offset, r_out, int(dense),
+                                SIMD))
         else:
             d, o = geometry
             valid = int(self.fn(out, self.step, self.xyz_offset, start, count, rng,
@@ -126,6 +136,13 @@ class Job:
 def available() -> bool:
     """Whether LidarScan -> PointCloud2 can use the compiled kernel."""
     return kernel() is not None
+
+
+def vectorised() -> bool:
+    """Whether the factored form's AVX-512 path runs on this CPU (with :data:`SIMD` 1)."""
+    kernels = kernel()
+    return bool(kernels is not None and kernels.vectorised is not None
+                and kernels.vectorised())
 
 
 def addr(a: Any) -> int | None:
