@@ -15,7 +15,9 @@ unorganized PointCloud2 a driver publishes:
   stamp). Order: firing by firing, laser by laser, its returns; an identical second return is
   dropped (as Nebula does).
 
-No-return pixels are omitted; dual return gives two points per firing.
+No-return pixels are omitted; dual return gives two points per firing. The points are the
+scan's rays (``geometry_reference.checked_tables``: the project's tables after a check against
+the plain-loop beam model) times its ranges, so a projector bug cannot hide in the ground truth.
 """
 
 from __future__ import annotations
@@ -101,9 +103,10 @@ def driver_cloud(scan: Any, info: Any, kind: str) -> tuple[Any, np.ndarray[Any, 
         in cloud order (the ground truth of the re-import).
     """
     from cloud_oracles import make_cloud
+    from geometry_reference import checked_tables
 
     proj = lidarscan.make_projector(info)
-    tables = proj.tables_for(scan)
+    tables = checked_tables(scan, info)          # held to the plain-loop beam model
     stamp = lidarscan.to_ns(scan.header.stamp)
     times = proj.pixel_times(scan) + np.int64(stamp)             # (H, W) absolute ns
     height, width = times.shape
