@@ -83,7 +83,6 @@ WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(64 << 20), "MALLOC_MMAP_THRESHOLD_":
 
 def add_options(parser: argparse.ArgumentParser) -> None:
     """``--jobs``, ``--dask``, ``--force`` of ``convert`` (fleet runs)."""
-
     parser.add_argument("--jobs", "-j", type=_positive_int, default=None, metavar="N",
                         help="several recordings: convert N at a time in warm worker processes "
                              "(default: all cores); every output is the one converting that "
