@@ -20,12 +20,18 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
     return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(_bits(a), _bits(b))
 
 
+def _scan_of(inputs: Any) -> tuple[Any, dict[str, np.ndarray]]:
+    """(scan, its channels) of one scan_inputs() draw."""
+    height, width, channels, big = inputs
+    scan = lidarscan.make_scan(_info(height, width), channels, 5, is_bigendian=big,
+                               as_dataclass=True)
+    return scan, channels
+
+
 @settings(max_examples=60, deadline=None)
 @given(scan_inputs())
 def test_views_equal_the_channel_lookups(inputs: Any) -> None:
-    height, width, channels, big = inputs
-    info = _info(height, width)
-    scan = lidarscan.make_scan(info, channels, 5, is_bigendian=big, as_dataclass=True)
+    scan, channels = _scan_of(inputs)
     wants = [ChannelWant(n, (n,), required=True, first=False) for n in channels]
     wants += [ChannelWant("absent", ("no_such", "nor_this"))]
     found = read_views(scan, wants)
@@ -40,9 +46,7 @@ def test_views_equal_the_channel_lookups(inputs: Any) -> None:
 @settings(max_examples=40, deadline=None)
 @given(scan_inputs())
 def test_first_element_and_per_return_follow_the_return_rule(inputs: Any) -> None:
-    height, width, channels, big = inputs
-    info = _info(height, width)
-    scan = lidarscan.make_scan(info, channels, 5, is_bigendian=big, as_dataclass=True)
+    scan, channels = _scan_of(inputs)
     for rng in ("range", "range2"):
         if rng not in channels:
             continue

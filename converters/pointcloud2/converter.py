@@ -267,9 +267,7 @@ class PointCloud2Converter:
             self._pool = ThreadPoolExecutor(len(self._blocks), "pointcloud2")
         self._mult = float(info.range_multiplier)
         self._offset = float(info.range_offset)
-        #: the compiled kernel's calls (None: numpy only)
-        self._jobs = (None if kernels is None
-                      else KernelJobs(kernels, self.width, self._mult, self._offset))
+        self._kfn = kernels                  # the compiled kernel's calls: self._jobs
         self._ring_values = self._rings(info)
         self._planes: _Planes | None = None
         self._scan_planes: tuple[tuple[Any, ...], _Planes] | None = None   # measured geometry
@@ -293,6 +291,7 @@ class PointCloud2Converter:
 
     @_kfn.setter
     def _kfn(self, kernels: _ck.Kernels | None) -> None:
+        #: the compiled kernel's calls (None: numpy only)
         self._jobs = (None if kernels is None
                       else KernelJobs(kernels, self.width, self._mult, self._offset))
 
