@@ -8,7 +8,6 @@ import argparse
 import contextlib
 import sys
 from collections.abc import Iterator, Sequence
-from pathlib import Path
 from typing import Any
 
 from converters.edge.cli._common import (
@@ -29,7 +28,8 @@ from converters.edge.cli.convert_inputs import (
     _takes,
 )
 from converters.edge.cli._interrupt import StopRequest, is_interrupt
-from converters.edge.cli.convert_checks import output_of, refuse_unfit_options
+from converters.edge.cli.convert_checks import (check_option_files, output_of,
+                                                refuse_unfit_options)
 from converters.edge.cli.convert_filters import (
     RenamingWriter,
     check_renames,
@@ -201,9 +201,7 @@ def _convert(args: argparse.Namespace, stop: StopRequest) -> int:
     if args.zstd_level is not None and args.compression != "zstd":
         raise ConfigError("--zstd-level", args.zstd_level, "--chunk-compression zstd (the "
                           f"chunks are {args.compression})")
-    for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
-        if value is not None and not Path(value).is_file():
-            raise FileNotFoundError(f"{option} {value}: no such file")
+    check_option_files(args)
     selection = selection_of(args)
     renames = parse_renames(args.rename_topic)
     topics: dict[str, str] = {}

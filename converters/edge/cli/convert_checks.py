@@ -23,6 +23,18 @@ _OTHER_FORMATS = {".db3": "a rosbag2 sqlite3 file", ".bag": "a ROS 1 bag",
                   ".pcap": "a packet capture", ".osf": "an Ouster OSF file"}
 
 
+def check_option_files(args: argparse.Namespace) -> None:
+    """``--calibration`` and ``--metadata``, when given, name existing files (checked before
+    anything is read or written).
+
+    Raises:
+        FileNotFoundError: naming the option and the path.
+    """
+    for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
+        if value is not None and not Path(value).is_file():
+            raise FileNotFoundError(f"{option} {value}: no such file")
+
+
 def refuse_unfit_options(args: argparse.Namespace, mode: str, slices: Sequence[Any],
                          topics: dict[str, str]) -> None:
     """Raise ConfigError (exit 2) for an option that would be ignored: one for another kind of

@@ -605,8 +605,10 @@ def _is_address(text: str) -> bool:
     return re.match(r"^[a-z+]+://|^[\w.-]+:\d+$", text) is not None
 
 
-def plan(args: argparse.Namespace, inputs: Sequence[str]) -> tuple[Path, list[Job]]:
-    """OUT and one job per recording (checked before anything is written)."""
+def plan(args: argparse.Namespace, inputs: Sequence[str]) -> list[Job]:
+    """One job per recording of ``inputs`` into the folder OUT (all checked before anything is
+    written)."""
+    from converters.edge.cli.convert_checks import check_option_files
     from lidarscan.errors import ConfigError
 
     out = Path(args.output)
@@ -617,9 +619,7 @@ def plan(args: argparse.Namespace, inputs: Sequence[str]) -> tuple[Path, list[Jo
         raise ConfigError("OUT", str(out), f"a folder for the outputs of several recordings "
                           f"(IN {' '.join(inputs)} is {len(inputs)} or more recordings; a "
                           f"folder of {out.suffix} files without metadata.yaml is not one bag)")
-    for option, value in (("--calibration", args.calibration), ("--metadata", args.metadata)):
-        if value is not None and not Path(value).is_file():
-            raise FileNotFoundError(f"{option} {value}: no such file")
+    check_option_files(args)
     recordings = find_recordings(inputs, out)
     options = {k: v for k, v in vars(args).items() if k not in ("func", "input", "output")}
     if (args.jobs or os.cpu_count() or 1) > 1 or args.dask is not None:
@@ -635,14 +635,14 @@ def plan(args: argparse.Namespace, inputs: Sequence[str]) -> tuple[Path, list[Jo
                         options, str(found) if found else None,
                         {"input": str(rec.path.resolve()), "input_signature": sig,
                          "options": options_digest(options, cal)}))
-    return out, jobs
+    return jobs
 
 
 def run_fleet(args: argparse.Namespace, inputs: Sequence[str]) -> int:
     """Convert every recording of ``inputs`` into the folder OUT (module docstring)."""
     from converters.edge.cli.progress import FleetProgress, table
 
-    _, jobs = plan(args, inputs)
+    jobs = plan(args, inputs)
     if args.dask is not None:
         try:
             import distributed  # noqa: F401
