@@ -232,7 +232,7 @@ def _warm_codec() -> None:
 def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = None,
          slice_options: Mapping[str, Any] | None = None,
          cloud_options: Mapping[str, Any] | None = None, moving: bool = True,
-         compile: bool = True) -> dict[str, float]:
+         compile: bool = True, seconds: dict[str, float] | None = None) -> dict[str, float]:
     """Prepare the compiled kernels of ``tasks`` (a subset of :data:`TASKS`).
 
     Args:
@@ -246,6 +246,7 @@ def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = Non
             takes ``slice_options["backend"]``.
         moving: also the kernels of a moving mount (False: a fixed mount's only).
         compile: False: load numba's kernels from its cache only (nothing is compiled).
+        seconds: the dict to fill (the tasks done so far stay in it when one raises).
 
     Returns:
         task -> seconds it took (milliseconds when the cache is warm; seconds when numba
@@ -266,7 +267,7 @@ def warm(tasks: Iterable[str] = TASKS, *, slices: Mapping[str, Any] | None = Non
     for task in chosen:
         if task not in steps:
             raise ConfigError("warm task", task, f"one of {', '.join(TASKS)}")
-    seconds = {}
+    seconds = {} if seconds is None else seconds
     with contextlib.nullcontext() if compile else _cache_only():
         for task in chosen:
             start = time.perf_counter()
@@ -355,16 +356,20 @@ def prepare(tasks: Sequence[str], *, slices: Mapping[str, Any] | None = None,
     config = {"tasks": list(tasks), "slices": _plain(slices), "slice_options": dict(options),
               "cloud_options": dict(cloud_options or {}), "moving": moving}
     missing, filler = "", None
+    done: dict[str, float] = {}
     try:
         seconds = warm(tasks, slices=slices, slice_options=options,
                        cloud_options=cloud_options, moving=moving,
-                       compile=backend != "auto")
+                       compile=backend != "auto", seconds=done)
     except NotCached as err:
         missing, backend = str(err), "c"
-        # the C kernels load (ms); numpy, where they do not apply, needs no warm-up
+        # the C kernels load (ms); numpy, where they do not apply, needs no warm-up; the
+        # cloud's kernel (C only) is kept when it was warmed before the miss
         from converters._kernels import select
 
-        seconds = warm([t for t in tasks if t == "cloud"], cloud_options=cloud_options)
+        seconds = {t: s for t, s in done.items() if t == "cloud"}
+        if "cloud" in tasks and "cloud" not in seconds:
+            seconds.update(warm(["cloud"], cloud_options=cloud_options))
         for task in tasks:
             if task in ("slices", "merger"):
                 start = time.perf_counter()

@@ -206,7 +206,7 @@ def from_pointcloud2(cloud: Any, *, layout: str = "auto", time_field: str | None
         if paired is not None and _fits(paired[0], paired[1], paired[2]):
             (grid, fit, theta), fits = paired, True
     if not fits:
-        _refuse_fit(grid, fit, chosen, ring_name, time_name, theta)
+        _refuse_fit(grid, fit, chosen, ring_name, time_name)
     return _assemble(cloud, grid, fit, header_ns, stamp_ns, frame_id, as_dataclass, theta)
 
 
@@ -243,10 +243,10 @@ def _fits(grid: _Grid, fit: _Fit, pixel_theta: Any = None) -> bool:
 
 
 def _refuse_fit(grid: _Grid, fit: _Fit, layout: str, ring_name: str | None,
-                time_name: str | None, pixel_theta: Any = None) -> None:
+                time_name: str | None) -> None:
     """Raise (a grid that :func:`_fits` refused) instead of returning a scan that silently
     loses points or misplaces them: the error names the layouts tried and the figures."""
-    points, median = _fit_figures(grid, fit, pixel_theta)
+    points, median = _fit_figures(grid, fit)
     if layout == "organized":
         tried = "rows as beams (organized cloud), columns in cloud order"
     else:

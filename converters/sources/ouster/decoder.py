@@ -173,6 +173,8 @@ class PacketDecoder:
     # ------------------------------------------------------------------------------ frames
     def _check_sensor(self, init_id: int, serial: int) -> None:
         lay = self.layout
+        if lay.legacy:                  # no sensor ids in LEGACY packets (per packet: no array)
+            return
         if _foreign(lay, init_id, serial):
             raise InfoMismatchError(
                 "ouster packet sensor", f"init_id {init_id}, serial {serial}",
